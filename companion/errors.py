@@ -1,0 +1,46 @@
+"""The companion's error tree.
+
+::
+
+    MfcError
+    ├── ConfigError (also ValueError)  bad profile or controller file
+    ├── LinkError                      the MAVLink transport failed or was closed
+    │   └── SigningError               a signing key file is unusable
+    └── EngageError                    the autopilot refused engagement (ACK denied, timeout)
+
+A simulated flight's outcome (landed, crashed, failsafe) is a value, not an exception.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ConfigError", "EngageError", "LinkError", "MfcError", "SigningError"]
+
+
+class MfcError(Exception):
+    """Base of every error this package raises on purpose."""
+
+
+class ConfigError(MfcError, ValueError):
+    """A configuration file is unreadable or invalid.
+
+    The message names the file, the key path and what was expected, e.g.
+    ``vehicle_profiles/f450.yaml: physics.mass_kg: expected a number > 0, got -1.5``.
+    """
+
+    def __init__(self, path: str, problems: list[str]) -> None:
+        self.path = path
+        self.problems = list(problems)
+        lines = "\n".join(f"  {p}" for p in self.problems)
+        super().__init__(f"{path}: invalid configuration\n{lines}")
+
+
+class LinkError(MfcError):
+    """The MAVLink transport failed or was closed."""
+
+
+class SigningError(LinkError):
+    """A MAVLink 2 signing key file is missing or malformed."""
+
+
+class EngageError(MfcError):
+    """The autopilot refused or did not answer a step of engagement."""
