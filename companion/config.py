@@ -1,0 +1,214 @@
+"""Controller configuration files, and the one place that turns config into laws.
+
+A controller file is shared by every vehicle: it holds gains and stick curves,
+never a vehicle's numbers. :func:`build_controller` combines it with a
+vehicle profile's geometry (the mixer) and nothing else from the profile.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from companion._schema import StrictModel, load_yaml_model
+from companion.control import (
+    AxisRates,
+    MfcAxisGains,
+    MfcController,
+    MfcGains,
+    Mixer,
+    PidAxisGains,
+    PidController,
+    PidGains,
+    StickMap,
+)
+from companion.profile import VehicleProfile
+
+__all__ = [
+    "DEFAULT_CONTROLLER",
+    "PID_DEFAULT_CONTROLLER",
+    "MfcConfig",
+    "PidConfig",
+    "build_controller",
+    "build_mixer",
+    "build_stick_map",
+    "load_controller",
+]
+
+DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "mfc_table1.yaml"))
+PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default.yaml"))
+
+
+class AxisRatesConfig(StrictModel):
+    curve: Literal["linear", "betaflight"] = "linear"
+    max_deg_s: float = Field(720.0, gt=0.0, le=2000.0)
+    rc_rate: float = Field(1.0, gt=0.0, le=3.0)
+    super_rate: float = Field(0.7, ge=0.0, lt=1.0)
+    expo: float = Field(0.0, ge=0.0, le=1.0)
+
+
+class SticksConfig(StrictModel):
+    channels: tuple[int, int, int, int] = (1, 2, 3, 4)
+    roll: AxisRatesConfig = AxisRatesConfig(max_deg_s=720.0)
+    pitch: AxisRatesConfig = AxisRatesConfig(max_deg_s=720.0)
+    yaw: AxisRatesConfig = AxisRatesConfig(max_deg_s=360.0)
+    deadband_us: float = Field(0.0, ge=0.0, le=100.0)
+
+    @model_validator(mode="after")
+    def _channels(self) -> SticksConfig:
+        if len(set(self.channels)) != 4 or not all(1 <= c <= 18 for c in self.channels):
+            raise ValueError("channels: expected four distinct channel numbers in 1..18")
+        return self
+
+
+class MfcAxisConfig(StrictModel):
+    order: Literal[1, 2]
+    alpha: float = Field(description="(rad/s^m) per us; non-zero")
+    window_s: float = Field(gt=0.0, le=0.5)
+    kp: float = Field(ge=0.0, le=1000.0)
+    kd: float = Field(0.0, ge=0.0, le=100.0)
+    output_limit_us: float = Field(500.0, gt=0.0, le=1000.0)
+    error_limit_rad: float = Field(0.5, gt=0.0, le=3.2)
+    estimator: Literal["window", "algebraic"] = "window"
+
+    @model_validator(mode="after")
+    def _alpha(self) -> MfcAxisConfig:
+        if not (1e-6 <= abs(self.alpha) <= 1e6):
+            raise ValueError("alpha: expected a non-zero magnitude in [1e-6, 1e6]")
+        return self
+
+
+class MfcAxes(StrictModel):
+    roll: MfcAxisConfig
+    pitch: MfcAxisConfig
+    yaw: MfcAxisConfig
+
+
+class PidAxisConfig(StrictModel):
+    kp: float = Field(ge=0.0, le=10.0)
+    ki: float = Field(ge=0.0, le=10.0)
+    kd: float = Field(ge=0.0, le=1.0)
+    kff: float = Field(0.0, ge=0.0, le=10.0)
+    i_limit: float = Field(0.3, ge=0.0, le=1.0)
+    d_lpf_hz: float = Field(20.0, gt=0.0, le=1000.0)
+
+
+class PidAxes(StrictModel):
+    roll: PidAxisConfig
+    pitch: PidAxisConfig
+    yaw: PidAxisConfig
+
+
+class _LoopConfig(StrictModel):
+    dt_min_s: float = Field(0.000125, gt=0.0, le=0.01)
+    dt_max_s: float = Field(0.02, gt=0.0, le=0.1)
+    sticks: SticksConfig = SticksConfig()
+
+    @model_validator(mode="after")
+    def _dt(self) -> _LoopConfig:
+        if self.dt_min_s >= self.dt_max_s:
+            raise ValueError("dt_min_s must be below dt_max_s")
+        return self
+
+
+class MfcConfig(_LoopConfig):
+    kind: Literal["mfc"]
+    command_full_scale_us: float = Field(500.0, gt=0.0, le=1000.0)
+    prefilter_hz: float | None = Field(20.0, gt=0.0, le=500.0)
+    axes: MfcAxes
+
+
+class PidConfig(_LoopConfig):
+    kind: Literal["pid"]
+    axes: PidAxes
+
+
+def load_controller(path: str | Path = DEFAULT_CONTROLLER) -> MfcConfig | PidConfig:
+    """Load and validate a controller file.
+
+    Raises
+    ------
+    companion.errors.ConfigError
+        Naming the file and the key path of every problem.
+    """
+    import yaml
+
+    from companion.errors import ConfigError
+
+    p = Path(path)
+    # Validate through the wrapper but report paths as the user wrote them.
+    try:
+        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError(str(p), [f"cannot read file: {exc.strerror or exc}"]) from exc
+    except yaml.YAMLError as exc:
+        raise ConfigError(str(p), [f"not valid YAML: {exc}"]) from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(str(p), ["(top level): expected a mapping of keys"])
+    if raw.get("kind") not in ("mfc", "pid"):
+        raise ConfigError(str(p), [f"kind: expected 'mfc' or 'pid', got {raw.get('kind')!r}"])
+    if raw["kind"] == "mfc":
+        return load_yaml_model(p, MfcConfig)
+    return load_yaml_model(p, PidConfig)
+
+
+def build_mixer(profile: VehicleProfile) -> Mixer:
+    """The mixer from the profile's geometry (never its physics)."""
+    return Mixer.from_geometry(
+        [m.position_frd_m for m in profile.frame.motors],
+        [m.spin for m in profile.frame.motors],
+        idle=profile.limits.motor_idle,
+    )
+
+
+def build_stick_map(cfg: MfcConfig | PidConfig) -> StickMap:
+    s = cfg.sticks
+
+    def axis(a: AxisRatesConfig) -> AxisRates:
+        return AxisRates(a.curve, a.max_deg_s, a.rc_rate, a.super_rate, a.expo)
+
+    return StickMap(axis(s.roll), axis(s.pitch), axis(s.yaw), s.channels, s.deadband_us)
+
+
+def mfc_gains(cfg: MfcConfig) -> MfcGains:
+    def axis(a: MfcAxisConfig) -> MfcAxisGains:
+        return MfcAxisGains(
+            order=a.order,
+            alpha=a.alpha,
+            window_s=a.window_s,
+            kp=a.kp,
+            kd=a.kd,
+            output_limit=a.output_limit_us,
+            error_limit_rad=a.error_limit_rad,
+            estimator=a.estimator,
+        )
+
+    return MfcGains(
+        roll=axis(cfg.axes.roll),
+        pitch=axis(cfg.axes.pitch),
+        yaw=axis(cfg.axes.yaw),
+        command_full_scale=cfg.command_full_scale_us,
+        prefilter_hz=cfg.prefilter_hz,
+        dt_min_s=cfg.dt_min_s,
+        dt_max_s=cfg.dt_max_s,
+    )
+
+
+def pid_gains(cfg: PidConfig) -> PidGains:
+    def axis(a: PidAxisConfig) -> PidAxisGains:
+        return PidAxisGains(a.kp, a.ki, a.kd, a.kff, a.i_limit, a.d_lpf_hz)
+
+    return PidGains(axis(cfg.axes.roll), axis(cfg.axes.pitch), axis(cfg.axes.yaw))
+
+
+def build_controller(
+    cfg: MfcConfig | PidConfig, profile: VehicleProfile
+) -> MfcController | PidController:
+    """Turn a controller config and a vehicle's geometry into a rate controller."""
+    mixer = build_mixer(profile)
+    if isinstance(cfg, MfcConfig):
+        return MfcController(mfc_gains(cfg), mixer)
+    return PidController(pid_gains(cfg), mixer, dt_min_s=cfg.dt_min_s, dt_max_s=cfg.dt_max_s)

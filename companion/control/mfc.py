@@ -1,0 +1,477 @@
+r"""Intelligent controllers (iP, iPD) and the paper's three-axis MFC assembly.
+
+Unit convention under which Table I is used
+-------------------------------------------
+* ``y`` is the body-axis angle in **radians** (the integral of the gyro rate),
+  so :math:`\dot y` is the gyro rate in rad/s and the pilot's rate command is
+  :math:`\dot y_r`;
+* ``u`` is in **PWM microseconds of differential motor command** about the
+  throttle point, as in the paper's mixer (equation (motors)) on an 8-bit
+  flight controller driving 1000-2000 us ESCs. A full-scale normalised torque
+  of 1 is 500 us (one motor at the top of its range, its opposite at the
+  bottom, at mid throttle).
+
+Why this reading: the paper asks that :math:`y^{(m)}`, ``F`` and
+:math:`\alpha u` be "of the same order of magnitude" with :math:`\alpha = 1`.
+For an F450 or a Tarot 650 one microsecond of differential command gives
+about 0.2-0.35 rad/s^2 of angular acceleration: the same order as 1. In
+deg/s it would be 13-18 deg/s^2 per us, a ratio the ``alpha``-mismatched
+estimator loop cannot absorb (it limit-cycles: see
+``tests/control/test_table1_units.py``).
+
+Laws (the paper's equations (ipd) and (ip))
+-------------------------------------------
+.. math::
+    \text{iPD } (m = 2):\; u = -\frac{\hat F - \ddot y_r + K_P e + K_D \dot e}{\alpha},
+    \qquad
+    \text{iP } (m = 1):\; u = -\frac{\hat F - \dot y_r + K_P e}{\alpha}
+
+with :math:`e = y - y_r = \int (\omega - \omega_r)\,dt` (clamped to
+``error_limit_rad`` so a long saturation does not leave a large angle to
+catch up) and :math:`\dot e = \omega - \omega_r`. There is no integrator of
+the command to wind up: ``u`` is recomputed from scratch every sample, and
+``F`` is learnt from the command that was really applied.
+
+Reference derivatives
+---------------------
+The pilot's rate :math:`\omega_r` goes through a critically damped
+second-order prefilter (natural frequency ``prefilter_hz``), discretised
+exactly for a held input, which yields the filtered rate and its derivative
+:math:`\ddot y_r` without differentiating a stepwise stick signal. With the
+prefilter off, :math:`\ddot y_r` is the backward difference of the raw
+reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+from companion.control.estimator import FEstimator, make_estimator
+from companion.control.mixer import Mixer
+from companion.control.pid import PidGains, RatePid
+
+__all__ = [
+    "ControlOutput",
+    "IntelligentController",
+    "MfcAxisGains",
+    "MfcController",
+    "MfcGains",
+    "PidController",
+    "ReferencePrefilter",
+]
+
+Vec3 = tuple[float, float, float]
+_ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class MfcAxisGains:
+    r"""One axis of the MFC controller (one row of Table I plus limits).
+
+    Attributes
+    ----------
+    order
+        ``m``: 2 for iPD, 1 for iP.
+    alpha
+        :math:`\alpha`, (rad/s^m) per command unit (us).
+    window_s
+        Estimation window ``T``, s.
+    kp, kd
+        Feedback gains, 1/s^m and 1/s^(m-1) (``kd`` unused when ``m = 1``).
+    output_limit
+        Saturation of ``u``, command units (us).
+    error_limit_rad
+        Bound on ``|e|``, rad.
+    estimator
+        ``"window"`` (the paper's average) or ``"algebraic"``.
+    """
+
+    order: int
+    alpha: float
+    window_s: float
+    kp: float
+    kd: float = 0.0
+    output_limit: float = 500.0
+    error_limit_rad: float = 0.5
+    estimator: Literal["window", "algebraic"] = "window"
+
+    def __post_init__(self) -> None:
+        if self.order not in (1, 2):
+            raise ValueError(f"order must be 1 or 2, got {self.order}")
+        for name in ("alpha", "window_s", "kp", "kd", "output_limit", "error_limit_rad"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise ValueError(f"{name} must be finite, got {v}")
+        if self.alpha == 0.0 or self.window_s <= 0.0 or self.output_limit <= 0.0:
+            raise ValueError("alpha must be non-zero; window_s and output_limit positive")
+
+
+@dataclass(frozen=True)
+class MfcGains:
+    """The three axes plus shared settings; Table I by default."""
+
+    roll: MfcAxisGains = field(
+        default_factory=lambda: MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=3.0, kd=0.096)
+    )
+    pitch: MfcAxisGains = field(
+        default_factory=lambda: MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=2.7, kd=0.096)
+    )
+    yaw: MfcAxisGains = field(
+        default_factory=lambda: MfcAxisGains(
+            order=1, alpha=1.0, window_s=0.02, kp=2.7, output_limit=250.0
+        )
+    )
+    command_full_scale: float = 500.0
+    """Command units (us) that make a normalised torque of 1."""
+    prefilter_hz: float | None = 20.0
+    dt_min_s: float = 0.000125
+    dt_max_s: float = 0.02
+
+    def axes(self) -> tuple[MfcAxisGains, MfcAxisGains, MfcAxisGains]:
+        return (self.roll, self.pitch, self.yaw)
+
+
+class ReferencePrefilter:
+    r"""Critically damped 2nd-order filters giving a smooth reference and its derivative.
+
+    One filter per axis, sharing the natural frequency
+    :math:`\omega_n = 2 \pi f_c`:
+    :math:`\ddot x = \omega_n^2 (r - x) - 2 \omega_n \dot x`, discretised
+    exactly for ``r`` held over the step (unconditionally stable for any dt):
+    with :math:`z = x - r` and :math:`c = \dot z_0 + \omega_n z_0`,
+    :math:`z(t) = (z_0 + c t) e^{-\omega_n t}` and
+    :math:`\dot z(t) = (\dot z_0 - \omega_n c t) e^{-\omega_n t}`.
+    The first sample initialises the output to the input, at rest.
+    """
+
+    __slots__ = ("_dt_last", "_ex", "_primed", "_v0", "_v1", "_v2", "_wn", "_x0", "_x1", "_x2")
+
+    def __init__(self, cutoff_hz: float) -> None:
+        if not (math.isfinite(cutoff_hz) and cutoff_hz > 0.0):
+            raise ValueError(f"cutoff_hz must be > 0, got {cutoff_hz!r}")
+        self._wn = 2.0 * math.pi * cutoff_hz
+        self._dt_last = -1.0
+        self._ex = 0.0
+        self.reset()
+
+    def reset(self) -> None:
+        self._x0 = self._x1 = self._x2 = 0.0
+        self._v0 = self._v1 = self._v2 = 0.0
+        self._primed = False
+
+    def update(self, dt_s: float, target: Vec3) -> tuple[Vec3, Vec3]:
+        """Advance by ``dt_s`` toward ``target``; returns (reference, its derivative)."""
+        r0, r1, r2, d0, d1, d2 = self.step(dt_s, target[0], target[1], target[2])
+        return (r0, r1, r2), (d0, d1, d2)
+
+    @property
+    def rate(self) -> Vec3:
+        return (self._x0, self._x1, self._x2)
+
+    @property
+    def rate_dot(self) -> Vec3:
+        return (self._v0, self._v1, self._v2)
+
+    def step(
+        self, dt_s: float, t0: float, t1: float, t2: float
+    ) -> tuple[float, float, float, float, float, float]:
+        """:meth:`update` with flat arguments and result, for the per-sample path."""
+        if not self._primed:
+            self._primed = True
+            self._x0, self._x1, self._x2 = t0, t1, t2
+            self._v0 = self._v1 = self._v2 = 0.0
+            return t0, t1, t2, 0.0, 0.0, 0.0
+        wn = self._wn
+        if dt_s != self._dt_last:  # the loop usually runs at a fixed rate
+            self._dt_last = dt_s
+            self._ex = math.exp(-wn * dt_s)
+        ex = self._ex
+        v0 = self._v0
+        v1 = self._v1
+        v2 = self._v2
+        # Unrolled over the three axes: this runs once per IMU sample.
+        z0 = self._x0 - t0
+        z1 = self._x1 - t1
+        z2 = self._x2 - t2
+        c0 = v0 + wn * z0
+        c1 = v1 + wn * z1
+        c2 = v2 + wn * z2
+        wdt = wn * dt_s
+        self._x0 = x0 = t0 + (z0 + c0 * dt_s) * ex
+        self._x1 = x1 = t1 + (z1 + c1 * dt_s) * ex
+        self._x2 = x2 = t2 + (z2 + c2 * dt_s) * ex
+        self._v0 = v0 = (v0 - wdt * c0) * ex
+        self._v1 = v1 = (v1 - wdt * c1) * ex
+        self._v2 = v2 = (v2 - wdt * c2) * ex
+        return x0, x1, x2, v0, v1, v2
+
+
+class IntelligentController:
+    """One axis: iPD (``order = 2``) or iP (``order = 1``) with its ``F`` estimator."""
+
+    __slots__ = (
+        "_alpha",
+        "_e_lim",
+        "_est",
+        "_est_update",
+        "_kd",
+        "_kp",
+        "_lim",
+        "_order",
+        "e",
+        "e_dot",
+        "f_hat",
+        "u_prev",
+    )
+
+    def __init__(self, gains: MfcAxisGains) -> None:
+        self._order = gains.order
+        self._alpha = gains.alpha
+        self._kp = gains.kp
+        self._kd = gains.kd
+        self._lim = gains.output_limit
+        self._e_lim = gains.error_limit_rad
+        self._est: FEstimator = make_estimator(
+            gains.estimator, gains.order, gains.alpha, gains.window_s
+        )
+        self._est_update = self._est.update
+        self.f_hat = 0.0
+        self.e = 0.0
+        self.e_dot = 0.0
+        self.u_prev = 0.0
+
+    def reset(self) -> None:
+        self._est.reset()
+        self.f_hat = 0.0
+        self.e = 0.0
+        self.e_dot = 0.0
+        self.u_prev = 0.0
+
+    def update(self, dt_s: float, rate: float, ref_rate: float, ref_rate_dot: float) -> float:
+        r"""Return the saturated command for this sample.
+
+        Parameters
+        ----------
+        dt_s
+            Time since the previous sample, s.
+        rate
+            Measured body rate :math:`\dot y`, rad/s.
+        ref_rate, ref_rate_dot
+            :math:`\dot y_r` (rad/s) and :math:`\ddot y_r` (rad/s^2).
+        """
+        self.f_hat = f_hat = self._est_update(dt_s, rate, self.u_prev)
+        e_dot = rate - ref_rate
+        e = self.e + e_dot * dt_s
+        lim = self._e_lim
+        e = lim if e > lim else (-lim if e < -lim else e)
+        self.e = e
+        self.e_dot = e_dot
+        if self._order == 2:
+            u = -(f_hat - ref_rate_dot + self._kp * e + self._kd * e_dot) / self._alpha
+        else:
+            u = -(f_hat - ref_rate + self._kp * e) / self._alpha
+        lim = self._lim
+        u = lim if u > lim else (-lim if u < -lim else u)
+        self.u_prev = u
+        return u
+
+
+class ControlOutput(NamedTuple):
+    """What a rate controller produced for one sample."""
+
+    torque: Vec3
+    """Normalised roll/pitch/yaw torque realised by the mixer, [-1, 1]."""
+    thrust: float
+    """Collective realised by the mixer, [0, 1]."""
+    motors: tuple[float, ...]
+    """Per-motor commands, [idle, 1]."""
+    saturated_axes: tuple[bool, bool, bool]
+    saturated_motors: tuple[bool, ...]
+    u: Vec3
+    """Law outputs before mixing, in the law's command units."""
+    f_hat: Vec3
+    """Estimates of F (rad/s^m); zeros for the PID."""
+    error: Vec3
+    """Rate tracking error omega - omega_r against the (filtered) reference, rad/s."""
+    held: bool
+    """True when this output repeats the last valid one (non-finite input)."""
+
+
+def _hold_output(last: ControlOutput | None, mixer: Mixer) -> ControlOutput:
+    if last is None:
+        mix = mixer.mix(0.0, 0.0, 0.0, 0.0)
+        return ControlOutput(
+            _ZERO3, mix.thrust, mix.motors, (False,) * 3, mix.saturated_motors, _ZERO3, _ZERO3,
+            _ZERO3, True,
+        )  # fmt: skip
+    return last._replace(held=True)
+
+
+_new_tuple = tuple.__new__  # see companion.control.mixer: cheaper than NamedTuple(...)
+_isfinite = math.isfinite
+
+
+def _all_finite(dt_s: float, a: Vec3, b: Vec3, thrust: float) -> bool:
+    # Summing is the cheapest finiteness test: inf/nan anywhere poisons the sum.
+    return math.isfinite(dt_s + a[0] + a[1] + a[2] + b[0] + b[1] + b[2] + thrust)
+
+
+class MfcController:
+    """Roll iPD, pitch iPD, yaw iP, saturated and mixed: the paper's scheme.
+
+    Parameters
+    ----------
+    gains
+        The controller configuration (Table I by default).
+    mixer
+        Motor allocation from the vehicle's geometry (or the paper's equation).
+    """
+
+    def __init__(self, gains: MfcGains, mixer: Mixer) -> None:
+        self.gains = gains
+        self.mixer = mixer
+        self._axes = tuple(IntelligentController(g) for g in gains.axes())
+        self._filter = ReferencePrefilter(gains.prefilter_hz) if gains.prefilter_hz else None
+        self._prev_ref: Vec3 | None = None
+        self._full_scale = gains.command_full_scale
+        self._scale = 1.0 / gains.command_full_scale
+        self._dt_min = gains.dt_min_s
+        self._dt_max = gains.dt_max_s
+        self._mix = mixer.mix
+        self._last: ControlOutput | None = None
+        self.nonfinite_events = 0
+        self.dt_clamped_events = 0
+
+    def reset(self) -> None:
+        """Forget all state (call on disarm or hand-back)."""
+        for a in self._axes:
+            a.reset()
+        if self._filter is not None:
+            self._filter.reset()
+        self._prev_ref = None
+        self._last = None
+
+    def update(
+        self, dt_s: float, rate_frd_rad_s: Vec3, rate_ref_rad_s: Vec3, thrust: float
+    ) -> ControlOutput:
+        """One control update from one IMU sample.
+
+        Parameters
+        ----------
+        dt_s
+            Time since the previous sample (from sample timestamps), s; clamped
+            to ``[dt_min_s, dt_max_s]``.
+        rate_frd_rad_s
+            Measured body rates, rad/s.
+        rate_ref_rad_s
+            Pilot's body-rate command, rad/s.
+        thrust
+            Pilot's collective, [0, 1].
+        """
+        w0, w1, w2 = rate_frd_rad_s
+        q0, q1, q2 = rate_ref_rad_s
+        # One sum tests everything: a nan or inf anywhere poisons it (so does
+        # an absurd magnitude near 1e308, which is no valid rate either).
+        if not _isfinite(dt_s + w0 + w1 + w2 + q0 + q1 + q2 + thrust):
+            self.nonfinite_events += 1
+            return _hold_output(self._last, self.mixer)
+        if dt_s < self._dt_min or dt_s > self._dt_max:
+            self.dt_clamped_events += 1
+            dt_s = self._dt_min if dt_s < self._dt_min else self._dt_max
+        if self._filter is not None:
+            r0, r1, r2, d0, d1, d2 = self._filter.step(dt_s, q0, q1, q2)
+        else:
+            r0, r1, r2 = q0, q1, q2
+            prev = self._prev_ref
+            if prev is None:
+                d0 = d1 = d2 = 0.0
+            else:
+                d0 = (r0 - prev[0]) / dt_s
+                d1 = (r1 - prev[1]) / dt_s
+                d2 = (r2 - prev[2]) / dt_s
+            self._prev_ref = rate_ref_rad_s
+        a0, a1, a2 = self._axes
+        u0 = a0.update(dt_s, w0, r0, d0)
+        u1 = a1.update(dt_s, w1, r1, d1)
+        u2 = a2.update(dt_s, w2, r2, d2)
+        s = self._scale
+        motors, achieved, sat_axes, sat_motors, thrust_eff = self._mix(
+            thrust, u0 * s, u1 * s, u2 * s
+        )
+        # Teach the estimators what was applied, not what was asked.
+        fs = self._full_scale
+        a0.u_prev = achieved[0] * fs
+        a1.u_prev = achieved[1] * fs
+        a2.u_prev = achieved[2] * fs
+        out: ControlOutput = _new_tuple(
+            ControlOutput,
+            (
+                achieved,
+                thrust_eff,
+                motors,
+                sat_axes,
+                sat_motors,
+                (u0, u1, u2),
+                (a0.f_hat, a1.f_hat, a2.f_hat),
+                (a0.e_dot, a1.e_dot, a2.e_dot),
+                False,
+            ),
+        )
+        self._last = out
+        return out
+
+
+class PidController:
+    """The PX4-style PID with the same interface as :class:`MfcController`."""
+
+    def __init__(
+        self, gains: PidGains, mixer: Mixer, *, dt_min_s: float = 0.000125, dt_max_s: float = 0.02
+    ) -> None:
+        self.gains = gains
+        self.mixer = mixer
+        self._pid = RatePid(gains)
+        self._dt_min = dt_min_s
+        self._dt_max = dt_max_s
+        self._last: ControlOutput | None = None
+        self._sat_pos = (False, False, False)
+        self._sat_neg = (False, False, False)
+        self.nonfinite_events = 0
+        self.dt_clamped_events = 0
+
+    def reset(self) -> None:
+        self._pid.reset()
+        self._last = None
+        self._sat_pos = self._sat_neg = (False, False, False)
+
+    def update(
+        self, dt_s: float, rate_frd_rad_s: Vec3, rate_ref_rad_s: Vec3, thrust: float
+    ) -> ControlOutput:
+        """Same contract as :meth:`MfcController.update`."""
+        if not _all_finite(dt_s, rate_frd_rad_s, rate_ref_rad_s, thrust):
+            self.nonfinite_events += 1
+            return _hold_output(self._last, self.mixer)
+        if dt_s < self._dt_min or dt_s > self._dt_max:
+            self.dt_clamped_events += 1
+            dt_s = self._dt_min if dt_s < self._dt_min else self._dt_max
+        u = self._pid.update(dt_s, rate_ref_rad_s, rate_frd_rad_s, self._sat_pos, self._sat_neg)
+        mix = self.mixer.mix(thrust, u[0], u[1], u[2])
+        sat = mix.saturated_axes
+        self._sat_pos = (sat[0] and u[0] > 0, sat[1] and u[1] > 0, sat[2] and u[2] > 0)
+        self._sat_neg = (sat[0] and u[0] < 0, sat[1] and u[1] < 0, sat[2] and u[2] < 0)
+        r = rate_ref_rad_s
+        w = rate_frd_rad_s
+        out = ControlOutput(
+            mix.achieved,
+            mix.thrust,
+            mix.motors,
+            sat,
+            mix.saturated_motors,
+            u,
+            _ZERO3,
+            (w[0] - r[0], w[1] - r[1], w[2] - r[2]),
+            False,
+        )
+        self._last = out
+        return out
