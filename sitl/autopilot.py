@@ -1,0 +1,756 @@
+"""The PX4-like autopilot logic of the SITL: modes, arming, offboard rules, failsafe, loops.
+
+No sockets and no clock live here: :class:`Autopilot` is driven by the simulation
+loop (``sitl.runner``) with simulation time, and the MAVLink face
+(``sitl.mavlink_face``) turns messages into calls on it. That keeps every rule
+testable without a network.
+
+Modes (PX4 ``custom_mode``: main mode in bits 16-23, sub mode in bits 24-31)
+-----------------------------------------------------------------------------
+========== ==== =====================================================================
+mode       main what this autopilot does
+========== ==== =====================================================================
+MANUAL     1    stabilized from the sticks (what PX4 MANUAL does on a multicopter)
+ALTCTL     2    same as STABILIZED here (no altitude hold: documented simplification)
+POSCTL     3    same as STABILIZED here
+AUTO       4    sub 3 LOITER (HOLD): level, hold climb rate 0 (test stand: level only);
+                sub 6 LAND: level, descend at ``land_speed_m_s``, disarm when landed
+ACRO       5    body rates from the sticks through the rate loop
+OFFBOARD   6    follows the companion's setpoints (actuator controls or body rates)
+STABILIZED 7    roll/pitch angle and yaw rate from the sticks
+========== ==== =====================================================================
+
+Offboard rules (as PX4)
+-----------------------
+* Switching to OFFBOARD is refused with ``MAV_RESULT_TEMPORARILY_REJECTED`` unless a
+  setpoint arrived within ``offboard_entry_window_s`` (0.5 s: the ">= 2 Hz" rule).
+* In OFFBOARD, if no setpoint arrives for ``offboard_timeout_s`` the vehicle fails
+  safe. Default 1.0 s, PX4's ``COM_OF_LOSS_T`` default since v1.9 (commander_params.c;
+  older releases had 0). In free flight it switches to AUTO LAND (main 4, sub 6):
+  level and descend, then disarm on touchdown. On the test stand it switches to
+  AUTO LOITER (main 4, sub 3): hold level with the last offboard thrust, clamped to
+  [``failsafe_thrust_min``, hover thrust].
+* Actuator setpoints (``SET_ACTUATOR_CONTROL_TARGET`` group 0, PX4 <= 1.13) are
+  mixed directly; body-rate setpoints (``SET_ATTITUDE_TARGET`` with ``type_mask``
+  bit 128) go through the internal rate loop first (PX4 >= 1.14). Non-finite
+  setpoints are ignored and counted (:attr:`Autopilot.rejected_setpoints`).
+
+Arming rules
+------------
+* Arming is ``DENIED`` when the vehicle has crashed.
+* Arming while not landed is ``DENIED`` except in OFFBOARD (a hand-over in flight).
+* Arming in OFFBOARD is ``DENIED`` without recent setpoints.
+* Disarming in the air is ``DENIED`` unless forced (param2 = 21196, as PX4).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, Literal
+
+from companion.control.mixer import Mixer
+from companion.control.pid import PX4_DEFAULT_GAINS, RatePid
+from companion.profile import VehicleProfile
+
+__all__ = [
+    "AUTO_SUB_LAND",
+    "AUTO_SUB_LOITER",
+    "FORCE_DISARM_MAGIC",
+    "MODE_LAND",
+    "MODE_LOITER",
+    "MODE_OFFBOARD",
+    "Autopilot",
+    "AutopilotConfig",
+    "Event",
+    "FlightMode",
+    "MainMode",
+    "MavResult",
+    "MessageStreams",
+    "StreamSpec",
+    "mode_name",
+    "pack_custom_mode",
+    "unpack_custom_mode",
+]
+
+logger = logging.getLogger(__name__)
+
+FORCE_DISARM_MAGIC = 21196
+"""``MAV_CMD_COMPONENT_ARM_DISARM`` param2 that forces a disarm in the air (PX4)."""
+
+
+class MainMode(IntEnum):
+    """PX4 main modes (``px4_custom_mode.h``)."""
+
+    MANUAL = 1
+    ALTCTL = 2
+    POSCTL = 3
+    AUTO = 4
+    ACRO = 5
+    OFFBOARD = 6
+    STABILIZED = 7
+
+
+AUTO_SUB_LOITER = 3
+"""PX4 AUTO sub mode LOITER (shown as HOLD by MAVSDK/QGC)."""
+AUTO_SUB_LAND = 6
+"""PX4 AUTO sub mode LAND."""
+
+_AUTO_SUB_NAMES = {
+    2: "TAKEOFF",
+    3: "LOITER",
+    4: "MISSION",
+    5: "RTL",
+    6: "LAND",
+    7: "RTGS",
+    8: "FOLLOWME",
+}
+
+
+class MavResult(IntEnum):
+    """``MAV_RESULT`` values used in ``COMMAND_ACK``."""
+
+    ACCEPTED = 0
+    TEMPORARILY_REJECTED = 1
+    DENIED = 2
+    UNSUPPORTED = 3
+    FAILED = 4
+
+
+def pack_custom_mode(main: int, sub: int = 0) -> int:
+    """PX4 ``custom_mode``: ``main << 16 | sub << 24``.
+
+    Raises
+    ------
+    ValueError
+        If ``main`` or ``sub`` does not fit in a byte.
+    """
+    if not (0 <= main <= 255 and 0 <= sub <= 255):
+        raise ValueError(f"expected main and sub modes in 0..255, got {main}, {sub}")
+    return (main << 16) | (sub << 24)
+
+
+def unpack_custom_mode(custom_mode: int) -> tuple[int, int]:
+    """Split a PX4 ``custom_mode`` into ``(main, sub)``."""
+    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+
+
+def mode_name(main: int, sub: int = 0) -> str:
+    """Mode name as pymavlink's ``mode_string_v10`` spells PX4 modes.
+
+    ``"OFFBOARD"``, ``"MANUAL"``...; AUTO sub modes by their own name (``"LAND"``,
+    ``"LOITER"``); anything else ``"UNKNOWN"``.
+    """
+    if main == MainMode.AUTO:
+        return _AUTO_SUB_NAMES.get(sub, "UNKNOWN")
+    try:
+        return MainMode(main).name
+    except ValueError:
+        return "UNKNOWN"
+
+
+@dataclass(frozen=True)
+class FlightMode:
+    """A PX4 mode as a (main, sub) pair."""
+
+    main: int
+    sub: int = 0
+
+    @property
+    def custom_mode(self) -> int:
+        return pack_custom_mode(self.main, self.sub)
+
+    @property
+    def name(self) -> str:
+        return mode_name(self.main, self.sub)
+
+
+MODE_OFFBOARD = FlightMode(MainMode.OFFBOARD)
+MODE_LAND = FlightMode(MainMode.AUTO, AUTO_SUB_LAND)
+MODE_LOITER = FlightMode(MainMode.AUTO, AUTO_SUB_LOITER)
+
+_STICK_MODES = {
+    MainMode.MANUAL,
+    MainMode.ALTCTL,
+    MainMode.POSCTL,
+    MainMode.ACRO,
+    MainMode.STABILIZED,
+}
+
+
+@dataclass(frozen=True)
+class AutopilotConfig:
+    """Tunables of the simulated autopilot (PX4 parameter names in the docs).
+
+    Attributes
+    ----------
+    offboard_timeout_s
+        ``COM_OF_LOSS_T``: setpoint silence in OFFBOARD before failsafe (PX4 default 1.0 s).
+    offboard_entry_window_s
+        A setpoint must be this recent to enter OFFBOARD (PX4 wants >= 2 Hz).
+    test_stand
+        The vehicle is on a test stand: the failsafe holds level instead of landing.
+    hover_thrust
+        Normalised collective thrust that hovers (``MPC_THR_HOVER``), used by the
+        LAND/LOITER vertical loop and the test-stand failsafe.
+    acro_rate_max_rad_s
+        Full-stick body rates in ACRO (roll, pitch, yaw); the same linear map as the
+        simulated pilot (``sitl.pilot``: 720, 720, 360 deg/s, ch2 > 1500 µs = nose up).
+    tilt_max_rad
+        Full-stick tilt in the stabilized modes (``MPC_MAN_TILT_MAX``, 35 deg).
+    yaw_rate_max_rad_s
+        Full-stick yaw rate in the stabilized modes (``MPC_MAN_Y_MAX``, 150 deg/s).
+    attitude_p
+        Attitude P gains roll, pitch (``MC_ROLL_P``, ``MC_PITCH_P``: 6.5), rad/s per rad.
+    attitude_rate_max_rad_s
+        Rate setpoint limit of the attitude loop (``MC_ROLLRATE_MAX`` 220 deg/s).
+    land_speed_m_s
+        Descent speed in AUTO LAND (``MPC_LAND_SPEED`` 0.7 m/s).
+    climb_p, climb_i
+        Vertical-speed loop gains, normalised thrust per m/s (and per m).
+    failsafe_thrust_min
+        Lowest thrust of the test-stand hold.
+    """
+
+    offboard_timeout_s: float = 1.0
+    offboard_entry_window_s: float = 0.5
+    test_stand: bool = False
+    hover_thrust: float = 0.5
+    acro_rate_max_rad_s: tuple[float, float, float] = (
+        math.radians(720.0),
+        math.radians(720.0),
+        math.radians(360.0),
+    )
+    tilt_max_rad: float = math.radians(35.0)
+    yaw_rate_max_rad_s: float = math.radians(150.0)
+    attitude_p: tuple[float, float] = (6.5, 6.5)
+    attitude_rate_max_rad_s: float = math.radians(220.0)
+    land_speed_m_s: float = 0.7
+    climb_p: float = 0.25
+    climb_i: float = 0.1
+    failsafe_thrust_min: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (self.offboard_timeout_s > 0.0 and math.isfinite(self.offboard_timeout_s)):
+            raise ValueError(f"offboard_timeout_s must be > 0, got {self.offboard_timeout_s}")
+        if not 0.0 < self.hover_thrust < 1.0:
+            raise ValueError(f"hover_thrust must be in (0, 1), got {self.hover_thrust}")
+
+
+@dataclass
+class _Setpoint:
+    kind: Literal["actuator", "rates"]
+    t_s: float
+    values: tuple[float, float, float, float]  # (roll, pitch, yaw, thrust)
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something that happened, for the log (mode change, arm, failsafe...)."""
+
+    t_s: float
+    kind: str
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    return lo if x < lo else hi if x > hi else x
+
+
+def _stick(us: float) -> float:
+    """Centred stick in µs (1000..2000) -> [-1, 1]."""
+    return _clip((us - 1500.0) / 500.0, -1.0, 1.0)
+
+
+def _throttle(us: float) -> float:
+    """Throttle stick in µs (1000..2000) -> [0, 1]."""
+    return _clip((us - 1000.0) / 1000.0, 0.0, 1.0)
+
+
+class Autopilot:
+    """A PX4-like multicopter autopilot: commander + rate loop + allocation.
+
+    Parameters
+    ----------
+    profile
+        The vehicle; its frame makes the mixer (``physics.mixer`` picks geometry or
+        the paper's '+' mixer) and ``limits`` gives the idle and the rate limits.
+    config
+        Tunables, see :class:`AutopilotConfig`.
+    initial_mode
+        Mode at boot (PX4 SITL boots disarmed in a manual mode).
+    """
+
+    def __init__(
+        self,
+        profile: VehicleProfile,
+        config: AutopilotConfig | None = None,
+        *,
+        initial_mode: FlightMode | None = None,
+    ) -> None:
+        self.profile = profile
+        self.config = config or AutopilotConfig()
+        self.n_motors = profile.n_motors
+        self.motor_idle = profile.limits.motor_idle
+        if profile.physics.mixer == "paper":
+            self.mixer = Mixer.paper(idle=self.motor_idle)
+        else:
+            self.mixer = Mixer.from_geometry(
+                [m.position_frd_m for m in profile.frame.motors],
+                [m.spin for m in profile.frame.motors],
+                idle=self.motor_idle,
+            )
+        self.rate_pid = RatePid(PX4_DEFAULT_GAINS)
+        self.rate_max_rad_s = tuple(math.radians(x) for x in profile.limits.rate_max_deg_s)
+        self.mode = initial_mode or FlightMode(MainMode.MANUAL)
+        self.armed = False
+        self.crashed = False
+        self.landed = True
+        self.failsafe: str | None = None
+        self.rejected_setpoints = 0
+        self.accepted_setpoints = 0
+        self.events: list[Event] = []
+        self._setpoint: _Setpoint | None = None
+        self._last_rate_t_s: float | None = None
+        self._climb_integral = 0.0
+        self.motors: tuple[float, ...] = (0.0,) * self.n_motors
+        self.last_torque_thrust: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+        self._sat_pos = (False, False, False)
+        self._sat_neg = (False, False, False)
+
+    # ------------------------------------------------------------------ status
+
+    @property
+    def custom_mode(self) -> int:
+        return self.mode.custom_mode
+
+    @property
+    def base_mode(self) -> int:
+        """``MAV_MODE_FLAG``: custom mode enabled (1), armed (128), plus the usual PX4 bits."""
+        flags = 1  # MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.mode.main in _STICK_MODES:
+            flags |= 64  # MANUAL_INPUT_ENABLED
+        if self.mode.main != MainMode.ACRO:
+            flags |= 16  # STABILIZE_ENABLED
+        if self.mode.main in (MainMode.AUTO, MainMode.OFFBOARD):
+            flags |= 4 | 8  # AUTO_ENABLED | GUIDED_ENABLED
+        if self.armed:
+            flags |= 128  # MAV_MODE_FLAG_SAFETY_ARMED
+        return flags
+
+    @property
+    def system_status(self) -> int:
+        """``MAV_STATE``: STANDBY (3) disarmed, ACTIVE (4) armed, CRITICAL (5) in failsafe."""
+        if self.failsafe is not None and self.armed:
+            return 5
+        return 4 if self.armed else 3
+
+    @property
+    def landed_state(self) -> int:
+        """``MAV_LANDED_STATE``: ON_GROUND (1), IN_AIR (2), LANDING (4)."""
+        if self.landed:
+            return 1
+        if self.armed and self.mode == MODE_LAND:
+            return 4
+        return 2
+
+    def drain_events(self) -> list[Event]:
+        """Return the events since the last call and forget them."""
+        out, self.events = self.events, []
+        return out
+
+    def _event(self, t_s: float, kind: str, **detail: Any) -> None:
+        self.events.append(Event(t_s, kind, detail))
+        logger.info("t=%.3f s %s %s", t_s, kind, detail or "")
+
+    def setpoint_age_s(self, t_s: float) -> float:
+        """Seconds since the last accepted offboard setpoint (inf if none)."""
+        return math.inf if self._setpoint is None else t_s - self._setpoint.t_s
+
+    # ---------------------------------------------------------------- commands
+
+    def arm(self, t_s: float, *, force: bool = False) -> MavResult:
+        """Arm (``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1)."""
+        if self.armed:
+            return MavResult.ACCEPTED
+        if self.crashed:
+            self._event(t_s, "arm_denied", reason="crashed")
+            return MavResult.DENIED
+        if self.mode == MODE_OFFBOARD:
+            if self.setpoint_age_s(t_s) > self.config.offboard_entry_window_s:
+                self._event(t_s, "arm_denied", reason="no offboard setpoints")
+                return MavResult.DENIED
+        elif not self.landed and not force:
+            self._event(t_s, "arm_denied", reason="not landed")
+            return MavResult.DENIED
+        self.armed = True
+        self.failsafe = None
+        self.rate_pid.reset()
+        self._climb_integral = 0.0
+        self._event(t_s, "armed", mode=self.mode.name)
+        return MavResult.ACCEPTED
+
+    def disarm(self, t_s: float, *, force: bool = False, reason: str = "command") -> MavResult:
+        """Disarm (param1 = 0); in the air only when forced (param2 = 21196)."""
+        if not self.armed:
+            return MavResult.ACCEPTED
+        if not self.landed and not force and not self.crashed:
+            self._event(t_s, "disarm_denied", reason="in air")
+            return MavResult.DENIED
+        self.armed = False
+        self.motors = (0.0,) * self.n_motors
+        self._event(t_s, "disarmed", reason=reason)
+        return MavResult.ACCEPTED
+
+    def set_mode(self, t_s: float, main: int, sub: int = 0) -> MavResult:
+        """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub)."""
+        try:
+            main_mode = MainMode(main)
+        except ValueError:
+            return MavResult.DENIED
+        if main_mode != MainMode.AUTO:
+            sub = 0
+        elif sub not in (AUTO_SUB_LAND, AUTO_SUB_LOITER):
+            # Mission, RTL, takeoff... need navigation this SITL does not have.
+            return MavResult.TEMPORARILY_REJECTED
+        new = FlightMode(main_mode, sub)
+        if new == self.mode:
+            return MavResult.ACCEPTED
+        if (
+            main_mode == MainMode.OFFBOARD
+            and self.setpoint_age_s(t_s) > self.config.offboard_entry_window_s
+        ):
+            self._event(t_s, "mode_denied", mode=new.name, reason="no offboard setpoints")
+            return MavResult.TEMPORARILY_REJECTED
+        self._change_mode(t_s, new, reason="command")
+        return MavResult.ACCEPTED
+
+    def _change_mode(self, t_s: float, new: FlightMode, *, reason: str) -> None:
+        old = self.mode
+        self.mode = new
+        self._climb_integral = 0.0
+        if new != MODE_LAND and new != MODE_LOITER:
+            self.failsafe = None
+        self._event(t_s, "mode", old=old.name, new=new.name, reason=reason)
+
+    # --------------------------------------------------------------- setpoints
+
+    def on_actuator_target(self, t_s: float, controls: Sequence[float]) -> bool:
+        """``SET_ACTUATOR_CONTROL_TARGET`` group 0: roll, pitch, yaw torque, thrust.
+
+        Returns
+        -------
+        bool
+            False when the setpoint was rejected (non-finite first four controls).
+        """
+        if len(controls) < 4 or not all(math.isfinite(c) for c in controls[:4]):
+            self.rejected_setpoints += 1
+            return False
+        self._setpoint = _Setpoint(
+            "actuator",
+            t_s,
+            (
+                _clip(controls[0], -1.0, 1.0),
+                _clip(controls[1], -1.0, 1.0),
+                _clip(controls[2], -1.0, 1.0),
+                _clip(controls[3], 0.0, 1.0),
+            ),
+        )
+        self.accepted_setpoints += 1
+        return True
+
+    def on_rates_target(self, t_s: float, rates_frd_rad_s: Sequence[float], thrust: float) -> bool:
+        """``SET_ATTITUDE_TARGET`` with attitude ignored: body rates (rad/s) + thrust [0, 1].
+
+        Rates are clipped to the profile's ``limits.rate_max_deg_s``.
+
+        Returns
+        -------
+        bool
+            False when the setpoint was rejected (non-finite values).
+        """
+        vals = (*rates_frd_rad_s[:3], thrust)
+        if len(rates_frd_rad_s) < 3 or not all(math.isfinite(v) for v in vals):
+            self.rejected_setpoints += 1
+            return False
+        rm = self.rate_max_rad_s
+        self._setpoint = _Setpoint(
+            "rates",
+            t_s,
+            (
+                _clip(vals[0], -rm[0], rm[0]),
+                _clip(vals[1], -rm[1], rm[1]),
+                _clip(vals[2], -rm[2], rm[2]),
+                _clip(thrust, 0.0, 1.0),
+            ),
+        )
+        self.accepted_setpoints += 1
+        return True
+
+    def reject_setpoint(self) -> None:
+        """Count a setpoint the face could not use (e.g. attitude not ignored)."""
+        self.rejected_setpoints += 1
+
+    # -------------------------------------------------------------------- loop
+
+    def update(
+        self,
+        t_s: float,
+        gyro_frd_rad_s: Sequence[float],
+        euler_rad: Sequence[float],
+        *,
+        climb_rate_m_s: float = 0.0,
+        landed: bool = False,
+        crashed: bool = False,
+        sticks_us: Sequence[int] | None = None,
+    ) -> tuple[float, ...]:
+        """Run the commander checks and one rate-loop iteration on an IMU sample.
+
+        Parameters
+        ----------
+        t_s
+            Sample time (simulation), s. The rate loop's dt comes from consecutive
+            calls, clamped to 0.125..20 ms as PX4 does.
+        gyro_frd_rad_s
+            Measured body rates (FRD), rad/s.
+        euler_rad
+            Attitude (roll, pitch, yaw), rad, from the estimator (here: truth).
+        climb_rate_m_s
+            Vertical speed, positive up, m/s (for LAND/LOITER).
+        landed, crashed
+            Land detector / crash flag.
+        sticks_us
+            RC channels AETR in µs, or None without RC.
+
+        Returns
+        -------
+        tuple of float
+            Normalised motor commands in [0, 1] (all zero when disarmed).
+        """
+        self.landed = landed
+        if crashed and not self.crashed:
+            self.crashed = True
+            self._event(t_s, "crashed")
+        if self.crashed:
+            if self.armed:
+                self.disarm(t_s, force=True, reason="crash")
+            return self.motors
+
+        self._check_offboard_loss(t_s)
+        dt_s = 0.004 if self._last_rate_t_s is None else t_s - self._last_rate_t_s
+        self._last_rate_t_s = t_s
+        dt_s = _clip(dt_s, 0.000125, 0.02)
+
+        if not self.armed:
+            self.rate_pid.reset()
+            self.motors = (0.0,) * self.n_motors
+            return self.motors
+
+        main = self.mode.main
+        sp = self._setpoint
+        if main == MainMode.OFFBOARD and sp is not None:
+            if sp.kind == "actuator":
+                torque_thrust = sp.values
+            else:
+                torque_thrust = self._rate_loop(dt_s, sp.values[:3], gyro_frd_rad_s, sp.values[3])
+        elif self.mode in (MODE_LAND, MODE_LOITER):
+            torque_thrust = self._auto_loop(t_s, dt_s, gyro_frd_rad_s, euler_rad, climb_rate_m_s)
+        else:
+            torque_thrust = self._stick_loop(dt_s, gyro_frd_rad_s, euler_rad, sticks_us)
+        return self._allocate(torque_thrust)
+
+    def _check_offboard_loss(self, t_s: float) -> None:
+        if self.mode != MODE_OFFBOARD or not self.armed:
+            return
+        if self.setpoint_age_s(t_s) <= self.config.offboard_timeout_s:
+            return
+        new = MODE_LOITER if self.config.test_stand else MODE_LAND
+        self._change_mode(t_s, new, reason="offboard lost")
+        self.failsafe = "offboard_loss"
+        self._event(t_s, "failsafe", cause="offboard_loss", action=new.name)
+
+    def _rate_loop(
+        self,
+        dt_s: float,
+        rate_sp_rad_s: Sequence[float],
+        gyro_frd_rad_s: Sequence[float],
+        thrust: float,
+    ) -> tuple[float, float, float, float]:
+        sp = (float(rate_sp_rad_s[0]), float(rate_sp_rad_s[1]), float(rate_sp_rad_s[2]))
+        meas = (float(gyro_frd_rad_s[0]), float(gyro_frd_rad_s[1]), float(gyro_frd_rad_s[2]))
+        if self.landed and thrust < 0.2:
+            # PX4 freezes the integrator on the ground; a reset is the simple version.
+            self.rate_pid.reset()
+        tq = self.rate_pid.update(dt_s, sp, meas, self._sat_pos, self._sat_neg)
+        return (tq[0], tq[1], tq[2], thrust)
+
+    def _level_rates(
+        self, euler_rad: Sequence[float], roll_sp: float, pitch_sp: float
+    ) -> tuple[float, float]:
+        cfg = self.config
+        lim = cfg.attitude_rate_max_rad_s
+        p = _clip(cfg.attitude_p[0] * (roll_sp - euler_rad[0]), -lim, lim)
+        q = _clip(cfg.attitude_p[1] * (pitch_sp - euler_rad[1]), -lim, lim)
+        return p, q
+
+    def _stick_loop(
+        self,
+        dt_s: float,
+        gyro_frd_rad_s: Sequence[float],
+        euler_rad: Sequence[float],
+        sticks_us: Sequence[int] | None,
+    ) -> tuple[float, float, float, float]:
+        if sticks_us is None or len(sticks_us) < 4:
+            roll_s, pitch_s, thr, yaw_s = 0.0, 0.0, 0.0, 0.0
+        else:
+            roll_s, pitch_s = _stick(sticks_us[0]), _stick(sticks_us[1])
+            thr, yaw_s = _throttle(sticks_us[2]), _stick(sticks_us[3])
+        cfg = self.config
+        if self.mode.main == MainMode.ACRO:
+            rm = cfg.acro_rate_max_rad_s
+            # Project convention (sitl.pilot): ch2 > 1500 µs is "stick back" = +q, nose up.
+            rates = (roll_s * rm[0], pitch_s * rm[1], yaw_s * rm[2])
+        else:
+            p, q = self._level_rates(
+                euler_rad, roll_s * cfg.tilt_max_rad, pitch_s * cfg.tilt_max_rad
+            )
+            rates = (p, q, yaw_s * cfg.yaw_rate_max_rad_s)
+        return self._rate_loop(dt_s, rates, gyro_frd_rad_s, thr)
+
+    def _auto_loop(
+        self,
+        t_s: float,
+        dt_s: float,
+        gyro_frd_rad_s: Sequence[float],
+        euler_rad: Sequence[float],
+        climb_rate_m_s: float,
+    ) -> tuple[float, float, float, float]:
+        cfg = self.config
+        p, q = self._level_rates(euler_rad, 0.0, 0.0)
+        hover = cfg.hover_thrust
+        if cfg.test_stand:
+            last = self.last_torque_thrust[3]
+            thrust = _clip(last, cfg.failsafe_thrust_min, hover)
+        else:
+            if self.mode == MODE_LAND and self.landed:
+                self.disarm(t_s, reason="landed")
+                return (0.0, 0.0, 0.0, 0.0)
+            climb_sp = -cfg.land_speed_m_s if self.mode == MODE_LAND else 0.0
+            err = climb_sp - climb_rate_m_s
+            self._climb_integral = _clip(self._climb_integral + err * dt_s, -2.0, 2.0)
+            tilt = max(math.cos(euler_rad[0]) * math.cos(euler_rad[1]), 0.5)
+            thrust = (hover + cfg.climb_p * err + cfg.climb_i * self._climb_integral) / tilt
+            thrust = _clip(thrust, 0.05, 0.95)
+        return self._rate_loop(dt_s, (p, q, 0.0), gyro_frd_rad_s, thrust)
+
+    def _allocate(self, torque_thrust: Sequence[float]) -> tuple[float, ...]:
+        roll, pitch, yaw, thrust = (float(x) for x in torque_thrust)
+        if not all(math.isfinite(v) for v in (roll, pitch, yaw, thrust)):
+            # PX4 zeroes non-finite controller outputs rather than sending them out.
+            roll = pitch = yaw = 0.0
+            thrust = 0.0 if not math.isfinite(thrust) else thrust
+        self.last_torque_thrust = (roll, pitch, yaw, thrust)
+        res = self.mixer.mix(thrust, roll, pitch, yaw)
+        sat = res.saturated_axes
+        req = (roll, pitch, yaw)
+        # Allocator feedback: stop the integrator in the direction the mixer could not give.
+        self._sat_pos = (sat[0] and req[0] > 0, sat[1] and req[1] > 0, sat[2] and req[2] > 0)
+        self._sat_neg = (sat[0] and req[0] < 0, sat[1] and req[1] < 0, sat[2] and req[2] < 0)
+        idle = self.motor_idle
+        # Armed motors spin at least at idle (PX4 behaviour), whatever the thrust.
+        self.motors = tuple(m if m > idle else idle for m in res.motors)
+        return self.motors
+
+
+# ------------------------------------------------------------------- streams
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """A message the SITL can stream."""
+
+    msg_id: int
+    name: str
+    default_interval_s: float
+    imu_based: bool = False
+
+
+@dataclass
+class _StreamState:
+    spec: StreamSpec
+    interval_s: float  # <= 0: disabled
+    next_due_s: float = 0.0
+
+
+class MessageStreams:
+    """Per-message stream intervals in simulation time (``MAV_CMD_SET_MESSAGE_INTERVAL``).
+
+    Parameters
+    ----------
+    specs
+        The streamable messages and their default intervals.
+    imu_rate_hz
+        IMU sample rate: an IMU-based stream cannot be faster (faster is DENIED).
+    max_rate_hz
+        Fastest any stream may go (the physics rate, 1 kHz).
+    """
+
+    def __init__(
+        self, specs: Sequence[StreamSpec], *, imu_rate_hz: float, max_rate_hz: float = 1000.0
+    ) -> None:
+        self.imu_rate_hz = imu_rate_hz
+        self.max_rate_hz = max_rate_hz
+        self._streams = {s.msg_id: _StreamState(s, s.default_interval_s) for s in specs}
+
+    def __contains__(self, msg_id: int) -> bool:
+        return msg_id in self._streams
+
+    def interval_s(self, msg_id: int) -> float:
+        """Current interval, s (<= 0 when disabled)."""
+        return self._streams[msg_id].interval_s
+
+    def set_interval(self, msg_id: int, interval_us: float, *, t_s: float = 0.0) -> MavResult:
+        """Apply ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param2: µs, -1 off, 0 default).
+
+        Returns
+        -------
+        MavResult
+            ACCEPTED, or DENIED for an unknown message, a non-finite or too short
+            interval (faster than ``max_rate_hz``, or than the IMU for IMU streams).
+        """
+        st = self._streams.get(msg_id)
+        if st is None or not math.isfinite(interval_us):
+            return MavResult.DENIED
+        if interval_us == -1:
+            st.interval_s = 0.0
+            return MavResult.ACCEPTED
+        if interval_us == 0:
+            st.interval_s = st.spec.default_interval_s
+            st.next_due_s = t_s
+            return MavResult.ACCEPTED
+        if interval_us < 0:
+            return MavResult.DENIED
+        interval_s = interval_us * 1e-6
+        max_hz = min(self.max_rate_hz, self.imu_rate_hz) if st.spec.imu_based else self.max_rate_hz
+        if interval_s < (1.0 / max_hz) * (1.0 - 1e-9):
+            return MavResult.DENIED
+        st.interval_s = interval_s
+        st.next_due_s = t_s
+        return MavResult.ACCEPTED
+
+    def due(self, msg_id: int, t_s: float) -> bool:
+        """True (and schedules the next one) when ``msg_id`` is due at ``t_s``.
+
+        The schedule advances by whole intervals from the previous due time, so
+        the mean rate is exact; after a long stall it restarts from ``t_s``.
+        """
+        st = self._streams[msg_id]
+        if st.interval_s <= 0.0 or t_s + 1e-9 < st.next_due_s:
+            return False
+        st.next_due_s += st.interval_s
+        if st.next_due_s <= t_s:
+            st.next_due_s = t_s + st.interval_s
+        return True

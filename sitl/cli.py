@@ -1,0 +1,163 @@
+"""``sitl``: run the bundled PX4-like SITL from the command line.
+
+Usage::
+
+    sitl run --profile vehicle_profiles/f450.yaml --mavlink udpout:127.0.0.1:14540 \\
+        --pilot paper-acro --seed 1 --clock realtime --duration 30 --log out/flight.npz
+
+Exit codes: 0 when the flight ran (completed, stopped by SIGINT/SIGTERM, or
+crashed: the outcome is in the log summary), 2 for bad arguments or a bad
+profile / stick script (the message goes to stderr, nothing is started), 1 for
+an unexpected failure (e.g. the UDP port cannot be bound).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import click
+
+from companion.errors import ConfigError
+from companion.profile import load_profile
+
+__all__ = ["cli", "main"]
+
+logger = logging.getLogger("sitl")
+
+_MODES = ["MANUAL", "ALTCTL", "POSCTL", "ACRO", "STABILIZED"]
+
+
+@click.group()
+@click.option("-v", "--verbose", count=True, help="More logging (-v info, -vv debug).")
+def cli(verbose: int) -> None:
+    """The bundled PX4-like quadrotor SITL (MAVLink 2)."""
+    level = logging.WARNING - 10 * min(verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+
+
+@cli.command()
+@click.option(
+    "--profile",
+    "profile_path",
+    required=True,
+    type=click.Path(dir_okay=False, path_type=Path),
+    help="Vehicle profile YAML.",
+)
+@click.option(
+    "--mavlink",
+    default="udpout:127.0.0.1:14540",
+    show_default=True,
+    help="udpout:HOST:PORT (send there, answer any sender) or udpin:HOST:PORT (listen).",
+)
+@click.option("--pilot", default=None, help="Maneuver name or stick-script YAML; none: no RC.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of all randomness.")
+@click.option(
+    "--clock", type=click.Choice(["realtime", "lockstep"]), default="realtime", show_default=True
+)
+@click.option(
+    "--duration",
+    "duration_s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Simulated seconds [default: the pilot's duration, else until SIGINT/SIGTERM].",
+)
+@click.option("--test-stand", is_flag=True, help="Vehicle on a gimbal rig: attitude only.")
+@click.option(
+    "--wind-gust",
+    "wind_gust_m_s",
+    type=click.FloatRange(min=0.0),
+    default=0.0,
+    show_default=True,
+    help="Turbulence intensity, m/s (per-axis sigma).",
+)
+@click.option(
+    "--log",
+    "log_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="True-state log (.npz) plus FILE.events.jsonl; see sitl.runner.",
+)
+@click.option(
+    "--offboard-timeout",
+    "offboard_timeout_s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=1.0,
+    show_default=True,
+    help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T).",
+)
+@click.option(
+    "--lockstep-timeout",
+    "lockstep_timeout_s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="Longest wall-clock wait for a setpoint in lockstep, s.",
+)
+@click.option(
+    "--mode",
+    "initial_mode",
+    type=click.Choice(_MODES, case_sensitive=False),
+    default=None,
+    help="Mode at boot [default: ACRO with a pilot, else MANUAL].",
+)
+@click.option("--no-auto-arm", is_flag=True, help="Do not arm at t=0 when a pilot is given.")
+def run(
+    profile_path: Path,
+    mavlink: str,
+    pilot: str | None,
+    seed: int,
+    clock: str,
+    duration_s: float | None,
+    test_stand: bool,
+    wind_gust_m_s: float,
+    log_path: Path | None,
+    offboard_timeout_s: float,
+    lockstep_timeout_s: float,
+    initial_mode: str | None,
+    no_auto_arm: bool,
+) -> None:
+    """Run one simulated flight."""
+    from sitl.mavlink_face import parse_endpoint
+    from sitl.runner import RunConfig, Runner
+
+    try:
+        endpoint = parse_endpoint(mavlink)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--mavlink") from exc
+    try:
+        profile = load_profile(profile_path)
+        config = RunConfig(
+            mavlink=endpoint,
+            pilot=pilot,
+            seed=seed,
+            clock=clock,  # type: ignore[arg-type]
+            duration_s=duration_s,
+            test_stand=test_stand,
+            wind_gust_m_s=wind_gust_m_s,
+            log_path=log_path,
+            offboard_timeout_s=offboard_timeout_s,
+            lockstep_timeout_s=lockstep_timeout_s,
+            initial_mode=initial_mode,
+            auto_arm=not no_auto_arm,
+        )
+        runner = Runner(profile, config, profile_name=str(profile_path))
+    except (ConfigError, ValueError) as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    try:
+        summary = runner.run()
+    except OSError as exc:
+        click.echo(f"error: MAVLink {endpoint}: {exc}", err=True)
+        sys.exit(1)
+    click.echo(
+        f"{summary.status}: {summary.sim_time_s:.2f} s simulated in {summary.wall_time_s:.2f} s"
+        f" ({summary.realtime_factor:.2f}x), final mode {summary.final_mode}",
+        err=True,
+    )
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli()

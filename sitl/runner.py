@@ -1,0 +1,510 @@
+"""The SITL simulation loop: physics + IMU + pilot + autopilot + MAVLink face + clocks + log.
+
+One step of the loop (physics ``dt_s`` = 1 ms)::
+
+    read MAVLink (commands, setpoints)        face.poll
+    IMU sample of the state at t              imu.update
+    pilot sticks (RC frame every 10 ms)       pilot.sticks
+    send what is due at t                     face.publish (HIGHRES_IMU, ATTITUDE, ...)
+    lockstep: wait for the client's setpoint  face.wait_readable + poll
+    autopilot on the IMU sample               autopilot.update -> motor commands
+    log the true state at t                   _Log.append
+    advance the physics to t + dt             quad.step
+
+Clocks
+------
+``realtime``
+    Simulation time is paced to the wall clock; streams flow whatever the client does.
+``lockstep``
+    In OFFBOARD, after each HIGHRES_IMU sent, the loop waits for the next
+    ``SET_ACTUATOR_CONTROL_TARGET`` / ``SET_ATTITUDE_TARGET`` (up to
+    ``lockstep_timeout_s`` of wall time) before applying it in the same step and
+    stepping on: deterministic and as fast as the client allows. After a timeout
+    it stops waiting (the client is taken as gone) until a setpoint arrives again,
+    so a disconnected client cannot stall the simulation; the offboard-loss
+    failsafe then fires in simulation time. Outside OFFBOARD it never waits and
+    runs as fast as the CPU allows.
+
+Log format
+----------
+``--log FILE`` (e.g. ``flight.npz``) writes, at the end of the run, a NumPy
+``.npz`` with one row per physics step:
+
+==================== ============ ===============================================
+key                  shape        meaning
+==================== ============ ===============================================
+``t_s``              (N,)         simulation time, s
+``rate_frd_rad_s``   (N, 3)       true body rates
+``q_wxyz``           (N, 4)       true attitude (body FRD -> world NED)
+``pos_ned_m``        (N, 3)       position, m
+``vel_ned_m_s``      (N, 3)       velocity, m/s
+``motor_w_rad_s``    (N, n)       rotor speeds
+``motor_cmd``        (N, n)       normalised motor commands applied over the step
+``custom_mode``      (N,)         PX4 custom_mode (main << 16 | sub << 24)
+``armed``            (N,)         bool
+``summary``          ()           JSON string: status, seed, clock, counters, timing
+==================== ============ ===============================================
+
+and, while running, ``FILE`` with the suffix replaced by ``.events.jsonl``: one
+JSON object per line (``{"t_s": ..., "kind": "mode", ...}``), flushed as each
+event happens; the last line is ``{"kind": "summary", ...}``. Read both back with
+:func:`read_log`.
+
+Outcome
+-------
+A run ends with ``status`` ``"completed"`` (duration reached), ``"stopped"``
+(SIGINT/SIGTERM) or ``"crashed"`` (the physics reported a crash; the flight ends
+there). All three are normal outcomes (exit code 0); the status is in the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from companion.profile import VehicleProfile
+from sitl.autopilot import (
+    Autopilot,
+    AutopilotConfig,
+    Event,
+    FlightMode,
+    MainMode,
+)
+from sitl.frames import quat_to_euler_rad
+from sitl.imu import Imu
+from sitl.mavlink_face import Endpoint, MavlinkFace, default_streams
+from sitl.physics import Quadrotor, hover_motor_command
+from sitl.pilot import Pilot, PilotView, make_pilot
+from sitl.wind import Wind, WindConfig
+
+__all__ = ["FlightLog", "RunConfig", "RunSummary", "Runner", "events_path", "read_log"]
+
+logger = logging.getLogger(__name__)
+
+Status = Literal["completed", "stopped", "crashed"]
+
+_MODE_BY_NAME = {m.name: m for m in MainMode}
+RC_PERIOD_S = 0.01
+"""The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a run needs besides the vehicle profile.
+
+    Attributes
+    ----------
+    mavlink
+        Where the MAVLink face sends / listens.
+    pilot
+        A maneuver name or a stick-script path, or None (no RC).
+    seed
+        Seed of the one ``np.random.default_rng`` all randomness is spawned from.
+    clock
+        ``"realtime"`` or ``"lockstep"``.
+    duration_s
+        Simulated seconds to run; None: the pilot's duration, or until a signal.
+    test_stand
+        Vehicle on a gimbal rig (attitude free, position held).
+    wind_gust_m_s
+        Turbulence intensity (per-axis sigma), m/s.
+    log_path
+        ``.npz`` log to write (plus its ``.events.jsonl``), or None.
+    offboard_timeout_s
+        Offboard-loss timeout (PX4 ``COM_OF_LOSS_T``), s.
+    lockstep_timeout_s
+        Longest wall-clock wait for a setpoint in lockstep, s.
+    initial_mode
+        Mode at boot by name (``"MANUAL"``, ``"ACRO"``...); None: ACRO with a pilot
+        (the pilot flies rates), MANUAL without.
+    auto_arm
+        Arm at t = 0 when a pilot is given (a human would arm before flying).
+    dt_s
+        Physics step, s.
+    """
+
+    mavlink: Endpoint
+    pilot: str | None = None
+    seed: int = 0
+    clock: Literal["realtime", "lockstep"] = "realtime"
+    duration_s: float | None = None
+    test_stand: bool = False
+    wind_gust_m_s: float = 0.0
+    log_path: Path | None = None
+    offboard_timeout_s: float = 1.0
+    lockstep_timeout_s: float = 0.5
+    initial_mode: str | None = None
+    auto_arm: bool = True
+    dt_s: float = 0.001
+
+
+@dataclass
+class RunSummary:
+    """How a run went (also stored in the log)."""
+
+    status: Status = "completed"
+    seed: int = 0
+    clock: str = "realtime"
+    profile: str = ""
+    pilot: str | None = None
+    test_stand: bool = False
+    sim_time_s: float = 0.0
+    wall_time_s: float = 0.0
+    steps: int = 0
+    steps_per_wall_s: float = 0.0
+    realtime_factor: float = 0.0
+    max_lag_s: float = 0.0
+    lockstep_waits: int = 0
+    lockstep_timeouts: int = 0
+    setpoints_received: int = 0
+    rejected_setpoints: int = 0
+    messages_sent: int = 0
+    messages_received: int = 0
+    final_mode: str = ""
+    armed_at_end: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def events_path(log_path: Path) -> Path:
+    """The events file next to a log: ``flight.npz`` -> ``flight.events.jsonl``."""
+    return log_path.with_suffix(".events.jsonl")
+
+
+class _Log:
+    """Per-step true-state rows in growing numpy blocks; events to JSON lines."""
+
+    _BLOCK = 16384
+
+    def __init__(self, n_motors: int, path: Path | None) -> None:
+        self.n = n_motors
+        # t, rate3, q4, pos3, vel3, w n, cmd n, custom_mode, armed
+        self.width = 1 + 3 + 4 + 3 + 3 + 2 * n_motors + 2
+        self._blocks: list[np.ndarray] = []
+        self._buf = np.empty((self._BLOCK, self.width))
+        self._i = 0
+        self.path = path
+        self._events = None
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._events = events_path(path).open("w", encoding="utf-8")
+
+    def append(self, row: list[float]) -> None:
+        if self._i == self._BLOCK:
+            self._blocks.append(self._buf)
+            self._buf = np.empty((self._BLOCK, self.width))
+            self._i = 0
+        self._buf[self._i] = row
+        self._i += 1
+
+    def event(self, ev: Event) -> None:
+        if self._events is not None:
+            self._events.write(json.dumps({"t_s": ev.t_s, "kind": ev.kind, **ev.detail}) + "\n")
+            self._events.flush()
+
+    def close(self, summary: RunSummary) -> None:
+        if self.path is None:
+            return
+        if self._events is not None:
+            self._events.write(json.dumps({"kind": "summary", **asdict(summary)}) + "\n")
+            self._events.close()
+            self._events = None
+        data = np.concatenate([*self._blocks, self._buf[: self._i]], axis=0)
+        n = self.n
+        c = 14
+        np.savez_compressed(
+            self.path,
+            t_s=data[:, 0],
+            rate_frd_rad_s=data[:, 1:4],
+            q_wxyz=data[:, 4:8],
+            pos_ned_m=data[:, 8:11],
+            vel_ned_m_s=data[:, 11:14],
+            motor_w_rad_s=data[:, c : c + n],
+            motor_cmd=data[:, c + n : c + 2 * n],
+            custom_mode=data[:, c + 2 * n].astype(np.uint32),
+            armed=data[:, c + 2 * n + 1].astype(bool),
+            summary=np.array(json.dumps(asdict(summary))),
+        )
+        logger.info("log written to %s (%d rows)", self.path, data.shape[0])
+
+
+@dataclass
+class FlightLog:
+    """A log read back by :func:`read_log`: arrays by key, events, summary."""
+
+    arrays: dict[str, np.ndarray]
+    events: list[dict[str, Any]]
+    summary: dict[str, Any]
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.arrays[key]
+
+
+def read_log(path: str | Path) -> FlightLog:
+    """Read a SITL log (``.npz``) and its ``.events.jsonl`` back.
+
+    Raises
+    ------
+    FileNotFoundError
+        If the ``.npz`` file does not exist.
+    """
+    p = Path(path)
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files if k != "summary"}
+        summary = json.loads(str(z["summary"])) if "summary" in z.files else {}
+    events: list[dict[str, Any]] = []
+    ep = events_path(p)
+    if ep.exists():
+        for line in ep.read_text(encoding="utf-8").splitlines():
+            if line.strip():
+                events.append(json.loads(line))
+    return FlightLog(arrays, [e for e in events if e.get("kind") != "summary"], summary)
+
+
+@contextmanager
+def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
+    """SIGINT/SIGTERM set ``stop`` instead of killing the loop (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: object) -> None:
+        logger.info("signal %d: stopping", signum)
+        stop.set()
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+class Runner:
+    """One simulated flight: build everything from a profile and a :class:`RunConfig`.
+
+    Nothing touches the network before :meth:`run`.
+    """
+
+    def __init__(
+        self, profile: VehicleProfile, config: RunConfig, *, profile_name: str = ""
+    ) -> None:
+        self.profile = profile
+        self.config = config
+        self.profile_name = profile_name or profile.name
+        root = np.random.default_rng(config.seed)
+        rng_phys, rng_imu, rng_wind, rng_pilot = root.spawn(4)
+        try:
+            hover = hover_motor_command(profile)
+        except ValueError:
+            hover = 0.5
+        self.hover_thrust = hover
+        wind = None
+        if config.wind_gust_m_s > 0.0:
+            wind = Wind(WindConfig(gust_sigma_m_s=config.wind_gust_m_s), rng=rng_wind)
+        self.quad = Quadrotor(
+            profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand, wind=wind
+        )
+        self.imu = Imu(profile.physics.imu, rng=rng_imu, dt_s=config.dt_s)
+        self.pilot: Pilot | None = None
+        if config.pilot:
+            self.pilot = make_pilot(config.pilot, rng=rng_pilot, free_flight=not config.test_stand)
+        if config.initial_mode is not None:
+            main = _MODE_BY_NAME[config.initial_mode.upper()]
+        else:
+            main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
+        self.autopilot = Autopilot(
+            profile,
+            AutopilotConfig(
+                offboard_timeout_s=config.offboard_timeout_s,
+                test_stand=config.test_stand,
+                hover_thrust=min(max(hover, 0.05), 0.95),
+            ),
+            initial_mode=FlightMode(main),
+        )
+        imu_rate_hz = min(profile.physics.imu.rate_hz, 1.0 / config.dt_s)
+        self.streams = default_streams(imu_rate_hz)
+        self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
+        self.stop = threading.Event()
+        self.duration_s = config.duration_s
+        if self.duration_s is None and self.pilot is not None:
+            self.duration_s = self.pilot.duration_s
+
+    def run(self) -> RunSummary:
+        """Fly until the duration, a signal, or a crash; write the log.
+
+        Raises
+        ------
+        OSError
+            If the MAVLink socket cannot be opened.
+        """
+        cfg = self.config
+        log = _Log(self.profile.n_motors, cfg.log_path)
+        summary = RunSummary(
+            seed=cfg.seed,
+            clock=cfg.clock,
+            profile=self.profile_name,
+            pilot=cfg.pilot,
+            test_stand=cfg.test_stand,
+        )
+        wall0 = time.monotonic()
+        try:
+            with self.face, _stop_on_signals(self.stop):
+                summary.status = self._loop(log, summary, wall0)
+        finally:
+            wall = time.monotonic() - wall0
+            ap = self.autopilot
+            summary.sim_time_s = self.quad.t_s
+            summary.wall_time_s = wall
+            summary.steps_per_wall_s = summary.steps / wall if wall > 0 else 0.0
+            summary.realtime_factor = summary.sim_time_s / wall if wall > 0 else 0.0
+            summary.setpoints_received = self.face.setpoints_received
+            summary.rejected_setpoints = ap.rejected_setpoints
+            summary.messages_sent = self.face.messages_sent
+            summary.messages_received = self.face.messages_received
+            summary.final_mode = ap.mode.name
+            summary.armed_at_end = ap.armed
+            for ev in ap.drain_events():
+                log.event(ev)
+            log.close(summary)
+        logger.info(
+            "run %s: %.2f s simulated in %.2f s wall (%.1fx), %d steps",
+            summary.status,
+            summary.sim_time_s,
+            summary.wall_time_s,
+            summary.realtime_factor,
+            summary.steps,
+        )
+        return summary
+
+    def _loop(self, log: _Log, summary: RunSummary, wall0: float) -> Status:
+        cfg = self.config
+        quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
+        snap = face.snapshot
+        lockstep = cfg.clock == "lockstep"
+        duration = self.duration_s if self.duration_s is not None else math.inf
+        hover = self.hover_thrust
+        sticks: tuple[int, ...] | None = None
+        next_rc_s = 0.0
+        client_active = True
+        sp_at_timeout = -1
+        motors: tuple[float, ...] = (0.0,) * self.profile.n_motors
+        monotonic = time.monotonic
+        stop = self.stop
+        steps = 0
+
+        if pilot is not None and cfg.auto_arm:
+            ap.arm(0.0)
+
+        while not stop.is_set():
+            t = quad.t_s
+            if t >= duration - 1e-9:
+                return "completed"
+            face.poll(t)
+            st = quad.state
+            euler = quat_to_euler_rad(st.q_wxyz)
+            if pilot is not None and t >= next_rc_s - 1e-9:
+                next_rc_s += RC_PERIOD_S
+                view = PilotView(
+                    t,
+                    euler[0],
+                    euler[1],
+                    euler[2],
+                    st.rate_frd_rad_s,
+                    -st.pos_ned_m[2],
+                    -st.vel_ned_m_s[2],
+                    hover,
+                )
+                sticks = pilot.sticks(view).channels()
+            sample = imu.update(t, st.rate_frd_rad_s, st.specific_force_frd_m_s2)
+            snap.t_s = t
+            snap.q_wxyz = st.q_wxyz
+            snap.euler_rad = euler
+            snap.pos_ned_m = st.pos_ned_m
+            snap.vel_ned_m_s = st.vel_ned_m_s
+            snap.sticks_us = sticks
+            if sample is not None:
+                snap.imu_t_s = sample.time_s
+                snap.gyro_frd_rad_s = sample.gyro_frd_rad_s
+                snap.accel_frd_m_s2 = sample.accel_frd_m_s2
+            imu_sent = face.publish(t, imu_sample=sample is not None, wall_s=monotonic())
+
+            if not client_active and face.setpoints_received != sp_at_timeout:
+                client_active = True  # setpoints resumed after a lockstep timeout
+            if lockstep and imu_sent and client_active and ap.mode.main == MainMode.OFFBOARD:
+                n0 = face.setpoints_received
+                summary.lockstep_waits += 1
+                deadline = monotonic() + cfg.lockstep_timeout_s
+                while face.setpoints_received == n0 and not stop.is_set():
+                    left = deadline - monotonic()
+                    if left <= 0.0:
+                        summary.lockstep_timeouts += 1
+                        client_active = False
+                        sp_at_timeout = n0
+                        logger.warning(
+                            "lockstep: no setpoint within %.2f s at t=%.3f s; not waiting "
+                            "until setpoints resume",
+                            cfg.lockstep_timeout_s,
+                            t,
+                        )
+                        break
+                    if face.wait_readable(left):
+                        face.poll(t)
+
+            if sample is not None:
+                motors = ap.update(
+                    sample.time_s,
+                    sample.gyro_frd_rad_s,
+                    euler,
+                    climb_rate_m_s=-st.vel_ned_m_s[2],
+                    landed=st.landed,
+                    crashed=st.crashed,
+                    sticks_us=sticks,
+                )
+            if ap.events:
+                for ev in ap.drain_events():
+                    log.event(ev)
+
+            log.append(
+                [
+                    t,
+                    *st.rate_frd_rad_s,
+                    *st.q_wxyz,
+                    *st.pos_ned_m,
+                    *st.vel_ned_m_s,
+                    *st.motor_w_rad_s,
+                    *motors,
+                    ap.custom_mode,
+                    1.0 if ap.armed else 0.0,
+                ]
+            )
+            steps += 1
+            summary.steps = steps
+            if st.crashed:
+                log.event(
+                    Event(t, "flight_end", {"status": "crashed", "pos_ned_m": list(st.pos_ned_m)})
+                )
+                return "crashed"
+            quad.step(motors)
+
+            if not lockstep:
+                # Pace simulation time to the wall clock; wake early for incoming data.
+                while True:
+                    ahead = quad.t_s - (monotonic() - wall0)
+                    if ahead <= 0.0:
+                        if -ahead > summary.max_lag_s:
+                            summary.max_lag_s = -ahead
+                        break
+                    if face.wait_readable(ahead):
+                        face.poll(quad.t_s)
+        return "stopped"
