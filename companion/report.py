@@ -1,0 +1,197 @@
+"""Flight metrics, plots and the markdown report.
+
+``metrics.json`` keys (a contract other tools read; extend, never rename):
+
+``mae_deg_s``, ``rms_deg_s``, ``max_abs_deg_s``
+    Per axis (``roll``, ``pitch``, ``yaw``): the pilot's commanded rate
+    against the measured rate (the gyro as the controller saw it, as the
+    paper measures), over the samples where the vehicle is airborne.
+``mae_true_deg_s``
+    The same against the simulator's true rate.
+``time_in_saturation_s``, ``saturation_fraction``
+    Per axis and ``any``: time the mixer could not realise the request.
+``failsafe_events``
+    A list of ``{"t_s", "kind", "detail"}``.
+``crashed``, ``crashed_at_s``, ``sim_time_s``, ``wall_time_s``,
+``airborne_time_s``, ``samples``, ``nonfinite_events``.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.simulate import FlightRecord
+
+__all__ = ["AXES", "compute_metrics", "plot_flight", "versions", "write_report"]
+
+AXES = ("roll", "pitch", "yaw")
+
+
+def _per_axis(values: np.ndarray) -> dict[str, float]:
+    return {a: round(float(v), 3) for a, v in zip(AXES, values, strict=True)}
+
+
+def compute_metrics(record: FlightRecord) -> dict[str, Any]:
+    """Metrics of one flight (see the module docstring for the keys)."""
+    c = record.columns
+    meta = record.meta
+    t = c["t_s"]
+    n = len(t)
+    air = c["airborne"].astype(bool) if n else np.zeros(0, dtype=bool)
+    dt = float(np.median(np.diff(t))) if n > 1 else 0.0
+    out: dict[str, Any] = {}
+    if air.any():
+        err = np.degrees(c["meas_rad_s"][air] - c["ref_rad_s"][air])
+        err_true = np.degrees(c["true_rad_s"][air] - c["ref_rad_s"][air])
+        out["mae_deg_s"] = _per_axis(np.mean(np.abs(err), axis=0))
+        out["rms_deg_s"] = _per_axis(np.sqrt(np.mean(err**2, axis=0)))
+        out["max_abs_deg_s"] = _per_axis(np.max(np.abs(err), axis=0))
+        out["mae_true_deg_s"] = _per_axis(np.mean(np.abs(err_true), axis=0))
+        sat = c["sat_axes"][air].astype(bool)
+        sat_t = sat.sum(axis=0) * dt
+        out["time_in_saturation_s"] = {
+            **_per_axis(sat_t),
+            "any": round(float(sat.any(axis=1).sum() * dt), 3),
+        }
+        out["saturation_fraction"] = {
+            **_per_axis(sat.mean(axis=0)),
+            "any": round(float(sat.any(axis=1).mean()), 4),
+        }
+    else:  # never left the ground: no tracking to speak of
+        nan = {a: None for a in AXES}
+        out.update(mae_deg_s=nan, rms_deg_s=nan, max_abs_deg_s=nan, mae_true_deg_s=nan)
+        out["time_in_saturation_s"] = {**nan, "any": None}
+        out["saturation_fraction"] = {**nan, "any": None}
+    out["failsafe_events"] = list(meta.get("failsafe_events", []))
+    out["crashed"] = bool(meta.get("crashed", False))
+    out["crashed_at_s"] = meta.get("crashed_at_s")
+    out["sim_time_s"] = round(float(meta.get("sim_time_s", t[-1] if n else 0.0)), 3)
+    out["wall_time_s"] = round(float(meta.get("wall_time_s", 0.0)), 3)
+    out["airborne_time_s"] = round(float(air.sum() * dt), 3)
+    out["samples"] = int(n)
+    out["nonfinite_events"] = int(meta.get("nonfinite_events", 0))
+    for key in ("profile", "controller_profile", "controller", "scenario", "seed", "imu_rate_hz"):
+        if key in meta:
+            out[key] = meta[key]
+    return out
+
+
+def versions() -> dict[str, str]:
+    """Versions that shape a result, for the report."""
+    out = {"python": platform.python_version()}
+    for pkg in ("mfc-companion", "numpy", "pymavlink"):
+        try:
+            out[pkg] = version(pkg)
+        except PackageNotFoundError:
+            out[pkg] = "not installed"
+    return out
+
+
+def plot_flight(record: FlightRecord, out_dir: Path, *, title: str = "") -> list[Path]:
+    """Write the paper-style figures; returns the files written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = record.columns
+    t = c["t_s"]
+    written = []
+
+    fig, axs = plt.subplots(3, 1, figsize=(11, 8), sharex=True)
+    for i, (ax, name) in enumerate(zip(axs, AXES, strict=True)):
+        ax.plot(t, np.degrees(c["ref_rad_s"][:, i]), lw=1.0, color="k", label="commanded (pilot)")
+        ax.plot(t, np.degrees(c["meas_rad_s"][:, i]), lw=0.7, color="tab:red", label="measured")
+        ax.set_ylabel(f"{name} rate (deg/s)")
+        ax.grid(alpha=0.3)
+    axs[0].legend(loc="upper right", fontsize=8)
+    axs[-1].set_xlabel("time (s)")
+    fig.suptitle(title or "Rate tracking")
+    fig.tight_layout()
+    p = out_dir / "rates.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    written.append(p)
+
+    fig, axs = plt.subplots(2, 1, figsize=(11, 6), sharex=True)
+    motors = c["motors"]
+    for j in range(motors.shape[1]):
+        axs[0].plot(t, motors[:, j], lw=0.6, label=f"motor {j + 1}")
+    axs[0].set_ylabel("motor command (0-1)")
+    axs[0].legend(loc="upper right", fontsize=8, ncol=4)
+    axs[0].grid(alpha=0.3)
+    is_mfc = bool(np.any(c["f_hat"]))
+    series = c["f_hat"] if is_mfc else c["u"]
+    for i, name in enumerate(AXES):
+        axs[1].plot(t, series[:, i], lw=0.6, label=name)
+    axs[1].set_ylabel("F_hat (rad/s^m)" if is_mfc else "PID output (normalised)")
+    axs[1].legend(loc="upper right", fontsize=8)
+    axs[1].grid(alpha=0.3)
+    axs[1].set_xlabel("time (s)")
+    fig.tight_layout()
+    p = out_dir / "motors_and_estimate.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    written.append(p)
+    return written
+
+
+def write_report(
+    record: FlightRecord,
+    out_dir: str | Path,
+    *,
+    controller_path: str,
+    profile_path: str,
+    scenario_desc: str = "",
+) -> dict[str, Any]:
+    """Write ``metrics.json``, the plots, ``flight.npz`` and ``report.md`` into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = compute_metrics(record)
+    metrics["versions"] = versions()
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    record.save(str(out / "flight.npz"))
+    meta = record.meta
+    title = f"{meta.get('profile')} / {meta.get('controller')} / {meta.get('scenario')}"
+    images = plot_flight(record, out, title=title)
+
+    def row(key: str) -> str:
+        vals = metrics[key]
+        return " | ".join("-" if vals[a] is None else f"{vals[a]:.1f}" for a in AXES)
+
+    status = f"CRASHED at {metrics['crashed_at_s']:.2f} s" if metrics["crashed"] else "no crash"
+    lines = [
+        f"# Flight report: {title}",
+        "",
+        f"- vehicle profile: `{profile_path}` ({meta.get('profile')})",
+        f"- controller given the profile of: {meta.get('controller_profile')}",
+        f"- controller config: `{controller_path}` (kind `{meta.get('controller')}`)",
+        f"- scenario: `{meta.get('scenario')}`, seed {meta.get('seed')}. {scenario_desc}".rstrip(),
+        f"- outcome: {status}; simulated {metrics['sim_time_s']:.1f} s "
+        f"(airborne {metrics['airborne_time_s']:.1f} s) in {metrics['wall_time_s']:.1f} s wall",
+        f"- failsafe events: {len(metrics['failsafe_events'])}; non-finite inputs held: "
+        f"{metrics['nonfinite_events']}",
+        "",
+        "Rate tracking, pilot's command against the measured rate, while airborne (deg/s):",
+        "",
+        "| metric | roll | pitch | yaw |",
+        "|---|---|---|---|",
+        f"| mean absolute error | {row('mae_deg_s')} |",
+        f"| RMS error | {row('rms_deg_s')} |",
+        f"| max abs error | {row('max_abs_deg_s')} |",
+        f"| MAE against the true rate | {row('mae_true_deg_s')} |",
+        f"| time in saturation (s) | {row('time_in_saturation_s')} |",
+        "",
+        *[f"![{p.stem}]({p.name})" for p in images],
+        "",
+        "Versions: " + ", ".join(f"{k} {v}" for k, v in metrics["versions"].items()),
+        "",
+    ]
+    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+    return metrics

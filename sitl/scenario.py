@@ -1,0 +1,99 @@
+"""Flight scenarios: what is flown, in what air, with which sensors, from which seed.
+
+A scenario is data (``sitl/scenarios/<name>.yaml``), frozen in the repository
+so a figure quoted anywhere can be regenerated. Everything random in a flight
+derives from the scenario's ``seed``.
+"""
+
+from __future__ import annotations
+
+from importlib.resources import files
+from pathlib import Path
+
+from pydantic import Field
+
+from companion._schema import StrictModel, load_yaml_model
+from companion.profile import ImuModel, VehicleProfile
+from sitl.wind import WindConfig
+
+__all__ = [
+    "ImuOverride",
+    "Scenario",
+    "WindSpec",
+    "list_scenarios",
+    "load_scenario",
+    "scenario_path",
+]
+
+SCENARIO_DIR = Path(str(files("sitl") / "scenarios"))
+
+
+class WindSpec(StrictModel):
+    steady_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_sigma_m_s: float = Field(0.0, ge=0.0, le=20.0)
+    gust_length_m: float = Field(50.0, gt=0.0, le=2000.0)
+
+    def config(self) -> WindConfig:
+        return WindConfig(self.steady_ned_m_s, self.gust_sigma_m_s, self.gust_length_m)
+
+
+class ImuOverride(StrictModel):
+    """Fields replacing those of the profile's IMU model for this scenario."""
+
+    rate_hz: float | None = Field(None, gt=0.0, le=8000.0)
+    gyro_noise_density_rad_s_sqrt_hz: float | None = Field(None, ge=0.0)
+    gyro_bias_random_walk_rad_s2_sqrt_hz: float | None = Field(None, ge=0.0)
+    latency_s: float | None = Field(None, ge=0.0, le=0.05)
+    first_stage_filter_weight: float | None = Field(None, gt=0.0, le=1.0)
+
+    def apply(self, model: ImuModel) -> ImuModel:
+        update = {k: v for k, v in self.model_dump().items() if v is not None}
+        return model.model_copy(update=update)
+
+
+class Scenario(StrictModel):
+    name: str = Field(min_length=1)
+    description: str = ""
+    seed: int = Field(ge=0)
+    pilot: str = Field(min_length=1, description="maneuver name or stick-script path")
+    duration_s: float | None = Field(None, gt=0.0, le=3600.0, description="default: the pilot's")
+    free_flight: bool = True
+    wind: WindSpec = WindSpec()
+    imu: ImuOverride = ImuOverride()
+    physics_dt_s: float = Field(0.001, gt=0.0, le=0.01)
+    rc_rate_hz: float = Field(50.0, gt=0.0, le=1000.0)
+
+    def imu_model(self, profile: VehicleProfile) -> ImuModel:
+        return self.imu.apply(profile.physics.imu)
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """A bundled scenario's file from its name, or the path as given."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        return p
+    return SCENARIO_DIR / f"{name_or_path}.yaml"
+
+
+def list_scenarios() -> list[str]:
+    """Names of the bundled scenarios."""
+    return [p.stem for p in sorted(SCENARIO_DIR.glob("*.yaml"))]
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a bundled scenario by name, or a scenario file by path.
+
+    Raises
+    ------
+    companion.errors.ConfigError
+        Naming the file and key path of every problem (or listing the bundled
+        names when an unknown name is given).
+    """
+    from companion.errors import ConfigError
+
+    p = scenario_path(name_or_path)
+    if not p.exists():
+        raise ConfigError(
+            str(p), [f"no such scenario; bundled scenarios: {', '.join(list_scenarios())}"]
+        )
+    return load_yaml_model(p, Scenario)
