@@ -139,7 +139,9 @@ def simulate(
             bar.update(n - done[0])
             done[0] = n
 
-    record = simulate_flight(profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick)
+    record = simulate_flight(
+        profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
+    )
     bar.close()
     metrics = write_report(
         record,

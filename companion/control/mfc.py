@@ -209,7 +209,11 @@ class ReferencePrefilter:
 
 
 class IntelligentController:
-    """One axis: iPD (``order = 2``) or iP (``order = 1``) with its ``F`` estimator."""
+    """One axis: iPD (``order = 2``) or iP (``order = 1``) with its ``F`` estimator.
+
+    The law is chosen once, at construction: ``update`` is bound to the iPD or
+    the iP form, so the per-sample path does not branch on the order.
+    """
 
     __slots__ = (
         "_alpha",
@@ -219,24 +223,28 @@ class IntelligentController:
         "_kd",
         "_kp",
         "_lim",
-        "_order",
+        "_scale",
         "e",
         "e_dot",
         "f_hat",
+        "order",
         "u_prev",
+        "update",
     )
 
-    def __init__(self, gains: MfcAxisGains) -> None:
-        self._order = gains.order
+    def __init__(self, gains: MfcAxisGains, *, command_full_scale: float = 500.0) -> None:
+        self.order = gains.order
         self._alpha = gains.alpha
         self._kp = gains.kp
         self._kd = gains.kd
         self._lim = gains.output_limit
         self._e_lim = gains.error_limit_rad
+        self._scale = command_full_scale
         self._est: FEstimator = make_estimator(
             gains.estimator, gains.order, gains.alpha, gains.window_s
         )
         self._est_update = self._est.update
+        self.update = self._update_ipd if gains.order == 2 else self._update_ip
         self.f_hat = 0.0
         self.e = 0.0
         self.e_dot = 0.0
@@ -249,8 +257,15 @@ class IntelligentController:
         self.e_dot = 0.0
         self.u_prev = 0.0
 
-    def update(self, dt_s: float, rate: float, ref_rate: float, ref_rate_dot: float) -> float:
-        r"""Return the saturated command for this sample.
+    def _update_ipd(
+        self,
+        dt_s: float,
+        rate: float,
+        ref_rate: float,
+        ref_rate_dot: float,
+        applied: float | None = None,
+    ) -> float:
+        r"""iPD: :math:`u = -(\hat F - \ddot y_r + K_P e + K_D \dot e) / \alpha`.
 
         Parameters
         ----------
@@ -260,18 +275,48 @@ class IntelligentController:
             Measured body rate :math:`\dot y`, rad/s.
         ref_rate, ref_rate_dot
             :math:`\dot y_r` (rad/s) and :math:`\ddot y_r` (rad/s^2).
+        applied
+            The previous command as really applied, normalised (its share of
+            ``command_full_scale``); ``None`` means the previous output was
+            applied as computed.
+
+        Returns
+        -------
+        float
+            The saturated command, in command units.
         """
-        self.f_hat = f_hat = self._est_update(dt_s, rate, self.u_prev)
+        u_prev = self.u_prev if applied is None else applied * self._scale
+        self.f_hat = f_hat = self._est_update(dt_s, rate, u_prev)
         e_dot = rate - ref_rate
         e = self.e + e_dot * dt_s
         lim = self._e_lim
         e = lim if e > lim else (-lim if e < -lim else e)
         self.e = e
         self.e_dot = e_dot
-        if self._order == 2:
-            u = -(f_hat - ref_rate_dot + self._kp * e + self._kd * e_dot) / self._alpha
-        else:
-            u = -(f_hat - ref_rate + self._kp * e) / self._alpha
+        u = -(f_hat - ref_rate_dot + self._kp * e + self._kd * e_dot) / self._alpha
+        lim = self._lim
+        u = lim if u > lim else (-lim if u < -lim else u)
+        self.u_prev = u
+        return u
+
+    def _update_ip(
+        self,
+        dt_s: float,
+        rate: float,
+        ref_rate: float,
+        ref_rate_dot: float,
+        applied: float | None = None,
+    ) -> float:
+        r"""iP: :math:`u = -(\hat F - \dot y_r + K_P e) / \alpha`; same arguments as iPD."""
+        u_prev = self.u_prev if applied is None else applied * self._scale
+        self.f_hat = f_hat = self._est_update(dt_s, rate, u_prev)
+        e_dot = rate - ref_rate
+        e = self.e + e_dot * dt_s
+        lim = self._e_lim
+        e = lim if e > lim else (-lim if e < -lim else e)
+        self.e = e
+        self.e_dot = e_dot
+        u = -(f_hat - ref_rate + self._kp * e) / self._alpha
         lim = self._lim
         u = lim if u > lim else (-lim if u < -lim else u)
         self.u_prev = u
@@ -332,14 +377,18 @@ class MfcController:
     def __init__(self, gains: MfcGains, mixer: Mixer) -> None:
         self.gains = gains
         self.mixer = mixer
-        self._axes = tuple(IntelligentController(g) for g in gains.axes())
+        self._axes = tuple(
+            IntelligentController(g, command_full_scale=gains.command_full_scale)
+            for g in gains.axes()
+        )
+        self._applied: Vec3 = _ZERO3
         self._filter = ReferencePrefilter(gains.prefilter_hz) if gains.prefilter_hz else None
         self._prev_ref: Vec3 | None = None
         self._full_scale = gains.command_full_scale
         self._scale = 1.0 / gains.command_full_scale
         self._dt_min = gains.dt_min_s
         self._dt_max = gains.dt_max_s
-        self._mix = mixer.mix
+        self._mix = mixer.mix_fn
         self._last: ControlOutput | None = None
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
@@ -351,6 +400,7 @@ class MfcController:
         if self._filter is not None:
             self._filter.reset()
         self._prev_ref = None
+        self._applied = _ZERO3
         self._last = None
 
     def update(
@@ -393,18 +443,16 @@ class MfcController:
                 d2 = (r2 - prev[2]) / dt_s
             self._prev_ref = rate_ref_rad_s
         a0, a1, a2 = self._axes
-        u0 = a0.update(dt_s, w0, r0, d0)
-        u1 = a1.update(dt_s, w1, r1, d1)
-        u2 = a2.update(dt_s, w2, r2, d2)
+        # Teach the estimators what was applied last time, not what was asked.
+        p0, p1, p2 = self._applied
+        u0 = a0.update(dt_s, w0, r0, d0, p0)
+        u1 = a1.update(dt_s, w1, r1, d1, p1)
+        u2 = a2.update(dt_s, w2, r2, d2, p2)
         s = self._scale
         motors, achieved, sat_axes, sat_motors, thrust_eff = self._mix(
             thrust, u0 * s, u1 * s, u2 * s
         )
-        # Teach the estimators what was applied, not what was asked.
-        fs = self._full_scale
-        a0.u_prev = achieved[0] * fs
-        a1.u_prev = achieved[1] * fs
-        a2.u_prev = achieved[2] * fs
+        self._applied = achieved
         out: ControlOutput = _new_tuple(
             ControlOutput,
             (

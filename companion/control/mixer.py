@@ -74,7 +74,7 @@ class Mixer:
         Lowest command a running motor receives, in [0, 1).
     """
 
-    __slots__ = ("_no_sat", "_pf", "_quad", "_rf", "_rp", "_yf", "idle", "n_motors")
+    __slots__ = ("_no_sat", "_pf", "_quad", "_rf", "_rp", "_yf", "idle", "mix_fn", "n_motors")
 
     def __init__(
         self,
@@ -99,6 +99,9 @@ class Mixer:
         self._no_sat = (False,) * n
         # The unrolled path assumes four motors that all take part in yaw.
         self._quad = n == 4 and all(k != 0.0 for k in self._yf)
+        #: :meth:`mix` for this geometry, bound once: same contract, one call
+        #: less on the per-sample path.
+        self.mix_fn = self._mix_quad if self._quad else self._mix_generic
         self.idle = float(idle)
         self.n_motors = n
 
@@ -296,10 +299,17 @@ class Mixer:
             motors: tuple[float, ...] = (m0, m1, m2, m3)
             sat = self._no_sat
         else:
-            motors = tuple(
-                idle if m <= lo_ok else (1.0 if m >= hi_ok else m) for m in (m0, m1, m2, m3)
+            s0 = m0 <= lo_ok or m0 >= hi_ok
+            s1 = m1 <= lo_ok or m1 >= hi_ok
+            s2 = m2 <= lo_ok or m2 >= hi_ok
+            s3 = m3 <= lo_ok or m3 >= hi_ok
+            motors = (
+                (idle if m0 <= lo_ok else 1.0) if s0 else m0,
+                (idle if m1 <= lo_ok else 1.0) if s1 else m1,
+                (idle if m2 <= lo_ok else 1.0) if s2 else m2,
+                (idle if m3 <= lo_ok else 1.0) if s3 else m3,
             )
-            sat = tuple(m <= lo_ok or m >= hi_ok for m in (m0, m1, m2, m3))
+            sat = (s0, s1, s2, s3)
         return _new_tuple(
             MixResult,
             (
