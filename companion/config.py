@@ -11,7 +11,7 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from companion._schema import StrictModel, load_yaml_model
 from companion.control import (
@@ -57,11 +57,12 @@ class SticksConfig(StrictModel):
     yaw: AxisRatesConfig = AxisRatesConfig(max_deg_s=360.0)
     deadband_us: float = Field(0.0, ge=0.0, le=100.0)
 
-    @model_validator(mode="after")
-    def _channels(self) -> SticksConfig:
-        if len(set(self.channels)) != 4 or not all(1 <= c <= 18 for c in self.channels):
-            raise ValueError("channels: expected four distinct channel numbers in 1..18")
-        return self
+    @field_validator("channels")
+    @classmethod
+    def _channels(cls, v: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+        if len(set(v)) != 4 or not all(1 <= c <= 18 for c in v):
+            raise ValueError("expected four distinct channel numbers in 1..18")
+        return v
 
 
 class MfcAxisConfig(StrictModel):
@@ -74,11 +75,12 @@ class MfcAxisConfig(StrictModel):
     error_limit_rad: float = Field(0.5, gt=0.0, le=3.2)
     estimator: Literal["window", "algebraic"] = "window"
 
-    @model_validator(mode="after")
-    def _alpha(self) -> MfcAxisConfig:
-        if not (1e-6 <= abs(self.alpha) <= 1e6):
-            raise ValueError("alpha: expected a non-zero magnitude in [1e-6, 1e6]")
-        return self
+    @field_validator("alpha")
+    @classmethod
+    def _alpha(cls, v: float) -> float:
+        if not (1e-6 <= abs(v) <= 1e6):
+            raise ValueError("expected a non-zero magnitude in [1e-6, 1e6]")
+        return v
 
 
 class MfcAxes(StrictModel):

@@ -50,9 +50,13 @@ class MixResult(NamedTuple):
     """The collective actually realised (air mode may shift it)."""
 
 
+_INF = math.inf
+_TINY = 1e-9  # |yaw| below this is no request: avoids dividing by an underflowed product
+
+
 def _clamp_or_zero(x: float, lo: float, hi: float) -> float:
-    """Clamp to [lo, hi]; NaN becomes 0 (infinities clamp to the bounds)."""
-    if x != x:
+    """Clamp a finite value to [lo, hi]; NaN and infinities become 0 (no request)."""
+    if x != x or x == _INF or x == -_INF:
         return 0.0
     return lo if x < lo else (hi if x > hi else x)
 
@@ -98,7 +102,7 @@ class Mixer:
         self._rp = tuple(zip(self._rf, self._pf))
         self._no_sat = (False,) * n
         # The unrolled path assumes four motors that all take part in yaw.
-        self._quad = n == 4 and all(k != 0.0 for k in self._yf)
+        self._quad = n == 4 and all(abs(k) >= 1e-6 for k in self._yf)
         #: :meth:`mix` for this geometry, bound once: same contract, one call
         #: less on the per-sample path.
         self.mix_fn = self._mix_quad if self._quad else self._mix_generic
@@ -169,8 +173,9 @@ class Mixer:
     def mix(self, thrust: float, roll: float, pitch: float, yaw: float) -> MixResult:
         """Allocate thrust and torques to motors with air-mode priority.
 
-        Non-finite inputs are treated as zero; every output is finite and in
-        ``[idle, 1]``.
+        Non-finite inputs (NaN, +/-inf) are treated as zero, finite ones are
+        clamped to their range (and a clamped request counts as saturated);
+        every output is finite and in ``[idle, 1]``.
         """
         if self._quad:
             return self._mix_quad(thrust, roll, pitch, yaw)
@@ -182,6 +187,8 @@ class Mixer:
         r = _clamp_or_zero(roll, -1.0, 1.0)
         p = _clamp_or_zero(pitch, -1.0, 1.0)
         y = _clamp_or_zero(yaw, -1.0, 1.0)
+        if -_TINY < y < _TINY:
+            y = 0.0
 
         # 1. Roll and pitch: scale both together if their spread exceeds the range.
         d = [a * r + b * p for a, b in self._rp]
@@ -207,9 +214,9 @@ class Mixer:
             hi = 1.0 - t_eff
             lo = idle - t_eff
             for di, k in zip(d, self._yf):
+                k *= y  # this motor's change for the full yaw request
                 if k == 0.0:
                     continue
-                k *= y  # this motor's change for the full yaw request
                 room = (hi - di) / k if k > 0.0 else (lo - di) / k
                 if room < y_scale:
                     y_scale = room if room > 0.0 else 0.0
@@ -232,7 +239,11 @@ class Mixer:
         return MixResult(
             tuple(motors),
             (r * rp_scale, p * rp_scale, ye),
-            (rp_scale < 1.0 and r != 0.0, rp_scale < 1.0 and p != 0.0, y_scale < 1.0),
+            (
+                (rp_scale < 1.0 and r != 0.0) or 1.0 < abs(roll) < _INF,
+                (rp_scale < 1.0 and p != 0.0) or 1.0 < abs(pitch) < _INF,
+                (y_scale < 1.0 and y != 0.0) or 1.0 < abs(yaw) < _INF,
+            ),
             sat,
             t_eff,
         )
@@ -244,9 +255,23 @@ class Mixer:
         idle = self.idle
         # In range is the common case; NaN fails every comparison and becomes 0.
         t = thrust if 0.0 <= thrust <= 1.0 else _clamp_or_zero(thrust, 0.0, 1.0)
-        r = roll if -1.0 <= roll <= 1.0 else _clamp_or_zero(roll, -1.0, 1.0)
-        p = pitch if -1.0 <= pitch <= 1.0 else _clamp_or_zero(pitch, -1.0, 1.0)
-        y = yaw if -1.0 <= yaw <= 1.0 else _clamp_or_zero(yaw, -1.0, 1.0)
+        # A finite request beyond +/-1 is clamped (and counts as saturated); NaN
+        # and infinities become 0 (no request).
+        cr = cp = cy = False
+        r = roll
+        if not -1.0 <= r <= 1.0:
+            r = _clamp_or_zero(r, -1.0, 1.0)
+            cr = r != 0.0
+        p = pitch
+        if not -1.0 <= p <= 1.0:
+            p = _clamp_or_zero(p, -1.0, 1.0)
+            cp = p != 0.0
+        y = yaw
+        if not -1.0 <= y <= 1.0:
+            y = _clamp_or_zero(y, -1.0, 1.0)
+            cy = y != 0.0
+        if -_TINY < y < _TINY:
+            y = 0.0
         r0, r1, r2, r3 = self._rf
         p0, p1, p2, p3 = self._pf
         k0, k1, k2, k3 = self._yf
@@ -315,7 +340,11 @@ class Mixer:
             (
                 motors,
                 (r * rp_scale, p * rp_scale, ye),
-                (rp_scale < 1.0 and r != 0.0, rp_scale < 1.0 and p != 0.0, y_scale < 1.0),
+                (
+                    (rp_scale < 1.0 and r != 0.0) or cr,
+                    (rp_scale < 1.0 and p != 0.0) or cp,
+                    (y_scale < 1.0 and y != 0.0) or cy,
+                ),
                 sat,
                 t_eff,
             ),

@@ -1,0 +1,155 @@
+"""Controller files: Table I defaults, validation errors, and building the laws."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from companion.config import (
+    DEFAULT_CONTROLLER,
+    PID_DEFAULT_CONTROLLER,
+    MfcConfig,
+    PidConfig,
+    build_controller,
+    build_stick_map,
+    load_controller,
+    mfc_gains,
+    pid_gains,
+)
+from companion.control import PX4_DEFAULT_GAINS, MfcController, MfcGains, PidController, StickMap
+from companion.errors import ConfigError
+from tests.control.plants import f450_mixer, f450_profile
+
+
+def test_default_controller_is_table_1() -> None:
+    cfg = load_controller()
+    assert isinstance(cfg, MfcConfig)
+    assert cfg.kind == "mfc"
+    roll, pitch, yaw = cfg.axes.roll, cfg.axes.pitch, cfg.axes.yaw
+    assert (roll.order, roll.alpha, roll.window_s, roll.kp, roll.kd) == (2, 1.0, 0.02, 3.0, 0.096)
+    assert (pitch.order, pitch.alpha, pitch.window_s, pitch.kp, pitch.kd) == (
+        2,
+        1.0,
+        0.02,
+        2.7,
+        0.096,
+    )
+    assert (yaw.order, yaw.alpha, yaw.window_s, yaw.kp) == (1, 1.0, 0.02, 2.7)
+    assert cfg.command_full_scale_us == 500.0
+    # The shipped file and the code's defaults are the same controller.
+    assert mfc_gains(cfg) == MfcGains()
+
+
+def test_pid_default_file_loads() -> None:
+    cfg = load_controller(PID_DEFAULT_CONTROLLER)
+    assert isinstance(cfg, PidConfig)
+    assert pid_gains(cfg) == PX4_DEFAULT_GAINS
+
+
+def test_default_sticks() -> None:
+    assert build_stick_map(load_controller()) == StickMap()
+
+
+def test_build_controller_uses_the_profile_geometry() -> None:
+    profile = f450_profile()
+    expected = f450_mixer()
+    mfc = build_controller(load_controller(DEFAULT_CONTROLLER), profile)
+    assert isinstance(mfc, MfcController)
+    assert mfc.gains == MfcGains()
+    pid = build_controller(load_controller(PID_DEFAULT_CONTROLLER), profile)
+    assert isinstance(pid, PidController)
+    for ctrl in (mfc, pid):
+        assert ctrl.mixer.factors() == expected.factors()
+        assert ctrl.mixer.idle == profile.limits.motor_idle == 0.05
+        # And it runs.
+        out = ctrl.update(0.004, (0.0, 0.0, 0.0), (0.1, 0.0, 0.0), 0.5)
+        assert len(out.motors) == 4 and not out.held
+
+
+# ---------------------------------------------------------------------------
+# Bad files: ConfigError naming the file and the dotted key path.
+
+
+def _default_raw() -> dict[str, Any]:
+    raw = yaml.safe_load(DEFAULT_CONTROLLER.read_text(encoding="utf-8"))
+    assert isinstance(raw, dict)
+    return raw
+
+
+def _set(path: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def f(raw: dict[str, Any]) -> None:
+        *parents, last = path.split(".")
+        node = raw
+        for p in parents:
+            node = node[p]
+        node[last] = value
+
+    return f
+
+
+def _delete(path: str) -> Callable[[dict[str, Any]], None]:
+    def f(raw: dict[str, Any]) -> None:
+        *parents, last = path.split(".")
+        node = raw
+        for p in parents:
+            node = node[p]
+        del node[last]
+
+    return f
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key_path"),
+    [
+        pytest.param(_set("axes.roll.foo", 1.0), "axes.roll.foo", id="unknown-key"),
+        pytest.param(_set("gain_scheduling", True), "gain_scheduling", id="unknown-top-key"),
+        pytest.param(_delete("axes.roll.kp"), "axes.roll.kp", id="missing-key"),
+        pytest.param(_delete("axes.yaw"), "axes.yaw", id="missing-axis"),
+        pytest.param(_set("axes.pitch.kd", "fast"), "axes.pitch.kd", id="wrong-type"),
+        pytest.param(_set("axes.yaw.order", 3), "axes.yaw.order", id="bad-order"),
+        pytest.param(_delete("kind"), "kind", id="kind-missing"),
+        pytest.param(_set("kind", "lqr"), "kind", id="kind-unknown"),
+        pytest.param(_set("axes.roll.alpha", 0.0), "axes.roll.alpha", id="alpha-zero"),
+        pytest.param(_set("axes.roll.window_s", -0.02), "axes.roll.window_s", id="negative-window"),
+        pytest.param(_set("dt_max_s", -1.0), "dt_max_s", id="negative-dt"),
+    ],
+)
+def test_bad_controller_file_names_file_and_key(
+    tmp_path: Path, mutate: Callable[[dict[str, Any]], None], key_path: str
+) -> None:
+    raw = copy.deepcopy(_default_raw())
+    mutate(raw)
+    path = tmp_path / "bad_controller.yaml"
+    path.write_text(yaml.safe_dump(raw), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load_controller(path)
+    msg = str(info.value)
+    assert str(path) in msg
+    assert key_path in msg, f"{key_path!r} not named in:\n{msg}"
+    assert isinstance(info.value, ValueError)
+
+
+@pytest.mark.parametrize(
+    "text", ["kind: mfc\naxes: [1, 2\n", "- just\n- a list\n", ""], ids=["yaml", "list", "empty"]
+)
+def test_unparseable_controller_file(tmp_path: Path, text: str) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"c\.yaml"):
+        load_controller(path)
+
+
+def test_missing_controller_file(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"nope\.yaml"):
+        load_controller(tmp_path / "nope.yaml")
+
+
+def test_config_objects_are_frozen() -> None:
+    cfg = load_controller()
+    with pytest.raises(Exception):  # noqa: B017 - pydantic's frozen error type
+        cfg.kind = "pid"  # type: ignore[misc]
