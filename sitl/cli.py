@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -52,7 +53,9 @@ def cli(verbose: int) -> None:
     help="udpout:HOST:PORT (send there, answer any sender) or udpin:HOST:PORT (listen).",
 )
 @click.option("--pilot", default=None, help="Maneuver name or stick-script YAML; none: no RC.")
-@click.option("--seed", default=0, show_default=True, type=int, help="Seed of all randomness.")
+@click.option(
+    "--seed", default=None, type=int, help="Seed of all randomness [default: the scenario's, or 0]."
+)
 @click.option(
     "--clock", type=click.Choice(["realtime", "lockstep"]), default="realtime", show_default=True
 )
@@ -103,11 +106,22 @@ def cli(verbose: int) -> None:
     help="Mode at boot [default: ACRO with a pilot, else MANUAL].",
 )
 @click.option("--no-auto-arm", is_flag=True, help="Do not arm at t=0 when a pilot is given.")
+@click.option(
+    "--scenario",
+    default=None,
+    help="Scenario name or file (sitl/scenarios): pilot, seed, wind, IMU and RC rate from it; "
+    "explicit options override it.",
+)
+@click.option(
+    "--pilot-from-arm",
+    is_flag=True,
+    help="Start the pilot's timeline when the vehicle is armed (for a companion that arms it).",
+)
 def run(
     profile_path: Path,
     mavlink: str,
     pilot: str | None,
-    seed: int,
+    seed: int | None,
     clock: str,
     duration_s: float | None,
     test_stand: bool,
@@ -117,6 +131,8 @@ def run(
     lockstep_timeout_s: float,
     initial_mode: str | None,
     no_auto_arm: bool,
+    scenario: str | None,
+    pilot_from_arm: bool,
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_face import parse_endpoint
@@ -128,10 +144,25 @@ def run(
         raise click.BadParameter(str(exc), param_hint="--mavlink") from exc
     try:
         profile = load_profile(profile_path)
+        extra: dict[str, Any] = {}
+        if scenario is not None:
+            from sitl.scenario import load_scenario
+
+            sc = load_scenario(scenario)
+            pilot = pilot or sc.pilot
+            seed = sc.seed if seed is None else seed
+            duration_s = duration_s if duration_s is not None else sc.duration_s
+            test_stand = test_stand or not sc.free_flight
+            extra = {
+                "wind": sc.wind.config() if wind_gust_m_s == 0.0 else None,
+                "imu_model": sc.imu_model(profile),
+                "rc_period_s": 1.0 / sc.rc_rate_hz,
+                "dt_s": sc.physics_dt_s,
+            }
         config = RunConfig(
             mavlink=endpoint,
             pilot=pilot,
-            seed=seed,
+            seed=0 if seed is None else seed,
             clock=clock,  # type: ignore[arg-type]
             duration_s=duration_s,
             test_stand=test_stand,
@@ -141,6 +172,8 @@ def run(
             lockstep_timeout_s=lockstep_timeout_s,
             initial_mode=initial_mode,
             auto_arm=not no_auto_arm,
+            pilot_from_arm=pilot_from_arm,
+            **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))
     except (ConfigError, ValueError) as exc:

@@ -73,7 +73,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from companion.profile import VehicleProfile
+from companion.profile import ImuModel, VehicleProfile
 from sitl.autopilot import (
     Autopilot,
     AutopilotConfig,
@@ -132,6 +132,16 @@ class RunConfig:
         Arm at t = 0 when a pilot is given (a human would arm before flying).
     dt_s
         Physics step, s.
+    wind
+        Steady wind and gusts; overrides ``wind_gust_m_s`` when given.
+    imu_model
+        The IMU model to use instead of the profile's (scenario overrides).
+    rc_period_s
+        Interval between RC frames from the pilot, s.
+    pilot_from_arm
+        Run the pilot's timeline from the moment the vehicle is armed (a
+        companion that engages later still flies the whole maneuver list);
+        before that the pilot holds the timeline's first sticks.
     """
 
     mavlink: Endpoint
@@ -147,6 +157,10 @@ class RunConfig:
     initial_mode: str | None = None
     auto_arm: bool = True
     dt_s: float = 0.001
+    wind: WindConfig | None = None
+    imu_model: ImuModel | None = None
+    rc_period_s: float = RC_PERIOD_S
+    pilot_from_arm: bool = False
 
 
 @dataclass
@@ -310,12 +324,15 @@ class Runner:
             hover = 0.5
         self.hover_thrust = hover
         wind = None
-        if config.wind_gust_m_s > 0.0:
+        if config.wind is not None:
+            wind = Wind(config.wind, rng=rng_wind)
+        elif config.wind_gust_m_s > 0.0:
             wind = Wind(WindConfig(gust_sigma_m_s=config.wind_gust_m_s), rng=rng_wind)
         self.quad = Quadrotor(
             profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand, wind=wind
         )
-        self.imu = Imu(profile.physics.imu, rng=rng_imu, dt_s=config.dt_s)
+        imu_model = config.imu_model or profile.physics.imu
+        self.imu = Imu(imu_model, rng=rng_imu, dt_s=config.dt_s)
         self.pilot: Pilot | None = None
         if config.pilot:
             self.pilot = make_pilot(config.pilot, rng=rng_pilot, free_flight=not config.test_stand)
@@ -332,12 +349,12 @@ class Runner:
             ),
             initial_mode=FlightMode(main),
         )
-        imu_rate_hz = min(profile.physics.imu.rate_hz, 1.0 / config.dt_s)
+        imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
         self.streams = default_streams(imu_rate_hz)
         self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
         self.stop = threading.Event()
         self.duration_s = config.duration_s
-        if self.duration_s is None and self.pilot is not None:
+        if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
             self.duration_s = self.pilot.duration_s
 
     def run(self) -> RunSummary:
@@ -405,18 +422,30 @@ class Runner:
 
         if pilot is not None and cfg.auto_arm:
             ap.arm(0.0)
+        t_pilot0: float | None = None if cfg.pilot_from_arm else 0.0
+        pilot_duration = pilot.duration_s if pilot is not None else math.inf
 
         while not stop.is_set():
             t = quad.t_s
             if t >= duration - 1e-9:
                 return "completed"
+            if t_pilot0 is None and ap.armed:
+                t_pilot0 = t
+                log.event(Event(t, "pilot_start", {"t_s": t}))
+            if (
+                cfg.pilot_from_arm
+                and self.config.duration_s is None
+                and t_pilot0 is not None
+                and t - t_pilot0 >= pilot_duration - 1e-9
+            ):
+                return "completed"
             face.poll(t)
             st = quad.state
             euler = quat_to_euler_rad(st.q_wxyz)
             if pilot is not None and t >= next_rc_s - 1e-9:
-                next_rc_s += RC_PERIOD_S
+                next_rc_s += cfg.rc_period_s
                 view = PilotView(
-                    t,
+                    t - t_pilot0 if t_pilot0 is not None else 0.0,
                     euler[0],
                     euler[1],
                     euler[2],
