@@ -1,0 +1,38 @@
+"""MAVLink transport and protocol: byte transports, the link to the autopilot, signing.
+
+See :mod:`companion.link.transport`, :mod:`companion.link.mavlink` and
+:mod:`companion.link.signing`; ``docs/signing.md`` explains key set-up.
+"""
+
+from companion.link.mavlink import MavlinkLink, mavlink2
+from companion.link.signing import (
+    SignatureChecker,
+    SigningConfig,
+    load_signing_key,
+    passphrase_to_key,
+    signing_timestamp_now,
+)
+from companion.link.transport import (
+    MemoryTransport,
+    SerialTransport,
+    Transport,
+    UdpInTransport,
+    UdpOutTransport,
+    open_transport,
+)
+
+__all__ = [
+    "MavlinkLink",
+    "MemoryTransport",
+    "SerialTransport",
+    "SignatureChecker",
+    "SigningConfig",
+    "Transport",
+    "UdpInTransport",
+    "UdpOutTransport",
+    "load_signing_key",
+    "mavlink2",
+    "open_transport",
+    "passphrase_to_key",
+    "signing_timestamp_now",
+]
