@@ -38,7 +38,7 @@ __all__ = [
     "load_controller",
 ]
 
-DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "mfc_table1.yaml"))
+DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "mfc_default.yaml"))
 PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default.yaml"))
 
 

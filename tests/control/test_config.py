@@ -25,9 +25,11 @@ from companion.control import PX4_DEFAULT_GAINS, MfcController, MfcGains, PidCon
 from companion.errors import ConfigError
 from tests.control.plants import f450_mixer, f450_profile
 
+TABLE1 = DEFAULT_CONTROLLER.parent / "mfc_table1.yaml"
 
-def test_default_controller_is_table_1() -> None:
-    cfg = load_controller()
+
+def test_table_1_file_holds_the_papers_values() -> None:
+    cfg = load_controller(TABLE1)
     assert isinstance(cfg, MfcConfig)
     assert cfg.kind == "mfc"
     roll, pitch, yaw = cfg.axes.roll, cfg.axes.pitch, cfg.axes.yaw
@@ -58,9 +60,10 @@ def test_default_sticks() -> None:
 def test_build_controller_uses_the_profile_geometry() -> None:
     profile = f450_profile()
     expected = f450_mixer()
-    mfc = build_controller(load_controller(DEFAULT_CONTROLLER), profile)
+    mfc = build_controller(load_controller(TABLE1), profile)
     assert isinstance(mfc, MfcController)
-    assert mfc.gains == MfcGains()
+    assert mfc.gains == MfcGains()  # MfcGains() defaults are Table I
+    assert isinstance(build_controller(load_controller(DEFAULT_CONTROLLER), profile), MfcController)
     pid = build_controller(load_controller(PID_DEFAULT_CONTROLLER), profile)
     assert isinstance(pid, PidController)
     for ctrl in (mfc, pid):

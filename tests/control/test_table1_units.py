@@ -21,6 +21,7 @@ from companion.simulate import simulate_flight
 from sitl.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
+TABLE1 = ROOT / "companion" / "data" / "mfc_table1.yaml"
 
 
 def _with_alpha(cfg: MfcConfig, alpha: float) -> MfcConfig:
@@ -30,7 +31,7 @@ def _with_alpha(cfg: MfcConfig, alpha: float) -> MfcConfig:
 
 
 def _saturated_fraction(profile: str, alpha: float) -> float:
-    cfg = load_controller()
+    cfg = load_controller(TABLE1)
     assert isinstance(cfg, MfcConfig)
     sc = load_scenario("hover-gusts").model_copy(update={"duration_s": 8.0})
     rec = simulate_flight(
