@@ -117,6 +117,13 @@ def cli(verbose: int) -> None:
     is_flag=True,
     help="Start the pilot's timeline when the vehicle is armed (for a companion that arms it).",
 )
+@click.option(
+    "--fault",
+    "faults",
+    multiple=True,
+    help="Inject a fault: imu-stop@T, imu-nan@T, link-drop@T, motor-fail@T:INDEX "
+    "(T in simulated s; repeatable).",
+)
 def run(
     profile_path: Path,
     mavlink: str,
@@ -133,6 +140,7 @@ def run(
     no_auto_arm: bool,
     scenario: str | None,
     pilot_from_arm: bool,
+    faults: tuple[str, ...],
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_face import parse_endpoint
@@ -159,6 +167,9 @@ def run(
                 "rc_period_s": 1.0 / sc.rc_rate_hz,
                 "dt_s": sc.physics_dt_s,
             }
+        from sitl.runner import parse_fault
+
+        parsed_faults = tuple(parse_fault(f) for f in faults)
         config = RunConfig(
             mavlink=endpoint,
             pilot=pilot,
@@ -173,6 +184,7 @@ def run(
             initial_mode=initial_mode,
             auto_arm=not no_auto_arm,
             pilot_from_arm=pilot_from_arm,
+            faults=parsed_faults,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))

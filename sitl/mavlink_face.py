@@ -236,6 +236,11 @@ class MavlinkFace:
         self.peers: list[tuple[str, int]] = []
         self.setpoints_received = 0
         self.imu_messages_sent = 0
+        # Fault injection (sitl.runner --fault): a muted face neither sends nor
+        # reads; IMU streams can be stopped or their gyro replaced by NaN.
+        self.muted = False
+        self.imu_stopped = False
+        self.imu_nan = False
         self.messages_sent = 0
         self.messages_received = 0
         self.bad_packets = 0
@@ -281,7 +286,7 @@ class MavlinkFace:
 
     def _send_bytes(self, buf: bytes) -> None:
         sock = self.sock
-        if sock is None:
+        if sock is None or self.muted:
             return
         for peer in self.peers:
             try:
@@ -325,6 +330,8 @@ class MavlinkFace:
                 self._warn_once("recv", "receive failed: %s", exc)
                 return n
             n += 1
+            if self.muted:
+                continue  # a dropped link loses what arrives too
             self._add_peer(addr)
             try:
                 msgs = self.mav.parse_buffer(data) or []
@@ -469,7 +476,7 @@ class MavlinkFace:
         if st.due(ID_HEARTBEAT, t_s) or wall_s - self._last_heartbeat_wall_s > 1.0:
             self._send_heartbeat(wall_s)
         imu_sent = False
-        if imu_sample:
+        if imu_sample and not self.imu_stopped:
             if st.due(ID_HIGHRES_IMU, t_s):
                 self._send_one(ID_HIGHRES_IMU)
                 imu_sent = True
@@ -501,6 +508,8 @@ class MavlinkFace:
         ap = self.autopilot
         if msg_id == ID_HIGHRES_IMU:
             a, g = s.accel_frd_m_s2, s.gyro_frd_rad_s
+            if self.imu_nan:
+                g = (math.nan, math.nan, math.nan)
             mav.highres_imu_send(
                 round(s.imu_t_s * 1e6),
                 a[0], a[1], a[2], g[0], g[1], g[2],

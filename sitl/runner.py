@@ -94,6 +94,38 @@ logger = logging.getLogger(__name__)
 
 Status = Literal["completed", "stopped", "crashed"]
 
+FAULT_KINDS = ("imu-stop", "imu-nan", "link-drop", "motor-fail")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """A fault injected at simulation time ``t_s`` (see :func:`parse_fault`)."""
+
+    kind: str
+    t_s: float
+    arg: int = 0
+
+
+def parse_fault(text: str) -> Fault:
+    """Parse ``KIND@T`` or ``motor-fail@T:INDEX`` (T in simulated seconds).
+
+    ``imu-stop``: no more IMU streams (HIGHRES_IMU, ATTITUDE...);
+    ``imu-nan``: HIGHRES_IMU gyro fields become NaN;
+    ``link-drop``: nothing is sent or read any more;
+    ``motor-fail``: motor INDEX (0-based) stops.
+    """
+    kind, _, rest = text.partition("@")
+    when, _, arg = rest.partition(":")
+    try:
+        t_s = float(when)
+        index = int(arg) if arg else 0
+    except ValueError:
+        raise ValueError(f"fault {text!r}: expected KIND@SECONDS[:MOTOR]") from None
+    if kind not in FAULT_KINDS or not (t_s >= 0.0 and math.isfinite(t_s)):
+        raise ValueError(f"fault {text!r}: KIND is one of {', '.join(FAULT_KINDS)}, SECONDS >= 0")
+    return Fault(kind, t_s, index)
+
+
 _MODE_BY_NAME = {m.name: m for m in MainMode}
 RC_PERIOD_S = 0.01
 """The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
@@ -138,6 +170,9 @@ class RunConfig:
         The IMU model to use instead of the profile's (scenario overrides).
     rc_period_s
         Interval between RC frames from the pilot, s.
+    faults
+        Faults to inject (:func:`parse_fault`), each once at its time, counted
+        from the pilot's start (so from arming with ``pilot_from_arm``).
     pilot_from_arm
         Run the pilot's timeline from the moment the vehicle is armed (a
         companion that engages later still flies the whole maneuver list);
@@ -161,6 +196,7 @@ class RunConfig:
     imu_model: ImuModel | None = None
     rc_period_s: float = RC_PERIOD_S
     pilot_from_arm: bool = False
+    faults: tuple[Fault, ...] = ()
 
 
 @dataclass
@@ -404,6 +440,19 @@ class Runner:
         )
         return summary
 
+    def _inject(self, fault: Fault, t: float, log: _Log) -> None:
+        face = self.face
+        if fault.kind == "imu-stop":
+            face.imu_stopped = True
+        elif fault.kind == "imu-nan":
+            face.imu_nan = True
+        elif fault.kind == "link-drop":
+            face.muted = True
+        elif fault.kind == "motor-fail":
+            self.quad.set_motor_failure(fault.arg, 0.0)
+        logger.warning("fault injected at t=%.3f s: %s", t, fault)
+        log.event(Event(t, "fault", {"kind": fault.kind, "arg": fault.arg}))
+
     def _loop(self, log: _Log, summary: RunSummary, wall0: float) -> Status:
         cfg = self.config
         quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
@@ -423,12 +472,16 @@ class Runner:
         if pilot is not None and cfg.auto_arm:
             ap.arm(0.0)
         t_pilot0: float | None = None if cfg.pilot_from_arm else 0.0
+        faults = sorted(cfg.faults, key=lambda f: f.t_s)
         pilot_duration = pilot.duration_s if pilot is not None else math.inf
 
         while not stop.is_set():
             t = quad.t_s
             if t >= duration - 1e-9:
                 return "completed"
+            # Fault times count from the pilot's start (arming, with --pilot-from-arm).
+            while faults and t_pilot0 is not None and t - t_pilot0 >= faults[0].t_s - 1e-9:
+                self._inject(faults.pop(0), t, log)
             if t_pilot0 is None and ap.armed:
                 t_pilot0 = t
                 log.event(Event(t, "pilot_start", {"t_s": t}))
