@@ -16,7 +16,7 @@ from typing import Any
 import click
 
 from companion import __version__
-from companion.errors import ConfigError
+from companion.errors import ConfigError, MfcError
 
 __all__ = ["main"]
 
@@ -156,6 +156,258 @@ def simulate(
         f"{metrics['wall_time_s']:.1f} s; MAE roll {mae['roll']} pitch {mae['pitch']} "
         f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
     )
+
+
+@cli.command("run")
+@click.option(
+    "--connect",
+    default="udpin:0.0.0.0:14540",
+    show_default=True,
+    help="udpin:HOST:PORT, udpout:HOST:PORT or serial:DEVICE:BAUD.",
+)
+@_profile_opt
+@_controller_opt
+@click.option(
+    "--output",
+    type=click.Choice(["actuator", "rates"]),
+    default="actuator",
+    show_default=True,
+    help="actuator: SET_ACTUATOR_CONTROL_TARGET (PX4 <= 1.13, bundled SITL); "
+    "rates: SET_ATTITUDE_TARGET body rates (PX4 >= 1.14, ArduPilot).",
+)
+@click.option(
+    "--engage",
+    type=click.Choice(["auto", "rc-switch", "none"]),
+    default="rc-switch",
+    show_default=True,
+    help="auto: OFFBOARD+arm (simulation); rc-switch: while an RC "
+    "channel is high; none: shadow mode, sends no setpoint, mode or arm command.",
+)
+@click.option("--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True)
+@click.option(
+    "--imu-source",
+    type=click.Choice(["highres_imu", "attitude"]),
+    default="highres_imu",
+    show_default=True,
+)
+@click.option(
+    "--rate-hz",
+    type=click.FloatRange(50.0, 1000.0),
+    default=250.0,
+    show_default=True,
+    help="IMU stream (= control loop) rate requested from the autopilot.",
+)
+@click.option(
+    "--log-dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Write flight.tlog, control.bin and events.jsonl here.",
+)
+@click.option("--mqtt", "mqtt_url", default=None, help="mqtt://HOST[:PORT]/PREFIX telemetry.")
+@click.option(
+    "--signing-key",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="MAVLink 2 signing key file (see docs/signing.md).",
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Stop after this long engaged (sample time, s), handing back.",
+)
+@click.option(
+    "--on-failsafe", type=click.Choice(["exit", "wait"]), default="exit", show_default=True
+)
+@click.option(
+    "--safe-mode",
+    type=click.Choice(["posctl", "altctl", "stabilized", "manual"]),
+    default="posctl",
+    show_default=True,
+    help="Mode handed back to on a failsafe.",
+)
+@click.option(
+    "--stale-imu-s", type=click.FloatRange(min=0.0, min_open=True), default=0.1, show_default=True
+)
+@click.option(
+    "--link-timeout-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=2.0,
+    show_default=True,
+)
+@click.option(
+    "--envelope-error-deg-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=300.0,
+    show_default=True,
+    help="Failsafe when the tracking error averaged over 0.5 s exceeds this.",
+)
+def run(
+    connect: str,
+    profile_path: Path,
+    controller_path: Path | None,
+    output: str,
+    engage: str,
+    engage_channel: int,
+    imu_source: str,
+    rate_hz: float,
+    log_dir: Path | None,
+    mqtt_url: str | None,
+    signing_key: Path | None,
+    duration: float | None,
+    on_failsafe: str,
+    safe_mode: str,
+    stale_imu_s: float,
+    link_timeout_s: float,
+    envelope_error_deg_s: float,
+) -> None:
+    """Fly the vehicle's rates with the controller over MAVLink."""
+    import asyncio
+
+    from companion.app import Companion, FailsafeConfig, RunOptions
+    from companion.link.signing import load_signing_key
+    from companion.link.transport import open_transport
+
+    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    # Check everything a run needs before anything is opened or sent.
+    try:
+        open_transport(connect)
+        if mqtt_url:
+            from companion.telemetry import MqttTelemetry
+
+            MqttTelemetry(mqtt_url)
+        if signing_key:
+            load_signing_key(signing_key)
+    except (ValueError, MfcError) as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    opts = RunOptions(
+        connect=connect,
+        profile=profile,
+        controller=cfg,
+        profile_path=str(profile_path),
+        controller_path=str(ctrl_path),
+        output=output,  # type: ignore[arg-type]
+        engage=engage,  # type: ignore[arg-type]
+        imu_source=imu_source,  # type: ignore[arg-type]
+        loop_rate_hz=rate_hz,
+        engage_channel=engage_channel,
+        log_dir=log_dir,
+        mqtt_url=mqtt_url,
+        signing_key=signing_key,
+        duration_s=duration,
+        failsafe=FailsafeConfig(
+            stale_imu_s=stale_imu_s,
+            link_timeout_s=link_timeout_s,
+            tracking_error_max_deg_s=envelope_error_deg_s,
+            on_failsafe=on_failsafe,  # type: ignore[arg-type]
+            safe_mode=safe_mode,
+        ),
+    )
+    sys.exit(asyncio.run(Companion(opts).run()))
+
+
+@cli.command("fly")
+@_profile_opt
+@_controller_opt
+@click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
+@click.option("--seed", type=int, default=None, help="Override the scenario's seed.")
+@click.option(
+    "--output", type=click.Choice(["actuator", "rates"]), default="actuator", show_default=True
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Engaged flight time, s [default: the scenario's].",
+)
+@click.option(
+    "--controller-profile",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Give the companion this profile instead of the flown one.",
+)
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("runs/fly"),
+    show_default=True,
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def fly(
+    profile_path: Path,
+    controller_path: Path | None,
+    scenario: str,
+    seed: int | None,
+    output: str,
+    duration: float | None,
+    controller_profile: Path | None,
+    out_dir: Path,
+    progress: bool,
+) -> None:
+    """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
+
+    Writes metrics.json, plots, report.md, and both processes' logs into OUT.
+    """
+    from tqdm import tqdm
+
+    from companion.fly import fly_mavlink, merge_logs
+    from companion.profile import load_profile
+    from companion.report import write_report
+    from sitl.scenario import load_scenario
+
+    profile, _cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    try:
+        sc = load_scenario(scenario)
+        if controller_profile:
+            load_profile(controller_profile)
+    except ConfigError as exc:
+        _fail_config(exc)
+    bar = tqdm(
+        total=100, desc=f"{sc.name} on {profile.name} (MAVLink)", unit="%", disable=not progress
+    )
+    done = [0]
+
+    def tick(frac: float) -> None:
+        n = int(frac * 100)
+        if n > done[0]:
+            bar.update(n - done[0])
+            done[0] = n
+
+    flight = fly_mavlink(
+        profile_path, scenario, out_dir, controller_path=controller_path, output=output,
+        duration_s=duration, seed=seed, controller_profile_path=controller_profile,
+        progress=tick,
+    )  # fmt: skip
+    bar.close()
+    if not flight.control_log.exists():
+        click.echo(
+            f"error: the companion wrote no control log (exit {flight.companion_rc}); "
+            f"see {out_dir / 'companion.stderr'}",
+            err=True,
+        )
+        sys.exit(1)
+    record = merge_logs(
+        flight,
+        meta={"scenario": sc.name, "seed": sc.seed if seed is None else seed,
+              "controller_profile": str(controller_profile or profile_path)},
+    )  # fmt: skip
+    metrics = write_report(
+        record,
+        out_dir,
+        controller_path=str(ctrl_path),
+        profile_path=str(profile_path),
+        scenario_desc=sc.description.strip(),
+    )
+    mae = metrics["mae_deg_s"]
+    click.echo(
+        f"{'CRASHED' if metrics['crashed'] else 'flew'} {metrics['sim_time_s']:.1f} s in "
+        f"{flight.wall_time_s:.1f} s wall; MAE roll {mae['roll']} pitch {mae['pitch']} "
+        f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
+    )
+    if flight.companion_rc != 0:
+        sys.exit(1)
 
 
 def main() -> None:

@@ -154,6 +154,7 @@ class MqttTelemetry:
         self._axis_topics = tuple(self.topics[a] for a in _AXES)
         self._queue: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue(maxsize=queue_size)
         self._put = self._queue.put_nowait
+        self._sending = False
         self._period = 1.0 / decimate_hz
         # Tolerance on the decimation grid: sample times are microseconds on
         # the wire, so 1 us is below any real sample spacing.
@@ -252,6 +253,19 @@ class MqttTelemetry:
 
     # -- background side ------------------------------------------------------
 
+    async def drain(self, timeout_s: float = 1.0) -> bool:
+        """Wait (bounded) until everything queued has been published.
+
+        Returns True when the queue emptied in time; used at shutdown so the
+        last events (the hand-back and its reason) reach the broker.
+        """
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while not self._queue.empty() or self._sending:
+            if not self.connected or asyncio.get_running_loop().time() >= deadline:
+                return False
+            await asyncio.sleep(0.01)
+        return True
+
     async def run(self) -> None:
         """Connect, publish what the queue holds, reconnect on loss; until cancelled.
 
@@ -344,7 +358,11 @@ class MqttTelemetry:
         get = self._queue.get
         while True:
             item = await get()
-            await self._send(client, item)
+            self._sending = True
+            try:
+                await self._send(client, item)
+            finally:
+                self._sending = False
 
     async def _send(self, client: aiomqtt.Client, item: tuple[Any, ...]) -> None:
         kind = item[0]

@@ -9,6 +9,13 @@
     counted), plus ``baseline_call_us`` (an empty method call measured in
     the same run) and the ratios to it, which travel between machines better
     than raw microseconds. Target: ``mfc_update_us`` <= 5.
+``loop``
+    ``latency_us_p50``/``latency_us_p99``: an IMU datagram's arrival to its
+    command leaving ``companion run`` (logging on), measured from outside by a
+    harness playing the autopilot over UDP; ``floor_us_p50``/``floor_us_p99``:
+    the same harness against a bare asyncio echo that parses with pymavlink;
+    ``ratio_p50``/``ratio_p99`` and ``missed_at_1khz`` over a 60 s run at 1 kHz.
+    Targets: ratios <= 1.3 / 1.5, no missed samples.
 ``sitl``
     ``physics_rt_factor`` (simulated seconds per wall second, 1 kHz physics,
     one vehicle, no MAVLink), ``batch_vehicle_steps_per_s`` (N = 1000) and,
@@ -106,16 +113,26 @@ def bench_sitl() -> dict[str, Any]:
     return dict(run())
 
 
+def bench_loop(quick: bool) -> dict[str, Any]:
+    from companion._loopbench import run_loop_bench
+
+    if quick:
+        return run_loop_bench(seconds=5.0, floor_seconds=3.0)
+    return run_loop_bench(seconds=60.0, floor_seconds=20.0)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("which", choices=["control", "sitl"])
+    parser.add_argument("which", choices=["control", "sitl", "loop"])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--quick", action="store_true", help="fewer iterations (smoke test)")
     args = parser.parse_args(argv)
     if args.which == "control":
         result = bench_control(20_000 if args.quick else 200_000)
+    elif args.which == "loop":
+        result = bench_loop(args.quick)
     else:
         result = bench_sitl()
     if args.json:

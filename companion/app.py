@@ -1,0 +1,617 @@
+"""The companion app: MFC in the loop over MAVLink, with failsafes.
+
+Data flows one way: MAVLink bytes -> parsed sample -> control law -> command ->
+MAVLink bytes. Each processed IMU sample produces exactly one control update
+and (when commanding) one command, inside the link's receive callback: no
+queue, no task switch on that path. Logs and telemetry hang off the side
+(buffered writers, a bounded MQTT queue) and never wait on I/O.
+
+Start-up
+    Wait for the autopilot's heartbeat; refuse a stack that cannot take the
+    chosen output; request the IMU stream at the loop rate and RC_CHANNELS
+    (ACK-checked); then engage per ``engage``:
+
+    ``auto``       stream setpoints, switch to OFFBOARD, arm (ACK-checked, retried);
+    ``rc-switch``  take over while an RC channel is high, hand back when low;
+    ``none``       shadow mode: compute and log; send no setpoint, mode or arm
+                   command (only our heartbeat and the stream-rate requests).
+
+Engaged means the autopilot's heartbeat shows OFFBOARD and armed; the
+controller is reset on that edge, so ``F`` is learnt only from commands that
+were really applied.
+
+Failsafes (each ends in the same hand-back)
+    stale IMU (no sample for ``stale_imu_s``), invalid IMU (non-finite or beyond
+    the gyro range for ``invalid_imu_s``), lost link (no autopilot heartbeat
+    for ``link_timeout_s``), lost RC (no valid RC for ``rc_timeout_s`` while
+    engaged), envelope (a rate beyond the profile's limit for
+    ``envelope_time_s``, or the tracking error averaged over ``envelope_time_s``
+    beyond ``tracking_error_max_deg_s``), the
+    autopilot leaving OFFBOARD by itself, and SIGINT/SIGTERM. Hand-back: stop
+    commanding, switch the autopilot to ``safe_mode``, log the reason, then
+    exit (``on_failsafe = exit``, exit code 3; 0 for a signal) or wait to be
+    engaged again (``wait``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import signal
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
+from companion.errors import EngageError, LinkError
+from companion.profile import VehicleProfile
+
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "EXIT_ERROR",
+    "EXIT_FAILSAFE",
+    "EXIT_OK",
+    "Companion",
+    "FailsafeConfig",
+    "RunOptions",
+]
+
+_log = logging.getLogger("companion.app")
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_BAD_INPUT = 2
+EXIT_FAILSAFE = 3
+
+# MAVLink numbers used here (common.xml).
+_MSG_HEARTBEAT = 0
+_MSG_ATTITUDE = 30
+_MSG_RC_CHANNELS = 65
+_MSG_HIGHRES_IMU = 105
+_CMD_DO_SET_MODE = 176
+_CMD_ARM_DISARM = 400
+_CMD_SET_MESSAGE_INTERVAL = 511
+_RESULT_ACCEPTED = 0
+_MODE_FLAG_CUSTOM = 1
+_BASE_MODE_ARMED = 128
+_AUTOPILOT_PX4 = 12
+_AUTOPILOT_ARDUPILOT = 3
+_ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
+
+#: PX4 main modes (custom_mode bits 16-23).
+PX4_MODES = {"manual": 1, "altctl": 2, "posctl": 3, "acro": 5, "offboard": 6, "stabilized": 7}
+_PX4_OFFBOARD = 6
+
+
+@dataclass(frozen=True)
+class FailsafeConfig:
+    """Thresholds of the failsafes and what follows one."""
+
+    stale_imu_s: float = 0.1
+    invalid_imu_s: float = 0.05
+    link_timeout_s: float = 2.0
+    rc_timeout_s: float = 0.5
+    tracking_error_max_deg_s: float = 300.0
+    envelope_time_s: float = 0.5
+    on_failsafe: Literal["exit", "wait"] = "exit"
+    safe_mode: str = "posctl"
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Everything a run needs, validated before anything is opened."""
+
+    connect: str
+    profile: VehicleProfile
+    controller: MfcConfig | PidConfig
+    profile_path: str = ""
+    controller_path: str = ""
+    output: Literal["actuator", "rates"] = "actuator"
+    engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
+    imu_source: Literal["highres_imu", "attitude"] = "highres_imu"
+    loop_rate_hz: float = 250.0
+    rc_rate_hz: float = 50.0
+    engage_channel: int = 5
+    log_dir: Path | None = None
+    mqtt_url: str | None = None
+    signing_key: Path | None = None
+    duration_s: float | None = None
+    heartbeat_timeout_s: float = 10.0
+    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
+
+
+class Companion:
+    """One run of the companion against one autopilot.
+
+    Parameters
+    ----------
+    opts
+        The run's options.
+    transport
+        A transport to use instead of opening ``opts.connect`` (tests).
+    """
+
+    def __init__(self, opts: RunOptions, *, transport: Any | None = None) -> None:
+        self.opts = opts
+        self._transport = transport
+        self.controller = build_controller(opts.controller, opts.profile)
+        self.sticks = build_stick_map(opts.controller)
+        self._rate_max_rad_s = tuple(math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
+        self._gyro_limit_rad_s = math.radians(2000.0) * 1.05
+        self.link: Any = None
+        # Per-sample counters are plain attributes (a dict lookup per sample
+        # adds up at 1 kHz); ``counters`` gathers them.
+        self.n_imu = 0
+        self.n_imu_duplicate_or_late = 0
+        self.n_imu_invalid = 0
+        self.n_commands = 0
+        self.events: list[dict[str, Any]] = []
+        self.autopilot: int | None = None
+        self.engaged = False
+        self.commanding = False  # setpoints are being sent
+        self._stop = asyncio.Event()
+        self._exit_code = EXIT_OK
+        self._t_prev: float | None = None
+        self._t_engaged: float | None = None
+        self._last_imu_wall: float | None = None
+        self._invalid_since: float | None = None
+        self._envelope_since: float | None = None
+        self._err_ema = [0.0, 0.0, 0.0]
+        self._inv_envelope_time = 1.0 / opts.failsafe.envelope_time_s
+        self._err_max_rad_s = math.radians(opts.failsafe.tracking_error_max_deg_s)
+        self._rc: tuple[int, ...] = ()
+        self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._thrust = 0.0
+        self._rc_wall: float | None = None
+        self._ap_mode: int | None = None
+        self._ap_armed = False
+        self._switch_high = False
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._handing_back = False
+        self._in_failsafe = False
+        self._restart_dt = False
+        self._log_rows: Any = None
+        self._tlog: Any = None
+        self._events_file: Any = None
+        self._telemetry: Any = None
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {
+            "imu_samples": self.n_imu,
+            "imu_duplicate_or_late": self.n_imu_duplicate_or_late,
+            "imu_invalid": self.n_imu_invalid,
+            "commands_sent": self.n_commands,
+        }
+
+    # ------------------------------------------------------------------ events
+    def _event(self, kind: str, detail: str) -> None:
+        t = self._t_prev if self._t_prev is not None else 0.0
+        ev = {"t_s": round(t, 6), "wall": time.time(), "kind": kind, "detail": detail}
+        self.events.append(ev)
+        level = logging.WARNING if kind.startswith("failsafe") else logging.INFO
+        _log.log(level, "%s: %s", kind, detail)
+        if self._events_file is not None:
+            self._events_file.write(json.dumps(ev) + "\n")
+            self._events_file.flush()
+        if self._telemetry is not None:
+            self._telemetry.publish_event(kind, detail, t)
+            self._telemetry.publish_status(
+                {
+                    "state": "engaged"
+                    if self.engaged
+                    else ("commanding" if self.commanding else "idle"),
+                    "last_event": kind,
+                    "t_s": t,
+                    "autopilot_mode": self._ap_mode,
+                    "armed": self._ap_armed,
+                    "output": self.opts.output,
+                    "engage": self.opts.engage,
+                }
+            )
+
+    def _spawn(self, coro: Any, name: str) -> None:
+        task = asyncio.get_running_loop().create_task(coro, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    # -------------------------------------------------------------- hot path
+    def _on_message(self, msg: Any) -> None:
+        mid = msg.get_msgId()
+        if mid == _MSG_HIGHRES_IMU:
+            if self.opts.imu_source == "highres_imu":
+                self._on_imu(msg.time_usec * 1e-6, (msg.xgyro, msg.ygyro, msg.zgyro))
+        elif mid == _MSG_ATTITUDE:
+            if self.opts.imu_source == "attitude":
+                self._on_imu(msg.time_boot_ms * 1e-3, (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+        elif mid == _MSG_RC_CHANNELS:
+            self._on_rc(msg)
+        elif mid == _MSG_HEARTBEAT:
+            self._on_heartbeat(msg)
+
+    def _on_imu(self, t_s: float, gyro: tuple[float, float, float]) -> None:
+        t0 = time.perf_counter()
+        t_prev = self._t_prev
+        if t_prev is not None and not t_s > t_prev:  # also rejects a NaN timestamp
+            self.n_imu_duplicate_or_late += 1
+            return
+        dt = t_s - t_prev if t_prev is not None and not self._restart_dt else 0.0
+        self._restart_dt = False
+        self._t_prev = t_s
+        self._last_imu_wall = t0
+        self.n_imu += 1
+        lim = self._gyro_limit_rad_s
+        g0, g1, g2 = gyro
+        if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
+            # Non-finite or beyond the sensor's range: the law holds its last
+            # output (it sees NaN), and the failsafe fires if this persists.
+            self.n_imu_invalid += 1
+            if self._invalid_since is None:
+                self._invalid_since = t0
+            gyro = (math.nan, math.nan, math.nan)
+        else:
+            self._invalid_since = None
+        ref = self._ref  # mapped once per RC frame, in _on_rc
+        thrust = self._thrust
+        out = self.controller.update(dt, gyro, ref, thrust)
+        if self.commanding:
+            self._send_output(t_s, out, ref)
+        if self.engaged:
+            self._check_envelope(t_s, dt, gyro, out)
+            if (
+                self.opts.duration_s is not None
+                and self._t_engaged is not None
+                and t_s - self._t_engaged >= self.opts.duration_s
+                and not self._stop.is_set()
+            ):
+                self._event("duration", f"{self.opts.duration_s} s flown")
+                self._stop.set()
+        if self._log_rows is not None:
+            latency_us = (time.perf_counter() - t0) * 1e6
+            self._log_rows.append(self._row(t_s, t0, latency_us, ref, gyro, thrust, out))
+        if self._telemetry is not None:
+            self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
+
+    def _send_output(self, t_s: float, out: Any, ref: tuple[float, float, float]) -> None:
+        link = self.link
+        sysid, compid = link.target
+        if self.opts.output == "actuator":
+            r, p, y = out.torque
+            msg = link.mav.set_actuator_control_target_encode(
+                round(t_s * 1e6), 0, sysid, compid, [r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0]
+            )
+        else:
+            # The law wraps the autopilot's rate loop: the pilot's rate plus the
+            # law's correction (full scale = the profile's rate limit).
+            rm = self._rate_max_rad_s
+            sp = [max(-rm[i], min(rm[i], ref[i] + out.torque[i] * rm[i])) for i in range(3)]
+            msg = link.mav.set_attitude_target_encode(
+                round(t_s * 1e3) & 0xFFFFFFFF,
+                sysid,
+                compid,
+                _ATT_TYPE_MASK_IGNORE_ATTITUDE,
+                [1.0, 0.0, 0.0, 0.0],
+                sp[0],
+                sp[1],
+                sp[2],
+                out.thrust,
+            )
+        link.send(msg)
+        self.n_commands += 1
+
+    def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
+        """Rates beyond the profile's limits, or a tracking error that stays large.
+
+        The tracking error is averaged (first-order, time constant
+        ``envelope_time_s``) so that an acro flip's short error peaks pass
+        and a vehicle that has stopped following (a failed motor) does not.
+        """
+        fs = self.opts.failsafe
+        a = dt * self._inv_envelope_time if dt > 0.0 else 0.0
+        a = 1.0 if a > 1.0 else a
+        ema = self._err_ema
+        e0, e1, e2 = out.error
+        # NaN (a held output) leaves the average as it was.
+        if e0 == e0:
+            ema[0] += a * (abs(e0) - ema[0])
+        if e1 == e1:
+            ema[1] += a * (abs(e1) - ema[1])
+        if e2 == e2:
+            ema[2] += a * (abs(e2) - ema[2])
+        worst = max(ema)
+        err_max = self._err_max_rad_s
+        if worst > err_max:
+            self._failsafe(
+                "failsafe_envelope",
+                f"tracking error averaged over {fs.envelope_time_s} s reached "
+                f"{math.degrees(worst):.0f} deg/s (limit {fs.tracking_error_max_deg_s:.0f})",
+            )
+            return
+        r0, r1, r2 = self._rate_max_rad_s
+        g0, g1, g2 = gyro
+        if not (abs(g0) > r0 or abs(g1) > r1 or abs(g2) > r2):
+            self._envelope_since = None
+        elif self._envelope_since is None:
+            self._envelope_since = t_s
+        elif t_s - self._envelope_since >= fs.envelope_time_s:
+            self._failsafe(
+                "failsafe_envelope",
+                f"a body rate beyond the profile's limit for {fs.envelope_time_s} s",
+            )
+
+    def _row(
+        self,
+        t_s: float,
+        wall: float,
+        latency_us: float,
+        ref: tuple[float, ...],
+        gyro: tuple[float, ...],
+        thrust: float,
+        out: Any,
+    ) -> list[float]:
+        row: list[float] = [t_s, wall, latency_us, float(self.engaged), float(out.held)]
+        for i in range(3):
+            row += [
+                ref[i],
+                gyro[i],
+                out.error[i],
+                out.f_hat[i],
+                out.u[i],
+                out.torque[i],
+                float(out.saturated_axes[i]),
+            ]
+        row += [thrust, out.thrust, *out.motors]
+        return row
+
+    def _on_rc(self, msg: Any) -> None:
+        n = min(int(msg.chancount), 18) if msg.chancount else 18
+        chans = tuple(getattr(msg, f"chan{i}_raw") for i in range(1, n + 1))
+        self._rc = chans
+        cmd = self.sticks.map(chans)
+        if cmd.valid:
+            self._ref, self._thrust = cmd.rate_rad_s, cmd.thrust
+            self._rc_wall = time.perf_counter()
+        else:  # centred sticks, no throttle; the RC-lost failsafe watches _rc_wall
+            self._ref, self._thrust = (0.0, 0.0, 0.0), 0.0
+        if self.opts.engage != "rc-switch":
+            return
+        ch = self.opts.engage_channel
+        value = chans[ch - 1] if ch <= len(chans) else 0
+        if not self._switch_high and 1700 <= value <= 2200:
+            self._switch_high = True
+            self._event("rc_switch", f"ch{ch} high ({value} us): engaging")
+            self._spawn(self._engage_offboard(arm=False), "engage")
+        elif self._switch_high and (value < 1300 or value > 2200):
+            self._switch_high = False
+            if self.engaged or self.commanding:
+                self._event("rc_switch", f"ch{ch} low ({value} us): handing back")
+                self._spawn(self._hand_back("pilot switched back"), "hand-back")
+
+    def _on_heartbeat(self, msg: Any) -> None:
+        mode = int(msg.custom_mode)
+        armed = bool(msg.base_mode & _BASE_MODE_ARMED)
+        offboard = ((mode >> 16) & 0xFF) == _PX4_OFFBOARD
+        was = self.engaged
+        now = offboard and armed and self.commanding
+        self._ap_mode, self._ap_armed = mode, armed
+        if now and not was:
+            self.controller.reset()  # learn F only from commands that are applied
+            self._restart_dt = True  # the next sample primes it, as a replay does
+            self._err_ema = [0.0, 0.0, 0.0]
+            self._envelope_since = None
+            self.engaged = True
+            self._t_engaged = self._t_prev
+            self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")
+        elif was and not now and not self._handing_back:
+            self.engaged = False
+            self._failsafe(
+                "failsafe_autopilot_took_over",
+                f"autopilot left OFFBOARD (mode {mode:#x}, armed={armed})",
+            )
+
+    # ------------------------------------------------------------ engagement
+    async def _engage_offboard(self, *, arm: bool) -> None:
+        """Stream setpoints, switch to OFFBOARD, arm if asked; ACK-checked, retried."""
+        self.commanding = True
+        self.controller.reset()
+        await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
+        try:
+            for attempt in range(10):
+                res = await self.link.command_long(
+                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, _PX4_OFFBOARD, 0, timeout_s=0.5
+                )
+                if res == _RESULT_ACCEPTED:
+                    break
+                _log.info("OFFBOARD refused (result %d), attempt %d", res, attempt + 1)
+                await asyncio.sleep(0.2)
+            else:
+                raise EngageError("the autopilot refused OFFBOARD ten times")
+            if arm:
+                res = await self.link.command_long(_CMD_ARM_DISARM, 1, timeout_s=0.5)
+                if res != _RESULT_ACCEPTED:
+                    raise EngageError(f"the autopilot refused to arm (MAV_RESULT {res})")
+        except (EngageError, LinkError) as exc:
+            self.commanding = False
+            self._event("engage_failed", str(exc))
+            if self.opts.engage == "auto":
+                self._exit_code = EXIT_ERROR
+                self._stop.set()
+
+    async def _hand_back(self, reason: str) -> None:
+        """Stop commanding and switch the autopilot to the safe mode."""
+        if self._handing_back:
+            return
+        self._handing_back = True
+        try:
+            was_commanding = self.commanding
+            self.commanding = False
+            self.engaged = False
+            if not was_commanding or self.link is None or self.link.target is None:
+                return
+            main = PX4_MODES[self.opts.failsafe.safe_mode]
+            try:
+                res = await self.link.command_long(
+                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, main, 0, timeout_s=0.3, retries=2
+                )
+                self._event(
+                    "handed_back",
+                    f"{reason}; {self.opts.failsafe.safe_mode.upper()} "
+                    + ("accepted" if res == _RESULT_ACCEPTED else f"refused ({res})"),
+                )
+            except LinkError as exc:
+                self._event("handed_back", f"{reason}; mode switch unanswered ({exc})")
+        finally:
+            self._handing_back = False
+
+    def _failsafe(self, kind: str, detail: str) -> None:
+        if self._stop.is_set() or self._in_failsafe:
+            return  # one failsafe at a time: the first reason is the one logged
+        self._in_failsafe = True
+        self._event(kind, detail)
+        self._spawn(self._after_failsafe(detail), "failsafe")
+
+    async def _after_failsafe(self, detail: str) -> None:
+        await self._hand_back(detail)
+        self._in_failsafe = False
+        if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
+            self._exit_code = EXIT_FAILSAFE
+            self._stop.set()
+        # "wait": an rc-switch run re-engages on the next low-to-high edge; a
+        # switch still high stays "high" until the pilot moves it low first.
+
+    async def _supervise(self) -> None:
+        """Wall-clock watchdogs: stale IMU, invalid IMU, lost link, lost RC."""
+        fs = self.opts.failsafe
+        while not self._stop.is_set():
+            await asyncio.sleep(0.01)
+            now = time.perf_counter()
+            hb = self.link.last_heartbeat_monotonic_s
+            if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
+                if self.commanding or self.engaged:
+                    self._failsafe("failsafe_link_lost", f"no heartbeat for {fs.link_timeout_s} s")
+                elif self.opts.engage != "rc-switch":
+                    self._event("link_lost", f"no heartbeat for {fs.link_timeout_s} s")
+                    self._exit_code = EXIT_FAILSAFE
+                    self._stop.set()
+                continue
+            if not self.engaged:
+                continue
+            if self._last_imu_wall is not None and now - self._last_imu_wall > fs.stale_imu_s:
+                self._failsafe("failsafe_stale_imu", f"no IMU sample for {fs.stale_imu_s} s")
+            elif self._invalid_since is not None and now - self._invalid_since > fs.invalid_imu_s:
+                self._failsafe(
+                    "failsafe_invalid_imu",
+                    f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s",
+                )
+            elif self._rc_wall is None or now - self._rc_wall > fs.rc_timeout_s:
+                self._failsafe("failsafe_rc_lost", f"no RC for {fs.rc_timeout_s} s")
+
+    # ------------------------------------------------------------------- run
+    def _open_records(self) -> None:
+        from companion import __version__
+        from companion.records import ColumnarLog, TlogWriter, columns
+
+        d = self.opts.log_dir
+        if d is None:
+            return
+        d.mkdir(parents=True, exist_ok=True)
+        self._tlog = TlogWriter(d / "flight.tlog")
+        meta = {
+            "profile": self.opts.profile.name,
+            "profile_path": self.opts.profile_path,
+            "controller": self.opts.controller.kind,
+            "controller_path": self.opts.controller_path,
+            "output": self.opts.output,
+            "engage": self.opts.engage,
+            "version": __version__,
+        }
+        self._log_rows = ColumnarLog(
+            d / "control.bin", columns(self.opts.profile.n_motors), meta=meta
+        )
+        self._events_file = (d / "events.jsonl").open("a", encoding="utf-8")
+
+    def _close_records(self) -> None:
+        for obj in (self._log_rows, self._tlog, self._events_file):
+            if obj is not None:
+                with contextlib.suppress(Exception):
+                    obj.close()
+
+    async def run(self) -> int:
+        """Run until a signal, the duration, or a failsafe; returns the exit code."""
+        from companion.link.mavlink import MavlinkLink
+        from companion.link.signing import load_signing_key
+        from companion.link.transport import open_transport
+
+        opts = self.opts
+        signing = load_signing_key(opts.signing_key) if opts.signing_key else None
+        transport = self._transport or open_transport(opts.connect)
+        self._open_records()
+        on_raw = self._tlog.write if self._tlog is not None else None
+        self.link = MavlinkLink(
+            transport, signing=signing, on_message=self._on_message, on_raw=on_raw
+        )
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.add_signal_handler(sig, self._on_signal, sig)
+        try:
+            await self.link.start()
+            if opts.mqtt_url:
+                from companion.telemetry import MqttTelemetry
+
+                self._telemetry = MqttTelemetry(opts.mqtt_url)
+                self._spawn(self._telemetry.run(), "mqtt")
+            hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
+            self.autopilot = int(hb.autopilot)
+            self._event("connected", f"autopilot {self.autopilot} at {self.link.target}")
+            if self.autopilot == _AUTOPILOT_ARDUPILOT and opts.output == "actuator":
+                raise EngageError(
+                    "ArduPilot accepts no actuator setpoints over MAVLink: use --output rates"
+                )
+            await self._request_streams()
+            self._spawn(self._supervise(), "supervise")
+            if opts.engage == "auto":
+                self._spawn(self._engage_offboard(arm=True), "engage")
+            await self._stop.wait()
+            await self._hand_back("run ended")
+            if self._telemetry is not None:
+                await self._telemetry.drain(1.0)  # the last events say why it ended
+        except (LinkError, EngageError) as exc:
+            self._event("error", str(exc))
+            _log.error("%s", exc)
+            self._exit_code = EXIT_ERROR
+        finally:
+            for task in list(self._tasks):
+                task.cancel()
+            for task in list(self._tasks):
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
+            with contextlib.suppress(Exception):
+                await self.link.close()
+            self._close_records()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                with contextlib.suppress(NotImplementedError, RuntimeError):
+                    loop.remove_signal_handler(sig)
+        return self._exit_code
+
+    def _on_signal(self, sig: int) -> None:
+        self._event("signal", signal.Signals(sig).name)
+        self._exit_code = EXIT_OK
+        self._stop.set()
+
+    async def _request_streams(self) -> None:
+        """The IMU stream at the loop rate and RC_CHANNELS, each ACK-checked."""
+        imu_id = _MSG_HIGHRES_IMU if self.opts.imu_source == "highres_imu" else _MSG_ATTITUDE
+        for msg_id, hz in (
+            (imu_id, self.opts.loop_rate_hz),
+            (_MSG_RC_CHANNELS, self.opts.rc_rate_hz),
+        ):
+            res = await self.link.command_long(_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+            if res != _RESULT_ACCEPTED:
+                raise EngageError(
+                    f"the autopilot refused message {msg_id} at {hz} Hz (MAV_RESULT {res})"
+                )

@@ -1,0 +1,285 @@
+"""One flight over MAVLink: the SITL and the companion as two processes on UDP.
+
+:func:`fly_mavlink` starts ``sitl run`` (lockstep clock, the scenario's pilot,
+seed, wind and IMU, the pilot's clock starting at arming) and ``companion run
+--engage auto``, waits for the companion to finish its flight, stops the
+SITL, and merges the two logs into a :class:`~companion.simulate.FlightRecord`:
+the controller's view per sample from the companion's ``control.bin``, the
+truth (rates, altitude, on the ground or not) from the SITL's log at the same
+simulation times.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.simulate import FlightRecord
+
+__all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "merge_logs"]
+
+AXES = ("roll", "pitch", "yaw")
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class FlightProcesses:
+    """What a MAVLink flight left behind."""
+
+    out_dir: Path
+    companion_rc: int
+    sitl_rc: int
+    wall_time_s: float
+    companion_events: list[dict[str, Any]] = field(default_factory=list)
+    sitl_events: list[dict[str, Any]] = field(default_factory=list)
+    sitl_summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def control_log(self) -> Path:
+        return self.out_dir / "companion" / "control.bin"
+
+    @property
+    def sitl_log(self) -> Path:
+        return self.out_dir / "sitl.npz"
+
+    def text(self, name: str) -> str:
+        p = self.out_dir / name
+        return p.read_text(encoding="utf-8", errors="replace") if p.exists() else ""
+
+
+def _read_jsonl(path: Path) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        line = line.strip()
+        if line:
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut by a killed writer
+    return out
+
+
+def fly_mavlink(
+    profile_path: str | Path,
+    scenario: str,
+    out_dir: str | Path,
+    *,
+    controller_path: str | Path | None = None,
+    output: str = "actuator",
+    duration_s: float | None = None,
+    seed: int | None = None,
+    sitl_args: Sequence[str] = (),
+    companion_args: Sequence[str] = (),
+    controller_profile_path: str | Path | None = None,
+    timeout_s: float = 600.0,
+    progress: Callable[[float], None] | None = None,
+    on_started: Callable[[subprocess.Popen[bytes], subprocess.Popen[bytes]], None] | None = None,
+) -> FlightProcesses:
+    """Fly ``scenario`` with the SITL and the companion as separate processes.
+
+    Parameters
+    ----------
+    profile_path
+        The vehicle the SITL simulates.
+    scenario
+        Scenario name or file (pilot, seed, wind, IMU).
+    out_dir
+        Where ``sitl.npz``, its events, ``companion/`` (tlog, control.bin,
+        events) and both processes' stderr go.
+    controller_path, output
+        Passed to ``companion run``.
+    duration_s
+        Engaged flight time; default: the scenario's (or its pilot's) duration.
+    controller_profile_path
+        The profile the companion is given (default: ``profile_path``).
+    on_started
+        Called with (sitl, companion) processes once both are running (tests
+        use it to send signals).
+    """
+    from sitl.pilot import make_pilot
+    from sitl.scenario import load_scenario
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    sc = load_scenario(scenario)
+    if duration_s is None:
+        duration_s = sc.duration_s or make_pilot(sc.pilot, rng=np.random.default_rng(0)).duration_s
+    port = free_udp_port()
+    py = sys.executable
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    sitl_cmd = [
+        py, "-m", "sitl", "run",
+        "--profile", str(profile_path),
+        "--mavlink", f"udpout:127.0.0.1:{port}",
+        "--scenario", str(scenario),
+        "--clock", "lockstep",
+        "--pilot-from-arm", "--no-auto-arm", "--mode", "manual",
+        "--log", str(out / "sitl.npz"),
+        *(["--seed", str(seed)] if seed is not None else []),
+        *sitl_args,
+    ]  # fmt: skip
+    comp_cmd = [
+        py, "-m", "companion", "run",
+        "--connect", f"udpin:127.0.0.1:{port}",
+        "--profile", str(controller_profile_path or profile_path),
+        "--engage", "auto",
+        "--output", output,
+        "--rate-hz", str(int(sc.imu.rate_hz or 1000)),
+        "--duration", str(duration_s),
+        "--log-dir", str(out / "companion"),
+        # Wall-clock watchdog: a lockstep SITL on a loaded machine can stall
+        # longer than a real IMU ever would; 0.5 s still catches a stopped stream.
+        "--stale-imu-s", "0.5",
+        *(["--controller", str(controller_path)] if controller_path else []),
+        *companion_args,
+    ]  # fmt: skip
+    t0 = time.monotonic()
+    with (out / "companion.stderr").open("wb") as c_err, (out / "sitl.stderr").open("wb") as s_err:
+        comp = subprocess.Popen(comp_cmd, stdout=subprocess.DEVNULL, stderr=c_err, env=env)
+        sitl = subprocess.Popen(sitl_cmd, stdout=subprocess.DEVNULL, stderr=s_err, env=env)
+        if on_started is not None:
+            on_started(sitl, comp)
+        try:
+            while comp.poll() is None:
+                if time.monotonic() - t0 > timeout_s:
+                    comp.kill()
+                    break
+                if progress is not None:
+                    progress(_progress(out / "companion" / "events.jsonl", duration_s))
+                time.sleep(0.2)
+            comp_rc = comp.wait()
+        finally:
+            if sitl.poll() is None:
+                sitl.send_signal(signal.SIGINT)
+                try:
+                    sitl.wait(timeout=15)
+                except subprocess.TimeoutExpired:
+                    sitl.kill()
+                    sitl.wait()
+            if comp.poll() is None:
+                comp.kill()
+                comp.wait()
+    sitl_events = _read_jsonl(out / "sitl.events.jsonl")
+    summary: dict[str, Any] = next(
+        (e for e in reversed(sitl_events) if e.get("kind") == "summary"), {}
+    )
+    if progress is not None:
+        progress(1.0)
+    return FlightProcesses(
+        out_dir=out,
+        companion_rc=comp_rc,
+        sitl_rc=int(sitl.returncode),
+        wall_time_s=time.monotonic() - t0,
+        companion_events=_read_jsonl(out / "companion" / "events.jsonl"),
+        sitl_events=sitl_events,
+        sitl_summary=summary,
+    )
+
+
+def _progress(events_path: Path, duration_s: float) -> float:
+    """A rough fraction done, from the companion's last logged sample time."""
+    from companion.records import last_row
+
+    events = _read_jsonl(events_path)
+    t_eng = next((e["t_s"] for e in events if e.get("kind") == "engaged"), None)
+    if t_eng is None:
+        return 0.0
+    row = last_row(events_path.parent / "control.bin")
+    if row is None:
+        return 0.0
+    return max(0.0, min(1.0, (row[0] - float(t_eng)) / duration_s))
+
+
+def merge_logs(flight: FlightProcesses, *, meta: dict[str, Any] | None = None) -> FlightRecord:
+    """The controller's log and the SITL's truth as one :class:`FlightRecord`.
+
+    Samples are those logged while engaged; the truth is the SITL state at
+    the physics step of each sample's timestamp.
+    """
+    from companion.records import read_columnar
+    from sitl.runner import read_log
+
+    cols, cmeta = read_columnar(flight.control_log)
+    eng = cols["engaged"] > 0.5
+    t = cols["t_s"][eng]
+    log = read_log(flight.sitl_log)
+    st = log["t_s"]
+    idx = np.clip(np.searchsorted(st, t - 1e-7), 0, len(st) - 1)
+    pos = log["pos_ned_m"][idx]
+    true_rate = log["rate_frd_rad_s"][idx]
+    q = log["q_wxyz"][idx]
+    n_motors = sum(1 for k in cols if k.startswith("motor_"))
+
+    def stack(prefix: str, suffix: str = "") -> np.ndarray:
+        return np.stack([cols[f"{prefix}{a}{suffix}"][eng] for a in AXES], axis=1)
+
+    # On the ground = at z ~ 0 and not climbing (the SITL holds a landed vehicle at 0).
+    airborne = pos[:, 2] < -0.05
+    w, x, y, z = q.T
+    euler = np.stack(
+        [
+            np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)),
+            np.arcsin(np.clip(2 * (w * y - z * x), -1, 1)),
+            np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
+        ],
+        axis=1,
+    )
+    columns = {
+        "t_s": t,
+        "ref_rad_s": stack("ref_", "_rad_s"),
+        "meas_rad_s": stack("meas_", "_rad_s"),
+        "true_rad_s": true_rate,
+        "thrust": cols["thrust"][eng],
+        "torque": stack("torque_"),
+        "u": stack("u_"),
+        "f_hat": stack("f_hat_"),
+        "motors": np.stack([cols[f"motor_{i + 1}"][eng] for i in range(n_motors)], axis=1),
+        "sat_axes": stack("sat_") > 0.5,
+        "held": cols["held"][eng] > 0.5,
+        "euler_rad": euler,
+        "altitude_m": -pos[:, 2],
+        "airborne": airborne,
+        "latency_us": cols["latency_us"][eng],
+    }
+    summary = flight.sitl_summary
+    crashed = summary.get("status") == "crashed"
+    crash_t = next((e["t_s"] for e in flight.sitl_events if e.get("status") == "crashed"), None)
+    failsafes = [
+        e for e in flight.companion_events if str(e.get("kind", "")).startswith("failsafe")
+    ]
+    info: dict[str, Any] = {
+        "profile": cmeta.get("profile", ""),
+        "controller": cmeta.get("controller", ""),
+        "sim_time_s": float(t[-1] - t[0]) if len(t) else 0.0,
+        "wall_time_s": flight.wall_time_s,
+        "crashed": crashed,
+        "crashed_at_s": crash_t,
+        "failsafe_events": [
+            {"t_s": e.get("t_s"), "kind": e.get("kind"), "detail": e.get("detail")}
+            for e in failsafes
+        ],
+        "companion_exit_code": flight.companion_rc,
+        "sitl_realtime_factor": summary.get("realtime_factor"),
+        "nonfinite_events": int(np.sum(columns["held"])),
+        **(meta or {}),
+    }
+    return FlightRecord(columns, info)

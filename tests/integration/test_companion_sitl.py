@@ -1,0 +1,161 @@
+"""The companion and the SITL as separate processes over real UDP (lockstep clock).
+
+Each failsafe is triggered from the SITL side (``sitl run --fault``) or by a
+signal, and must end in its documented state within a bounded time: the
+companion logs the reason, hands the vehicle back (POSCTL, seen in the SITL's
+own events) and exits with its documented code.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.fly import FlightProcesses, fly_mavlink, merge_logs
+from companion.report import compute_metrics
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
+PROFILES = ROOT / "vehicle_profiles"
+
+
+def kinds(events: list[dict[str, Any]]) -> list[str]:
+    return [str(e.get("kind")) for e in events]
+
+
+def sitl_modes(flight: FlightProcesses) -> list[str]:
+    """Mode names the SITL switched to, in order (from its own event log)."""
+    return [str(e.get("new")) for e in flight.sitl_events if e.get("kind") == "mode"]
+
+
+def engaged_at(flight: FlightProcesses) -> float:
+    return next(float(e["t_s"]) for e in flight.companion_events if e["kind"] == "engaged")
+
+
+def failsafe(flight: FlightProcesses) -> dict[str, Any]:
+    return next(e for e in flight.companion_events if str(e["kind"]).startswith("failsafe"))
+
+
+@pytest.mark.parametrize("profile", ["f450", "f450_cut_props", "tarot650", "x500"])
+def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profile: str) -> None:
+    flight = fly_mavlink(PROFILES / f"{profile}.yaml", "paper-acro", tmp_path, duration_s=20.0)
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert kinds(flight.companion_events)[-1] == "handed_back"
+    m = compute_metrics(merge_logs(flight))
+    assert not m["crashed"]
+    assert m["airborne_time_s"] > 15.0
+    # Bounds: twice what the shipped controller measured on this slice (see the
+    # issue's closing note); they catch a controller that stops tracking, not noise.
+    for axis in ("roll", "pitch", "yaw"):
+        assert m["mae_deg_s"][axis] < 150.0, (axis, m["mae_deg_s"])
+
+
+def test_sigterm_hands_back_and_exits_zero(tmp_path: Path) -> None:
+    procs: dict[str, Any] = {}
+
+    def started(sitl: Any, comp: Any) -> None:
+        procs["comp"] = comp
+
+    def progress(frac: float) -> None:
+        # Once engaged and a few seconds in, stop the companion like systemd would.
+        if frac > 0.2 and "sent" not in procs:
+            procs["sent"] = time.monotonic()
+            procs["comp"].send_signal(signal.SIGTERM)
+
+    flight = fly_mavlink(
+        PROFILES / "f450.yaml", "paper-acro", tmp_path, duration_s=30.0,
+        on_started=started, progress=progress,
+    )  # fmt: skip
+    assert "sent" in procs, "the flight never got going"
+    assert flight.companion_rc == 0
+    ks = kinds(flight.companion_events)
+    assert ks.index("signal") < ks.index("handed_back")
+    assert "POSCTL accepted" in flight.companion_events[ks.index("handed_back")]["detail"]
+    assert sitl_modes(flight)[-1] == "POSCTL"
+
+
+@pytest.mark.parametrize(
+    ("fault", "expected"),
+    [
+        # A stopped IMU: on the real-time clock, as on a vehicle (in lockstep a
+        # SITL without IMU samples runs free and its own offboard-loss failsafe
+        # would come first).
+        ("imu-stop@6", {"failsafe_stale_imu"}),
+        ("imu-nan@6", {"failsafe_invalid_imu"}),
+        # A dropped link shows first as stale IMU and RC (0.5 s here), before the
+        # 2 s heartbeat timeout.
+        ("link-drop@6", {"failsafe_stale_imu", "failsafe_rc_lost", "failsafe_link_lost"}),
+        # A dead motor cannot be flown out of on a quadrotor: it shows as an
+        # envelope violation in the air or, if the vehicle hits the ground first
+        # (the SITL then stops), as a stale IMU; either way the vehicle is handed back.
+        ("motor-fail@6:0", {"failsafe_envelope", "failsafe_stale_imu"}),
+    ],
+)
+def test_failsafe_ends_in_hand_back(tmp_path: Path, fault: str, expected: set[str]) -> None:
+    t0 = time.monotonic()
+    clock = ("--clock", "realtime") if fault.startswith(("imu-stop", "link-drop")) else ()
+    flight = fly_mavlink(
+        PROFILES / "f450.yaml", "paper-acro", tmp_path, duration_s=30.0,
+        sitl_args=("--fault", fault, *clock),
+    )  # fmt: skip
+    wall = time.monotonic() - t0
+    assert flight.companion_rc == 3, flight.text("companion.stderr")  # EXIT_FAILSAFE
+    ev = failsafe(flight)
+    assert ev["kind"] in expected, kinds(flight.companion_events)
+    ks = kinds(flight.companion_events)
+    assert ks.index(ev["kind"]) < ks.index("handed_back")
+    # Bounded: within 2.5 s of simulated flight after the fault (6 s after the
+    # SITL's pilot started, which is when it armed); a falling quad hits the
+    # ground from 10 m in about 1.5-2 s.
+    t_fault = engaged_at(flight) + 6.0
+    assert ev["t_s"] - t_fault < 2.5, (ev, t_fault)
+    assert wall < 60.0
+    if flight.sitl_summary.get("status") == "crashed":
+        # The SITL ends a flight at impact: the hand-back was sent, maybe unanswered.
+        assert fault.startswith("motor-fail")
+    elif fault.startswith("link-drop"):
+        # Nothing gets through any more: the hand-back goes unanswered and the
+        # SITL's own offboard-loss failsafe takes over (AUTO LAND).
+        assert "unanswered" in flight.companion_events[ks.index("handed_back")]["detail"]
+        assert "LAND" in sitl_modes(flight)
+    else:
+        assert sitl_modes(flight)[-1] == "POSCTL"
+
+
+def test_shadow_mode_sends_nothing(tmp_path: Path) -> None:
+    flight = fly_mavlink(
+        PROFILES / "f450.yaml", "paper-acro", tmp_path, duration_s=5.0,
+        sitl_args=("--duration", "8"),
+        companion_args=("--engage", "none"),
+    )  # fmt: skip
+    # The SITL ends the flight at 8 s; the companion, never engaged, exits on the lost link.
+    assert flight.sitl_summary["setpoints_received"] == 0
+    assert sitl_modes(flight) == []
+    assert "engaged" not in kinds(flight.companion_events)
+    # When the SITL stops, heartbeats stop: an unengaged run ends on the lost link.
+    assert kinds(flight.companion_events)[-1] == "link_lost"
+    assert flight.companion_rc == 3
+    from companion.records import read_columnar
+
+    cols, _ = read_columnar(flight.control_log)
+    assert len(cols["t_s"]) > 500  # it computed (and logged) a control update per sample
+    assert np.all(cols["engaged"] == 0)
+
+
+def test_rates_output_flies_through_the_autopilot_rate_loop(tmp_path: Path) -> None:
+    flight = fly_mavlink(
+        PROFILES / "f450.yaml", "paper-acro", tmp_path, duration_s=20.0, output="rates"
+    )
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.sitl_summary["setpoints_received"] > 4000
+    m = compute_metrics(merge_logs(flight))
+    assert not m["crashed"]
+    assert m["airborne_time_s"] > 15.0
+    for axis in ("roll", "pitch", "yaw"):
+        assert m["mae_deg_s"][axis] < 150.0, (axis, m["mae_deg_s"])
