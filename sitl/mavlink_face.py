@@ -239,6 +239,7 @@ class MavlinkFace:
         # Fault injection (sitl.runner --fault): a muted face neither sends nor
         # reads; IMU streams can be stopped or their gyro replaced by NaN.
         self.muted = False
+        self._heartbeat_now = False
         self.imu_stopped = False
         self.imu_nan = False
         self.messages_sent = 0
@@ -416,6 +417,14 @@ class MavlinkFace:
         self.mav.command_ack_send(
             command, int(result), 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
         )
+        if result == MavResult.ACCEPTED and command in (
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM,
+            mavlink.MAV_CMD_DO_SET_MODE,
+            mavlink.MAV_CMD_NAV_LAND,
+        ):
+            # Announce the new state at once rather than at the next 1 Hz beat, so
+            # a client sees arming and mode changes at the step they happened.
+            self._heartbeat_now = True
 
     def _command_result(self, command: int, p: Sequence[float], t_s: float) -> MavResult:
         ap = self.autopilot
@@ -473,8 +482,17 @@ class MavlinkFace:
             self._pending = set()
             for msg_id in pending:
                 self._send_one(msg_id)
-        if st.due(ID_HEARTBEAT, t_s) or wall_s - self._last_heartbeat_wall_s > 1.0:
+        if (
+            self._heartbeat_now
+            or st.due(ID_HEARTBEAT, t_s)
+            or wall_s - self._last_heartbeat_wall_s > 1.0
+        ):
+            self._heartbeat_now = False
             self._send_heartbeat(wall_s)
+        # RC before IMU: a client that maps sticks when RC arrives then uses this
+        # step's sticks for this step's IMU sample, as the in-process loop does.
+        if st.due(ID_RC_CHANNELS, t_s):
+            self._send_one(ID_RC_CHANNELS)
         imu_sent = False
         if imu_sample and not self.imu_stopped:
             if st.due(ID_HIGHRES_IMU, t_s):
@@ -485,7 +503,6 @@ class MavlinkFace:
             if st.due(ID_ATTITUDE_QUATERNION, t_s):
                 self._send_one(ID_ATTITUDE_QUATERNION)
         for msg_id in (
-            ID_RC_CHANNELS,
             ID_LOCAL_POSITION_NED,
             ID_SYS_STATUS,
             ID_EXTENDED_SYS_STATE,

@@ -554,6 +554,11 @@ class Quadrotor:
                 self._settle_on_ground()
         self._sf = self._static_specific_force()
 
+    def set_wind(self, wind: Wind | None) -> None:
+        """Replace the air the vehicle flies in (``None``: still air)."""
+        self._wind = wind
+        self._wind_ned = (0.0, 0.0, 0.0)
+
     def set_motor_failure(self, motor: int, efficiency: float = 0.0) -> None:
         """Degrade ``motor`` now to ``efficiency`` of its thrust and torque.
 

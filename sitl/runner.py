@@ -352,26 +352,17 @@ class Runner:
         self.profile = profile
         self.config = config
         self.profile_name = profile_name or profile.name
-        root = np.random.default_rng(config.seed)
-        rng_phys, rng_imu, rng_wind, rng_pilot = root.spawn(4)
+        rng_phys = np.random.default_rng(config.seed).spawn(4)[0]
         try:
             hover = hover_motor_command(profile)
         except ValueError:
             hover = 0.5
         self.hover_thrust = hover
-        wind = None
-        if config.wind is not None:
-            wind = Wind(config.wind, rng=rng_wind)
-        elif config.wind_gust_m_s > 0.0:
-            wind = Wind(WindConfig(gust_sigma_m_s=config.wind_gust_m_s), rng=rng_wind)
-        self.quad = Quadrotor(
-            profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand, wind=wind
-        )
-        imu_model = config.imu_model or profile.physics.imu
-        self.imu = Imu(imu_model, rng=rng_imu, dt_s=config.dt_s)
+        self.quad = Quadrotor(profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand)
+        self.imu: Imu
         self.pilot: Pilot | None = None
-        if config.pilot:
-            self.pilot = make_pilot(config.pilot, rng=rng_pilot, free_flight=not config.test_stand)
+        self._make_streams()
+        imu_model = self.imu.model
         if config.initial_mode is not None:
             main = _MODE_BY_NAME[config.initial_mode.upper()]
         else:
@@ -440,6 +431,25 @@ class Runner:
         )
         return summary
 
+    def _make_streams(self) -> None:
+        """Wind, IMU and pilot, each from its own stream of the scenario's seed.
+
+        The same seed gives the same streams whenever this runs: at start-up,
+        and again at arming with ``pilot_from_arm``, so a flight does not
+        depend on how long a companion took to arm the vehicle.
+        """
+        cfg = self.config
+        _, rng_imu, rng_wind, rng_pilot = np.random.default_rng(cfg.seed).spawn(4)
+        wind = None
+        if cfg.wind is not None:
+            wind = Wind(cfg.wind, rng=rng_wind)
+        elif cfg.wind_gust_m_s > 0.0:
+            wind = Wind(WindConfig(gust_sigma_m_s=cfg.wind_gust_m_s), rng=rng_wind)
+        self.quad.set_wind(wind)
+        self.imu = Imu(cfg.imu_model or self.profile.physics.imu, rng=rng_imu, dt_s=cfg.dt_s)
+        if cfg.pilot:
+            self.pilot = make_pilot(cfg.pilot, rng=rng_pilot, free_flight=not cfg.test_stand)
+
     def _inject(self, fault: Fault, t: float, log: _Log) -> None:
         face = self.face
         if fault.kind == "imu-stop":
@@ -484,6 +494,9 @@ class Runner:
                 self._inject(faults.pop(0), t, log)
             if t_pilot0 is None and ap.armed:
                 t_pilot0 = t
+                self._make_streams()
+                imu, pilot = self.imu, self.pilot
+                next_rc_s = t
                 log.event(Event(t, "pilot_start", {"t_s": t}))
             if (
                 cfg.pilot_from_arm
