@@ -116,6 +116,9 @@ class RunOptions:
     loop_rate_hz: float = 250.0
     rc_rate_hz: float = 50.0
     engage_channel: int = 5
+    rates_passthrough: bool = False
+    """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
+    MFC-on-top is compared with); the law still runs and is logged."""
     log_dir: Path | None = None
     mqtt_url: str | None = None
     signing_key: Path | None = None
@@ -288,7 +291,8 @@ class Companion:
             # The law wraps the autopilot's rate loop: the pilot's rate plus the
             # law's correction (full scale = the profile's rate limit).
             rm = self._rate_max_rad_s
-            sp = [max(-rm[i], min(rm[i], ref[i] + out.torque[i] * rm[i])) for i in range(3)]
+            k = 0.0 if self.opts.rates_passthrough else 1.0
+            sp = [max(-rm[i], min(rm[i], ref[i] + k * out.torque[i] * rm[i])) for i in range(3)]
             msg = link.mav.set_attitude_target_encode(
                 round(t_s * 1e3) & 0xFFFFFFFF,
                 sysid,
@@ -298,7 +302,9 @@ class Companion:
                 sp[0],
                 sp[1],
                 sp[2],
-                out.thrust,
+                # The pilot's collective: the autopilot mixes it with its own rate
+                # loop; our mixer's air-mode shift belongs to torques we do not send.
+                self._thrust,
             )
         link.send(msg)
         self.n_commands += 1

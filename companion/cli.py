@@ -185,6 +185,11 @@ def simulate(
 )
 @click.option("--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True)
 @click.option(
+    "--rates-passthrough",
+    is_flag=True,
+    help="With --output rates: send the pilot's rates unchanged (baseline for comparison).",
+)
+@click.option(
     "--imu-source",
     type=click.Choice(["highres_imu", "attitude"]),
     default="highres_imu",
@@ -249,6 +254,7 @@ def run(
     output: str,
     engage: str,
     engage_channel: int,
+    rates_passthrough: bool,
     imu_source: str,
     rate_hz: float,
     log_dir: Path | None,
@@ -292,6 +298,7 @@ def run(
         imu_source=imu_source,  # type: ignore[arg-type]
         loop_rate_hz=rate_hz,
         engage_channel=engage_channel,
+        rates_passthrough=rates_passthrough,
         log_dir=log_dir,
         mqtt_url=mqtt_url,
         signing_key=signing_key,
@@ -408,6 +415,235 @@ def fly(
     )
     if flight.companion_rc != 0:
         sys.exit(1)
+
+
+@cli.command("replay")
+@click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--controller",
+    "controller_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Controller to re-run [default: the one named in the log, else the shipped default].",
+)
+@click.option(
+    "--profile",
+    "profile_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Profile whose geometry makes the mixer [default: the one named in the log].",
+)
+@click.option(
+    "--out",
+    "out_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Write the replayed outputs here as a columnar log.",
+)
+def replay_cmd(
+    log: Path, controller_path: Path | None, profile_path: Path | None, out_path: Path | None
+) -> None:
+    """Re-run a controller offline on a recorded control log (control.bin).
+
+    With the recorded controller the outputs must match the log (a check that
+    the flight was what the code says); with another controller they show what
+    it would have commanded on the same samples (open loop).
+    """
+    from companion.config import DEFAULT_CONTROLLER, load_controller
+    from companion.profile import load_profile
+    from companion.records import ColumnarLog, read_columnar
+    from companion.replay import compare, replay
+
+    try:
+        cols, meta = read_columnar(log)
+    except ValueError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    ctrl = controller_path or Path(meta.get("controller_path") or DEFAULT_CONTROLLER)
+    prof = profile_path or (Path(meta["profile_path"]) if meta.get("profile_path") else None)
+    if prof is None:
+        click.echo(f"error: {log}: no profile_path in the log; give --profile", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    try:
+        cfg = load_controller(ctrl)
+        profile = load_profile(prof)
+    except ConfigError as exc:
+        _fail_config(exc)
+    out = replay(cols, cfg, profile)
+    diffs = compare(cols, out)
+    engaged = int((cols["engaged"] > 0.5).sum())
+    click.echo(f"replayed {engaged} engaged samples of {log} with {ctrl} on {prof}")
+    worst = max(diffs.values()) if diffs else 0.0
+    for name, d in sorted(diffs.items(), key=lambda kv: -kv[1])[:8]:
+        click.echo(f"  {name:24s} max |recorded - replayed| = {d:.3g}")
+    click.echo(f"largest difference: {worst:.3g}")
+    if out_path is not None:
+        names = list(out)
+        with ColumnarLog(
+            out_path, names, meta={"replay_of": str(log), "controller": str(ctrl)}
+        ) as w:
+            for row in zip(*(out[n].tolist() for n in names), strict=True):
+                w.append(row)
+        click.echo(f"wrote {out_path}")
+
+
+def _split_list(values: tuple[str, ...]) -> list[str]:
+    return [v.strip() for item in values for v in item.split(",") if v.strip()]
+
+
+@cli.command("campaign")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=Path("runs/campaign"),
+    show_default=True,
+    help="Folder for campaign.json, summary.md and mae.png.",
+)
+@click.option(
+    "--profiles",
+    multiple=True,
+    help="Profile names (vehicle_profiles/<name>.yaml) or files; repeat or comma-separate "
+    "[default: every profile in vehicle_profiles/].",
+)
+@click.option(
+    "--controllers",
+    multiple=True,
+    help="Controller files; repeat or comma-separate [default: the shipped MFC set and "
+    "companion/data/pid_tarot_tuned.yaml].",
+)
+@click.option(
+    "--damage",
+    default="1.0,0.8,0.6",
+    show_default=True,
+    help="Motor 1 thrust/torque efficiency factors (comma-separated).",
+)
+@click.option(
+    "--gusts", default="0,2", show_default=True, help="Wind gust sigmas, m/s (comma-separated)."
+)
+@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True)
+@click.option(
+    "--seed-base",
+    type=click.IntRange(min=0),
+    default=1000,
+    show_default=True,
+    help="Seeds are seed-base .. seed-base + seeds - 1 (no tuning used these).",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Parallel flights [default: os.cpu_count()].",
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=20.0,
+    show_default=True,
+    help="Fly only the first S seconds of the scenario.",
+)
+@click.option(
+    "--scenario",
+    default="train-acro",
+    show_default=True,
+    help="Scenario name or file. train-acro's pilot is seeded random acro, so each seed is "
+    "a new flight of the kind both controllers were tuned for; paper-acro is the fixed test "
+    "programme (reproduced by scripts/reproduce_paper.py).",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def campaign(
+    out_dir: Path,
+    profiles: tuple[str, ...],
+    controllers: tuple[str, ...],
+    damage: str,
+    gusts: str,
+    seeds: int,
+    seed_base: int,
+    workers: int | None,
+    duration: float,
+    scenario: str,
+    progress: bool,
+) -> None:
+    """Fly a grid (profiles x damage x gusts x seeds x controllers) in parallel, in process.
+
+    Default: 4 profiles x 3 damage x 2 gusts x 3 seeds x 2 controllers = 144 flights of
+    20 s. For 200+ flights, e.g. --seeds 5 (240 flights) or --seeds 10 --duration 35
+    (480 full train-acro flights).
+    """
+    import os
+    import time
+    from importlib.resources import files
+
+    from companion.campaign import build_grid, run_campaign, write_outputs
+    from companion.config import DEFAULT_CONTROLLER, load_controller
+    from companion.profile import load_profile
+    from sitl.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[1]
+
+    def profile_file(name: str) -> Path:
+        p = Path(name)
+        if p.suffix in (".yaml", ".yml") or p.exists():
+            return p
+        for base in (Path("vehicle_profiles"), root / "vehicle_profiles"):
+            if (base / f"{name}.yaml").exists():
+                return base / f"{name}.yaml"
+        return Path("vehicle_profiles") / f"{name}.yaml"
+
+    try:
+        damages = [float(x) for x in _split_list((damage,))]
+        gust_list = [float(x) for x in _split_list((gusts,))]
+    except ValueError as exc:
+        raise click.BadParameter(f"expected comma-separated numbers: {exc}") from exc
+    if not damages or not gust_list:
+        raise click.BadParameter("--damage and --gusts need at least one value each")
+    prof_names = _split_list(profiles)
+    if not prof_names:
+        local = Path("vehicle_profiles")
+        prof_dir = local if local.is_dir() else root / "vehicle_profiles"
+        prof_names = [str(p) for p in sorted(prof_dir.glob("*.yaml"))]
+    ctrl_files = _split_list(controllers) or [
+        str(DEFAULT_CONTROLLER),
+        str(files("companion") / "data" / "pid_tarot_tuned.yaml"),
+    ]
+    try:
+        prof = {Path(n).stem: load_profile(profile_file(n)) for n in prof_names}
+        ctrl = {Path(c).stem: load_controller(c) for c in ctrl_files}
+        sc = load_scenario(scenario)
+    except ConfigError as exc:
+        _fail_config(exc)
+    if len(ctrl) != len(ctrl_files) or len(prof) != len(prof_names):
+        raise click.BadParameter("two profiles or two controllers share a file name")
+    seed_list = list(range(seed_base, seed_base + seeds))
+    try:
+        specs = build_grid(
+            prof, ctrl, sc, damages=damages, gusts_m_s=gust_list, seeds=seed_list,
+            duration_s=duration,
+        )  # fmt: skip
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
+    n_workers = workers or os.cpu_count() or 1
+    _log.info("campaign: %d flights on %d workers", len(specs), n_workers)
+    t0 = time.perf_counter()
+    records = run_campaign(specs, workers=n_workers, progress=progress)
+    meta = {
+        "scenario": sc.name,
+        "duration_s": duration,
+        "profiles": list(prof),
+        "controllers": {k: str(c) for k, c in zip(ctrl, ctrl_files, strict=True)},
+        "damages": damages,
+        "gusts_m_s": gust_list,
+        "seeds": seed_list,
+        "workers": n_workers,
+        "flights": len(records),
+        "wall_time_s": round(time.perf_counter() - t0, 1),
+    }
+    paths = write_outputs(records, out_dir, meta)
+    crashes = sum(r["crashed"] for r in records)
+    click.echo(
+        f"{len(records)} flights ({crashes} crashed) in {meta['wall_time_s']:.0f} s; "
+        f"summary: {paths['summary']}"
+    )
 
 
 def main() -> None:

@@ -11,6 +11,7 @@ simulation times.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -168,6 +169,10 @@ def fly_mavlink(
                 time.sleep(0.2)
             comp_rc = comp.wait()
         finally:
+            # The SITL ends by itself a moment after the pilot's timeline; let it,
+            # and only then ask it to stop.
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                sitl.wait(timeout=5.0)
             if sitl.poll() is None:
                 sitl.send_signal(signal.SIGINT)
                 try:

@@ -62,6 +62,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -128,6 +129,10 @@ def parse_fault(text: str) -> Fault:
 
 _MODE_BY_NAME = {m.name: m for m in MainMode}
 RC_PERIOD_S = 0.01
+PILOT_END_GRACE_S = 2.0
+"""With ``pilot_from_arm``, the flight goes on this long after the pilot's timeline
+ends (the pilot holds its last segment), so a companion flying the same duration
+from its own engagement finishes and hands back before the SITL stops."""
 """The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
 
 
@@ -272,8 +277,11 @@ class _Log:
         data = np.concatenate([*self._blocks, self._buf[: self._i]], axis=0)
         n = self.n
         c = 14
+        # Write beside the target and rename: a reader never sees half a log, and
+        # a signal during the write leaves the previous state, not a corrupt file.
+        tmp = self.path.with_name(self.path.name + ".part.npz")
         np.savez_compressed(
-            self.path,
+            tmp,
             t_s=data[:, 0],
             rate_frd_rad_s=data[:, 1:4],
             q_wxyz=data[:, 4:8],
@@ -285,6 +293,7 @@ class _Log:
             armed=data[:, c + 2 * n + 1].astype(bool),
             summary=np.array(json.dumps(asdict(summary))),
         )
+        os.replace(tmp, self.path)
         logger.info("log written to %s (%d rows)", self.path, data.shape[0])
 
 
@@ -502,7 +511,7 @@ class Runner:
                 cfg.pilot_from_arm
                 and self.config.duration_s is None
                 and t_pilot0 is not None
-                and t - t_pilot0 >= pilot_duration - 1e-9
+                and t - t_pilot0 >= pilot_duration + PILOT_END_GRACE_S - 1e-9
             ):
                 return "completed"
             face.poll(t)
