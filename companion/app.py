@@ -49,6 +49,7 @@ from typing import Any, Literal
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.errors import EngageError, LinkError
 from companion.profile import VehicleProfile
+from companion.stacks import FlightStack, stack_for
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -76,15 +77,12 @@ _CMD_DO_SET_MODE = 176
 _CMD_ARM_DISARM = 400
 _CMD_SET_MESSAGE_INTERVAL = 511
 _RESULT_ACCEPTED = 0
+_RESULT_DENIED = 2
 _MODE_FLAG_CUSTOM = 1
 _BASE_MODE_ARMED = 128
-_AUTOPILOT_PX4 = 12
-_AUTOPILOT_ARDUPILOT = 3
+_MSG_STATUSTEXT = 253
+_GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
-
-#: PX4 main modes (custom_mode bits 16-23).
-PX4_MODES = {"manual": 1, "altctl": 2, "posctl": 3, "acro": 5, "offboard": 6, "stabilized": 7}
-_PX4_OFFBOARD = 6
 
 
 @dataclass(frozen=True)
@@ -98,7 +96,9 @@ class FailsafeConfig:
     tracking_error_max_deg_s: float = 300.0
     envelope_time_s: float = 0.5
     on_failsafe: Literal["exit", "wait"] = "exit"
-    safe_mode: str = "posctl"
+    safe_mode: str = "auto"
+    """A mode of the detected stack (companion.stacks), or "auto": PX4 POSCTL,
+    ArduPilot ALT_HOLD."""
 
 
 @dataclass(frozen=True)
@@ -112,7 +112,8 @@ class RunOptions:
     controller_path: str = ""
     output: Literal["actuator", "rates"] = "actuator"
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
-    imu_source: Literal["highres_imu", "attitude"] = "highres_imu"
+    imu_source: Literal["auto", "highres_imu", "attitude"] = "auto"
+    """"auto": the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE)."""
     loop_rate_hz: float = 250.0
     rc_rate_hz: float = 50.0
     engage_channel: int = 5
@@ -154,6 +155,10 @@ class Companion:
         self.n_commands = 0
         self.events: list[dict[str, Any]] = []
         self.autopilot: int | None = None
+        self.stack: FlightStack | None = None
+        self._imu_source = opts.imu_source
+        self.imu_rate_hz: float | None = None
+        self._last_statustext = ""
         self.engaged = False
         self.commanding = False  # setpoints are being sent
         self._stop = asyncio.Event()
@@ -175,6 +180,7 @@ class Companion:
         self._switch_high = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._handing_back = False
+        self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
         self._restart_dt = False
         self._log_rows: Any = None
@@ -226,15 +232,19 @@ class Companion:
     def _on_message(self, msg: Any) -> None:
         mid = msg.get_msgId()
         if mid == _MSG_HIGHRES_IMU:
-            if self.opts.imu_source == "highres_imu":
+            if self._imu_source == "highres_imu":
                 self._on_imu(msg.time_usec * 1e-6, (msg.xgyro, msg.ygyro, msg.zgyro))
         elif mid == _MSG_ATTITUDE:
-            if self.opts.imu_source == "attitude":
+            if self._imu_source == "attitude":
                 self._on_imu(msg.time_boot_ms * 1e-3, (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
         elif mid == _MSG_RC_CHANNELS:
             self._on_rc(msg)
         elif mid == _MSG_HEARTBEAT:
             self._on_heartbeat(msg)
+        elif mid == _MSG_STATUSTEXT:
+            text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text
+            self._last_statustext = text.rstrip("\x00")
+            self._event("autopilot_says", self._last_statustext)
 
     def _on_imu(self, t_s: float, gyro: tuple[float, float, float]) -> None:
         t0 = time.perf_counter()
@@ -398,9 +408,11 @@ class Companion:
                 self._spawn(self._hand_back("pilot switched back"), "hand-back")
 
     def _on_heartbeat(self, msg: Any) -> None:
+        if self.stack is None:
+            return  # not yet recognised (start-up)
         mode = int(msg.custom_mode)
         armed = bool(msg.base_mode & _BASE_MODE_ARMED)
-        offboard = ((mode >> 16) & 0xFF) == _PX4_OFFBOARD
+        offboard = self.stack.is_engage_mode(mode)
         was = self.engaged
         now = offboard and armed and self.commanding
         self._ap_mode, self._ap_armed = mode, armed
@@ -421,25 +433,37 @@ class Companion:
 
     # ------------------------------------------------------------ engagement
     async def _engage_offboard(self, *, arm: bool) -> None:
-        """Stream setpoints, switch to OFFBOARD, arm if asked; ACK-checked, retried."""
+        """Stream setpoints, switch to the stack's engage mode, arm if asked.
+
+        PX4 refuses OFFBOARD unless setpoints already stream, so they start
+        first; ArduPilot ignores them until GUIDED_NOGPS. Each step is
+        ACK-checked and retried; a refusal carries the autopilot's own words
+        (its last STATUSTEXT, e.g. "PreArm: ...").
+        """
+        assert self.stack is not None
+        stack = self.stack
         self.commanding = True
         self.controller.reset()
         await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
         try:
+            p2, p3 = stack.engage_mode
             for attempt in range(10):
                 res = await self.link.command_long(
-                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, _PX4_OFFBOARD, 0, timeout_s=0.5
+                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.5
                 )
                 if res == _RESULT_ACCEPTED:
                     break
-                _log.info("OFFBOARD refused (result %d), attempt %d", res, attempt + 1)
+                _log.info("engage mode refused (result %d), attempt %d", res, attempt + 1)
                 await asyncio.sleep(0.2)
             else:
-                raise EngageError("the autopilot refused OFFBOARD ten times")
+                raise EngageError(f"{stack.name} refused its engage mode ten times")
             if arm:
+                self._last_statustext = ""
                 res = await self.link.command_long(_CMD_ARM_DISARM, 1, timeout_s=0.5)
                 if res != _RESULT_ACCEPTED:
-                    raise EngageError(f"the autopilot refused to arm (MAV_RESULT {res})")
+                    await asyncio.sleep(0.2)  # a STATUSTEXT with the reason may follow the ACK
+                    said = f": {self._last_statustext}" if self._last_statustext else ""
+                    raise EngageError(f"{stack.name} refused to arm (MAV_RESULT {res}){said}")
         except (EngageError, LinkError) as exc:
             self.commanding = False
             self._event("engage_failed", str(exc))
@@ -456,16 +480,21 @@ class Companion:
             was_commanding = self.commanding
             self.commanding = False
             self.engaged = False
-            if not was_commanding or self.link is None or self.link.target is None:
+            if (
+                not was_commanding
+                or self.link is None
+                or self.link.target is None
+                or self.stack is None
+            ):
                 return
-            main = PX4_MODES[self.opts.failsafe.safe_mode]
+            p2, p3 = self.stack.mode_params(self._safe_mode)
             try:
                 res = await self.link.command_long(
-                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, main, 0, timeout_s=0.3, retries=2
+                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.3, retries=2
                 )
                 self._event(
                     "handed_back",
-                    f"{reason}; {self.opts.failsafe.safe_mode.upper()} "
+                    f"{reason}; {self._safe_mode.upper()} "
                     + ("accepted" if res == _RESULT_ACCEPTED else f"refused ({res})"),
                 )
             except LinkError as exc:
@@ -573,11 +602,7 @@ class Companion:
                 self._spawn(self._telemetry.run(), "mqtt")
             hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
             self.autopilot = int(hb.autopilot)
-            self._event("connected", f"autopilot {self.autopilot} at {self.link.target}")
-            if self.autopilot == _AUTOPILOT_ARDUPILOT and opts.output == "actuator":
-                raise EngageError(
-                    "ArduPilot accepts no actuator setpoints over MAVLink: use --output rates"
-                )
+            await self._recognise_stack()
             await self._request_streams()
             self._spawn(self._supervise(), "supervise")
             if opts.engage == "auto":
@@ -609,15 +634,65 @@ class Companion:
         self._exit_code = EXIT_OK
         self._stop.set()
 
-    async def _request_streams(self) -> None:
-        """The IMU stream at the loop rate and RC_CHANNELS, each ACK-checked."""
-        imu_id = _MSG_HIGHRES_IMU if self.opts.imu_source == "highres_imu" else _MSG_ATTITUDE
-        for msg_id, hz in (
-            (imu_id, self.opts.loop_rate_hz),
-            (_MSG_RC_CHANNELS, self.opts.rc_rate_hz),
-        ):
-            res = await self.link.command_long(_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
-            if res != _RESULT_ACCEPTED:
+    async def _recognise_stack(self) -> None:
+        """Pick the stack's dialect and refuse what it cannot do, before sending anything."""
+        stack = stack_for(self.autopilot or 0)
+        if stack is None:
+            raise EngageError(
+                f"autopilot type {self.autopilot} is not supported (PX4 = 12, ArduPilot = 3)"
+            )
+        self.stack = stack
+        self._event("connected", f"{stack.name} (autopilot {self.autopilot}) at {self.link.target}")
+        opts = self.opts
+        if opts.output == "actuator" and not stack.supports_actuator_output:
+            raise EngageError(
+                f"{stack.name} accepts no actuator setpoints over MAVLink: use --output rates"
+            )
+        name = opts.failsafe.safe_mode
+        self._safe_mode = stack.default_safe_mode if name == "auto" else name
+        try:
+            stack.mode_params(self._safe_mode)
+        except ValueError as exc:
+            raise EngageError(str(exc)) from None
+        if self._imu_source == "auto":
+            self._imu_source = stack.imu_message  # type: ignore[assignment]
+        if stack.name == "ardupilot" and opts.output == "rates" and opts.engage != "none":
+            # Our thrust is a normalised collective; ArduPilot reads it as a climb-rate
+            # request unless GUID_OPTIONS bit 3 is set. Flying with the wrong meaning
+            # would be dangerous: refuse instead.
+            value = await self.link.param_read("GUID_OPTIONS")
+            if not int(value) & _GUID_OPTIONS_THRUST:
                 raise EngageError(
-                    f"the autopilot refused message {msg_id} at {hz} Hz (MAV_RESULT {res})"
+                    f"ArduPilot GUID_OPTIONS = {int(value)}: SET_ATTITUDE_TARGET thrust would "
+                    "be read as a climb rate; set bit 3 (add 8, e.g. GUID_OPTIONS = "
+                    f"{int(value) | _GUID_OPTIONS_THRUST}) so it is a normalised thrust"
                 )
+
+    async def _request_streams(self) -> None:
+        """The IMU stream at the highest rate the stack accepts up to the loop rate,
+        falling back when a rate is DENIED; then RC_CHANNELS. ACK-checked."""
+        assert self.stack is not None
+        imu_id = _MSG_HIGHRES_IMU if self._imu_source == "highres_imu" else _MSG_ATTITUDE
+        want = min(self.opts.loop_rate_hz, self.stack.max_imu_rate_hz)
+        rates = [want] + [r for r in (400.0, 333.0, 250.0, 200.0, 100.0, 50.0) if r < want]
+        res = _RESULT_ACCEPTED
+        for hz in rates:
+            res = await self.link.command_long(_CMD_SET_MESSAGE_INTERVAL, imu_id, 1e6 / hz)
+            if res == _RESULT_ACCEPTED:
+                self.imu_rate_hz = hz
+                self._event("imu_stream", f"message {imu_id} at {hz:g} Hz")
+                break
+            if res != _RESULT_DENIED:
+                break
+            self._event("imu_rate_denied", f"message {imu_id} at {hz:g} Hz denied")
+        if self.imu_rate_hz is None:
+            raise EngageError(
+                f"the autopilot refused the IMU stream (message {imu_id}, last MAV_RESULT {res})"
+            )
+        res = await self.link.command_long(
+            _CMD_SET_MESSAGE_INTERVAL, _MSG_RC_CHANNELS, 1e6 / self.opts.rc_rate_hz
+        )
+        if res != _RESULT_ACCEPTED:
+            raise EngageError(
+                f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
+            )

@@ -191,9 +191,10 @@ def simulate(
 )
 @click.option(
     "--imu-source",
-    type=click.Choice(["highres_imu", "attitude"]),
-    default="highres_imu",
+    type=click.Choice(["auto", "highres_imu", "attitude"]),
+    default="auto",
     show_default=True,
+    help="auto: the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE).",
 )
 @click.option(
     "--rate-hz",
@@ -226,10 +227,23 @@ def simulate(
 )
 @click.option(
     "--safe-mode",
-    type=click.Choice(["posctl", "altctl", "stabilized", "manual"]),
-    default="posctl",
+    type=click.Choice(
+        [
+            "auto",
+            "posctl",
+            "altctl",
+            "stabilized",
+            "manual",
+            "alt_hold",
+            "land",
+            "stabilize",
+            "loiter",
+        ]
+    ),
+    default="auto",
     show_default=True,
-    help="Mode handed back to on a failsafe.",
+    help="Mode handed back to: auto = PX4 POSCTL, ArduPilot ALT_HOLD; PX4 posctl/altctl/"
+    "stabilized/manual; ArduPilot alt_hold/land/stabilize/loiter (checked on connect).",
 )
 @click.option(
     "--stale-imu-s", type=click.FloatRange(min=0.0, min_open=True), default=0.1, show_default=True
@@ -341,6 +355,13 @@ def run(
     default=Path("runs/fly"),
     show_default=True,
 )
+@click.option(
+    "--autopilot",
+    type=click.Choice(["px4", "ardupilot"]),
+    default="px4",
+    show_default=True,
+    help="The SITL's personality; ardupilot implies --output rates.",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def fly(
     profile_path: Path,
@@ -351,6 +372,7 @@ def fly(
     duration: float | None,
     controller_profile: Path | None,
     out_dir: Path,
+    autopilot: str,
     progress: bool,
 ) -> None:
     """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
@@ -385,7 +407,7 @@ def fly(
     flight = fly_mavlink(
         profile_path, scenario, out_dir, controller_path=controller_path, output=output,
         duration_s=duration, seed=seed, controller_profile_path=controller_profile,
-        progress=tick,
+        autopilot=autopilot, progress=tick,
     )  # fmt: skip
     bar.close()
     if not flight.control_log.exists():

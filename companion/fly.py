@@ -91,6 +91,7 @@ def fly_mavlink(
     sitl_args: Sequence[str] = (),
     companion_args: Sequence[str] = (),
     controller_profile_path: str | Path | None = None,
+    autopilot: str = "px4",
     timeout_s: float = 600.0,
     progress: Callable[[float], None] | None = None,
     on_started: Callable[[subprocess.Popen[bytes], subprocess.Popen[bytes]], None] | None = None,
@@ -112,6 +113,10 @@ def fly_mavlink(
         Engaged flight time; default: the scenario's (or its pilot's) duration.
     controller_profile_path
         The profile the companion is given (default: ``profile_path``).
+    autopilot
+        The SITL's personality, ``px4`` or ``ardupilot`` (ArduPilot takes body
+        rates only, so ``output`` becomes ``rates``; its GUID_OPTIONS is set to 8
+        so the thrust is a normalised collective).
     on_started
         Called with (sitl, companion) processes once both are running (tests
         use it to send signals).
@@ -127,13 +132,17 @@ def fly_mavlink(
     port = free_udp_port()
     py = sys.executable
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if autopilot == "ardupilot":
+        output = "rates"
     sitl_cmd = [
         py, "-m", "sitl", "run",
         "--profile", str(profile_path),
         "--mavlink", f"udpout:127.0.0.1:{port}",
         "--scenario", str(scenario),
         "--clock", "lockstep",
-        "--pilot-from-arm", "--no-auto-arm", "--mode", "manual",
+        "--pilot-from-arm", "--no-auto-arm",
+        *(["--mode", "manual"] if autopilot == "px4" else
+          ["--autopilot", "ardupilot", "--mode", "stabilize", "--param", "GUID_OPTIONS=8"]),
         "--log", str(out / "sitl.npz"),
         *(["--seed", str(seed)] if seed is not None else []),
         *sitl_args,

@@ -170,6 +170,7 @@ class MavlinkLink:
         self._heartbeat_task: asyncio.Task[None] | None = None
         self._heartbeat_waiters: list[asyncio.Future[Any]] = []
         self._ack_waiters: dict[int, asyncio.Future[Any]] = {}
+        self._param_waiters: dict[str, list[asyncio.Future[Any]]] = {}
         self._command_locks: dict[int, asyncio.Lock] = {}
         self._started = False
         self._closed = False
@@ -329,6 +330,8 @@ class MavlinkLink:
                 self._on_heartbeat(msg)
             elif mtype == "COMMAND_ACK":
                 self._on_command_ack(msg)
+            elif mtype == "PARAM_VALUE":
+                self._on_param_value(msg)
             on_message = self.on_message
             if on_message is not None:
                 try:
@@ -509,6 +512,63 @@ class MavlinkLink:
             finally:
                 if self._ack_waiters.get(command) is fut:
                     del self._ack_waiters[command]
+
+    async def param_read(self, name: str, *, timeout_s: float = 0.5, retries: int = 3) -> float:
+        """Read one parameter (PARAM_REQUEST_READ by name, PARAM_VALUE back).
+
+        Raises
+        ------
+        LinkError
+            If the target is unknown or no PARAM_VALUE for ``name`` came after all attempts.
+        """
+        return await self._param(name, None, timeout_s=timeout_s, retries=retries)
+
+    async def param_set(
+        self, name: str, value: float, *, timeout_s: float = 0.5, retries: int = 3
+    ) -> float:
+        """Set one parameter (PARAM_SET) and return the value the autopilot reports back."""
+        return await self._param(name, float(value), timeout_s=timeout_s, retries=retries)
+
+    async def _param(
+        self, name: str, value: float | None, *, timeout_s: float, retries: int
+    ) -> float:
+        if not 0 < len(name) <= 16:
+            raise ValueError(f"parameter names are 1..16 characters, got {name!r}")
+        sysid, compid = self._require_target()
+        loop = asyncio.get_running_loop()
+        for attempt in range(retries + 1):
+            fut: asyncio.Future[Any] = loop.create_future()
+            self._param_waiters.setdefault(name, []).append(fut)
+            try:
+                if value is None:
+                    self.send(self.mav.param_request_read_encode(sysid, compid, name.encode(), -1))
+                else:
+                    self.send(
+                        self.mav.param_set_encode(
+                            sysid, compid, name.encode(), value, mavlink2.MAV_PARAM_TYPE_REAL32
+                        )
+                    )
+                msg = await asyncio.wait_for(fut, timeout_s)
+                return float(msg.param_value)
+            except asyncio.TimeoutError:
+                logger.debug("parameter %s: no PARAM_VALUE, attempt %d", name, attempt + 1)
+            finally:
+                waiters = self._param_waiters.get(name, [])
+                if fut in waiters:
+                    waiters.remove(fut)
+        raise LinkError(
+            f"{self.transport.description}: no PARAM_VALUE for {name} from {sysid}/{compid} "
+            f"after {retries + 1} attempts ({timeout_s:g} s each)"
+        )
+
+    def _on_param_value(self, msg: Any) -> None:
+        name = msg.param_id
+        if isinstance(name, bytes):
+            name = name.decode(errors="replace")
+        name = name.rstrip("\x00")
+        for fut in self._param_waiters.pop(name, []):
+            if not fut.done():
+                fut.set_result(msg)
 
     async def request_message_interval(
         self, message_id: int, interval_us: float, *, timeout_s: float = 0.5, retries: int = 3
