@@ -1,0 +1,50 @@
+"""Smoke-run the scripts in ``scripts/`` as subprocesses."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+AXES = ("roll", "pitch", "yaw")
+PAPER_FLIGHTS = {
+    "f450_mfc",
+    "f450_cut_props_mfc",
+    "tarot650_mfc",
+    "tarot650_pid_tuned",
+    "f450_pid_tuned",
+}
+
+
+@pytest.mark.slow  # about 8 s: nine 15 s flights and their plots
+def test_reproduce_paper_quick(tmp_path: Path) -> None:
+    out = tmp_path / "paper"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "reproduce_paper.py"), "--quick", "--out", str(out),
+         "--workers", "2", "--no-progress"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    doc = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    for key in ("scenario", "seed", "quick", "duration_s", "controllers", "paper", "flights",
+                "claims", "why", "input_gains", "command", "versions"):  # fmt: skip
+        assert key in doc, key
+    assert doc["scenario"] == "paper-acro" and doc["quick"] is True and doc["duration_s"] == 15.0
+    assert set(doc["flights"]) >= PAPER_FLIGHTS
+    for name, f in doc["flights"].items():
+        for a in AXES:
+            v = f["mae_deg_s"][a]
+            assert v is not None and math.isfinite(v) and v >= 0.0, (name, a, v)
+        assert isinstance(f["crashed"], bool)
+        for plot in f["plots"]:
+            assert (out / plot).stat().st_size > 0
+    assert {c["id"] for c in doc["claims"]} >= {"f450_under_10", "pid_degrades_when_moved"}
+    assert all(c["holds"] in (True, False, None) for c in doc["claims"])
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "| flight |" in md and "f450_pid_tuned" in md
+    assert doc["controllers"]["pid_tuned"]["path"].endswith("pid_tarot_tuned.yaml")
