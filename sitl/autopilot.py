@@ -342,6 +342,11 @@ class Autopilot:
         return flags
 
     @property
+    def external_control(self) -> bool:
+        """True in OFFBOARD: a companion's setpoints drive the vehicle (lockstep waits)."""
+        return self.mode.main == MainMode.OFFBOARD
+
+    @property
     def system_status(self) -> int:
         """``MAV_STATE``: STANDBY (3) disarmed, ACTIVE (4) armed, CRITICAL (5) in failsafe."""
         if self.failsafe is not None and self.armed:

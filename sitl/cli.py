@@ -28,6 +28,7 @@ __all__ = ["cli", "main"]
 logger = logging.getLogger("sitl")
 
 _MODES = ["MANUAL", "ALTCTL", "POSCTL", "ACRO", "STABILIZED"]
+_COPTER_MODES = ["STABILIZE", "ALT_HOLD", "GUIDED", "GUIDED_NOGPS", "LAND"]
 
 
 @click.group()
@@ -101,9 +102,10 @@ def cli(verbose: int) -> None:
 @click.option(
     "--mode",
     "initial_mode",
-    type=click.Choice(_MODES, case_sensitive=False),
+    type=click.Choice(_MODES + _COPTER_MODES, case_sensitive=False),
     default=None,
-    help="Mode at boot [default: ACRO with a pilot, else MANUAL].",
+    help="Mode at boot [default: ACRO with a pilot, else MANUAL (px4) / STABILIZE "
+    "(ardupilot)]; PX4 names for px4, Copter names (and ACRO) for ardupilot.",
 )
 @click.option("--no-auto-arm", is_flag=True, help="Do not arm at t=0 when a pilot is given.")
 @click.option(
@@ -124,6 +126,28 @@ def cli(verbose: int) -> None:
     help="Inject a fault: imu-stop@T, imu-nan@T, link-drop@T, motor-fail@T:INDEX "
     "(T in simulated s; repeatable).",
 )
+@click.option(
+    "--autopilot",
+    "autopilot",
+    type=click.Choice(["px4", "ardupilot"]),
+    default="px4",
+    show_default=True,
+    help="Personality shown over MAVLink: PX4 or ArduCopter (docs/ardupilot.md).",
+)
+@click.option(
+    "--prearm-fail",
+    "prearm_fail",
+    default=None,
+    metavar="TEXT",
+    help="ardupilot: a pre-arm check fails with TEXT (arming FAILED + 'PreArm: TEXT').",
+)
+@click.option(
+    "--param",
+    "ap_params",
+    multiple=True,
+    metavar="NAME=VALUE",
+    help="ardupilot: set a parameter at boot (repeatable), e.g. SCHED_LOOP_RATE=200.",
+)
 def run(
     profile_path: Path,
     mavlink: str,
@@ -141,6 +165,9 @@ def run(
     scenario: str | None,
     pilot_from_arm: bool,
     faults: tuple[str, ...],
+    autopilot: str,
+    prearm_fail: str | None,
+    ap_params: tuple[str, ...],
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_face import parse_endpoint
@@ -170,6 +197,9 @@ def run(
         from sitl.runner import parse_fault
 
         parsed_faults = tuple(parse_fault(f) for f in faults)
+        parsed_params = tuple(_parse_param(p) for p in ap_params)
+        if autopilot != "ardupilot" and (prearm_fail is not None or parsed_params):
+            raise ValueError("--prearm-fail and --param need --autopilot ardupilot")
         config = RunConfig(
             mavlink=endpoint,
             pilot=pilot,
@@ -185,6 +215,9 @@ def run(
             auto_arm=not no_auto_arm,
             pilot_from_arm=pilot_from_arm,
             faults=parsed_faults,
+            autopilot=autopilot,  # type: ignore[arg-type]
+            prearm_fail=prearm_fail,
+            ardupilot_params=parsed_params,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))
@@ -201,6 +234,16 @@ def run(
         f" ({summary.realtime_factor:.2f}x), final mode {summary.final_mode}",
         err=True,
     )
+
+
+def _parse_param(text: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    try:
+        if not sep or not name.strip():
+            raise ValueError
+        return name.strip().upper(), float(value)
+    except ValueError:
+        raise ValueError(f"--param {text!r}: expected NAME=VALUE") from None
 
 
 def main() -> None:

@@ -23,7 +23,8 @@ Clocks
     it stops waiting (the client is taken as gone) until a setpoint arrives again,
     so a disconnected client cannot stall the simulation; the offboard-loss
     failsafe then fires in simulation time. Outside OFFBOARD it never waits and
-    runs as fast as the CPU allows.
+    runs as fast as the CPU allows. With ``autopilot="ardupilot"`` the same holds
+    in GUIDED / GUIDED_NOGPS after each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
 Log format
 ----------
@@ -70,7 +71,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -88,6 +89,9 @@ from sitl.mavlink_face import Endpoint, MavlinkFace, default_streams
 from sitl.physics import Quadrotor, hover_motor_command
 from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.wind import Wind, WindConfig
+
+if TYPE_CHECKING:
+    from sitl.ardupilot import ArduCopter
 
 __all__ = ["FlightLog", "RunConfig", "RunSummary", "Runner", "events_path", "read_log"]
 
@@ -175,6 +179,13 @@ class RunConfig:
         The IMU model to use instead of the profile's (scenario overrides).
     rc_period_s
         Interval between RC frames from the pilot, s.
+    autopilot
+        Personality: ``"px4"`` (:mod:`sitl.autopilot`) or ``"ardupilot"``
+        (:mod:`sitl.ardupilot`, ArduCopter-like).
+    prearm_fail
+        ArduPilot personality: a pre-arm check that fails with this text.
+    ardupilot_params
+        ArduPilot personality: parameters set at boot, ``(name, value)`` pairs.
     faults
         Faults to inject (:func:`parse_fault`), each once at its time, counted
         from the pilot's start (so from arming with ``pilot_from_arm``).
@@ -202,6 +213,9 @@ class RunConfig:
     rc_period_s: float = RC_PERIOD_S
     pilot_from_arm: bool = False
     faults: tuple[Fault, ...] = ()
+    autopilot: Literal["px4", "ardupilot"] = "px4"
+    prearm_fail: str | None = None
+    ardupilot_params: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass
@@ -372,26 +386,66 @@ class Runner:
         self.pilot: Pilot | None = None
         self._make_streams()
         imu_model = self.imu.model
-        if config.initial_mode is not None:
-            main = _MODE_BY_NAME[config.initial_mode.upper()]
+        self.autopilot: Autopilot | ArduCopter
+        self.face: MavlinkFace
+        if config.autopilot == "ardupilot":
+            self._make_ardupilot(hover)
         else:
-            main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
-        self.autopilot = Autopilot(
-            profile,
-            AutopilotConfig(
-                offboard_timeout_s=config.offboard_timeout_s,
-                test_stand=config.test_stand,
-                hover_thrust=min(max(hover, 0.05), 0.95),
-            ),
-            initial_mode=FlightMode(main),
-        )
-        imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
-        self.streams = default_streams(imu_rate_hz)
-        self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
+            if config.initial_mode is not None:
+                if config.initial_mode.upper() not in _MODE_BY_NAME:
+                    raise ValueError(f"PX4 has no mode {config.initial_mode!r}")
+                main = _MODE_BY_NAME[config.initial_mode.upper()]
+            else:
+                main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
+            self.autopilot = Autopilot(
+                profile,
+                AutopilotConfig(
+                    offboard_timeout_s=config.offboard_timeout_s,
+                    test_stand=config.test_stand,
+                    hover_thrust=min(max(hover, 0.05), 0.95),
+                ),
+                initial_mode=FlightMode(main),
+            )
+            imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
+            self.streams = default_streams(imu_rate_hz)
+            self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
         self.stop = threading.Event()
         self.duration_s = config.duration_s
         if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
             self.duration_s = self.pilot.duration_s
+
+    def _make_ardupilot(self, hover_motor_cmd: float) -> None:
+        """The ArduCopter personality (``--autopilot ardupilot``)."""
+        from sitl.ardupilot import (
+            ArduCopter,
+            ArduCopterConfig,
+            ArduPilotFace,
+            CopterMode,
+            ardupilot_streams,
+        )
+
+        cfg = self.config
+        if cfg.initial_mode is not None:
+            try:
+                mode = CopterMode[cfg.initial_mode.upper()]
+            except KeyError:
+                raise ValueError(f"ArduCopter has no mode {cfg.initial_mode!r}") from None
+        else:
+            mode = CopterMode.ACRO if self.pilot is not None else CopterMode.STABILIZE
+        ap = ArduCopter(
+            self.profile,
+            ArduCopterConfig(
+                test_stand=cfg.test_stand,
+                hover_motor_cmd=min(max(hover_motor_cmd, 0.05), 0.95),
+                prearm_fail=cfg.prearm_fail,
+                params=cfg.ardupilot_params,
+            ),
+            initial_mode=mode,
+        )
+        streams = ardupilot_streams(ap.loop_rate_hz)
+        self.autopilot = ap
+        self.streams = streams
+        self.face = ArduPilotFace(cfg.mavlink, ap, streams)
 
     def run(self) -> RunSummary:
         """Fly until the duration, a signal, or a crash; write the log.
@@ -545,7 +599,7 @@ class Runner:
 
             if not client_active and face.setpoints_received != sp_at_timeout:
                 client_active = True  # setpoints resumed after a lockstep timeout
-            if lockstep and imu_sent and client_active and ap.mode.main == MainMode.OFFBOARD:
+            if lockstep and imu_sent and client_active and ap.external_control:
                 n0 = face.setpoints_received
                 summary.lockstep_waits += 1
                 deadline = monotonic() + cfg.lockstep_timeout_s
