@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import logging
 import math
@@ -117,6 +118,11 @@ class RunOptions:
     loop_rate_hz: float = 250.0
     rc_rate_hz: float = 50.0
     engage_channel: int = 5
+    rates_full_scale_deg_s: float = 360.0
+    """With ``output="rates"``: the rate correction a full-scale law output makes.
+    It sets the input gain the law sees through the autopilot's rate loop:
+    measured on paper-acro with the PX4-like SITL, the profile's 1080 deg/s made
+    the Tarot oscillate into the envelope failsafe, 360 flew every vehicle."""
     rates_passthrough: bool = False
     """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
     MFC-on-top is compared with); the law still runs and is logged."""
@@ -145,6 +151,8 @@ class Companion:
         self.controller = build_controller(opts.controller, opts.profile)
         self.sticks = build_stick_map(opts.controller)
         self._rate_max_rad_s = tuple(math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
+        fs = opts.rates_full_scale_deg_s
+        self._rate_fs_rad_s = self._rate_max_rad_s if fs is None else (math.radians(fs),) * 3
         self._gyro_limit_rad_s = math.radians(2000.0) * 1.05
         self.link: Any = None
         # Per-sample counters are plain attributes (a dict lookup per sample
@@ -302,7 +310,8 @@ class Companion:
             # law's correction (full scale = the profile's rate limit).
             rm = self._rate_max_rad_s
             k = 0.0 if self.opts.rates_passthrough else 1.0
-            sp = [max(-rm[i], min(rm[i], ref[i] + k * out.torque[i] * rm[i])) for i in range(3)]
+            fs = self._rate_fs_rad_s
+            sp = [max(-rm[i], min(rm[i], ref[i] + k * out.torque[i] * fs[i])) for i in range(3)]
             msg = link.mav.set_attitude_target_encode(
                 round(t_s * 1e3) & 0xFFFFFFFF,
                 sysid,
@@ -604,6 +613,12 @@ class Companion:
             self.autopilot = int(hb.autopilot)
             await self._recognise_stack()
             await self._request_streams()
+            # The per-sample path allocates only short-lived, acyclic objects (freed by
+            # reference counting); the cyclic collector's pauses were the latency tail.
+            # Move everything built so far out of its reach and run it less often.
+            gc.collect()
+            gc.freeze()
+            gc.set_threshold(50_000, 50, 100)
             self._spawn(self._supervise(), "supervise")
             if opts.engage == "auto":
                 self._spawn(self._engage_offboard(arm=True), "engage")

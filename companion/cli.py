@@ -185,6 +185,13 @@ def simulate(
 )
 @click.option("--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True)
 @click.option(
+    "--rates-full-scale-deg-s",
+    type=click.FloatRange(min=10.0, max=2000.0),
+    default=360.0,
+    show_default=True,
+    help="With --output rates: the rate correction of a full-scale law output.",
+)
+@click.option(
     "--rates-passthrough",
     is_flag=True,
     help="With --output rates: send the pilot's rates unchanged (baseline for comparison).",
@@ -268,6 +275,7 @@ def run(
     output: str,
     engage: str,
     engage_channel: int,
+    rates_full_scale_deg_s: float,
     rates_passthrough: bool,
     imu_source: str,
     rate_hz: float,
@@ -313,6 +321,7 @@ def run(
         loop_rate_hz=rate_hz,
         engage_channel=engage_channel,
         rates_passthrough=rates_passthrough,
+        rates_full_scale_deg_s=rates_full_scale_deg_s,
         log_dir=log_dir,
         mqtt_url=mqtt_url,
         signing_key=signing_key,

@@ -1268,8 +1268,10 @@ class ArduPilotFace(MavlinkFace):
     def publish(self, t_s: float, *, imu_sample: bool, wall_s: float) -> bool:
         """As :meth:`MavlinkFace.publish`, with ArduPilot's IMU messages and STATUSTEXT.
 
-        Returns True when an IMU message (HIGHRES_IMU, RAW_IMU or SCALED_IMU)
-        went out: the lockstep clock waits after it in GUIDED / GUIDED_NOGPS.
+        Returns True when the fastest body-rate stream (HIGHRES_IMU, RAW_IMU,
+        SCALED_IMU, ATTITUDE or ATTITUDE_QUATERNION: whichever the client asked
+        to be fast) went out: the lockstep clock waits after it in GUIDED /
+        GUIDED_NOGPS.
         """
         for severity, text in self.ap.drain_statustexts():
             self.mav.statustext_send(severity, text.encode(), 0, 0)
@@ -1290,10 +1292,11 @@ class ArduPilotFace(MavlinkFace):
             self._send_one(ID_RC_CHANNELS)
         imu_sent = False
         if imu_sample and not self.imu_stopped:
+            clock = st.lockstep_stream(_IMU_STREAMS)
             for msg_id in _IMU_STREAMS:
                 if st.due(msg_id, t_s):
                     self._send_one(msg_id)
-                    imu_sent = imu_sent or msg_id in (ID_HIGHRES_IMU, ID_RAW_IMU, ID_SCALED_IMU)
+                    imu_sent = imu_sent or msg_id == clock
         for msg_id in (
             ID_LOCAL_POSITION_NED,
             ID_SYS_STATUS,

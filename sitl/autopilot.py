@@ -746,6 +746,20 @@ class MessageStreams:
         st.next_due_s = t_s
         return MavResult.ACCEPTED
 
+    def lockstep_stream(self, candidates: tuple[int, ...]) -> int | None:
+        """Of the enabled ``candidates``, the one streamed fastest (ties: the first).
+
+        The lockstep clock waits after this one: it is the stream a client
+        that asked for a fast rate is running its loop on.
+        """
+        best: int | None = None
+        best_s = math.inf
+        for msg_id in candidates:
+            st = self._streams.get(msg_id)
+            if st is not None and 0.0 < st.interval_s < best_s * (1.0 - 1e-9):
+                best, best_s = msg_id, st.interval_s
+        return best
+
     def due(self, msg_id: int, t_s: float) -> bool:
         """True (and schedules the next one) when ``msg_id`` is due at ``t_s``.
 

@@ -495,13 +495,12 @@ class MavlinkFace:
             self._send_one(ID_RC_CHANNELS)
         imu_sent = False
         if imu_sample and not self.imu_stopped:
-            if st.due(ID_HIGHRES_IMU, t_s):
-                self._send_one(ID_HIGHRES_IMU)
-                imu_sent = True
-            if st.due(ID_ATTITUDE, t_s):
-                self._send_one(ID_ATTITUDE)
-            if st.due(ID_ATTITUDE_QUATERNION, t_s):
-                self._send_one(ID_ATTITUDE_QUATERNION)
+            # Lockstep follows the fastest body-rate stream: the one the client runs on.
+            clock = st.lockstep_stream((ID_HIGHRES_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION))
+            for msg_id in (ID_HIGHRES_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION):
+                if st.due(msg_id, t_s):
+                    self._send_one(msg_id)
+                    imu_sent = imu_sent or msg_id == clock
         for msg_id in (
             ID_LOCAL_POSITION_NED,
             ID_SYS_STATUS,
