@@ -262,6 +262,13 @@ def simulate(
     show_default=True,
 )
 @click.option(
+    "--heartbeat-timeout-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=10.0,
+    show_default=True,
+    help="How long to wait for the autopilot's first heartbeat (exit 1 after).",
+)
+@click.option(
     "--envelope-error-deg-s",
     type=click.FloatRange(min=0.0, min_open=True),
     default=300.0,
@@ -287,6 +294,7 @@ def run(
     safe_mode: str,
     stale_imu_s: float,
     link_timeout_s: float,
+    heartbeat_timeout_s: float,
     envelope_error_deg_s: float,
 ) -> None:
     """Fly the vehicle's rates with the controller over MAVLink."""
@@ -326,6 +334,7 @@ def run(
         mqtt_url=mqtt_url,
         signing_key=signing_key,
         duration_s=duration,
+        heartbeat_timeout_s=heartbeat_timeout_s,
         failsafe=FailsafeConfig(
             stale_imu_s=stale_imu_s,
             link_timeout_s=link_timeout_s,

@@ -20,7 +20,7 @@ from typing import Any
 
 import click
 
-from companion.errors import ConfigError
+from companion.errors import ConfigError, SigningError
 from companion.profile import load_profile
 
 __all__ = ["cli", "main"]
@@ -142,6 +142,13 @@ def cli(verbose: int) -> None:
     help="ardupilot: a pre-arm check fails with TEXT (arming FAILED + 'PreArm: TEXT').",
 )
 @click.option(
+    "--signing-key",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="MAVLink 2 signing key file (as companion run --signing-key): sign all, "
+    "accept only signed.",
+)
+@click.option(
     "--param",
     "ap_params",
     multiple=True,
@@ -168,6 +175,7 @@ def run(
     autopilot: str,
     prearm_fail: str | None,
     ap_params: tuple[str, ...],
+    signing_key: Path | None,
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_face import parse_endpoint
@@ -200,6 +208,11 @@ def run(
         parsed_params = tuple(_parse_param(p) for p in ap_params)
         if autopilot != "ardupilot" and (prearm_fail is not None or parsed_params):
             raise ValueError("--prearm-fail and --param need --autopilot ardupilot")
+        key = None
+        if signing_key is not None:
+            from companion.link.signing import load_signing_key
+
+            key = load_signing_key(signing_key).key
         config = RunConfig(
             mavlink=endpoint,
             pilot=pilot,
@@ -215,13 +228,14 @@ def run(
             auto_arm=not no_auto_arm,
             pilot_from_arm=pilot_from_arm,
             faults=parsed_faults,
+            signing_key=key,
             autopilot=autopilot,  # type: ignore[arg-type]
             prearm_fail=prearm_fail,
             ardupilot_params=parsed_params,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, SigningError, ValueError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(2)
     try:

@@ -195,6 +195,23 @@ class _Sink:
         self._face._send_bytes(buf)
 
 
+def enable_signing(mav: Any, key: bytes, *, link_id: int = 0) -> None:
+    """Sign what ``mav`` sends and accept only validly signed frames (MAVLink 2).
+
+    pymavlink checks incoming signatures once ``secret_key`` is set: unsigned
+    frames and frames with a bad signature or an old timestamp are dropped
+    (``allow_unsigned_callback`` is left unset).
+    """
+    from companion.link.signing import signing_timestamp_now
+
+    if len(key) != 32:
+        raise ValueError("a MAVLink signing key is 32 bytes")
+    mav.signing.secret_key = key
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = signing_timestamp_now()
+    mav.signing.sign_outgoing = True
+
+
 class MavlinkFace:
     """MAVLink endpoint of the simulated autopilot.
 

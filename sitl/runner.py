@@ -85,7 +85,7 @@ from sitl.autopilot import (
 )
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.mavlink_face import Endpoint, MavlinkFace, default_streams
+from sitl.mavlink_face import Endpoint, MavlinkFace, default_streams, enable_signing
 from sitl.physics import Quadrotor, hover_motor_command
 from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.wind import Wind, WindConfig
@@ -186,6 +186,9 @@ class RunConfig:
         ArduPilot personality: a pre-arm check that fails with this text.
     ardupilot_params
         ArduPilot personality: parameters set at boot, ``(name, value)`` pairs.
+    signing_key
+        MAVLink 2 signing key (32 bytes): sign everything sent, accept only
+        validly signed frames.
     faults
         Faults to inject (:func:`parse_fault`), each once at its time, counted
         from the pilot's start (so from arming with ``pilot_from_arm``).
@@ -213,6 +216,7 @@ class RunConfig:
     rc_period_s: float = RC_PERIOD_S
     pilot_from_arm: bool = False
     faults: tuple[Fault, ...] = ()
+    signing_key: bytes | None = None
     autopilot: Literal["px4", "ardupilot"] = "px4"
     prearm_fail: str | None = None
     ardupilot_params: tuple[tuple[str, float], ...] = ()
@@ -409,6 +413,8 @@ class Runner:
             imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
             self.streams = default_streams(imu_rate_hz)
             self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
+        if config.signing_key is not None:
+            enable_signing(self.face.mav, config.signing_key)
         self.stop = threading.Event()
         self.duration_s = config.duration_s
         if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
