@@ -298,34 +298,21 @@ class Companion:
             self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
 
     def _send_output(self, t_s: float, out: Any, ref: tuple[float, float, float]) -> None:
-        link = self.link
-        sysid, compid = link.target
         if self.opts.output == "actuator":
             r, p, y = out.torque
-            msg = link.mav.set_actuator_control_target_encode(
-                round(t_s * 1e6), 0, sysid, compid, [r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0]
+            self.link.send_actuator_controls(
+                round(t_s * 1e6), (r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0)
             )
         else:
             # The law wraps the autopilot's rate loop: the pilot's rate plus the
-            # law's correction (full scale = the profile's rate limit).
+            # law's correction, within the profile's rate limits.
             rm = self._rate_max_rad_s
             k = 0.0 if self.opts.rates_passthrough else 1.0
             fs = self._rate_fs_rad_s
             sp = [max(-rm[i], min(rm[i], ref[i] + k * out.torque[i] * fs[i])) for i in range(3)]
-            msg = link.mav.set_attitude_target_encode(
-                round(t_s * 1e3) & 0xFFFFFFFF,
-                sysid,
-                compid,
-                _ATT_TYPE_MASK_IGNORE_ATTITUDE,
-                [1.0, 0.0, 0.0, 0.0],
-                sp[0],
-                sp[1],
-                sp[2],
-                # The pilot's collective: the autopilot mixes it with its own rate
-                # loop; our mixer's air-mode shift belongs to torques we do not send.
-                self._thrust,
-            )
-        link.send(msg)
+            # The pilot's collective: the autopilot mixes it with its own rate
+            # loop; our mixer's air-mode shift belongs to torques we do not send.
+            self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, self._thrust)
         self.n_commands += 1
 
     def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
@@ -613,12 +600,10 @@ class Companion:
             self.autopilot = int(hb.autopilot)
             await self._recognise_stack()
             await self._request_streams()
-            # The per-sample path allocates only short-lived, acyclic objects (freed by
-            # reference counting); the cyclic collector's pauses were the latency tail.
-            # Move everything built so far out of its reach and run it less often.
+            # Everything built during start-up lives as long as the run: move it out
+            # of the cyclic collector's reach so its passes stay short.
             gc.collect()
             gc.freeze()
-            gc.set_threshold(50_000, 50, 100)
             self._spawn(self._supervise(), "supervise")
             if opts.engage == "auto":
                 self._spawn(self._engage_offboard(arm=True), "engage")

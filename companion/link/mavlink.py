@@ -34,13 +34,15 @@ import contextlib
 import logging
 import math
 import os
+import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink2
+from pymavlink.generator.mavcrc import x25crc
 
 from companion.errors import LinkError
 from companion.link.signing import SignatureChecker, SigningConfig, signing_timestamp_now
@@ -49,6 +51,20 @@ from companion.link.transport import Transport
 __all__ = ["MavlinkLink", "mavlink2"]
 
 logger = logging.getLogger(__name__)
+
+# The two messages sent once per control sample, packed without pymavlink's
+# generic path (wire order: fields sorted by type size, as the generator does).
+_HEADER = struct.Struct("<BBBBBBBHB")
+_U16 = struct.Struct("<H")
+_ACTUATOR = struct.Struct("<Q8fBBB")  # time_usec, controls[8], group_mlx, target sys, comp
+_ID_ACTUATOR = mavlink2.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
+_CRC_ACTUATOR = mavlink2.MAVLink_set_actuator_control_target_message.crc_extra
+# time_boot_ms, q[4], body rates, thrust, target sys, comp, type_mask (thrust_body, an
+# extension, is all zeros and so dropped with the trailing zeros)
+_ATTITUDE_TARGET = struct.Struct("<I4fffffBBB")
+_ID_ATTITUDE_TARGET = mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
+_CRC_ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message.crc_extra
+_CRC_EXTRA = {c: bytes((c,)) for c in (_CRC_ACTUATOR, _CRC_ATTITUDE_TARGET)}
 
 OnMessage = Callable[[Any], None]
 OnRaw = Callable[[float, bytes, bool], None]
@@ -264,6 +280,78 @@ class MavlinkLink:
         """Pack ``msg`` (signed when signing is configured) and write it; never blocks."""
         self.mav.send(msg)
 
+    # --------------------------------------------------------- the per-sample sends
+
+    def send_actuator_controls(
+        self, time_usec: int, controls: Sequence[float], group: int = 0
+    ) -> None:
+        """SET_ACTUATOR_CONTROL_TARGET to the autopilot: the per-sample command.
+
+        Packs the frame with one precompiled ``struct`` instead of pymavlink's
+        message object and generic packer (bytes identical, tested); with
+        signing it takes pymavlink's path, which signs.
+        """
+        sysid, compid = self._require_target()
+        if self.signing is not None:
+            self.send(
+                self.mav.set_actuator_control_target_encode(
+                    time_usec, group, sysid, compid, list(controls)
+                )
+            )
+            return
+        payload = _ACTUATOR.pack(time_usec, *controls, group, sysid, compid)
+        self._write_fast(_ID_ACTUATOR, _CRC_ACTUATOR, payload)
+
+    def send_body_rates(
+        self,
+        time_boot_ms: int,
+        rates_frd_rad_s: Sequence[float],
+        thrust: float,
+        type_mask: int = 128,
+    ) -> None:
+        """SET_ATTITUDE_TARGET with body rates and thrust (``type_mask`` 128:
+        ignore the attitude quaternion). Same fast path as
+        :meth:`send_actuator_controls`."""
+        sysid, compid = self._require_target()
+        r0, r1, r2 = rates_frd_rad_s
+        if self.signing is not None:
+            self.send(
+                self.mav.set_attitude_target_encode(
+                    time_boot_ms, sysid, compid, type_mask, [1.0, 0.0, 0.0, 0.0], r0, r1, r2,
+                    thrust,
+                )
+            )  # fmt: skip
+            return
+        payload = _ATTITUDE_TARGET.pack(
+            time_boot_ms, 1.0, 0.0, 0.0, 0.0, r0, r1, r2, thrust, sysid, compid, type_mask
+        )
+        self._write_fast(_ID_ATTITUDE_TARGET, _CRC_ATTITUDE_TARGET, payload)
+
+    def _write_fast(self, msg_id: int, crc_extra: int, payload: bytes) -> None:
+        # MAVLink 2 drops trailing zero bytes of a payload (at least one byte stays).
+        n = len(payload)
+        while n > 1 and payload[n - 1] == 0:
+            n -= 1
+        mav = self.mav
+        frame = (
+            _HEADER.pack(
+                0xFD,
+                n,
+                0,
+                0,
+                mav.seq,
+                mav.srcSystem,
+                mav.srcComponent,
+                msg_id & 0xFFFF,
+                msg_id >> 16,
+            )
+            + payload[:n]
+        )
+        crc = x25crc(frame[1:])
+        crc.accumulate(_CRC_EXTRA[crc_extra])
+        mav.seq = (mav.seq + 1) % 256
+        self._write_frame(frame + _U16.pack(crc.crc))
+
     def _write_frame(self, buf: bytes) -> None:
         self.transport.write(buf)
         self.counters["sent"] += 1
@@ -306,40 +394,48 @@ class MavlinkLink:
         counters = self.counters
         on_raw = self.on_raw
         checker = self._checker
+        # Stamped on arrival, recorded after the callback: the tlog entry of an IMU
+        # sample is written after the command it caused has left.
+        t_rx = time.time() if on_raw is not None else 0.0
         for msg in msgs:
             mtype = msg._type
             if mtype == "BAD_DATA":
                 counters["bad_data"] += 1
                 continue
             counters["received"] += 1
+            if self._accept(msg, mtype, checker, counters):
+                counters["accepted"] += 1
+                if mtype == "HEARTBEAT":
+                    self._on_heartbeat(msg)
+                elif mtype == "COMMAND_ACK":
+                    self._on_command_ack(msg)
+                elif mtype == "PARAM_VALUE":
+                    self._on_param_value(msg)
+                on_message = self.on_message
+                if on_message is not None:
+                    try:
+                        on_message(msg)
+                    except Exception:
+                        counters["callback_errors"] += 1
+                        if counters["callback_errors"] == 1:
+                            logger.exception("on_message raised (logged once, counted after)")
             if on_raw is not None:
-                on_raw(time.time(), bytes(msg._msgbuf), False)
-            if checker is not None and not self._signature_ok(checker, msg):
-                continue
-            if msg.__class__ is _Unknown:  # an id outside the dialect (pymavlink skips its CRC)
-                counters["unknown_ignored"] += 1
-                continue
-            hdr = msg._header
-            if (hdr.srcSystem, hdr.srcComponent) != self.target and not (
-                mtype == "HEARTBEAT" and self.target is None and self._learn_target(msg)
-            ):
-                counters["foreign_ignored"] += 1
-                continue
-            counters["accepted"] += 1
-            if mtype == "HEARTBEAT":
-                self._on_heartbeat(msg)
-            elif mtype == "COMMAND_ACK":
-                self._on_command_ack(msg)
-            elif mtype == "PARAM_VALUE":
-                self._on_param_value(msg)
-            on_message = self.on_message
-            if on_message is not None:
-                try:
-                    on_message(msg)
-                except Exception:
-                    counters["callback_errors"] += 1
-                    if counters["callback_errors"] == 1:
-                        logger.exception("on_message raised (logged once, counted after)")
+                on_raw(t_rx, bytes(msg._msgbuf), False)
+
+    def _accept(self, msg: Any, mtype: str, checker: Any, counters: dict[str, int]) -> bool:
+        """Signature, dialect and sender checks; counts what it rejects."""
+        if checker is not None and not self._signature_ok(checker, msg):
+            return False
+        if msg.__class__ is _Unknown:  # an id outside the dialect (pymavlink skips its CRC)
+            counters["unknown_ignored"] += 1
+            return False
+        hdr = msg._header
+        if (hdr.srcSystem, hdr.srcComponent) != self.target and not (
+            mtype == "HEARTBEAT" and self.target is None and self._learn_target(msg)
+        ):
+            counters["foreign_ignored"] += 1
+            return False
+        return True
 
     def _signature_ok(self, checker: SignatureChecker, msg: Any) -> bool:
         signing = self.mav.signing

@@ -9,8 +9,9 @@ packs what leaves. Every transport has the same shape::
     t.write(data)                                # never blocks; may drop (counted)
     await t.close()                              # idempotent
 
-Receiving uses ``loop.add_reader`` on a non-blocking file descriptor and drains
-what is waiting on each wake-up (no thread, no task per message). Sending is a
+Receiving uses ``loop.add_reader`` on a non-blocking file descriptor: one
+datagram (UDP) or what is waiting (serial) per wake-up, no thread, no task per
+message. Sending is a
 direct non-blocking ``sendto`` / ``os.write``; what the kernel will not take right
 now is dropped (UDP: a stale setpoint is worth less than the next one) or, for
 serial, queued in a bounded buffer flushed by a loop writer.
@@ -48,8 +49,6 @@ logger = logging.getLogger(__name__)
 OnBytes = Callable[[bytes], None]
 
 _RECV_BYTES = 65535
-_MAX_DATAGRAMS_PER_WAKEUP = 256
-"""Drain at most this many datagrams per reader callback, so a flood cannot starve the loop."""
 _SERIAL_READ_BYTES = 4096
 _SERIAL_MAX_PENDING = 64 * 1024
 """Serial output waiting for the port beyond this is dropped (57600 baud moves ~5.7 kB/s)."""
@@ -160,25 +159,25 @@ class _UdpTransport(Transport):
         on_bytes = self._on_bytes
         if sock is None or on_bytes is None:
             return
+        # One datagram per wake-up, as asyncio's own datagram transport does: the
+        # selector is level-triggered and calls again while more is waiting, so a
+        # flood cannot starve the loop, and the common single datagram costs one
+        # recvfrom instead of a second one ending in BlockingIOError.
         counters = self.counters
-        recvfrom = sock.recvfrom
-        for _ in range(_MAX_DATAGRAMS_PER_WAKEUP):
-            try:
-                data, addr = recvfrom(_RECV_BYTES)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError as exc:  # e.g. ECONNREFUSED from an ICMP error on Linux
-                counters["recv_errors"] += 1
-                if exc.errno not in (errno.ECONNREFUSED, errno.EHOSTUNREACH):
-                    logger.warning("%s: receive failed: %s", self.description, exc)
-                return
-            counters["chunks_in"] += 1
-            counters["bytes_in"] += len(data)
-            if addr != self.peer:
-                self._on_new_sender(addr)
-            on_bytes(data)
-            if self._sock is None:  # closed by the callback
-                return
+        try:
+            data, addr = sock.recvfrom(_RECV_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:  # e.g. ECONNREFUSED from an ICMP error on Linux
+            counters["recv_errors"] += 1
+            if exc.errno not in (errno.ECONNREFUSED, errno.EHOSTUNREACH):
+                logger.warning("%s: receive failed: %s", self.description, exc)
+            return
+        counters["chunks_in"] += 1
+        counters["bytes_in"] += len(data)
+        if addr != self.peer:
+            self._on_new_sender(addr)
+        on_bytes(data)
 
     def _on_new_sender(self, addr: tuple[Any, ...]) -> None:
         """A datagram came from an address other than ``self.peer``."""
