@@ -50,6 +50,7 @@ from typing import Any, Literal
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.errors import EngageError, LinkError
 from companion.profile import VehicleProfile
+from companion.reference import ReferenceScript
 from companion.stacks import FlightStack, stack_for
 
 __all__ = [
@@ -130,6 +131,8 @@ class RunOptions:
     mqtt_url: str | None = None
     signing_key: Path | None = None
     duration_s: float | None = None
+    reference: ReferenceScript | None = None
+    """Scripted rates (and maybe thrust) from engagement on, instead of the sticks."""
     heartbeat_timeout_s: float = 10.0
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
 
@@ -187,6 +190,7 @@ class Companion:
         self._ap_armed = False
         self._switch_high = False
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._engage_task: asyncio.Task[None] | None = None
         self._handing_back = False
         self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
@@ -278,6 +282,11 @@ class Companion:
             self._invalid_since = None
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
+        script = self.opts.reference
+        if script is not None and self.engaged and self._t_engaged is not None:
+            ref, scripted_thrust = script.at(t_s - self._t_engaged)
+            if scripted_thrust is not None:
+                thrust = scripted_thrust
         out = self.controller.update(dt, gyro, ref, thrust)
         if self.commanding:
             self._send_output(t_s, out, ref)
@@ -396,12 +405,13 @@ class Companion:
         if not self._switch_high and 1700 <= value <= 2200:
             self._switch_high = True
             self._event("rc_switch", f"ch{ch} high ({value} us): engaging")
-            self._spawn(self._engage_offboard(arm=False), "engage")
+            self._start_engage(arm=False)
         elif self._switch_high and (value < 1300 or value > 2200):
             self._switch_high = False
             if self.engaged or self.commanding:
+                was = self._release()
                 self._event("rc_switch", f"ch{ch} low ({value} us): handing back")
-                self._spawn(self._hand_back("pilot switched back"), "hand-back")
+                self._spawn(self._hand_back("pilot switched back", was_commanding=was), "hand-back")
 
     def _on_heartbeat(self, msg: Any) -> None:
         if self.stack is None:
@@ -444,6 +454,8 @@ class Companion:
         try:
             p2, p3 = stack.engage_mode
             for attempt in range(10):
+                if not self.commanding:
+                    return  # released meanwhile (switch back low, failsafe): stop here
                 res = await self.link.command_long(
                     _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.5
                 )
@@ -454,6 +466,8 @@ class Companion:
             else:
                 raise EngageError(f"{stack.name} refused its engage mode ten times")
             if arm:
+                if not self.commanding:
+                    return
                 self._last_statustext = ""
                 res = await self.link.command_long(_CMD_ARM_DISARM, 1, timeout_s=0.5)
                 if res != _RESULT_ACCEPTED:
@@ -467,15 +481,43 @@ class Companion:
                 self._exit_code = EXIT_ERROR
                 self._stop.set()
 
-    async def _hand_back(self, reason: str) -> None:
-        """Stop commanding and switch the autopilot to the safe mode."""
+    def _release(self) -> bool:
+        """Stop commanding now, in the caller's callback; return whether we were.
+
+        Called the moment a failsafe or the pilot's switch says so, so no later
+        sample (even one in the same datagram) gets a command, and an engagement
+        still in flight is abandoned rather than switching the autopilot back.
+        """
+        was = self.commanding
+        self.commanding = False
+        self.engaged = False
+        task = self._engage_task
+        if task is not None and not task.done():
+            task.cancel()
+        return was
+
+    def _start_engage(self, *, arm: bool) -> None:
+        old = self._engage_task
+        if old is not None and not old.done():
+            old.cancel()
+        self._engage_task = asyncio.get_running_loop().create_task(
+            self._engage_offboard(arm=arm), name="engage"
+        )
+        self._tasks.add(self._engage_task)
+        self._engage_task.add_done_callback(self._tasks.discard)
+
+    async def _hand_back(self, reason: str, *, was_commanding: bool | None = None) -> None:
+        """Stop commanding and switch the autopilot to the safe mode.
+
+        ``was_commanding`` comes from :meth:`_release` when the caller already
+        stopped the commands; otherwise the current state decides.
+        """
         if self._handing_back:
             return
         self._handing_back = True
         try:
-            was_commanding = self.commanding
-            self.commanding = False
-            self.engaged = False
+            released = self._release()
+            was_commanding = released if was_commanding is None else was_commanding
             if (
                 not was_commanding
                 or self.link is None
@@ -502,11 +544,12 @@ class Companion:
         if self._stop.is_set() or self._in_failsafe:
             return  # one failsafe at a time: the first reason is the one logged
         self._in_failsafe = True
+        was = self._release()
         self._event(kind, detail)
-        self._spawn(self._after_failsafe(detail), "failsafe")
+        self._spawn(self._after_failsafe(detail, was), "failsafe")
 
-    async def _after_failsafe(self, detail: str) -> None:
-        await self._hand_back(detail)
+    async def _after_failsafe(self, detail: str, was_commanding: bool) -> None:
+        await self._hand_back(detail, was_commanding=was_commanding)
         self._in_failsafe = False
         if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
             self._exit_code = EXIT_FAILSAFE
@@ -606,7 +649,7 @@ class Companion:
             gc.freeze()
             self._spawn(self._supervise(), "supervise")
             if opts.engage == "auto":
-                self._spawn(self._engage_offboard(arm=True), "engage")
+                self._start_engage(arm=True)
             await self._stop.wait()
             await self._hand_back("run ended")
             if self._telemetry is not None:
@@ -624,6 +667,7 @@ class Companion:
             with contextlib.suppress(Exception):
                 await self.link.close()
             self._close_records()
+            gc.unfreeze()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)

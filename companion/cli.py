@@ -262,6 +262,13 @@ def simulate(
     show_default=True,
 )
 @click.option(
+    "--reference",
+    "reference_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Fly scripted rates from this CSV (companion/reference.py) instead of the sticks.",
+)
+@click.option(
     "--heartbeat-timeout-s",
     type=click.FloatRange(min=0.0, min_open=True),
     default=10.0,
@@ -294,6 +301,7 @@ def run(
     safe_mode: str,
     stale_imu_s: float,
     link_timeout_s: float,
+    reference_path: Path | None,
     heartbeat_timeout_s: float,
     envelope_error_deg_s: float,
 ) -> None:
@@ -306,7 +314,12 @@ def run(
 
     profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path)
     # Check everything a run needs before anything is opened or sent.
+    reference = None
     try:
+        if reference_path is not None:
+            from companion.reference import load_reference
+
+            reference = load_reference(reference_path)
         open_transport(connect)
         if mqtt_url:
             from companion.telemetry import MqttTelemetry
@@ -335,6 +348,7 @@ def run(
         signing_key=signing_key,
         duration_s=duration,
         heartbeat_timeout_s=heartbeat_timeout_s,
+        reference=reference,
         failsafe=FailsafeConfig(
             stale_imu_s=stale_imu_s,
             link_timeout_s=link_timeout_s,

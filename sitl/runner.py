@@ -195,7 +195,8 @@ class RunConfig:
     pilot_from_arm
         Run the pilot's timeline from the moment the vehicle is armed (a
         companion that engages later still flies the whole maneuver list);
-        before that the pilot holds the timeline's first sticks.
+        before that the pilot holds the timeline's first sticks. ``duration_s``
+        and fault times then count from arming too.
     """
 
     mavlink: Endpoint
@@ -556,7 +557,12 @@ class Runner:
 
         while not stop.is_set():
             t = quad.t_s
-            if t >= duration - 1e-9:
+            # With pilot_from_arm the flight's duration counts from arming, as the
+            # pilot's timeline and the faults do; otherwise from the start.
+            t_flight = (
+                t if not cfg.pilot_from_arm else (t - t_pilot0 if t_pilot0 is not None else 0.0)
+            )
+            if t_flight >= duration - 1e-9:
                 return "completed"
             # Fault times count from the pilot's start (arming, with --pilot-from-arm).
             while faults and t_pilot0 is not None and t - t_pilot0 >= faults[0].t_s - 1e-9:

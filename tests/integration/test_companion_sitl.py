@@ -168,3 +168,25 @@ def test_rates_output_wraps_the_autopilot_rate_loop_and_beats_passthrough(tmp_pa
         maes[label] = m["mae_deg_s"]
     for axis in ("roll", "pitch", "yaw"):
         assert maes["mfc"][axis] < 0.85 * maes["passthrough"][axis], (axis, maes)
+
+
+def test_a_reference_file_replaces_the_sticks(tmp_path: Path) -> None:
+    script = tmp_path / "ref.csv"
+    script.write_text(
+        "t_s,roll_deg_s,pitch_deg_s,yaw_deg_s\n0,0,0,0\n5,0,0,0\n5.2,90,0,0\n6,90,0,0\n6.2,0,0,0\n",
+        encoding="utf-8",
+    )
+    flight = fly_mavlink(
+        PROFILES / "f450.yaml", "hover-gusts", tmp_path / "flight", duration_s=8.0,
+        companion_args=("--reference", str(script)),
+    )  # fmt: skip
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    rec = merge_logs(flight).columns
+    t = rec["t_s"] - rec["t_s"][0]
+    roll_ref = np.degrees(rec["ref_rad_s"][:, 0])
+    # The hover pilot's sticks are gone: the reference is the script's.
+    np.testing.assert_allclose(roll_ref[(t > 5.3) & (t < 5.9)], 90.0, atol=1e-3)
+    np.testing.assert_allclose(roll_ref[t < 4.9], 0.0, atol=1e-3)
+    # ... and the vehicle followed it.
+    meas = np.degrees(rec["meas_rad_s"][:, 0])
+    assert np.mean(np.abs(meas[(t > 5.5) & (t < 6.0)] - 90.0)) < 15.0

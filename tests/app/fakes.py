@@ -1,0 +1,235 @@
+"""A fake autopilot for app-level tests, built from pymavlink on the far end of a MemoryTransport.
+
+It speaks for system 1 / component 1 as PX4 (``autopilot`` 12) or ArduPilot (3):
+
+* sends HEARTBEAT with its current ``custom_mode`` and armed bit, on demand and
+  every ``heartbeat_period_s`` in the background (so the link never times out);
+* answers COMMAND_LONG with COMMAND_ACK, the result chosen per command id
+  (``results``: a MAV_RESULT, or a callable of the message returning one or None
+  for "stay silent"); ACCEPTED by default;
+* answers PARAM_REQUEST_READ with PARAM_VALUE from ``params``;
+* sends HIGHRES_IMU / ATTITUDE / RC_CHANNELS when the test asks;
+* records every message it receives (``received``), decoded by its own parser.
+
+Mode and armed state change only when the test says so (``set_state``): the
+tests decide when the autopilot "really" switched, so they can check that the
+companion waits for the heartbeat rather than trusting the ACK.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+from collections.abc import Callable, Iterator
+from typing import Any
+
+os.environ["MAVLINK20"] = "1"
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.link.transport import MemoryTransport
+
+__all__ = [
+    "APM_ALT_HOLD",
+    "APM_GUIDED_NOGPS",
+    "APM_STABILIZE",
+    "CMD_ARM",
+    "CMD_DO_SET_MODE",
+    "CMD_SET_MESSAGE_INTERVAL",
+    "PX4_MANUAL",
+    "PX4_OFFBOARD",
+    "PX4_POSCTL",
+    "FakeAutopilot",
+    "mavlink2",
+    "settle",
+]
+
+CMD_DO_SET_MODE = mavlink2.MAV_CMD_DO_SET_MODE  # 176
+CMD_ARM = mavlink2.MAV_CMD_COMPONENT_ARM_DISARM  # 400
+CMD_SET_MESSAGE_INTERVAL = mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL  # 511
+
+# PX4 custom_mode: main mode in bits 16..23.
+PX4_MANUAL = 1 << 16
+PX4_POSCTL = 3 << 16
+PX4_OFFBOARD = 6 << 16
+# ArduCopter custom_mode is the mode number.
+APM_STABILIZE = 0
+APM_ALT_HOLD = 2
+APM_GUIDED_NOGPS = 20
+
+Result = int | Callable[[Any], int | None]
+
+
+async def settle(n: int = 10) -> None:
+    """Let call_soon deliveries run both ways (one loop iteration per hop)."""
+    for _ in range(n):
+        await asyncio.sleep(0)
+
+
+class FakeAutopilot:
+    """The autopilot end of a :meth:`MemoryTransport.pair`."""
+
+    def __init__(
+        self,
+        transport: MemoryTransport,
+        *,
+        autopilot: int = mavlink2.MAV_AUTOPILOT_PX4,
+        custom_mode: int = PX4_MANUAL,
+        armed: bool = False,
+        results: dict[int, Result] | None = None,
+        params: dict[str, float] | None = None,
+        heartbeat_period_s: float = 0.2,
+    ) -> None:
+        self.transport = transport
+        self.autopilot = autopilot
+        self.custom_mode = custom_mode
+        self.armed = armed
+        self.results: dict[int, Result] = dict(results or {})
+        self.params: dict[str, float] = dict(params or {})
+        self.heartbeat_period_s = heartbeat_period_s
+        self.mav = mavlink2.MAVLink(self, srcSystem=1, srcComponent=1)
+        self.parser = mavlink2.MAVLink(None)
+        self.parser.robust_parsing = True
+        self.received: list[Any] = []
+        self.imu_sent: list[int] = []  # time_usec / time_boot_ms of every IMU sample sent
+        self._changed = asyncio.Event()
+        self._hb_task: asyncio.Task[None] | None = None
+        self._bundle: list[bytes] | None = None
+
+    # ----------------------------------------------------------------- plumbing
+    def write(self, buf: bytes) -> None:  # pymavlink's output "file"
+        if self._bundle is not None:
+            self._bundle.append(bytes(buf))
+        else:
+            self.transport.write(buf)
+
+    @contextlib.contextmanager
+    def bundle(self) -> Iterator[None]:
+        """Send everything written inside as one chunk (PX4 packs several messages
+        into one UDP datagram; a serial read returns what is waiting)."""
+        self._bundle = []
+        try:
+            yield
+        finally:
+            chunk, self._bundle = b"".join(self._bundle), None
+            if chunk:
+                self.transport.write(chunk)
+
+    async def open(self) -> FakeAutopilot:
+        await self.transport.open(self._on_bytes)
+        if self.heartbeat_period_s > 0:
+            self._hb_task = asyncio.get_running_loop().create_task(
+                self._heartbeat_loop(), name="fake-autopilot-heartbeat"
+            )
+        return self
+
+    async def close(self) -> None:
+        task, self._hb_task = self._hb_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        await self.transport.close()
+
+    async def _heartbeat_loop(self) -> None:
+        while True:
+            await asyncio.sleep(self.heartbeat_period_s)
+            self.heartbeat()
+
+    def _on_bytes(self, chunk: bytes) -> None:
+        for msg in self.parser.parse_buffer(chunk) or []:
+            if msg.get_type() == "BAD_DATA":
+                continue
+            self.received.append(msg)
+            self._changed.set()
+            mtype = msg.get_type()
+            if mtype == "COMMAND_LONG":
+                self._answer_command(msg)
+            elif mtype == "PARAM_REQUEST_READ":
+                self._answer_param(msg)
+
+    def _answer_command(self, msg: Any) -> None:
+        policy = self.results.get(msg.command, mavlink2.MAV_RESULT_ACCEPTED)
+        result = policy(msg) if callable(policy) else policy
+        if result is None:
+            return  # a lost ack
+        self.mav.command_ack_send(
+            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
+        )
+
+    def _answer_param(self, msg: Any) -> None:
+        name = msg.param_id
+        if isinstance(name, bytes):
+            name = name.decode()
+        name = name.rstrip("\x00")
+        if name not in self.params:
+            return
+        index = sorted(self.params).index(name)
+        self.mav.param_value_send(
+            name.encode(),
+            float(self.params[name]),
+            mavlink2.MAV_PARAM_TYPE_REAL32,
+            len(self.params),
+            index,
+        )
+
+    # ------------------------------------------------------------------ sending
+    def set_state(self, custom_mode: int | None = None, armed: bool | None = None) -> None:
+        """Change mode / armed and announce it with a HEARTBEAT at once."""
+        if custom_mode is not None:
+            self.custom_mode = custom_mode
+        if armed is not None:
+            self.armed = armed
+        self.heartbeat()
+
+    def heartbeat(self) -> None:
+        base_mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.armed:
+            base_mode |= mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        self.mav.heartbeat_send(
+            mavlink2.MAV_TYPE_QUADROTOR,
+            self.autopilot,
+            base_mode,
+            self.custom_mode,
+            mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY,
+        )
+
+    def highres_imu(self, time_usec: int, gyro: tuple[float, float, float]) -> None:
+        self.imu_sent.append(time_usec)
+        self.mav.highres_imu_send(
+            time_usec, 0.0, 0.0, -9.81, *gyro, 0.2, 0.0, 0.4, 1013.0, 0.0, 0.0, 20.0, 0x3F
+        )
+
+    def attitude(self, time_boot_ms: int, rates: tuple[float, float, float]) -> None:
+        self.imu_sent.append(time_boot_ms)
+        self.mav.attitude_send(time_boot_ms, 0.0, 0.0, 0.0, *rates)
+
+    def rc(
+        self, ch5_us: int = 1000, *, sticks: tuple[int, int, int, int] = (1500, 1500, 1500, 1500)
+    ) -> None:
+        """RC_CHANNELS with AETR sticks and ch5 (the engage switch); 8 channels."""
+        chans = [*sticks, ch5_us, 1500, 1500, 1500] + [0] * 10
+        self.mav.rc_channels_send(0, 8, *chans, 255)
+
+    # --------------------------------------------------------------- inspecting
+    def of_type(self, *mtypes: str) -> list[Any]:
+        return [m for m in self.received if m.get_type() in mtypes]
+
+    def commands(self, command: int) -> list[Any]:
+        return [m for m in self.of_type("COMMAND_LONG") if m.command == command]
+
+    def setpoints(self) -> list[Any]:
+        return self.of_type("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
+
+    async def wait_until(self, cond: Callable[[], bool], timeout_s: float = 2.0) -> None:
+        """Wait until ``cond()`` holds, re-checking on every message received
+        (and every 10 ms, for conditions on the companion's state)."""
+
+        async def _wait() -> None:
+            while not cond():
+                self._changed.clear()
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(self._changed.wait(), 0.01)
+
+        await asyncio.wait_for(_wait(), timeout_s)

@@ -1,0 +1,600 @@
+"""The companion app driven over a MemoryTransport by a fake autopilot (pymavlink).
+
+The middle tier of the tests (STYLE.md habit 12): the whole ``Companion.run()``
+start-up, engagement, hot path, failsafes and hand-back, with the autopilot
+played by :class:`tests.app.fakes.FakeAutopilot`, in one event loop, no
+sockets. Every wait is bounded; the whole file runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import gc
+import json
+import math
+import signal
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+from companion.app import Companion, FailsafeConfig, RunOptions
+from companion.cli import cli
+from companion.config import DEFAULT_CONTROLLER, load_controller
+from companion.link.transport import MemoryTransport
+from companion.profile import load_profile
+from tests.app.fakes import (
+    APM_ALT_HOLD,
+    APM_GUIDED_NOGPS,
+    APM_STABILIZE,
+    CMD_ARM,
+    CMD_DO_SET_MODE,
+    CMD_SET_MESSAGE_INTERVAL,
+    PX4_MANUAL,
+    PX4_OFFBOARD,
+    PX4_POSCTL,
+    FakeAutopilot,
+    mavlink2,
+    settle,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+PROFILE_PATH = ROOT / "vehicle_profiles" / "f450.yaml"
+PROFILE = load_profile(PROFILE_PATH)
+CONTROLLER = load_controller(DEFAULT_CONTROLLER)
+
+PX4 = mavlink2.MAV_AUTOPILOT_PX4
+ARDUPILOT = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
+MSG_ATTITUDE = 30
+MSG_RC_CHANNELS = 65
+MSG_HIGHRES_IMU = 105
+DENIED = mavlink2.MAV_RESULT_DENIED
+ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
+
+# Watchdogs loose enough that a test's own pauses do not trip them; a test about
+# one failsafe tightens that one.
+LOOSE = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
+
+
+@dataclass
+class Flight:
+    """One running companion and its fake autopilot."""
+
+    companion: Companion
+    fake: FakeAutopilot
+    task: asyncio.Task[int]
+    t_us: int = 10_000_000
+    t_ms: int = 10_000
+
+    def imu(self, gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
+        """Send the next HIGHRES_IMU sample (250 Hz); returns its time_usec."""
+        self.t_us += 4000
+        self.fake.highres_imu(self.t_us, gyro)
+        return self.t_us
+
+    def att(self, rates: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
+        """Send the next ATTITUDE sample (~333 Hz); returns its time_boot_ms."""
+        self.t_ms += 3
+        self.fake.attitude(self.t_ms, rates)
+        return self.t_ms
+
+    async def feed_until(
+        self,
+        cond: Callable[[], Any],
+        *,
+        send: Callable[[], Any] | None = None,
+        timeout_s: float = 2.0,
+        what: str = "condition",
+    ) -> None:
+        """Stream samples (as an autopilot does) until ``cond()`` holds."""
+        send = send or self.imu
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while not cond():
+            if loop.time() > deadline:
+                raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+            if self.task.done():
+                raise AssertionError(f"run() ended ({self.task.result()}) waiting for {what}")
+            send()
+            await asyncio.sleep(0.004)
+
+    async def finish(self, timeout_s: float = 2.0) -> int:
+        return await asyncio.wait_for(asyncio.shield(self.task), timeout_s)
+
+    def kinds(self) -> list[str]:
+        return [e["kind"] for e in self.companion.events]
+
+    def details(self, kind: str) -> list[str]:
+        return [e["detail"] for e in self.companion.events if e["kind"] == kind]
+
+
+Start = Callable[..., Awaitable[Flight]]
+
+
+@pytest.fixture
+async def start() -> AsyncIterator[Start]:
+    """Factory: ``await start(autopilot=..., engage=..., **run_options)`` -> Flight."""
+    flights: list[Flight] = []
+
+    async def _start(
+        *,
+        autopilot: int = PX4,
+        custom_mode: int = PX4_MANUAL,
+        armed: bool = False,
+        results: dict[int, Any] | None = None,
+        params: dict[str, float] | None = None,
+        **opts: Any,
+    ) -> Flight:
+        ours, theirs = MemoryTransport.pair()
+        fake = await FakeAutopilot(
+            theirs,
+            autopilot=autopilot,
+            custom_mode=custom_mode,
+            armed=armed,
+            results=results,
+            params=params,
+        ).open()
+        opts.setdefault("failsafe", LOOSE)
+        options = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, **opts)
+        companion = Companion(options, transport=ours)
+        task = asyncio.get_running_loop().create_task(companion.run(), name="companion")
+        flight = Flight(companion, fake, task)
+        flights.append(flight)
+        await fake.wait_until(lambda: ours.is_open, 1.0)
+        fake.heartbeat()
+        return flight
+
+    yield _start
+    for f in flights:
+        if not f.task.done():
+            f.companion._stop.set()
+            with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(f.task, 2.0)
+        await f.fake.close()
+    gc.unfreeze()  # run() freezes what start-up built; do not pile it up across tests
+
+
+async def streams_requested(f: Flight, imu_id: int = MSG_HIGHRES_IMU) -> None:
+    def both() -> bool:
+        ids = {int(m.param1) for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
+        return {imu_id, MSG_RC_CHANNELS} <= ids
+
+    await f.fake.wait_until(both, 2.0)
+
+
+async def engage_px4_auto(f: Flight) -> None:
+    """Start-up, setpoints, OFFBOARD, ARM, and the heartbeat that shows them applied."""
+    await streams_requested(f)
+    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # valid sticks, half throttle
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), what="ARM")
+    await settle()
+    assert not f.companion.engaged, "engaged on the ACKs alone, before the heartbeat said so"
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.fake.wait_until(lambda: f.companion.engaged, 1.0)
+
+
+def index_of(fake: FakeAutopilot, pred: Callable[[Any], bool]) -> int:
+    for i, m in enumerate(fake.received):
+        if pred(m):
+            return i
+    raise AssertionError("no such message received")
+
+
+def is_mode(m: Any, param2: float) -> bool:
+    return m.get_type() == "COMMAND_LONG" and m.command == CMD_DO_SET_MODE and m.param2 == param2
+
+
+def setpoint_times(msgs: list[Any]) -> list[int]:
+    return [m.time_usec if hasattr(m, "time_usec") else m.time_boot_ms for m in msgs]
+
+
+# --------------------------------------------------------------------- 1. auto PX4
+
+
+async def test_auto_engagement_on_px4_then_one_command_per_sample(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    fake = f.fake
+
+    intervals = fake.commands(CMD_SET_MESSAGE_INTERVAL)
+    by_id = {int(m.param1): m.param2 for m in intervals}
+    assert by_id[MSG_HIGHRES_IMU] == pytest.approx(1e6 / 250.0)
+    assert by_id[MSG_RC_CHANNELS] == pytest.approx(1e6 / 50.0)
+
+    # Order: streams, setpoints already flowing (PX4 demands it), OFFBOARD, then ARM.
+    i_streams = max(fake.received.index(m) for m in intervals)
+    i_setpoint = index_of(fake, lambda m: m.get_type() == "SET_ACTUATOR_CONTROL_TARGET")
+    i_mode = index_of(fake, lambda m: is_mode(m, 6.0))
+    i_arm = index_of(fake, lambda m: m.get_type() == "COMMAND_LONG" and m.command == CMD_ARM)
+    assert i_streams < i_setpoint < i_mode < i_arm
+    assert fake.received[i_mode].param1 == 1.0  # MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    assert fake.received[i_arm].param1 == 1.0
+    assert f.kinds().count("engaged") == 1
+
+    # Engaged: every sample, one at a time, makes exactly one command stamped with it.
+    n0 = len(fake.setpoints())
+    sent = []
+    for _ in range(40):
+        sent.append(f.imu((0.1, -0.2, 0.05)))
+        await settle()
+    # ... and so does a burst of samples arriving in one chunk.
+    with fake.bundle():
+        for _ in range(20):
+            sent.append(f.imu())
+    await settle()
+    new = fake.setpoints()[n0:]
+    assert [m.get_type() for m in new] == ["SET_ACTUATOR_CONTROL_TARGET"] * len(sent)
+    assert setpoint_times(new) == sent
+    assert all(math.isfinite(c) for m in new for c in m.controls)
+    assert f.companion.counters["imu_duplicate_or_late"] == 0
+
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[-1], 3.0)  # handed back to POSCTL
+
+
+# ------------------------------------------------------------- 2. duplicate / late
+
+
+async def test_duplicate_and_late_samples_make_no_command_and_are_counted(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    fake = f.fake
+    n_cmd, n_imu = len(fake.setpoints()), f.companion.counters["imu_samples"]
+
+    t1 = f.imu()
+    fake.highres_imu(t1, (0.0, 0.0, 0.0))  # duplicate
+    fake.highres_imu(t1 - 1000, (0.0, 0.0, 0.0))  # late
+    fake.highres_imu(t1 - 4000, (0.0, 0.0, 0.0))  # the one before t1: late too
+    t2 = f.imu()
+    await settle()
+
+    assert setpoint_times(fake.setpoints()[n_cmd:]) == [t1, t2]
+    assert f.companion.counters["imu_duplicate_or_late"] == 3
+    assert f.companion.counters["imu_samples"] == n_imu + 2
+
+
+# ------------------------------------------------------------------- 3. NaN gyro
+
+
+async def test_nan_gyro_holds_output_then_invalid_imu_failsafe(start: Start) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, invalid_imu_s=0.05)
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+    fake = f.fake
+    nan3 = (math.nan, math.nan, math.nan)
+
+    for _ in range(5):
+        f.imu((0.2, -0.1, 0.05))
+        await settle()
+    before = fake.setpoints()[-1]
+    t_nan = f.imu((math.nan, 0.0, 0.0))
+    await settle()
+    held = fake.setpoints()[-1]
+    assert held.time_usec == t_nan
+    assert all(math.isfinite(c) for c in held.controls)
+    assert list(held.controls) == list(before.controls)  # the last output, held
+    assert f.companion.counters["imu_invalid"] == 1
+    assert f.companion.engaged  # one bad sample is not yet a failsafe
+
+    # NaN persisting beyond invalid_imu_s: failsafe, hand-back to POSCTL, exit 3.
+    await f.feed_until(lambda: f.task.done() or "failsafe_invalid_imu" in f.kinds(),
+                       send=lambda: f.imu(nan3), timeout_s=1.0, what="the failsafe")  # fmt: skip
+    assert await f.finish() == 3
+    assert "failsafe_invalid_imu" in f.kinds()
+    assert f.companion.counters["imu_invalid"] > 1
+    assert all(math.isfinite(c) for m in fake.setpoints() for c in m.controls)
+    i_back = index_of(fake, lambda m: is_mode(m, 3.0))
+    after = fake.received[i_back:]
+    assert not [m for m in after if m.get_type() == "SET_ACTUATOR_CONTROL_TARGET"]
+
+
+# ---------------------------------------------------------------------- 4. shadow
+
+
+async def test_shadow_mode_sends_no_setpoint_mode_or_arm(start: Start) -> None:
+    f = await start(engage="none", output="actuator", armed=True)
+    await streams_requested(f)
+    fake = f.fake
+    fake.rc(2000)  # even a high engage switch means nothing in shadow mode
+    for _ in range(20):
+        with fake.bundle():
+            for _ in range(10):
+                f.imu((0.3, 0.0, -0.1))
+        await settle()
+    fake.set_state(PX4_OFFBOARD, armed=True)  # nor does the autopilot being in OFFBOARD
+    await asyncio.sleep(0.4)  # longer than any engagement delay
+    for _ in range(5):
+        f.imu()
+    await settle()
+
+    assert f.companion.counters["imu_samples"] == 205  # the law ran on every sample
+    assert f.companion.counters["commands_sent"] == 0
+    assert not f.companion.engaged
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    assert {m.get_type() for m in fake.received} == {"HEARTBEAT", "COMMAND_LONG"}
+    assert {m.command for m in fake.of_type("COMMAND_LONG")} == {CMD_SET_MESSAGE_INTERVAL}
+
+
+# ------------------------------------------------------------------- 5. rc-switch
+
+
+async def test_rc_switch_engages_hands_back_and_reengages(start: Start) -> None:
+    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    await streams_requested(f)
+    fake = f.fake
+
+    # Switch low: nothing commanded, however long we wait.
+    fake.rc(1000)
+    await f.feed_until(lambda: f.companion.counters["imu_samples"] >= 80, what="samples")
+    assert not fake.setpoints() and not fake.commands(CMD_DO_SET_MODE)
+
+    # Switch high: setpoints, then OFFBOARD; no ARM (the pilot arms).
+    fake.rc(2000)
+    await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="OFFBOARD")
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[0], 6.0)
+    assert fake.setpoints()
+    assert not f.companion.engaged
+    fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, what="engaged")
+
+    # Switch low: hand back to the safe mode; the run goes on.
+    fake.rc(1000)
+    await f.feed_until(lambda: len(fake.commands(CMD_DO_SET_MODE)) >= 2, what="hand-back")
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[1], 3.0)
+    assert not f.companion.engaged
+    fake.set_state(PX4_POSCTL, armed=True)
+    await settle()
+    n = len(fake.setpoints())
+    for _ in range(20):
+        f.imu()
+        await asyncio.sleep(0.004)
+    assert len(fake.setpoints()) == n, "commands after the hand-back"
+    assert not f.task.done()
+
+    # Switch high again: re-engages.
+    fake.rc(2000)
+    await f.feed_until(lambda: len(fake.commands(CMD_DO_SET_MODE)) >= 3, what="OFFBOARD again")
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[2], 6.0)
+    fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, what="engaged again")
+    assert f.kinds().count("engaged") == 2
+    assert not fake.commands(CMD_ARM)
+
+    f.companion._stop.set()
+    assert await f.finish() == 0
+
+
+async def test_rc_switch_flicked_back_low_leaves_the_autopilot_in_the_safe_mode(
+    start: Start,
+) -> None:
+    """The pilot flicks the switch high and back low within the engage delay:
+    the last mode the companion asks for must be the safe mode, not OFFBOARD."""
+    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    await streams_requested(f)
+    fake = f.fake
+    fake.rc(1000)
+    await settle()
+    fake.rc(2000)
+    for _ in range(10):
+        f.imu()
+        await asyncio.sleep(0.004)
+    fake.rc(1000)  # back low ~40 ms later
+    await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="hand-back")
+    t_end = asyncio.get_running_loop().time() + 0.6  # past the 0.3 s engage delay
+    await f.feed_until(lambda: asyncio.get_running_loop().time() > t_end, what="time")
+
+    modes = [m.param2 for m in fake.commands(CMD_DO_SET_MODE)]
+    assert modes[-1] == 3.0, f"DO_SET_MODE sequence {modes}: OFFBOARD after the hand-back"
+    assert not f.companion.commanding
+
+
+# ------------------------------------------------------------------- 6. ArduPilot
+
+
+async def test_ardupilot_refuses_actuator_output_before_sending_anything(start: Start) -> None:
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="auto",
+                    output="actuator")  # fmt: skip
+    assert await f.finish() == 1
+    assert any("actuator" in d for d in f.details("error"))
+    assert not f.fake.setpoints()
+    assert not f.fake.of_type("COMMAND_LONG")
+
+
+@pytest.mark.parametrize("engage", ["auto", "rc-switch"])
+async def test_ardupilot_rates_refused_without_guid_options_thrust_bit(
+    start: Start, engage: str
+) -> None:
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage=engage,
+                    output="rates", params={"GUID_OPTIONS": 0.0})  # fmt: skip
+    assert await f.finish() == 1
+    assert any("GUID_OPTIONS" in d for d in f.details("error")), f.companion.events
+    assert f.fake.of_type("PARAM_REQUEST_READ")
+    assert not f.fake.setpoints()
+    assert not f.fake.of_type("COMMAND_LONG")
+
+
+async def test_ardupilot_rates_engage_guided_nogps_and_send_attitude_targets(
+    start: Start,
+) -> None:
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="auto",
+                    output="rates", params={"GUID_OPTIONS": 8.0})  # fmt: skip
+    fake = f.fake
+    await streams_requested(f, MSG_ATTITUDE)
+    assert f.companion.imu_rate_hz == 250.0
+    fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(lambda: fake.commands(CMD_ARM), send=f.att, what="ARM")
+    i_mode = index_of(fake, lambda m: is_mode(m, 20.0))
+    i_arm = index_of(fake, lambda m: m.get_type() == "COMMAND_LONG" and m.command == CMD_ARM)
+    assert i_mode < i_arm
+    assert not fake.of_type("SET_ACTUATOR_CONTROL_TARGET")
+    fake.set_state(APM_GUIDED_NOGPS, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=f.att, what="engaged")
+
+    n0 = len(fake.setpoints())
+    sent = []
+    for _ in range(30):
+        sent.append(f.att((0.1, 0.0, -0.05)))
+        await settle()
+    new = fake.setpoints()[n0:]
+    assert [m.get_type() for m in new] == ["SET_ATTITUDE_TARGET"] * len(sent)
+    assert setpoint_times(new) == sent
+    assert {m.type_mask for m in new} == {128}
+    assert all(
+        math.isfinite(v)
+        for m in new
+        for v in (m.body_roll_rate, m.body_pitch_rate, m.body_yaw_rate)
+    )
+    assert {m.thrust for m in new} == {0.5}  # the pilot's collective, half stick
+
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[-1], float(APM_ALT_HOLD))
+
+
+async def test_ardupilot_denied_400_hz_falls_back_to_333_hz(start: Start) -> None:
+    def interval(msg: Any) -> int:
+        if int(msg.param1) == MSG_ATTITUDE and msg.param2 < 1e6 / 350.0:
+            return DENIED  # ArduPilot: shorter than its loop period / 0.8
+        return ACCEPTED
+
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="none",
+                    output="rates", loop_rate_hz=1000.0,
+                    results={CMD_SET_MESSAGE_INTERVAL: interval})  # fmt: skip
+    await streams_requested(f, MSG_ATTITUDE)
+    imu_reqs = [m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL) if m.param1 == 30]
+    assert imu_reqs == [pytest.approx(1e6 / 400.0), pytest.approx(1e6 / 333.0)]
+    assert f.companion.imu_rate_hz == 333.0
+    assert f.details("imu_rate_denied") == ["message 30 at 400 Hz denied"]
+    f.companion._stop.set()
+    assert await f.finish() == 0
+
+
+# --------------------------------------------------------- 7. autopilot took over
+
+
+async def test_autopilot_leaving_offboard_is_a_failsafe_and_ends_commands(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    fake = f.fake
+    for _ in range(5):
+        f.imu()
+        await settle()
+    fake.set_state(PX4_POSCTL, armed=True)  # e.g. the pilot flipped the mode switch
+    await settle()
+    n = len(fake.setpoints())
+    assert not f.companion.engaged
+    assert "failsafe_autopilot_took_over" in f.kinds()
+    for _ in range(10):
+        f.imu()
+        await asyncio.sleep(0.002)
+    assert await f.finish() == 3
+    assert len(fake.setpoints()) == n, "commands after the autopilot took over"
+    assert fake.commands(CMD_DO_SET_MODE)[-1].param2 == 3.0
+
+
+async def test_sample_in_the_same_datagram_as_the_takeover_heartbeat_is_not_commanded(
+    start: Start,
+) -> None:
+    """PX4 packs several messages into one UDP datagram: a HIGHRES_IMU right after
+    the HEARTBEAT that says "not OFFBOARD any more" must not be answered."""
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    fake = f.fake
+    f.imu()
+    await settle()
+    n = len(fake.setpoints())
+    with fake.bundle():
+        fake.set_state(PX4_POSCTL, armed=True)
+        t_after = f.imu()
+    await settle()
+    assert "failsafe_autopilot_took_over" in f.kinds()
+    late = [m.time_usec for m in fake.setpoints()[n:]]
+    assert late == [], f"sample {t_after} sent after the takeover heartbeat was commanded"
+
+
+# ----------------------------------------------------------------------- 8. signal
+
+
+async def test_sigterm_while_engaged_hands_back_and_exits_0(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    n_modes = len(f.fake.commands(CMD_DO_SET_MODE))
+    f.imu()
+    await settle()
+    f.companion._on_signal(signal.SIGTERM)
+    assert await f.finish() == 0
+    modes = f.fake.commands(CMD_DO_SET_MODE)[n_modes:]
+    assert [m.param2 for m in modes] == [3.0]
+    assert f.details("signal") == ["SIGTERM"]
+    assert any("POSCTL accepted" in d for d in f.details("handed_back"))
+
+
+# -------------------------------------------------------------------------- 9. CLI
+
+
+@pytest.fixture
+def held_udp() -> Any:
+    """A UDP socket bound by the test: whatever the CLI would send there, we see."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.setblocking(False)
+        yield s
+
+
+def nothing_arrived(s: socket.socket) -> bool:
+    try:
+        s.recv(65535)
+    except BlockingIOError:
+        return True
+    return False
+
+
+@pytest.mark.parametrize("kind", ["udpin", "udpout"])
+def test_cli_run_with_a_bad_profile_exits_2_before_opening_anything(
+    tmp_path: Path, held_udp: socket.socket, kind: str
+) -> None:
+    text = PROFILE_PATH.read_text(encoding="utf-8")
+    assert "mass_kg: 1.5" in text
+    bad = tmp_path / "bad_profile.yaml"
+    bad.write_text(text.replace("mass_kg: 1.5", "mass_kg: -1"), encoding="utf-8")
+    port = held_udp.getsockname()[1]
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"{kind}:127.0.0.1:{port}", "--profile", str(bad),
+              "--engage", "none", "--heartbeat-timeout-s", "0.5"],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert str(bad) in res.output
+    assert "physics.mass_kg" in res.output
+    assert nothing_arrived(held_udp)
+
+
+def test_cli_run_with_a_bad_mqtt_url_exits_2(held_udp: socket.socket) -> None:
+    port = held_udp.getsockname()[1]
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
+              "--mqtt", "notaurl", "--heartbeat-timeout-s", "0.5"],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "notaurl" in res.output
+    assert nothing_arrived(held_udp)
+
+
+def test_cli_check_config_prints_the_mixer_factors() -> None:
+    res = CliRunner().invoke(cli, ["check-config", "--profile", str(PROFILE_PATH)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    mixer = doc["mixer"]
+    for axis in ("roll", "pitch", "yaw"):
+        assert len(mixer[axis]) == PROFILE.n_motors
+        assert all(math.isfinite(x) for x in mixer[axis])
+    # quad-X: the yaw factors alternate with the spin directions, and sum to zero
+    assert sum(mixer["yaw"]) == pytest.approx(0.0, abs=1e-9)
+    assert doc["profile"]["path"] == str(PROFILE_PATH)
+    assert doc["profile"]["physics"]["mass_kg"] == 1.5
