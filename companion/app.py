@@ -176,6 +176,7 @@ class Companion:
         self._exit_code = EXIT_OK
         self._t_prev: float | None = None
         self._t_engaged: float | None = None
+        self._t_first: float | None = None
         self._last_imu_wall: float | None = None
         self._invalid_since: float | None = None
         self._envelope_since: float | None = None
@@ -264,6 +265,8 @@ class Companion:
         if t_prev is not None and not t_s > t_prev:  # also rejects a NaN timestamp
             self.n_imu_duplicate_or_late += 1
             return
+        if t_prev is None:
+            self._t_first = t_s
         dt = t_s - t_prev if t_prev is not None and not self._restart_dt else 0.0
         self._restart_dt = False
         self._t_prev = t_s
@@ -292,13 +295,11 @@ class Companion:
             self._send_output(t_s, out, ref)
         if self.engaged:
             self._check_envelope(t_s, dt, gyro, out)
-            if (
-                self.opts.duration_s is not None
-                and self._t_engaged is not None
-                and t_s - self._t_engaged >= self.opts.duration_s
-                and not self._stop.is_set()
-            ):
-                self._event("duration", f"{self.opts.duration_s} s flown")
+        if self.opts.duration_s is not None and not self._stop.is_set():
+            # Engaged time; in shadow mode (never engaged) time since the first sample.
+            since = self._t_engaged if self.opts.engage != "none" else self._t_first
+            if since is not None and t_s - since >= self.opts.duration_s:
+                self._event("duration", f"{self.opts.duration_s} s")
                 self._stop.set()
         if self._log_rows is not None:
             latency_us = (time.perf_counter() - t0) * 1e6

@@ -227,7 +227,8 @@ def simulate(
     "--duration",
     type=click.FloatRange(min=0.0, min_open=True),
     default=None,
-    help="Stop after this long engaged (sample time, s), handing back.",
+    help="Stop after this long engaged (sample time, s), handing back; in shadow mode "
+    "(--engage none), after this long since the first sample.",
 )
 @click.option(
     "--on-failsafe", type=click.Choice(["exit", "wait"]), default="exit", show_default=True

@@ -92,7 +92,7 @@ def fly_mavlink(
     companion_args: Sequence[str] = (),
     controller_profile_path: str | Path | None = None,
     autopilot: str = "px4",
-    timeout_s: float = 600.0,
+    timeout_s: float | None = None,
     progress: Callable[[float], None] | None = None,
     on_started: Callable[[subprocess.Popen[bytes], subprocess.Popen[bytes]], None] | None = None,
 ) -> FlightProcesses:
@@ -120,6 +120,8 @@ def fly_mavlink(
     on_started
         Called with (sitl, companion) processes once both are running (tests
         use it to send signals).
+    timeout_s
+        Wall-clock limit for the companion; default 30 s + 4x the flight.
     """
     from sitl.pilot import make_pilot
     from sitl.scenario import load_scenario
@@ -129,6 +131,10 @@ def fly_mavlink(
     sc = load_scenario(scenario)
     if duration_s is None:
         duration_s = sc.duration_s or make_pilot(sc.pilot, rng=np.random.default_rng(0)).duration_s
+    if timeout_s is None:
+        # A lockstep flight runs several times faster than real time: 4x the flight
+        # (plus start-up) is generous, and a hang does not stall a test run for long.
+        timeout_s = 30.0 + 4.0 * duration_s
     port = free_udp_port()
     py = sys.executable
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
