@@ -562,7 +562,7 @@ class Companion:
         """Wall-clock watchdogs: stale IMU, invalid IMU, lost link, lost RC."""
         fs = self.opts.failsafe
         while not self._stop.is_set():
-            await asyncio.sleep(0.01)
+            await asyncio.sleep(0.05)  # watchdog thresholds are >= 0.1 s
             now = time.perf_counter()
             hb = self.link.last_heartbeat_monotonic_s
             if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
