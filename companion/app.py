@@ -277,9 +277,17 @@ class Companion:
         if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
             # Non-finite or beyond the sensor's range: the law holds its last
             # output (it sees NaN), and the failsafe fires if this persists.
+            # Persistence is judged in sample time, here: deterministic in lockstep,
+            # and a failed sensor is caught on the sample that proves it.
             self.n_imu_invalid += 1
             if self._invalid_since is None:
-                self._invalid_since = t0
+                self._invalid_since = t_s
+            elif self.engaged and t_s - self._invalid_since > self.opts.failsafe.invalid_imu_s:
+                self._failsafe(
+                    "failsafe_invalid_imu",
+                    "non-finite or out-of-range gyro for "
+                    f"{self.opts.failsafe.invalid_imu_s} s of samples",
+                )
             gyro = (math.nan, math.nan, math.nan)
         else:
             self._invalid_since = None
@@ -559,7 +567,8 @@ class Companion:
         # switch still high stays "high" until the pilot moves it low first.
 
     async def _supervise(self) -> None:
-        """Wall-clock watchdogs: stale IMU, invalid IMU, lost link, lost RC."""
+        """Wall-clock watchdogs: stale IMU, lost link, lost RC (invalid IMU samples
+        are judged where they arrive, in :meth:`_on_imu`)."""
         fs = self.opts.failsafe
         while not self._stop.is_set():
             await asyncio.sleep(0.05)  # watchdog thresholds are >= 0.1 s
@@ -577,11 +586,6 @@ class Companion:
                 continue
             if self._last_imu_wall is not None and now - self._last_imu_wall > fs.stale_imu_s:
                 self._failsafe("failsafe_stale_imu", f"no IMU sample for {fs.stale_imu_s} s")
-            elif self._invalid_since is not None and now - self._invalid_since > fs.invalid_imu_s:
-                self._failsafe(
-                    "failsafe_invalid_imu",
-                    f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s",
-                )
             elif self._rc_wall is None or now - self._rc_wall > fs.rc_timeout_s:
                 self._failsafe("failsafe_rc_lost", f"no RC for {fs.rc_timeout_s} s")
 
