@@ -7,9 +7,11 @@ nothing is started).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +25,26 @@ __all__ = ["main"]
 _log = logging.getLogger("companion")
 
 EXIT_BAD_INPUT = 2
+
+
+@contextlib.contextmanager
+def _percent_bar(desc: str, enabled: bool) -> Iterator[Callable[[float], None]]:
+    """A tqdm bar in percent; yields the ``progress(fraction)`` callback flights take."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=100, desc=desc, unit="%", disable=not enabled)
+    done = [0]
+
+    def tick(frac: float) -> None:
+        n = int(frac * 100)
+        if n > done[0]:
+            bar.update(n - done[0])
+            done[0] = n
+
+    try:
+        yield tick
+    finally:
+        bar.close()
 
 
 def _fail_config(exc: ConfigError) -> None:
@@ -117,8 +139,6 @@ def simulate(
     progress: bool,
 ) -> None:
     """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
-    from tqdm import tqdm
-
     from companion.profile import load_profile
     from companion.report import write_report
     from companion.simulate import simulate_flight
@@ -130,19 +150,10 @@ def simulate(
         ctrl_prof = load_profile(controller_profile) if controller_profile else None
     except ConfigError as exc:
         _fail_config(exc)
-    bar = tqdm(total=100, desc=f"{sc.name} on {profile.name}", unit="%", disable=not progress)
-    done = [0]
-
-    def tick(frac: float) -> None:
-        n = int(frac * 100)
-        if n > done[0]:
-            bar.update(n - done[0])
-            done[0] = n
-
-    record = simulate_flight(
-        profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
-    )
-    bar.close()
+    with _percent_bar(f"{sc.name} on {profile.name}", progress) as tick:
+        record = simulate_flight(
+            profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
+        )
     metrics = write_report(
         record,
         out_dir,
@@ -412,8 +423,6 @@ def fly(
 
     Writes metrics.json, plots, report.md, and both processes' logs into OUT.
     """
-    from tqdm import tqdm
-
     from companion.fly import fly_mavlink, merge_logs
     from companion.profile import load_profile
     from companion.report import write_report
@@ -426,23 +435,12 @@ def fly(
             load_profile(controller_profile)
     except ConfigError as exc:
         _fail_config(exc)
-    bar = tqdm(
-        total=100, desc=f"{sc.name} on {profile.name} (MAVLink)", unit="%", disable=not progress
-    )
-    done = [0]
-
-    def tick(frac: float) -> None:
-        n = int(frac * 100)
-        if n > done[0]:
-            bar.update(n - done[0])
-            done[0] = n
-
-    flight = fly_mavlink(
-        profile_path, scenario, out_dir, controller_path=controller_path, output=output,
-        duration_s=duration, seed=seed, controller_profile_path=controller_profile,
-        autopilot=autopilot, progress=tick,
-    )  # fmt: skip
-    bar.close()
+    with _percent_bar(f"{sc.name} on {profile.name} (MAVLink)", progress) as tick:
+        flight = fly_mavlink(
+            profile_path, scenario, out_dir, controller_path=controller_path, output=output,
+            duration_s=duration, seed=seed, controller_profile_path=controller_profile,
+            autopilot=autopilot, progress=tick,
+        )  # fmt: skip
     if not flight.control_log.exists():
         click.echo(
             f"error: the companion wrote no control log (exit {flight.companion_rc}); "

@@ -62,6 +62,15 @@ _MAX_INTERVALS = 1024
 _RESUM_EVERY = 4096
 
 
+def _check_args(order: int, alpha: float, window_s: float) -> None:
+    if order not in (1, 2):
+        raise ValueError(f"order must be 1 or 2, got {order!r}")
+    if not (math.isfinite(alpha) and alpha != 0.0):
+        raise ValueError(f"alpha must be finite and non-zero, got {alpha!r}")
+    if not (math.isfinite(window_s) and window_s > 0.0):
+        raise ValueError(f"window_s must be > 0, got {window_s!r}")
+
+
 class WindowEstimator:
     r"""Sliding-window average of :math:`y^{(m)} - \alpha u` (the paper's estimator).
 
@@ -90,12 +99,7 @@ class WindowEstimator:
     )
 
     def __init__(self, order: int, alpha: float, window_s: float) -> None:
-        if order not in (1, 2):
-            raise ValueError(f"order must be 1 or 2, got {order!r}")
-        if not (math.isfinite(alpha) and alpha != 0.0):
-            raise ValueError(f"alpha must be finite and non-zero, got {alpha!r}")
-        if not (math.isfinite(window_s) and window_s > 0.0):
-            raise ValueError(f"window_s must be > 0, got {window_s!r}")
+        _check_args(order, alpha, window_s)
         self._order = order
         self._alpha = alpha
         # Slightly below T so that N equal steps of T/N make exactly N intervals.
@@ -192,12 +196,7 @@ class AlgebraicEstimator:
     __slots__ = ("_alpha", "_buf", "_order", "_prev_rate", "_s_t", "_window_s", "f_hat")
 
     def __init__(self, order: int, alpha: float, window_s: float) -> None:
-        if order not in (1, 2):
-            raise ValueError(f"order must be 1 or 2, got {order!r}")
-        if not (math.isfinite(alpha) and alpha != 0.0):
-            raise ValueError(f"alpha must be finite and non-zero, got {alpha!r}")
-        if not (math.isfinite(window_s) and window_s > 0.0):
-            raise ValueError(f"window_s must be > 0, got {window_s!r}")
+        _check_args(order, alpha, window_s)
         self._order = order
         self._alpha = alpha
         self._window_s = window_s * (1.0 - 1e-9)
