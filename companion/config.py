@@ -15,6 +15,7 @@ from pydantic import Field, field_validator, model_validator
 
 from companion._schema import StrictModel, load_yaml_model
 from companion.control import (
+    AlphaAdaptation,
     AxisRates,
     MfcAxisGains,
     MfcController,
@@ -65,6 +66,33 @@ class SticksConfig(StrictModel):
         return v
 
 
+class AlphaAdaptConfig(StrictModel):
+    """Online alpha scaling (companion.control.mfc.AlphaAdaptation)."""
+
+    alpha_min: float = Field(gt=0.0, le=1e6)
+    alpha_max: float = Field(gt=0.0, le=1e6)
+    margin: float = Field(1.0, gt=0.0, le=10.0)
+    memory_s: float = Field(2.0, gt=0.0, le=600.0)
+    highpass_s: float = Field(0.05, gt=0.0, le=10.0)
+    min_excitation_us: float = Field(10.0, ge=0.0, le=1000.0)
+    min_samples_weight_us2: float = Field(2.0e4, ge=0.0)
+    tau_candidates_s: tuple[float, ...] = Field((), max_length=8)
+    min_response_rad_s2: float = Field(2.0, ge=0.0, le=1000.0)
+
+    @field_validator("tau_candidates_s")
+    @classmethod
+    def _taus(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(0.0 <= t <= 0.5 for t in v):
+            raise ValueError("expected lags in [0, 0.5] s")
+        return v
+
+    @model_validator(mode="after")
+    def _range(self) -> AlphaAdaptConfig:
+        if self.alpha_min > self.alpha_max:
+            raise ValueError("alpha_min must not exceed alpha_max")
+        return self
+
+
 class MfcAxisConfig(StrictModel):
     order: Literal[1, 2]
     alpha: float = Field(description="(rad/s^m) per us; non-zero")
@@ -74,6 +102,17 @@ class MfcAxisConfig(StrictModel):
     output_limit_us: float = Field(500.0, gt=0.0, le=1000.0)
     error_limit_rad: float = Field(0.5, gt=0.0, le=3.2)
     estimator: Literal["window", "algebraic"] = "window"
+    actuator_tau_s: float = Field(
+        0.0, ge=0.0, le=0.2, description="motor lag assumed in the F estimate; 0: none (paper)"
+    )
+    alpha_adapt: AlphaAdaptConfig | None = None
+    lag_scaled_gains: bool = False
+
+    @model_validator(mode="after")
+    def _adapt_needs_window(self) -> MfcAxisConfig:
+        if self.alpha_adapt is not None and self.estimator != "window":
+            raise ValueError("alpha_adapt needs estimator: window")
+        return self
 
     @field_validator("alpha")
     @classmethod
@@ -120,6 +159,7 @@ class MfcConfig(_LoopConfig):
     kind: Literal["mfc"]
     command_full_scale_us: float = Field(500.0, gt=0.0, le=1000.0)
     prefilter_hz: float | None = Field(20.0, gt=0.0, le=500.0)
+    adapt_min_thrust: float = Field(0.15, ge=0.0, le=1.0)
     axes: MfcAxes
 
 
@@ -186,6 +226,21 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             output_limit=a.output_limit_us,
             error_limit_rad=a.error_limit_rad,
             estimator=a.estimator,
+            actuator_tau_s=a.actuator_tau_s,
+            lag_scaled_gains=a.lag_scaled_gains,
+            adapt=None
+            if a.alpha_adapt is None
+            else AlphaAdaptation(
+                alpha_min=a.alpha_adapt.alpha_min,
+                alpha_max=a.alpha_adapt.alpha_max,
+                margin=a.alpha_adapt.margin,
+                memory_s=a.alpha_adapt.memory_s,
+                highpass_s=a.alpha_adapt.highpass_s,
+                min_excitation=a.alpha_adapt.min_excitation_us,
+                min_samples_weight=a.alpha_adapt.min_samples_weight_us2,
+                tau_candidates_s=a.alpha_adapt.tau_candidates_s,
+                min_response=a.alpha_adapt.min_response_rad_s2,
+            ),
         )
 
     return MfcGains(
@@ -194,6 +249,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
         yaw=axis(cfg.axes.yaw),
         command_full_scale=cfg.command_full_scale_us,
         prefilter_hz=cfg.prefilter_hz,
+        adapt_min_thrust=cfg.adapt_min_thrust,
         dt_min_s=cfg.dt_min_s,
         dt_max_s=cfg.dt_max_s,
     )

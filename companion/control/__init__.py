@@ -7,6 +7,7 @@ lockstep simulator at any speed.
 
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
 from companion.control.mfc import (
+    AlphaAdaptation,
     ControlOutput,
     IntelligentController,
     MfcAxisGains,
@@ -22,6 +23,7 @@ from companion.control.sticks import AxisRates, PilotCommand, StickMap
 __all__ = [
     "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",
+    "AlphaAdaptation",
     "AxisRates",
     "ControlOutput",
     "IntelligentController",

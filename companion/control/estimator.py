@@ -96,6 +96,8 @@ class WindowEstimator:
         "_s_u",
         "_window_s",
         "f_hat",
+        "u_mean",
+        "y_m",
     )
 
     def __init__(self, order: int, alpha: float, window_s: float) -> None:
@@ -118,6 +120,8 @@ class WindowEstimator:
         self._rate_start = 0.0
         self._count = 0
         self.f_hat = 0.0
+        self.u_mean = 0.0
+        self.y_m = 0.0
 
     def update(self, dt_s: float, rate: float, u_prev: float) -> float:
         r"""Add the interval that just ended and return the new estimate.
@@ -167,11 +171,12 @@ class WindowEstimator:
         self._s_t = s_t
         self._s_u = s_u
         self._s_rate = s_rate
+        self.u_mean = u_mean = s_u / s_t
         if self._order == 2:
-            f = (rate - self._rate_start - self._alpha * s_u) / s_t
+            self.y_m = y_m = (rate - self._rate_start) / s_t
         else:
-            f = (s_rate - self._alpha * s_u) / s_t
-        self.f_hat = f
+            self.y_m = y_m = s_rate / s_t
+        self.f_hat = f = y_m - self._alpha * u_mean
         return f
 
 

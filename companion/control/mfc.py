@@ -53,17 +53,69 @@ from companion.control.mixer import Mixer
 from companion.control.pid import PidGains, RatePid
 
 __all__ = [
+    "AlphaAdaptation",
     "ControlOutput",
     "IntelligentController",
     "MfcAxisGains",
     "MfcController",
     "MfcGains",
     "PidController",
+    "PlantIdentifier",
     "ReferencePrefilter",
 ]
 
 Vec3 = tuple[float, float, float]
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class AlphaAdaptation:
+    r"""Online identification of :math:`\alpha` (and the actuator lag) per axis.
+
+    Settings of :class:`PlantIdentifier`, which explains the method.
+
+    Attributes
+    ----------
+    alpha_min, alpha_max
+        Bounds of :math:`\alpha`, same units as ``alpha``.
+    margin
+        :math:`\alpha / \hat b`; the loop is stable for :math:`b/\alpha` in
+        (0, 2) with a matched actuator model, so > 1 errs on the safe side.
+    memory_s
+        Forgetting time of the slope, s.
+    highpass_s
+        Time constant separating fast ``u`` changes from slow ``F``, s.
+    min_excitation
+        Smallest :math:`|x|` (command units) that updates the slope.
+    min_samples_weight
+        :math:`\sum x^2` (command units squared) needed before the slope is used.
+    tau_candidates_s
+        Actuator lags to choose from, s; empty: only the axis's ``actuator_tau_s``.
+    min_response
+        Smallest :math:`|z|` (rad/s^m) that updates the slope: a vehicle that
+        does not move (on the ground) teaches nothing, rather than "b = 0".
+    """
+
+    alpha_min: float
+    alpha_max: float
+    margin: float = 1.0
+    memory_s: float = 2.0
+    highpass_s: float = 0.05
+    min_excitation: float = 10.0
+    min_samples_weight: float = 2.0e4
+    tau_candidates_s: tuple[float, ...] = ()
+    min_response: float = 2.0
+
+    def __post_init__(self) -> None:
+        vals = (self.alpha_min, self.alpha_max, self.margin, self.memory_s, self.highpass_s)
+        if not all(math.isfinite(v) and v > 0.0 for v in vals):
+            raise ValueError("alpha adaptation bounds, margin and times must be finite and > 0")
+        if self.alpha_min > self.alpha_max:
+            raise ValueError("alpha_min must not exceed alpha_max")
+        if self.min_excitation < 0.0 or self.min_samples_weight < 0.0:
+            raise ValueError("min_excitation and min_samples_weight must be >= 0")
+        if not all(math.isfinite(t) and t >= 0.0 for t in self.tau_candidates_s):
+            raise ValueError("tau_candidates_s must be finite and >= 0")
 
 
 @dataclass(frozen=True)
@@ -96,11 +148,20 @@ class MfcAxisGains:
     output_limit: float = 500.0
     error_limit_rad: float = 0.5
     estimator: Literal["window", "algebraic"] = "window"
+    actuator_tau_s: float = 0.0
+    lag_scaled_gains: bool = False
+    adapt: AlphaAdaptation | None = None
 
     def __post_init__(self) -> None:
+        if self.adapt is not None and self.estimator != "window":
+            raise ValueError("alpha adaptation needs the window estimator")
         if self.order not in (1, 2):
             raise ValueError(f"order must be 1 or 2, got {self.order}")
-        for name in ("alpha", "window_s", "kp", "kd", "output_limit", "error_limit_rad"):
+        if self.actuator_tau_s < 0.0:
+            raise ValueError("actuator_tau_s must be >= 0")
+        for name in (
+            "alpha", "window_s", "kp", "kd", "output_limit", "error_limit_rad", "actuator_tau_s",
+        ):  # fmt: skip
             v = getattr(self, name)
             if not math.isfinite(v):
                 raise ValueError(f"{name} must be finite, got {v}")
@@ -126,6 +187,8 @@ class MfcGains:
     command_full_scale: float = 500.0
     """Command units (us) that make a normalised torque of 1."""
     prefilter_hz: float | None = 20.0
+    adapt_min_thrust: float = 0.15
+    """Alpha adaptation learns only while the pilot's collective is at least this."""
     dt_min_s: float = 0.000125
     dt_max_s: float = 0.02
 
@@ -208,29 +271,121 @@ class ReferencePrefilter:
         return x0, x1, x2, v0, v1, v2
 
 
-class IntelligentController:
-    """One axis: iPD (``order = 2``) or iP (``order = 1``) with its ``F`` estimator.
+class PlantIdentifier:
+    r"""Online estimate of one axis's input gain ``b`` and actuator lag.
 
-    The law is chosen once, at construction: ``update`` is bound to the iPD or
-    the iP form, so the per-sample path does not branch on the order.
+    The window estimator forms, every sample, the window means
+    :math:`\bar y^{(m)}` and :math:`\bar u` of :math:`y^{(m)} = F + b\,u_a`,
+    where :math:`u_a` is the command after the actuators' (unknown) lag. Their
+    fast parts, each minus its exponential average over ``highpass_s``
+    (:math:`\tilde u`, :math:`z = \tilde y^{(m)}`), satisfy
+    :math:`z \approx b\, L_\tau \tilde u` while ``F`` changes slowly next to the
+    command, with :math:`L_\tau` a first-order lag. For every candidate lag
+    :math:`\tau_i` a least-squares slope with exponential forgetting over
+    ``memory_s`` is kept, :math:`\hat b_i = \sum z x_i / \sum x_i^2` with
+    :math:`x_i = L_{\tau_i} \tilde u`; the candidate with the smallest residual
+    :math:`\sum z^2 - (\sum z x_i)^2 / \sum x_i^2` gives the lag, its slope
+    gives :math:`\alpha = \mathrm{clip}(\text{margin}\,\hat b_i,
+    \alpha_{min}, \alpha_{max})`. Sums are updated only while the command moves
+    (:math:`|\tilde u| \ge` ``min_excitation``), the vehicle answers
+    (:math:`|z| \ge` ``min_response``) and the caller says the pilot flies
+    (collective), so hover, the ground and noise teach it nothing; until
+    ``min_samples_weight`` of excitation is gathered the configured
+    ``alpha`` and ``actuator_tau_s`` stay.
     """
 
     __slots__ = (
-        "_alpha",
-        "_e_lim",
-        "_est",
-        "_est_update",
-        "_kd",
-        "_kp",
-        "_lim",
-        "_scale",
-        "e",
-        "e_dot",
-        "f_hat",
-        "order",
-        "u_prev",
-        "update",
-    )
+        "_cfg", "_dt", "_hp", "_ks", "_lam", "_sxx", "_sxz", "_szz", "_taus", "_u_lp", "_x",
+        "_y_lp", "alpha", "alpha0", "tau", "tau0",
+    )  # fmt: skip
+
+    def __init__(self, cfg: AlphaAdaptation, alpha: float, tau_s: float) -> None:
+        self._cfg = cfg
+        self._taus = cfg.tau_candidates_s or (tau_s,)
+        self.alpha0 = alpha
+        self.tau0 = tau_s
+        self._dt = -1.0
+        self._hp = self._lam = 0.0
+        self._ks = [0.0] * len(self._taus)
+        self.reset()
+
+    def reset(self) -> None:
+        n = len(self._taus)
+        self._x = [0.0] * n
+        self._sxx = [0.0] * n
+        self._sxz = [0.0] * n
+        self._szz = 0.0
+        self._u_lp = self._y_lp = 0.0
+        self.alpha = self.alpha0
+        self.tau = self.tau0
+
+    def update(self, dt_s: float, u_mean: float, y_m: float, learn: bool) -> None:
+        """Feed one sample's window means; updates :attr:`alpha` and :attr:`tau`."""
+        cfg = self._cfg
+        if dt_s != self._dt:
+            self._dt = dt_s
+            self._hp = -math.expm1(-dt_s / cfg.highpass_s)
+            self._lam = math.exp(-dt_s / cfg.memory_s)
+            self._ks = [-math.expm1(-dt_s / t) if t > 0.0 else 1.0 for t in self._taus]
+        hp = self._hp
+        self._u_lp = u_lp = self._u_lp + (u_mean - self._u_lp) * hp
+        self._y_lp = y_lp = self._y_lp + (y_m - self._y_lp) * hp
+        ut = u_mean - u_lp
+        self._x = x = [xi + (ut - xi) * k for xi, k in zip(self._x, self._ks, strict=True)]
+        if not learn or abs(ut) < cfg.min_excitation:
+            return
+        z = y_m - y_lp
+        if abs(z) < cfg.min_response:
+            return
+        lam = self._lam
+        self._szz = szz = lam * self._szz + z * z
+        sxx = self._sxx
+        sxz = self._sxz
+        best = -1
+        best_res = math.inf
+        for i in range(len(x)):
+            xi = x[i]
+            sxx[i] = a = lam * sxx[i] + xi * xi
+            sxz[i] = c = lam * sxz[i] + xi * z
+            if a >= cfg.min_samples_weight and c > 0.0:
+                res = szz - c * c / a
+                if res < best_res:
+                    best_res = res
+                    best = i
+        if best < 0:
+            return
+        a = cfg.margin * sxz[best] / sxx[best]
+        self.alpha = cfg.alpha_max if a > cfg.alpha_max else max(a, cfg.alpha_min)
+        self.tau = self._taus[best]
+
+
+class IntelligentController:
+    r"""One axis: iPD (``order = 2``) or iP (``order = 1``) with its ``F`` estimator.
+
+    The law is chosen once, at construction: ``update`` is bound to the iPD or
+    the iP form, so the per-sample path does not branch on the order.
+
+    How the command enters the estimate
+    -----------------------------------
+    * ``actuator_tau_s = 0`` and no adaptation (the paper): the window average
+      of :math:`y^{(m)} - \alpha u` with the applied command ``u``.
+    * Otherwise :math:`\hat F = \bar y^{(m)} - \alpha\, L_\tau \bar u`: the
+      window mean of the command passed through a first-order lag :math:`\tau`
+      standing for the motors (and the gyro filter), so the estimator is not
+      taught that a command acted before the rotors could deliver it. The
+      law then inverts the model the vehicle really has, as incremental
+      nonlinear dynamic inversion does: with :math:`\alpha = b` and the right
+      lag the rate follows the reference acceleration through the actuator
+      lag alone; for :math:`0 < b/\alpha < 2` it still converges.
+    * With :class:`AlphaAdaptation`, :math:`\alpha` and :math:`\tau` come from
+      a :class:`PlantIdentifier` fed with the same window means.
+    """
+
+    __slots__ = (
+        "_alpha", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kp", "_lag_dt", "_lag_k",
+        "_lag_scaled", "_lag_tau", "_lim", "_plain", "_scale", "_tau", "_u_a", "adapting", "e",
+        "e_dot", "f_hat", "order", "u_prev", "update",
+    )  # fmt: skip
 
     def __init__(self, gains: MfcAxisGains, *, command_full_scale: float = 500.0) -> None:
         self.order = gains.order
@@ -245,17 +400,64 @@ class IntelligentController:
         )
         self._est_update = self._est.update
         self.update = self._update_ipd if gains.order == 2 else self._update_ip
+        self._tau = gains.actuator_tau_s
+        self._ident = (
+            PlantIdentifier(gains.adapt, gains.alpha, gains.actuator_tau_s)
+            if gains.adapt is not None
+            else None
+        )
+        self._plain = self._ident is None and self._tau <= 0.0
+        self._lag_scaled = gains.lag_scaled_gains and self._ident is not None and self._tau > 0.0
+        self._lag_dt = self._lag_tau = -1.0
+        self._lag_k = 0.0
+        self.adapting = False
+        self.reset()
+
+    @property
+    def alpha(self) -> float:
+        """The alpha in use (the configured one unless adapted)."""
+        return self._alpha if self._ident is None else self._ident.alpha
+
+    @property
+    def tau_s(self) -> float:
+        """The actuator lag in use, s."""
+        return self._tau if self._ident is None else self._ident.tau
+
+    def reset(self) -> None:
+        self._est.reset()
+        if self._ident is not None:
+            self._ident.reset()
+        self._u_a = 0.0
         self.f_hat = 0.0
         self.e = 0.0
         self.e_dot = 0.0
         self.u_prev = 0.0
 
-    def reset(self) -> None:
-        self._est.reset()
-        self.f_hat = 0.0
-        self.e = 0.0
-        self.e_dot = 0.0
-        self.u_prev = 0.0
+    def _estimate(self, dt_s: float, rate: float, u_prev: float) -> tuple[float, float]:
+        """``F_hat`` and the alpha to divide by, after the interval that just ended."""
+        f = self._est_update(dt_s, rate, u_prev)
+        if self._plain:
+            return f, self._alpha
+        est = self._est
+        u_mean: float = est.u_mean  # type: ignore[union-attr]
+        y_m: float = est.y_m  # type: ignore[union-attr]
+        ident = self._ident
+        if ident is None:
+            tau = self._tau
+            alpha = self._alpha
+        else:
+            ident.update(dt_s, u_mean, y_m, self.adapting)
+            tau = ident.tau
+            alpha = ident.alpha
+        if tau > 0.0:
+            if dt_s != self._lag_dt or tau != self._lag_tau:
+                self._lag_dt = dt_s
+                self._lag_tau = tau
+                self._lag_k = -math.expm1(-dt_s / tau)
+            self._u_a = u_a = self._u_a + (u_mean - self._u_a) * self._lag_k
+        else:
+            self._u_a = u_a = u_mean
+        return y_m - alpha * u_a, alpha
 
     def _update_ipd(
         self,
@@ -286,14 +488,22 @@ class IntelligentController:
             The saturated command, in command units.
         """
         u_prev = self.u_prev if applied is None else applied * self._scale
-        self.f_hat = f_hat = self._est_update(dt_s, rate, u_prev)
+        f_hat, alpha = self._estimate(dt_s, rate, u_prev)
+        self.f_hat = f_hat
         e_dot = rate - ref_rate
         e = self.e + e_dot * dt_s
         lim = self._e_lim
         e = lim if e > lim else (-lim if e < -lim else e)
         self.e = e
         self.e_dot = e_dot
-        u = -(f_hat - ref_rate_dot + self._kp * e + self._kd * e_dot) / self._alpha
+        kp = self._kp
+        kd = self._kd
+        if self._lag_scaled:
+            # Error dynamics scaled to the identified lag: kd ~ 1/tau, kp ~ 1/tau^2.
+            r = self._tau / self._ident.tau  # type: ignore[union-attr]
+            kd *= r
+            kp *= r * r
+        u = -(f_hat - ref_rate_dot + kp * e + kd * e_dot) / alpha
         lim = self._lim
         u = lim if u > lim else (-lim if u < -lim else u)
         self.u_prev = u
@@ -309,14 +519,15 @@ class IntelligentController:
     ) -> float:
         r"""iP: :math:`u = -(\hat F - \dot y_r + K_P e) / \alpha`; same arguments as iPD."""
         u_prev = self.u_prev if applied is None else applied * self._scale
-        self.f_hat = f_hat = self._est_update(dt_s, rate, u_prev)
+        f_hat, alpha = self._estimate(dt_s, rate, u_prev)
+        self.f_hat = f_hat
         e_dot = rate - ref_rate
         e = self.e + e_dot * dt_s
         lim = self._e_lim
         e = lim if e > lim else (-lim if e < -lim else e)
         self.e = e
         self.e_dot = e_dot
-        u = -(f_hat - ref_rate + self._kp * e) / self._alpha
+        u = -(f_hat - ref_rate + self._kp * e) / alpha
         lim = self._lim
         u = lim if u > lim else (-lim if u < -lim else u)
         self.u_prev = u
@@ -383,6 +594,9 @@ class MfcController:
         )
         self._applied: Vec3 = _ZERO3
         self._filter = ReferencePrefilter(gains.prefilter_hz) if gains.prefilter_hz else None
+        self._any_adapt = any(g.adapt is not None for g in gains.axes())
+        self._adapt_thrust = gains.adapt_min_thrust
+        self._wn = 2.0 * math.pi * gains.prefilter_hz if gains.prefilter_hz else 0.0
         self._prev_ref: Vec3 | None = None
         self._full_scale = gains.command_full_scale
         self._scale = 1.0 / gains.command_full_scale
@@ -443,6 +657,9 @@ class MfcController:
                 d2 = (r2 - prev[2]) / dt_s
             self._prev_ref = rate_ref_rad_s
         a0, a1, a2 = self._axes
+        if self._any_adapt:
+            on = thrust >= self._adapt_thrust
+            a0.adapting = a1.adapting = a2.adapting = on
         # Teach the estimators what was applied last time, not what was asked.
         p0, p1, p2 = self._applied
         u0 = a0.update(dt_s, w0, r0, d0, p0)

@@ -25,10 +25,11 @@ DEFAULT_FILE = ROOT / "companion" / "data" / "mfc_default.yaml"
 TABLE1_FILE = ROOT / "companion" / "data" / "mfc_table1.yaml"
 AXES = ("roll", "pitch", "yaw")
 
-# What docs/gains.md states: (order, alpha, window_s, kp, kd, output_limit_us, error_limit_rad).
+# What docs/gains.md states: (order, alpha, window_s, kp, kd, output_limit_us, error_limit_rad);
+# alpha is the value before identification, kp/kd are for a 30 ms lag (scaled with it).
 STATED = {
-    "roll": (2, 1.0, 0.02, 6.0, 4.0, 500.0, 1.0),
-    "pitch": (2, 1.0, 0.02, 6.0, 4.0, 500.0, 1.0),
+    "roll": (2, 1.0, 0.02, 60.0, 15.0, 500.0, 1.0),
+    "pitch": (2, 1.0, 0.02, 60.0, 15.0, 500.0, 1.0),
     "yaw": (2, 0.2, 0.02, 0.0, 5.0, 500.0, 0.5),
 }
 
@@ -65,6 +66,12 @@ def test_shipped_set_equals_what_the_doc_states() -> None:
         got = (a.order, a.alpha, a.window_s, a.kp, a.kd, a.output_limit_us, a.error_limit_rad)
         assert got == pytest.approx(STATED[name]), name
         assert a.estimator == "window"
+        # Lag-aware F estimate with alpha and the lag identified online (docs/gains.md).
+        assert a.actuator_tau_s == 0.03
+        assert a.alpha_adapt is not None
+        assert a.alpha_adapt.tau_candidates_s == (0.01, 0.02, 0.04, 0.08)
+        assert a.alpha_adapt.margin == 0.8
+        assert a.lag_scaled_gains == (name != "yaw")
     # The paper's structure: iPD on roll/pitch with Table I's alpha and window;
     # yaw is the iP written on the rate (order 2 with kp = 0 on the angle).
     table1 = load_controller(TABLE1_FILE)
