@@ -4,6 +4,7 @@ Usage::
 
     sitl run --profile vehicle_profiles/f450.yaml --mavlink udpout:127.0.0.1:14540 \\
         --pilot paper-acro --seed 1 --clock realtime --duration 30 --log out/flight.npz
+    sitl envelope --n 30 --seed 1 --out runs/envelope --corners
 
 Exit codes: 0 when the flight ran (completed, stopped by SIGINT/SIGTERM, or
 crashed: the outcome is in the log summary), 2 for bad arguments or a bad
@@ -248,6 +249,45 @@ def run(
         f" ({summary.realtime_factor:.2f}x), final mode {summary.final_mode}",
         err=True,
     )
+
+
+@cli.command()
+@click.option(
+    "--n",
+    "n",
+    type=click.IntRange(min=0),
+    default=30,
+    show_default=True,
+    help="Vehicles sampled from the envelope (Latin hypercube).",
+)
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Directory for NAME.yaml per vehicle and envelope.json.",
+)
+@click.option("--corners", "with_corners", is_flag=True, help="Also write the named corners.")
+def envelope(n: int, seed: int, out_dir: Path, with_corners: bool) -> None:
+    """Write envelope profiles (sitl.envelope), one YAML each, and envelope.json."""
+    import json
+
+    from sitl.envelope import corners, sample_envelope, write_profile_yaml
+
+    vehicles = (sample_envelope(n, seed) if n > 0 else []) + (corners() if with_corners else [])
+    if not vehicles:
+        raise click.UsageError("nothing to write: give --n 1 or more, or --corners")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for v in vehicles:
+            write_profile_yaml(v.profile(), out_dir / f"{v.name}.yaml")
+        figures = json.dumps([v.to_dict() for v in vehicles], indent=2)
+        (out_dir / "envelope.json").write_text(figures + "\n", encoding="utf-8")
+    except OSError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(1)
+    click.echo(f"{len(vehicles)} profiles and envelope.json written to {out_dir}", err=True)
 
 
 def _parse_param(text: str) -> tuple[str, float]:
