@@ -70,7 +70,7 @@ def test_shipped_set_equals_what_the_doc_states() -> None:
         assert a.actuator_tau_s == 0.03
         assert a.alpha_adapt is not None
         assert a.alpha_adapt.tau_candidates_s == (0.01, 0.02, 0.04, 0.08)
-        assert a.alpha_adapt.margin == 0.8
+        assert a.alpha_adapt.margin == (0.8 if name == "yaw" else 0.4)
         assert a.lag_scaled_gains == (name != "yaw")
     # The paper's structure: iPD on roll/pitch with Table I's alpha and window;
     # yaw is the iP written on the rate (order 2 with kp = 0 on the angle).
