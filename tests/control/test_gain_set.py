@@ -30,7 +30,7 @@ AXES = ("roll", "pitch", "yaw")
 STATED = {
     "roll": (2, 1.0, 0.02, 60.0, 15.0, 500.0, 1.0),
     "pitch": (2, 1.0, 0.02, 60.0, 15.0, 500.0, 1.0),
-    "yaw": (2, 0.2, 0.02, 0.0, 5.0, 500.0, 0.5),
+    "yaw": (2, 0.2, 0.02, 0.0, 20.0, 500.0, 0.5),
 }
 
 # Per-axis MAE bounds (deg/s) on the first 15 s of paper-acro, about 1.5x what was
@@ -71,7 +71,7 @@ def test_shipped_set_equals_what_the_doc_states() -> None:
         assert a.alpha_adapt is not None
         assert a.alpha_adapt.tau_candidates_s == (0.01, 0.02, 0.04, 0.08)
         assert a.alpha_adapt.margin == (0.8 if name == "yaw" else 0.4)
-        assert a.lag_scaled_gains == (name != "yaw")
+        assert a.lag_scaled_gains
     # The paper's structure: iPD on roll/pitch with Table I's alpha and window;
     # yaw is the iP written on the rate (order 2 with kp = 0 on the angle).
     table1 = load_controller(TABLE1_FILE)
