@@ -93,7 +93,7 @@ BOUNDS: dict[str, tuple[float, float]] = {
 CRASH_PENALTY_DEG_S = 1000.0
 """Added to the objective of a flight that crashed (deg/s)."""
 
-TEST_SCENARIOS = frozenset({"paper-acro"})
+TEST_SCENARIOS = frozenset({"paper-acro", "envelope-test"})
 """Scenarios kept as test flights: the tuner refuses to train on them."""
 
 Objective = Literal["mean", "worst"]

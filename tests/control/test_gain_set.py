@@ -60,7 +60,7 @@ def test_shipped_set_equals_what_the_doc_states() -> None:
     cfg = _default()
     assert cfg.kind == "mfc"
     assert cfg.command_full_scale_us == 500.0
-    assert cfg.prefilter_hz == 40.0
+    assert cfg.prefilter_hz == 25.0
     for name in AXES:
         a = getattr(cfg.axes, name)
         got = (a.order, a.alpha, a.window_s, a.kp, a.kd, a.output_limit_us, a.error_limit_rad)
