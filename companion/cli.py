@@ -74,7 +74,7 @@ _controller_opt = click.option(
     "controller_path",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Controller config YAML (default: the paper's Table I, shared by every vehicle).",
+    help="Controller config YAML (default: companion/data/mfc_default.yaml, for every vehicle).",
 )
 
 
@@ -695,6 +695,162 @@ def campaign(
     crashes = sum(r["crashed"] for r in records)
     click.echo(
         f"{len(records)} flights ({crashes} crashed) in {meta['wall_time_s']:.0f} s; "
+        f"summary: {paths['summary']}"
+    )
+
+
+@cli.command("envelope")
+@click.option(
+    "--out",
+    "out_dir",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Folder for envelope.json, summary.md, ratio.png and worst-*.png.",
+)
+@click.option(
+    "--n",
+    type=click.IntRange(min=0),
+    default=30,
+    show_default=True,
+    help="Latin-hypercube vehicles, on top of the named corners.",
+)
+@click.option(
+    "--seed",
+    type=int,
+    default=1,
+    show_default=True,
+    help="Seeds the vehicle sample and every PID tuning search.",
+)
+@click.option("--corners-only", is_flag=True, help="Only the named corner vehicles.")
+@click.option(
+    "--damage/--no-damage",
+    default=True,
+    show_default=True,
+    help="Add the motor60, imbalance and cg10 variants (the PID retuned on each).",
+)
+@click.option(
+    "--damage-on",
+    type=click.IntRange(min=0),
+    default=8,
+    show_default=True,
+    help="How many vehicles get the damage variants: the first K, corners first.",
+)
+@click.option(
+    "--tune-budget",
+    type=click.IntRange(min=1),
+    default=40,
+    show_default=True,
+    help="PID tuning flights per vehicle and case.",
+)
+@click.option(
+    "--train-scenario",
+    default="train-acro",
+    show_default=True,
+    help="Scenario the PID is tuned on (name or file).",
+)
+@click.option(
+    "--test-scenario",
+    default="envelope-test",
+    show_default=True,
+    help="Scenario every controller is scored on (name or file); never tuned on.",
+)
+@_controller_opt
+@click.option(
+    "--controller-profile",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("vehicle_profiles/f450.yaml"),
+    show_default=True,
+    help="The profile MFC is given, whatever vehicle it flies.",
+)
+@click.option(
+    "--worst",
+    "worst_k",
+    type=click.IntRange(min=0),
+    default=3,
+    show_default=True,
+    help="How many worst cases to re-fly and plot.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Parallel cases [default: os.cpu_count()].",
+)
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def envelope(
+    out_dir: Path,
+    n: int,
+    seed: int,
+    corners_only: bool,
+    damage: bool,
+    damage_on: int,
+    tune_budget: int,
+    train_scenario: str,
+    test_scenario: str,
+    controller_path: Path | None,
+    controller_profile: Path,
+    worst_k: int,
+    workers: int | None,
+    progress: bool,
+) -> None:
+    """MFC (one file, never retuned) against a PID retuned for each envelope vehicle.
+
+    Per vehicle and case: tunes the PID on the training scenario, then flies MFC (given
+    the F450's profile), the tuned PID and PX4's default PID on the test scenario. Writes
+    the ratio table, the envelope plot and the worst cases. Method: docs/envelope.md.
+    """
+    import os
+    import time
+
+    from companion.config import DEFAULT_CONTROLLER
+    from companion.envelope import (
+        envelope_cases,
+        envelope_meta,
+        load_setup,
+        run_envelope,
+        verdicts,
+        write_envelope_outputs,
+    )
+
+    try:
+        setup = load_setup(
+            controller=controller_path,
+            controller_profile=controller_profile,
+            train_scenario=train_scenario,
+            test_scenario=test_scenario,
+            tune_budget=tune_budget,
+            seed=seed,
+        )
+        cases = envelope_cases(
+            n, seed, corners_only=corners_only, damage=damage, damage_on=damage_on
+        )
+    except ConfigError as exc:
+        _fail_config(exc)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from exc
+    n_workers = workers or os.cpu_count() or 1
+    _log.info("envelope: %d cases on %d workers", len(cases), n_workers)
+    t0 = time.perf_counter()
+    records = run_envelope(cases, setup, workers=n_workers, progress=progress)
+    meta = envelope_meta(
+        cases,
+        setup,
+        seed=seed,
+        n=n,
+        corners_only=corners_only,
+        mfc_controller=str(controller_path or DEFAULT_CONTROLLER),
+        controller_profile=str(controller_profile),
+        workers=n_workers,
+        wall_time_s=round(time.perf_counter() - t0, 1),
+    )
+    paths = write_envelope_outputs(
+        records, out_dir, meta, setup=setup, cases=cases, worst_k=worst_k
+    )
+    v = verdicts(records)["all"]
+    click.echo(
+        f"{len(records)} cases in {meta['wall_time_s']:.0f} s: MFC crashed in "
+        f"{v['mfc_crashes']}; ratio target {'met' if v['ratio_within_target'] else 'not met'}; "
+        f"better than PX4 default {'met' if v['better_than_default'] else 'not met'}; "
         f"summary: {paths['summary']}"
     )
 
