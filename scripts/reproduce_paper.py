@@ -359,11 +359,12 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
     if _mean(t_mfc) > _mean(t_pid):
         out.append(
             "On the Tarot the tuned PID tracks better than MFC "
-            f"({_fmt_mae(t_pid)} vs {_fmt_mae(t_mfc)} deg/s). The MFC estimator learns from the "
-            "command it applied, so acceleration the Tarot's slow motors (45-60 ms) could not "
-            "deliver in time is made up only by the error dynamics (kp 6, kd 4), and kd is "
-            "capped near 4 by the Tarot's phase margin (docs/gains.md, 'Limits'). The PID "
-            "was tuned on this very vehicle; the MFC set was chosen for all four at once."
+            f"({_fmt_mae(t_pid)} vs {_fmt_mae(t_mfc)} deg/s). The MFC law identifies the "
+            "Tarot's input gain and actuator lag in flight and inverts them, so the rate "
+            "follows the pilot's reference through the Tarot's slow motors (45-60 ms spin-up, "
+            "plus the gyro filter) with gains scaled to that lag (docs/gains.md); the PID "
+            "was tuned on this very vehicle, while the MFC file is one set for every vehicle "
+            "of the envelope (docs/envelope.md)."
         )
     f = F["f450_mfc"]["mae_deg_s"]
     tr = F["f450_mfc"]["after_fast_changes"]
