@@ -74,15 +74,18 @@ _controller_opt = click.option(
     "controller_path",
     type=click.Path(dir_okay=False, path_type=Path),
     default=None,
-    help="Controller config YAML (default: companion/data/mfc_default.yaml, for every vehicle).",
+    help="Controller config YAML (default: companion/data/mfc_default.yaml, or "
+    "mfc_rates.yaml with --output rates; for every vehicle).",
 )
 
 
-def _load_inputs(profile_path: Path, controller_path: Path | None) -> tuple[Any, Any, Path]:
-    from companion.config import DEFAULT_CONTROLLER, load_controller
+def _load_inputs(
+    profile_path: Path, controller_path: Path | None, output: str = "actuator"
+) -> tuple[Any, Any, Path]:
+    from companion.config import default_controller, load_controller
     from companion.profile import load_profile
 
-    ctrl_path = controller_path or DEFAULT_CONTROLLER
+    ctrl_path = controller_path or default_controller(output)
     try:
         profile = load_profile(profile_path)
         cfg = load_controller(ctrl_path)
@@ -324,7 +327,7 @@ def run(
     from companion.link.signing import load_signing_key
     from companion.link.transport import open_transport
 
-    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path, output)
     # Check everything a run needs before anything is opened or sent.
     reference = None
     try:
@@ -428,7 +431,8 @@ def fly(
     from companion.report import write_report
     from sitl.scenario import load_scenario
 
-    profile, _cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    flown_output = "rates" if autopilot == "ardupilot" else output
+    profile, _cfg, ctrl_path = _load_inputs(profile_path, controller_path, flown_output)
     try:
         sc = load_scenario(scenario)
         if controller_profile:
@@ -437,7 +441,7 @@ def fly(
         _fail_config(exc)
     with _percent_bar(f"{sc.name} on {profile.name} (MAVLink)", progress) as tick:
         flight = fly_mavlink(
-            profile_path, scenario, out_dir, controller_path=controller_path, output=output,
+            profile_path, scenario, out_dir, controller_path=ctrl_path, output=output,
             duration_s=duration, seed=seed, controller_profile_path=controller_profile,
             autopilot=autopilot, progress=tick,
         )  # fmt: skip

@@ -31,15 +31,24 @@ from companion.profile import VehicleProfile
 __all__ = [
     "DEFAULT_CONTROLLER",
     "PID_DEFAULT_CONTROLLER",
+    "RATES_CONTROLLER",
     "MfcConfig",
     "PidConfig",
     "build_controller",
     "build_mixer",
     "build_stick_map",
+    "default_controller",
     "load_controller",
 ]
 
 DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "mfc_default.yaml"))
+RATES_CONTROLLER = Path(str(files("companion") / "data" / "mfc_rates.yaml"))
+"""The default for ``--output rates``: the plant is the autopilot's closed rate loop."""
+
+
+def default_controller(output: str = "actuator") -> Path:
+    """The controller file used when none is given, for an output mode."""
+    return RATES_CONTROLLER if output == "rates" else DEFAULT_CONTROLLER
 PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default.yaml"))
 
 
