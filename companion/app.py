@@ -301,6 +301,7 @@ class Companion:
         out = self.controller.update(dt, gyro, ref, thrust)
         if self.commanding:
             self._send_output(t_s, out, ref)
+        self.controller.learn()  # after the command has left: off the latency path
         if self.engaged:
             self._check_envelope(t_s, dt, gyro, out)
         if self.opts.duration_s is not None and not self._stop.is_set():

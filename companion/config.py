@@ -49,6 +49,8 @@ RATES_CONTROLLER = Path(str(files("companion") / "data" / "mfc_rates.yaml"))
 def default_controller(output: str = "actuator") -> Path:
     """The controller file used when none is given, for an output mode."""
     return RATES_CONTROLLER if output == "rates" else DEFAULT_CONTROLLER
+
+
 PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default.yaml"))
 
 

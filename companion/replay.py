@@ -118,6 +118,7 @@ def replay(
     thrust = cols["thrust"].tolist()
     eng = (engaged != 0.0).tolist()
     update = controller.update
+    learn = controller.learn
     fresh = True
     prev_t = 0.0
     for i in range(n):
@@ -130,6 +131,7 @@ def replay(
         fresh = False
         prev_t = t[i]
         o = update(dt, (w[0][i], w[1][i], w[2][i]), (r[0][i], r[1][i], r[2][i]), thrust[i])
+        learn()
         row = out[i]
         k = 0
         for ax in range(3):

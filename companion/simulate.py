@@ -143,6 +143,7 @@ def simulate_flight(
             sample_dt = sample.time_s - prev_sample_t if prev_sample_t is not None else 0.0
             prev_sample_t = sample.time_s
             out = controller.update(sample_dt, sample.gyro_frd_rad_s, cmd.rate_rad_s, cmd.thrust)
+            controller.learn()
             motors = out.motors
             st = quad.state
             cols["t_s"].append(sample.time_s)

@@ -3,12 +3,16 @@
 
 ``control``
     ``mfc_update_us`` / ``pid_update_us``: median microseconds for one full
-    three-axis update including mixing, over >= 100k updates replaying the
-    inputs of a recorded closed-loop acro flight (the median is taken over
-    batches of 100 consecutive updates, so the timer's own cost is not
-    counted), plus ``baseline_call_us`` (an empty method call measured in
-    the same run) and the ratios to it, which travel between machines better
-    than raw microseconds. Target: ``mfc_update_us`` <= 5.
+    three-axis update including mixing and the online identification
+    (``update`` then ``learn``) of the shipped controllers
+    (``companion/data/mfc_default.yaml``, PX4's default PID), over >= 100k
+    updates replaying the inputs of a recorded closed-loop acro flight (the
+    median is taken over batches of 100 consecutive updates, so the timer's
+    own cost is not counted), plus ``baseline_call_us`` (an empty method
+    call measured in the same run) and the ratios to it, which travel
+    between machines better than raw microseconds; ``mfc_table1_update_us``
+    is the paper's Table I law (no lag model, no identification) for
+    comparison. Target: ``mfc_update_us`` <= 5.
 ``loop``
     ``latency_us_p50``/``latency_us_p99``: an IMU datagram's arrival to its
     command leaving ``companion run`` (logging on), measured from outside by a
@@ -77,12 +81,18 @@ def _recorded_stream() -> list[tuple[Any, ...]]:
 
 
 def bench_control(n_updates: int = 200_000) -> dict[str, Any]:
-    from companion.config import build_mixer
-    from companion.control import PX4_DEFAULT_GAINS, MfcController, MfcGains, PidController
+    from companion.config import (
+        DEFAULT_CONTROLLER,
+        PID_DEFAULT_CONTROLLER,
+        build_controller,
+        build_mixer,
+        load_controller,
+    )
+    from companion.control import MfcController, MfcGains
     from companion.profile import load_profile
 
     root = Path(__file__).resolve().parents[1]
-    mixer = build_mixer(load_profile(root / "vehicle_profiles/f450.yaml"))
+    f450 = load_profile(root / "vehicle_profiles/f450.yaml")
 
     samples = _recorded_stream()
     n_batches = max(1000, n_updates // BATCH)
@@ -96,12 +106,20 @@ def bench_control(n_updates: int = 200_000) -> dict[str, Any]:
     base = _Empty()
     out["baseline_call_us"] = round(_median_us_per_call(base.update, batches, n_batches), 4)
     for name, ctl in (
-        ("mfc", MfcController(MfcGains(), mixer)),
-        ("pid", PidController(PX4_DEFAULT_GAINS, mixer)),
+        ("mfc", build_controller(load_controller(DEFAULT_CONTROLLER), f450)),
+        ("pid", build_controller(load_controller(PID_DEFAULT_CONTROLLER), f450)),
+        ("mfc_table1", MfcController(MfcGains(), build_mixer(f450))),
     ):
+
+        def step(
+            dt_s: float, a: Any, b: Any, c: float, update: Any = ctl.update, learn: Any = ctl.learn
+        ) -> None:
+            update(dt_s, a, b, c)
+            learn()
+
         for s in samples:  # one pass over the flight first: the controller's state is then
-            ctl.update(*s)  # a flying one, and the replay continues where it left off
-        us = _median_us_per_call(ctl.update, batches, n_batches)
+            step(*s)  # a flying one, and the replay continues where it left off
+        us = _median_us_per_call(step, batches, n_batches)
         out[f"{name}_update_us"] = round(us, 3)
         out[f"{name}_over_baseline"] = round(us / out["baseline_call_us"], 1)
     out["mfc_target_us"] = 5.0

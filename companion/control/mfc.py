@@ -67,6 +67,9 @@ __all__ = [
 Vec3 = tuple[float, float, float]
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
+LEARN_PERIOD_S = 0.004
+"""The identifier runs at most this often (s): every sample at 250 Hz, every 4th at 1 kHz."""
+
 
 @dataclass(frozen=True)
 class AlphaAdaptation:
@@ -383,8 +386,8 @@ class IntelligentController:
 
     __slots__ = (
         "_alpha", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kp", "_lag_dt", "_lag_k",
-        "_lag_scaled", "_lag_tau", "_lim", "_plain", "_scale", "_tau", "_u_a", "adapting", "e",
-        "e_dot", "f_hat", "order", "u_prev", "update",
+        "_lag_scaled", "_lag_tau", "_lim", "_pending", "_pending_dt", "_plain", "_scale", "_tau",
+        "_u_a", "adapting", "e", "e_dot", "f_hat", "order", "u_prev", "update",
     )  # fmt: skip
 
     def __init__(self, gains: MfcAxisGains, *, command_full_scale: float = 500.0) -> None:
@@ -428,6 +431,8 @@ class IntelligentController:
         if self._ident is not None:
             self._ident.reset()
         self._u_a = 0.0
+        self._pending: tuple[float, float] | None = None
+        self._pending_dt = 0.0
         self.f_hat = 0.0
         self.e = 0.0
         self.e_dot = 0.0
@@ -446,7 +451,10 @@ class IntelligentController:
             tau = self._tau
             alpha = self._alpha
         else:
-            ident.update(dt_s, u_mean, y_m, self.adapting)
+            # Identification runs in learn(), after the command has left: this
+            # sample's data moves alpha and tau from the next sample on.
+            self._pending_dt += dt_s
+            self._pending = (u_mean, y_m)
             tau = ident.tau
             alpha = ident.alpha
         if tau > 0.0:
@@ -458,6 +466,19 @@ class IntelligentController:
         else:
             self._u_a = u_a = u_mean
         return y_m - alpha * u_a, alpha
+
+    def learn(self) -> None:
+        """Feed the identifier the latest window means, every :data:`LEARN_PERIOD_S`.
+
+        The window means are 20 ms averages, so sampling them every 4 ms loses
+        nothing the identifier uses, and at 1 kHz it costs a quarter as much.
+        """
+        p = self._pending
+        if p is not None and self._pending_dt >= LEARN_PERIOD_S and self._ident is not None:
+            dt = self._pending_dt
+            self._pending = None
+            self._pending_dt = 0.0
+            self._ident.update(dt, p[0], p[1], self.adapting)
 
     def _update_ipd(
         self,
@@ -617,6 +638,17 @@ class MfcController:
         self._applied = _ZERO3
         self._last = None
 
+    def learn(self) -> None:
+        """Online identification for the sample just processed.
+
+        Call after each :meth:`update`, once its command has been sent: it
+        does not change that command, only the next ones, and keeping it off
+        the path from sample to command keeps the loop's latency low.
+        """
+        if self._any_adapt:
+            for a in self._axes:
+                a.learn()
+
     def update(
         self, dt_s: float, rate_frd_rad_s: Vec3, rate_ref_rad_s: Vec3, thrust: float
     ) -> ControlOutput:
@@ -709,6 +741,9 @@ class PidController:
         self._pid.reset()
         self._last = None
         self._sat_pos = self._sat_neg = (False, False, False)
+
+    def learn(self) -> None:
+        """Nothing to learn: same interface as :meth:`MfcController.learn`."""
 
     def update(
         self, dt_s: float, rate_frd_rad_s: Vec3, rate_ref_rad_s: Vec3, thrust: float

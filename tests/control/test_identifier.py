@@ -91,6 +91,7 @@ def _closed_loop_mae(gains: MfcAxisGains, b: float, tau: float) -> float:
         u_a += (u - u_a) * k
         w += (b * u_a - 2.0 - 0.5 * w) * dt
         u = ax.update(dt, w, ref, 0.0)
+        ax.learn()
         if i > 4000:
             errs.append(abs(w - ref))
     return float(np.mean(errs))
