@@ -32,6 +32,15 @@ catch up) and :math:`\dot e = \omega - \omega_r`. There is no integrator of
 the command to wind up: ``u`` is recomputed from scratch every sample, and
 ``F`` is learnt from the command that was really applied.
 
+Lag-aware estimate and online identification (the shipped configuration)
+--------------------------------------------------------------------------
+With ``actuator_tau_s`` and/or :class:`AlphaAdaptation` set, ``F`` is
+estimated as :math:`\bar y^{(m)} - \alpha L_\tau \bar u` (the command
+through a first-order actuator lag), and :math:`\alpha` and :math:`\tau`
+are identified in flight by :class:`PlantIdentifier`
+(:class:`IntelligentController` explains why; ``docs/gains.md`` gives the
+evidence). Both are off by default, which is the paper's law exactly.
+
 Reference derivatives
 ---------------------
 The pilot's rate :math:`\omega_r` goes through a critically damped
