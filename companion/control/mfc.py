@@ -394,7 +394,8 @@ class IntelligentController:
     """
 
     __slots__ = (
-        "_alpha", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kp", "_lag_dt", "_lag_k",
+        "_alpha", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff", "_kp", "_kp_eff",
+        "_lag_dt", "_lag_k",
         "_lag_scaled", "_lag_tau", "_lim", "_pending", "_pending_dt", "_plain", "_scale", "_tau",
         "_u_a", "adapting", "e", "e_dot", "f_hat", "order", "u_prev", "update",
     )  # fmt: skip
@@ -439,6 +440,7 @@ class IntelligentController:
         self._est.reset()
         if self._ident is not None:
             self._ident.reset()
+        self._scale_gains()
         self._u_a = 0.0
         self._pending: tuple[float, float] | None = None
         self._pending_dt = 0.0
@@ -489,6 +491,14 @@ class IntelligentController:
             self._pending = None
             self._pending_dt = 0.0
             self._ident.update(dt, p[0], p[1], self.adapting)
+            if self._lag_scaled:
+                self._scale_gains()
+
+    def _scale_gains(self) -> None:
+        """The iPD's gains for the lag in use: kd ~ 1/tau, kp ~ 1/tau^2 (lag_scaled_gains)."""
+        r = self._tau / self._ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
+        self._kd_eff = self._kd * r
+        self._kp_eff = self._kp * (r * r)
 
     def _update_ipd(
         self,
@@ -527,14 +537,7 @@ class IntelligentController:
         e = lim if e > lim else (-lim if e < -lim else e)
         self.e = e
         self.e_dot = e_dot
-        kp = self._kp
-        kd = self._kd
-        if self._lag_scaled:
-            # Error dynamics scaled to the identified lag: kd ~ 1/tau, kp ~ 1/tau^2.
-            r = self._tau / self._ident.tau  # type: ignore[union-attr]
-            kd *= r
-            kp *= r * r
-        u = -(f_hat - ref_rate_dot + kp * e + kd * e_dot) / alpha
+        u = -(f_hat - ref_rate_dot + self._kp_eff * e + self._kd_eff * e_dot) / alpha
         lim = self._lim
         u = lim if u > lim else (-lim if u < -lim else u)
         self.u_prev = u
