@@ -79,6 +79,12 @@ _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 LEARN_PERIOD_S = 0.004
 """The identifier runs at most this often (s): every sample at 250 Hz, every 4th at 1 kHz."""
 
+_DT_REL_TOL = 1e-3
+"""Discrete filter coefficients computed for one dt serve every dt within this
+relative distance of it: intervals from timestamps jitter in their last bits
+(and by a microsecond or so), and recomputing exponentials for that costs more
+than the rest of a sample's arithmetic while changing the result by < 0.1 %."""
+
 
 @dataclass(frozen=True)
 class AlphaAdaptation:
@@ -259,7 +265,7 @@ class ReferencePrefilter:
             self._v0 = self._v1 = self._v2 = 0.0
             return t0, t1, t2, 0.0, 0.0, 0.0
         wn = self._wn
-        if dt_s != self._dt_last:  # the loop usually runs at a fixed rate
+        if abs(dt_s - self._dt_last) > _DT_REL_TOL * dt_s:  # the loop usually runs at a fixed rate
             self._dt_last = dt_s
             self._ex = math.exp(-wn * dt_s)
         ex = self._ex
@@ -331,19 +337,27 @@ class PlantIdentifier:
         self.alpha = self.alpha0
         self.tau = self.tau0
 
+    def _set_dt(self, dt_s: float) -> None:
+        cfg = self._cfg
+        self._dt = dt_s
+        self._hp = -math.expm1(-dt_s / cfg.highpass_s)
+        self._lam = math.exp(-dt_s / cfg.memory_s)
+        self._ks = [-math.expm1(-dt_s / t) if t > 0.0 else 1.0 for t in self._taus]
+
     def update(self, dt_s: float, u_mean: float, y_m: float, learn: bool) -> None:
         """Feed one sample's window means; updates :attr:`alpha` and :attr:`tau`."""
         cfg = self._cfg
-        if dt_s != self._dt:
-            self._dt = dt_s
-            self._hp = -math.expm1(-dt_s / cfg.highpass_s)
-            self._lam = math.exp(-dt_s / cfg.memory_s)
-            self._ks = [-math.expm1(-dt_s / t) if t > 0.0 else 1.0 for t in self._taus]
+        if abs(dt_s - self._dt) > _DT_REL_TOL * dt_s:
+            self._set_dt(dt_s)
         hp = self._hp
         self._u_lp = u_lp = self._u_lp + (u_mean - self._u_lp) * hp
         self._y_lp = y_lp = self._y_lp + (y_m - self._y_lp) * hp
         ut = u_mean - u_lp
-        self._x = x = [xi + (ut - xi) * k for xi, k in zip(self._x, self._ks, strict=True)]
+        x = self._x
+        ks = self._ks
+        for i in range(len(x)):
+            xi = x[i]
+            x[i] = xi + (ut - xi) * ks[i]
         if not learn or abs(ut) < cfg.min_excitation:
             return
         z = y_m - y_lp
@@ -469,7 +483,7 @@ class IntelligentController:
             tau = ident.tau
             alpha = ident.alpha
         if tau > 0.0:
-            if dt_s != self._lag_dt or tau != self._lag_tau:
+            if tau != self._lag_tau or abs(dt_s - self._lag_dt) > _DT_REL_TOL * dt_s:
                 self._lag_dt = dt_s
                 self._lag_tau = tau
                 self._lag_k = -math.expm1(-dt_s / tau)
@@ -490,8 +504,10 @@ class IntelligentController:
             dt = self._pending_dt
             self._pending = None
             self._pending_dt = 0.0
-            self._ident.update(dt, p[0], p[1], self.adapting)
-            if self._lag_scaled:
+            ident = self._ident
+            tau = ident.tau
+            ident.update(dt, p[0], p[1], self.adapting)
+            if self._lag_scaled and ident.tau != tau:
                 self._scale_gains()
 
     def _scale_gains(self) -> None:
