@@ -511,10 +511,12 @@ class IntelligentController:
                 self._scale_gains()
 
     def _scale_gains(self) -> None:
-        """The iPD's gains for the lag in use: kd ~ 1/tau, kp ~ 1/tau^2 (lag_scaled_gains)."""
+        """Gains for the lag in use (lag_scaled_gains): a gain on ``y^(m-1)``'s error
+        scales as 1/tau, one on ``y^(m-2)``'s as 1/tau^2: iPD kd ~ 1/tau and
+        kp ~ 1/tau^2, iP kp ~ 1/tau."""
         r = self._tau / self._ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
         self._kd_eff = self._kd * r
-        self._kp_eff = self._kp * (r * r)
+        self._kp_eff = self._kp * (r * r if self.order == 2 else r)
 
     def _update_ipd(
         self,
@@ -577,7 +579,7 @@ class IntelligentController:
         e = lim if e > lim else (-lim if e < -lim else e)
         self.e = e
         self.e_dot = e_dot
-        u = -(f_hat - ref_rate + self._kp * e) / alpha
+        u = -(f_hat - ref_rate + self._kp_eff * e) / alpha
         lim = self._lim
         u = lim if u > lim else (-lim if u < -lim else u)
         self.u_prev = u

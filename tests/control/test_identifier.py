@@ -117,6 +117,43 @@ def test_identified_law_holds_its_worst_case_where_fixed_alpha_does_not() -> Non
     assert _closed_loop_mae(adaptive, 4.0, 0.01) < 0.2 * _closed_loop_mae(fixed, 4.0, 0.01)
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
+    """With the lag identified at 80 ms instead of the configured 30 ms, the gain on
+    the rate error scales by 30/80 (iPD kd, iP kp) and the iPD's kp by (30/80)^2."""
+    gains = MfcAxisGains(
+        order=order, alpha=1.0, window_s=0.02, kp=40.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    ax.adapting = True
+    dt, k = 0.001, -math.expm1(-0.001 / 0.08)
+    rng = np.random.default_rng(3)
+    w = u_a = u = ref = 0.0
+    for i in range(6000):
+        if i % 150 == 0:
+            ref = float(rng.uniform(-3.0, 3.0))
+        u_a += (u - u_a) * k
+        if order == 2:  # y'' = b u_a + F
+            w += (0.35 * u_a - 0.5 * w) * dt
+        else:  # y' = b u_a + F
+            w = 0.35 * u_a + 0.2
+        u = ax.update(dt, w, ref, 0.0)
+        ax.learn()
+    assert ax.tau_s == 0.08
+    # The next command from public state: u = -(F_hat - v + gains) / alpha.
+    got = ax.update(dt, w + 0.1, ref, 0.0)
+    r = 0.03 / 0.08
+    if order == 2:
+        fb = 40.0 * r * r * ax.e + 15.0 * r * ax.e_dot
+    else:
+        fb = 40.0 * r * ax.e
+        fb -= ref  # the iP's reference term is the rate itself
+    want = -(ax.f_hat + fb) / ax.alpha
+    assert abs(want) < 500.0  # unsaturated, so the gains show
+    assert got == pytest.approx(want, rel=1e-9)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     st.lists(
