@@ -323,12 +323,26 @@ def assess(
             "detail": f"in absolute terms both controllers track better on the F450 than on the "
             f"Tarot (axis-mean MAE MFC {m_mfc_t:.1f} -> {m_mfc_f:.1f}, tuned PID {m_pid_t:.1f} -> "
             f"{m_pid_f:.1f} deg/s); relative to MFC on the same vehicle, the tuned PID's MAE is "
-            f"{100 * edge_t:.0f} % lower on the Tarot and {100 * edge_f:.0f} % lower on the F450, "
-            f"so the move {'shrinks' if edge_f < edge_t else 'does not shrink'} the PID's edge "
-            f"{'but does not reverse it' if edge_f > 0 else 'and reverses it'}",
+            f"{_rel(edge_t)} on the Tarot and {_rel(edge_f)} on the F450: "
+            f"{_edge_story(edge_t, edge_f)}",
         }
     )
     return claims
+
+
+def _rel(edge: float) -> str:
+    """``edge`` = 1 - PID MAE / MFC MAE, as words."""
+    return f"{abs(100 * edge):.0f} % {'lower' if edge > 0 else 'higher'} than MFC's"
+
+
+def _edge_story(edge_tarot: float, edge_f450: float) -> str:
+    if edge_tarot <= 0.0:
+        return "the PID has no edge over MFC even on the vehicle it was tuned on, and " + (
+            "MFC's lead grows on the F450" if edge_f450 < edge_tarot else "MFC's lead shrinks"
+        )
+    shrink = "shrinks" if edge_f450 < edge_tarot else "does not shrink"
+    reverse = "but does not reverse it" if edge_f450 > 0 else "and reverses it"
+    return f"the move {shrink} the PID's edge {reverse}"
 
 
 def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]]) -> list[str]:
