@@ -7,6 +7,50 @@ comes back. The same harness measures a *floor*: a bare asyncio server that
 parses with pymavlink and answers every HIGHRES_IMU with a fixed command.
 The ratio of the two is what the companion's own work costs, on this
 machine, in this run.
+
+How the harness keeps the two comparable (each rule applies to every target
+alike):
+
+* Targets are served alternately in ``block_s`` blocks, so both see the same
+  background load, and each gets the same number of whole blocks (a quick
+  5 s run measures 3 blocks of 2 s each, not 3 against 2).
+* A sample's time runs from just before the harness's ``sendto`` (the frame
+  is packed first: the harness's own encoding is not timed) to the kernel's
+  receive stamp of the command (``SO_TIMESTAMPNS``, CLOCK_REALTIME like the
+  send stamp; on loopback the stamp is taken inside the server's ``sendto``),
+  not to when the harness gets round to reading it. The harness's own wake-up
+  is left out: with two cores it often waits for the CPU the answering server
+  is still running on, so it charged that server's after-the-command work
+  (logging, the identifier) to its latency, which is not what "datagram
+  arrival to command leaving" means (server's send to harness's read, median
+  / p90: floor 16-17 / 21 us, companion 20-26 / 40-49 us in 10 s runs with
+  load < 1; with the kernel stamp both are 4-5 / 6-10 us). (The stamp needs
+  Linux; elsewhere, or for the first packets while the kernel switches
+  stamping on, it is the time of the read, as before.)
+* Housekeeping (heartbeat and RC_CHANNELS, 50 Hz) goes to the target being
+  timed right before one of its IMU samples, as an autopilot may send them
+  together; the other targets get theirs half a period later. They used to
+  go to every target at once in port order, floor first: the floor then
+  worked through its heartbeat and RC while the harness was still sending
+  the companion's, and met its IMU sample ready (arrival to the server's
+  read, median over those samples: floor 6 us, companion 220-260 us in 20 s
+  runs on a quiet machine); sending them all right before the sample instead
+  made the idle server's work compete with the timed one for the two cores.
+  Now both see the same order and nothing of the other's.
+* A sample is *missed* when its command is not back within 20 ms
+  (``_MISS_AFTER_US``, by the same stamps); an answer that is later is not
+  timed.
+* The IMU keeps time like an autopilot's: when the harness is woken a whole
+  period or more late (descheduled on a loaded machine), it skips the slots
+  that passed instead of sending them in a burst, and counts them
+  (``skipped``). A burst measured the harness's own backlog, not the server:
+  on a machine loaded by other jobs the old catch-up fell seconds behind,
+  sent thousands of samples back to back (the receiving socket dropped some,
+  counted as misses) and starved the companion of IMU long enough for its
+  stale-IMU failsafe. Skipped slots were never offered, so they are neither
+  samples nor misses.
+* The harness runs with its cyclic garbage collector off (frozen, then
+  disabled): its full collections took 10-15 ms, long enough to skip slots.
 """
 
 from __future__ import annotations
@@ -16,10 +60,14 @@ import os
 os.environ.setdefault("MAVLINK20", "1")
 
 import asyncio
+import contextlib
+import gc
+import math
 import select
 import signal
 import socket
 import statistics
+import struct
 import subprocess
 import sys
 import tempfile
@@ -32,6 +80,13 @@ from pymavlink.dialects.v20 import common as mavlink2
 __all__ = ["echo_server", "run_harness", "run_loop_bench"]
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# Linux's SO_TIMESTAMPNS (asm-generic value; the socket module does not name it):
+# each datagram carries the CLOCK_REALTIME time the kernel received it.
+_SO_TIMESTAMPNS = 35
+_TIMESPEC = struct.Struct("@qq")
+_MISS_AFTER_US = 20_000.0
+"""A command that comes back later than this after its sample is a miss."""
 
 
 class _Sink:
@@ -63,86 +118,131 @@ def run_harness(
     for _ in ports:
         sk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         sk.setblocking(False)
+        with contextlib.suppress(OSError):  # without it: stamped after recv
+            sk.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         socks.append(sk)
     parser = mavlink2.MAVLink(_Sink(), srcSystem=255, srcComponent=0)
     period = 1.0 / rate_hz
     n = len(ports)
-    sent: list[dict[int, int]] = [{} for _ in ports]
+    # time_usec -> (sent at, ns CLOCK_REALTIME; sent while measuring)
+    sent: list[dict[int, tuple[int, bool]]] = [{} for _ in ports]
     lat: list[list[float]] = [[] for _ in ports]
     measured = [0] * n
-    pc = time.perf_counter_ns
+    skipped = [0] * n
+    # Every target gets the same number of whole blocks.
+    blocks_each = max(1, math.ceil(seconds_each / block_s - 1e-9))
+    wall_ns = time.time_ns  # the clock of the kernel's receive stamps
+    cmsg_size = socket.CMSG_SPACE(_TIMESPEC.size)
+    addrs = [("127.0.0.1", p) for p in ports]
 
     def send(i: int, msg: Any) -> None:
-        socks[i].sendto(msg.pack(mav), ("127.0.0.1", ports[i]))
+        socks[i].sendto(msg.pack(mav), addrs[i])
 
     def housekeeping(i: int) -> None:
         send(i, mavlink2.MAVLink_heartbeat_message(2, 12, 128 | 1, 6 << 16, 4, 3))
         ch = [1500, 1500, 1500, 1500, 1000] + [65535] * 13
         send(i, mavlink2.MAVLink_rc_channels_message(0, 5, *ch, 254))
 
-    def drain(i: int, measuring: bool) -> None:
+    def drain(i: int) -> None:
         sk = socks[i]
         while True:
             try:
-                data = sk.recv(4096)
+                data, anc, _flags, _addr = sk.recvmsg(4096, cmsg_size)
             except BlockingIOError:
                 return
-            t_rx = pc()
+            t_rx = 0
+            for level, kind, value in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+                    sec, nsec = _TIMESPEC.unpack_from(value)
+                    t_rx = sec * 1_000_000_000 + nsec
+            if not t_rx:
+                t_rx = wall_ns()
             for m in parser.parse_buffer(data) or []:
                 mid = m.get_msgId()
                 if mid == mavlink2.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
-                    t_tx = sent[i].pop(m.time_usec, None)
-                    if t_tx is not None and measuring:
-                        lat[i].append((t_rx - t_tx) / 1000.0)
+                    entry = sent[i].pop(m.time_usec, None)
+                    if entry is not None and entry[1]:
+                        dt_us = (t_rx - entry[0]) / 1000.0
+                        if dt_us <= _MISS_AFTER_US:  # later than that: a miss
+                            lat[i].append(dt_us)
                 elif mid == mavlink2.MAVLINK_MSG_ID_COMMAND_LONG:
                     send(i, mavlink2.MAVLink_command_ack_message(
                         m.command, 0, 0, 0, m.get_srcSystem(), m.get_srcComponent()))  # fmt: skip
 
-    t_start = time.perf_counter()
-    k = 0
-    next_hk = t_start
-    total = warmup_s * n + seconds_each * n
-    while True:
-        now = time.perf_counter()
-        elapsed = now - t_start
-        if elapsed >= total:
-            break
-        if elapsed < warmup_s * n:
-            target = int(elapsed / warmup_s) % n  # warm every target up in turn
-            measuring = False
-        else:
-            target = int((elapsed - warmup_s * n) / block_s) % n
-            measuring = True
-        if now >= next_hk:
+    # The harness's own pauses: no cyclic collection during the run (what it
+    # allocates per sample is freed by reference counting).
+    gc_was_enabled = gc.isenabled()
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    try:
+        t_start = time.perf_counter()
+        k = 0
+        next_hk = t_start
+        idle_hk: list[int] = []  # targets whose housekeeping is due at idle_hk_at
+        idle_hk_at = t_start
+        total = warmup_s * n + blocks_each * block_s * n
+        while True:
+            now = time.perf_counter()
+            elapsed = now - t_start
+            if elapsed >= total:
+                break
+            if elapsed < warmup_s * n:
+                target = int(elapsed / warmup_s) % n  # warm every target up in turn
+                measuring = False
+            else:
+                target = int((elapsed - warmup_s * n) / block_s) % n
+                measuring = True
+            if now >= next_hk:
+                # The target being timed gets its heartbeat and RC right before an IMU
+                # sample (as an autopilot may send them); the others, which only need
+                # them to keep their watchdogs fed, half a period later (see the
+                # module docstring).
+                housekeeping(target)
+                idle_hk = [i for i in range(n) if i != target]
+                idle_hk_at = now + 0.5 * period
+                next_hk += 0.02 * (1 + int((now - next_hk) / 0.02))  # no catch-up burst either
+            if idle_hk and now >= idle_hk_at:
+                for i in idle_hk:
+                    housekeeping(i)
+                idle_hk = []
+            due = t_start + k * period
+            if now >= due:
+                # Woken a whole period or more late (descheduled): skip the slots that
+                # passed rather than send them in a burst (see the module docstring).
+                behind = int((now - due) / period)
+                if behind:
+                    k += behind
+                    if measuring:
+                        skipped[target] += behind
+                k += 1
+                time_usec = k * round(period * 1e6)
+                buf = mavlink2.MAVLink_highres_imu_message(
+                    time_usec, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0b111111
+                ).pack(mav)
+                # Stamped after packing: the harness's own work is not timed.
+                sent[target][time_usec] = (wall_ns(), measuring)
+                socks[target].sendto(buf, addrs[target])
+                if measuring:
+                    measured[target] += 1
             for i in range(n):
-                housekeeping(i)
-            next_hk += 0.02
-        due = t_start + k * period
-        if now >= due:
-            k += 1
-            time_usec = k * round(period * 1e6)
-            msg = mavlink2.MAVLink_highres_imu_message(
-                time_usec, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0b111111
-            )
-            sent[target][time_usec] = pc()
-            send(target, msg)
-            if measuring:
-                measured[target] += 1
-            cutoff = time_usec - 20_000  # not answered within 20 ms: a miss
+                drain(i)
+            wake = min(t_start + k * period, next_hk)
+            if idle_hk:
+                wake = min(wake, idle_hk_at)
+            wait = wake - time.perf_counter()
+            if wait > 0.0:
+                r, _, _ = select.select(socks, [], [], wait)
+                for sk in r:
+                    drain(socks.index(sk))
+        deadline = time.perf_counter() + _MISS_AFTER_US * 1e-6 + 0.03
+        while time.perf_counter() < deadline:
             for i in range(n):
-                for key in [t for t in sent[i] if t < cutoff]:
-                    del sent[i][key]
-        for i in range(n):
-            drain(i, measuring)
-        wait = min(t_start + k * period, next_hk) - time.perf_counter()
-        if wait > 0.0:
-            r, _, _ = select.select(socks, [], [], wait)
-            for sk in r:
-                drain(socks.index(sk), measuring)
-    deadline = time.perf_counter() + 0.05
-    while time.perf_counter() < deadline:
-        for i in range(n):
-            drain(i, True)
+                drain(i)
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+        gc.unfreeze()
     out = []
     for i in range(n):
         socks[i].close()
@@ -151,6 +251,7 @@ def run_harness(
             "samples": measured[i],
             "answered": len(xs),
             "missed": max(0, measured[i] - len(xs)),
+            "skipped": skipped[i],
         }
         if xs:
             stats["p50_us"] = statistics.median(xs)
@@ -189,15 +290,25 @@ def echo_server(port: int) -> None:
 
 
 def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return _free_ports(1)[0]
+
+
+def _free_ports(n: int) -> list[int]:
+    """``n`` distinct UDP ports free right now (all held until all are chosen)."""
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[str, Any]:
     """Companion (logging on) and floor, served alternately by one harness in one run."""
     py = sys.executable
-    fport, cport = _free_port(), _free_port()
+    fport, cport = _free_ports(2)
     with tempfile.TemporaryDirectory() as logs:
         cmds = [
             [py, "-c", f"from companion._loopbench import echo_server; echo_server({fport})"],
@@ -217,6 +328,8 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
                     err = p.stderr.read().decode() if p.stderr else ""
                     raise RuntimeError(f"a benchmark server exited: {err}")
             floor, comp = run_harness([fport, cport], rate_hz=rate_hz, seconds_each=seconds)
+            # A server that ended by itself (a failsafe) missed everything after: say so.
+            ended_early = [p.poll() is not None for p in procs]
         finally:
             for p in procs:
                 p.send_signal(signal.SIGTERM)
@@ -235,6 +348,10 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
         "floor_us_p99": round(floor.get("p99_us", nan), 1),
         "samples": comp["samples"],
         "floor_missed": floor["missed"],
+        "skipped": comp["skipped"],
+        "floor_skipped": floor["skipped"],
+        "ended_early": ended_early[1],
+        "floor_ended_early": ended_early[0],
     }
     missed_key = "missed_at_1khz" if rate_hz == 1000.0 else f"missed_at_{int(rate_hz)}hz"
     out[missed_key] = comp["missed"]

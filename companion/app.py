@@ -85,6 +85,7 @@ _BASE_MODE_ARMED = 128
 _MSG_STATUSTEXT = 253
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
+_RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 
 
 @dataclass(frozen=True)
@@ -197,6 +198,10 @@ class Companion:
         self._in_failsafe = False
         self._restart_dt = False
         self._log_rows: Any = None
+        self._log_append: Any = None  # self._log_rows.append, looked up once
+        self._actuator_output = opts.output == "actuator"
+        self._script = opts.reference
+        self._duration_s = opts.duration_s
         self._tlog: Any = None
         self._events_file: Any = None
         self._telemetry: Any = None
@@ -244,14 +249,12 @@ class Companion:
     # -------------------------------------------------------------- hot path
     def _on_message(self, msg: Any) -> None:
         mid = msg.get_msgId()
-        if mid == _MSG_HIGHRES_IMU:
-            if self._imu_source == "highres_imu":
-                self._on_imu(msg.time_usec * 1e-6, (msg.xgyro, msg.ygyro, msg.zgyro))
+        if mid == _MSG_HIGHRES_IMU:  # normally taken by the link's fast handler (run())
+            self._on_highres_imu((msg.time_usec, msg.xgyro, msg.ygyro, msg.zgyro))
         elif mid == _MSG_ATTITUDE:
-            if self._imu_source == "attitude":
-                self._on_imu(msg.time_boot_ms * 1e-3, (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+            self._on_attitude((msg.time_boot_ms, msg.rollspeed, msg.pitchspeed, msg.yawspeed))
         elif mid == _MSG_RC_CHANNELS:
-            self._on_rc(msg)
+            self._on_rc(tuple(getattr(msg, name) for name in _RC_FIELDS))
         elif mid == _MSG_HEARTBEAT:
             self._on_heartbeat(msg)
         elif mid == _MSG_STATUSTEXT:
@@ -259,8 +262,22 @@ class Companion:
             self._last_statustext = text.rstrip("\x00")
             self._event("autopilot_says", self._last_statustext)
 
+    def _on_highres_imu(self, v: tuple[Any, ...]) -> None:
+        """HIGHRES_IMU ``(time_usec, xgyro, ygyro, zgyro)``, from the link's fast road."""
+        if self._imu_source == "highres_imu":
+            t_usec, g0, g1, g2 = v
+            self._on_imu(t_usec * 1e-6, (g0, g1, g2))
+
+    def _on_attitude(self, v: tuple[Any, ...]) -> None:
+        """ATTITUDE ``(time_boot_ms, rollspeed, pitchspeed, yawspeed)``."""
+        if self._imu_source == "attitude":
+            t_ms, g0, g1, g2 = v
+            self._on_imu(t_ms * 1e-3, (g0, g1, g2))
+
     def _on_imu(self, t_s: float, gyro: tuple[float, float, float]) -> None:
-        t0 = time.perf_counter()
+        # Everything before the command is what the sample needs: the timestamp and
+        # range checks, the law, the send. Recording and the slower checks follow it.
+        t0 = self.link.rx_perf_s  # the datagram's arrival
         t_prev = self._t_prev
         if t_prev is not None and not t_s > t_prev:  # also rejects a NaN timestamp
             self.n_imu_duplicate_or_late += 1
@@ -293,7 +310,7 @@ class Companion:
             self._invalid_since = None
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
-        script = self.opts.reference
+        script = self._script
         if script is not None and self.engaged and self._t_engaged is not None:
             ref, scripted_thrust = script.at(t_s - self._t_engaged)
             if scripted_thrust is not None:
@@ -301,23 +318,40 @@ class Companion:
         out = self.controller.update(dt, gyro, ref, thrust)
         if self.commanding:
             self._send_output(t_s, out, ref)
-        self.controller.learn()  # after the command has left: off the latency path
+        t_sent = time.perf_counter()
+        # ---- the command has left: what follows is off the latency path
+        self.controller.learn()
         if self.engaged:
             self._check_envelope(t_s, dt, gyro, out)
-        if self.opts.duration_s is not None and not self._stop.is_set():
+        if self._duration_s is not None and not self._stop.is_set():
             # Engaged time; in shadow mode (never engaged) time since the first sample.
             since = self._t_engaged if self.opts.engage != "none" else self._t_first
-            if since is not None and t_s - since >= self.opts.duration_s:
-                self._event("duration", f"{self.opts.duration_s} s")
+            if since is not None and t_s - since >= self._duration_s:
+                self._event("duration", f"{self._duration_s} s")
                 self._stop.set()
-        if self._log_rows is not None:
-            latency_us = (time.perf_counter() - t0) * 1e6
-            self._log_rows.append(self._row(t_s, t0, latency_us, ref, gyro, thrust, out))
+        append = self._log_append
+        if append is not None:
+            tq = out.torque
+            err = out.error
+            f_hat = out.f_hat
+            u = out.u
+            sat = out.saturated_axes
+            g0, g1, g2 = gyro
+            # The layout of companion.records.columns.
+            append(
+                [
+                    t_s, t0, (t_sent - t0) * 1e6, float(self.engaged), float(out.held),
+                    ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
+                    ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
+                    ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
+                    thrust, out.thrust, *out.motors,
+                ]
+            )  # fmt: skip
         if self._telemetry is not None:
             self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
 
     def _send_output(self, t_s: float, out: Any, ref: tuple[float, float, float]) -> None:
-        if self.opts.output == "actuator":
+        if self._actuator_output:
             r, p, y = out.torque
             self.link.send_actuator_controls(
                 round(t_s * 1e6), (r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0)
@@ -374,33 +408,10 @@ class Companion:
                 f"a body rate beyond the profile's limit for {fs.envelope_time_s} s",
             )
 
-    def _row(
-        self,
-        t_s: float,
-        wall: float,
-        latency_us: float,
-        ref: tuple[float, ...],
-        gyro: tuple[float, ...],
-        thrust: float,
-        out: Any,
-    ) -> list[float]:
-        row: list[float] = [t_s, wall, latency_us, float(self.engaged), float(out.held)]
-        for i in range(3):
-            row += [
-                ref[i],
-                gyro[i],
-                out.error[i],
-                out.f_hat[i],
-                out.u[i],
-                out.torque[i],
-                float(out.saturated_axes[i]),
-            ]
-        row += [thrust, out.thrust, *out.motors]
-        return row
-
-    def _on_rc(self, msg: Any) -> None:
-        n = min(int(msg.chancount), 18) if msg.chancount else 18
-        chans = tuple(getattr(msg, f"chan{i}_raw") for i in range(1, n + 1))
+    def _on_rc(self, v: tuple[int, ...]) -> None:
+        """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
+        count = v[18]
+        chans = v[: min(count, 18)] if count else v[:18]
         self._rc = chans
         cmd = self.sticks.map(chans)
         if cmd.valid:
@@ -612,6 +623,7 @@ class Companion:
         self._log_rows = ColumnarLog(
             d / "control.bin", columns(self.opts.profile.n_motors), meta=meta
         )
+        self._log_append = self._log_rows.append
         self._events_file = (d / "events.jsonl").open("a", encoding="utf-8")
 
     def _close_records(self) -> None:
@@ -634,6 +646,17 @@ class Companion:
         self.link = MavlinkLink(
             transport, signing=signing, on_message=self._on_message, on_raw=on_raw
         )
+        # The IMU sample skips pymavlink's generic parser when its frame allows.
+        self.link.add_fast_handler(
+            _MSG_HIGHRES_IMU, ("time_usec", "xgyro", "ygyro", "zgyro"), self._on_highres_imu
+        )
+        self.link.add_fast_handler(
+            _MSG_ATTITUDE,
+            ("time_boot_ms", "rollspeed", "pitchspeed", "yawspeed"),
+            self._on_attitude,
+        )
+        # RC_CHANNELS often shares the IMU sample's datagram: keep it short too.
+        self.link.add_fast_handler(_MSG_RC_CHANNELS, _RC_FIELDS, self._on_rc)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):

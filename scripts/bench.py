@@ -21,7 +21,11 @@
     served alternately with the companion in 2 s blocks so both see the same
     background load;
     ``ratio_p50``/``ratio_p99`` and ``missed_at_1khz`` over a 60 s run at 1 kHz.
-    Targets: ratios <= 1.3 / 1.5, no missed samples.
+    Targets: ratios <= 1.3 / 1.5, no missed samples. Also ``floor_missed``,
+    ``skipped``/``floor_skipped`` (IMU slots the harness skipped because it was
+    itself descheduled past them; see ``companion._loopbench``) and
+    ``ended_early``/``floor_ended_early`` (a server that exited before the end,
+    e.g. on a failsafe, misses everything after).
 ``sitl``
     ``physics_rt_factor`` (simulated seconds per wall second, 1 kHz physics,
     one vehicle, no MAVLink), ``batch_vehicle_steps_per_s`` (N = 1000) and,

@@ -13,6 +13,17 @@ through one ``parse_buffer``; each parsed message is checked (signature when
 signing is configured, then source = the autopilot) and handed to
 ``on_message`` synchronously, in the event-loop thread. Nothing is queued.
 
+Messages registered with :meth:`MavlinkLink.add_fast_handler` (the IMU
+sample) take a shorter road when they can: a chunk that starts with whole,
+unsigned MAVLink 2 frames of registered ids from the autopilot, with a good
+CRC, is decoded with one precompiled ``struct`` per frame, without
+pymavlink's generic parser and message objects (1 us instead of 8 us for a
+HIGHRES_IMU datagram, measured in a tight loop). Anything else (a frame split
+across chunks, a bad CRC, another sender, signing, MAVLink 1) goes through
+pymavlink as before, and a registered message decoded there reaches the same
+handler with the same values. Counters and ``on_raw`` see both roads alike;
+pymavlink's own parser statistics count only the frames it parsed.
+
 Only the autopilot's messages reach ``on_message``: the autopilot is pinned
 (``target_system``/``target_component``) or learned from the first HEARTBEAT
 whose ``autopilot`` is not ``MAV_AUTOPILOT_INVALID`` and whose ``type`` is not
@@ -33,7 +44,9 @@ import asyncio
 import contextlib
 import logging
 import math
+import operator
 import os
+import re
 import struct
 import time
 from collections.abc import Callable, Sequence
@@ -42,7 +55,7 @@ from typing import Any
 os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink2
-from pymavlink.generator.mavcrc import x25crc
+from pymavlink.generator import mavcrc
 
 from companion.errors import LinkError
 from companion.link.signing import SignatureChecker, SigningConfig, signing_timestamp_now
@@ -64,9 +77,26 @@ _CRC_ACTUATOR = mavlink2.MAVLink_set_actuator_control_target_message.crc_extra
 _ATTITUDE_TARGET = struct.Struct("<I4fffffBBB")
 _ID_ATTITUDE_TARGET = mavlink2.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
 _CRC_ATTITUDE_TARGET = mavlink2.MAVLink_set_attitude_target_message.crc_extra
-_CRC_EXTRA = {c: bytes((c,)) for c in (_CRC_ACTUATOR, _CRC_ATTITUDE_TARGET)}
+_EXTRA_ACTUATOR = bytes((_CRC_ACTUATOR,))
+_EXTRA_ATTITUDE_TARGET = bytes((_CRC_ATTITUDE_TARGET,))
+
+
+def _crc16_py(data: bytes, crc: int = 0xFFFF) -> int:
+    acc = mavcrc.x25crc_slow()
+    acc.crc = crc
+    acc.accumulate(bytes(data))
+    return int(acc.crc)
+
+
+# CRC-16/MCRF4XX (MAVLink's X.25 checksum) as a function: fastcrc's, which
+# pymavlink requires and uses itself, or pymavlink's pure-Python one.
+_crc16: Callable[..., int] = mavcrc.mcrf4xx if mavcrc.mcrf4xx is not None else _crc16_py
+
+_MAGIC_V2 = 0xFD
+_NUMERIC_FORMATS = frozenset("bBhHiIqQfd")
 
 OnMessage = Callable[[Any], None]
+FastHandler = Callable[[tuple[Any, ...]], None]
 OnRaw = Callable[[float, bytes, bool], None]
 
 _NOT_AUTOPILOT_TYPES = frozenset({mavlink2.MAV_TYPE_GCS, mavlink2.MAV_TYPE_ONBOARD_CONTROLLER})
@@ -85,6 +115,44 @@ class _Sink:
 
     def write(self, buf: bytes) -> None:
         self._link._write_frame(buf)
+
+
+def _fast_layout(msg_id: int, fields: Sequence[str]) -> tuple[struct.Struct, int]:
+    """The ``struct`` reading ``fields`` (in wire order) from a payload of ``msg_id``,
+    and the message's full payload length.
+
+    Raises
+    ------
+    ValueError
+        For an unknown id, an unknown or non-scalar field, or fields out of wire order.
+    """
+    msgtype = mavlink2.mavlink_map.get(msg_id)
+    if msgtype is None:
+        raise ValueError(f"message id {msg_id} is not in the common dialect")
+    if not fields:
+        raise ValueError("at least one field is needed")
+    wire = list(msgtype.ordered_fieldnames)
+    # The unpacker's format is in wire order: one code (with a count for arrays) per field.
+    codes = re.findall(r"(\d*)([a-zA-Z])", msgtype.unpacker.format.lstrip("<"))
+    if len(codes) != len(wire):
+        raise ValueError(f"{msgtype.msgname}: cannot map its fields to its wire format")
+    want = list(fields)
+    fmt = ["<"]
+    pos = 0
+    for name in want:
+        if name not in wire:
+            raise ValueError(f"{msgtype.msgname} has no field {name!r}")
+        j = wire.index(name)
+        if j < pos:
+            raise ValueError(f"{msgtype.msgname}: fields must be in wire order {wire}")
+        for count, code in codes[pos:j]:
+            fmt.append(f"{struct.calcsize(count + code)}x")
+        count, code = codes[j]
+        if count not in ("", "1") or code not in _NUMERIC_FORMATS:
+            raise ValueError(f"{msgtype.msgname}.{name}: only scalar numeric fields")
+        fmt.append(code)
+        pos = j + 1
+    return struct.Struct("".join(fmt)), int(msgtype.unpacker.size)
 
 
 class MavlinkLink:
@@ -156,6 +224,8 @@ class MavlinkLink:
             else None
         )
         self.last_heartbeat: Any | None = None
+        self.rx_perf_s = 0.0
+        """``time.perf_counter()`` when the chunk being handled arrived (read it in a handler)."""
         self.last_heartbeat_monotonic_s: float | None = None
         self.counters: dict[str, int] = dict.fromkeys(
             (
@@ -182,7 +252,13 @@ class MavlinkLink:
             None, srcSystem=source_system, srcComponent=source_component
         )
         self._parser.robust_parsing = True
+        self._parser_idle = True  # no partial frame waiting in the parser
         self._checker = SignatureChecker(signing.key) if signing is not None else None
+        # msg id -> (getter of the values from a pymavlink message, handler)
+        self._fast: dict[int, tuple[Callable[[Any], tuple[Any, ...]], FastHandler]] = {}
+        # msg id -> (layout, crc extra byte, full payload length, handler); only
+        # without signing (signed frames are judged by the checker, on pymavlink's road)
+        self._fast_wire: dict[int, tuple[struct.Struct, bytes, int, FastHandler]] = {}
         self._heartbeat_task: asyncio.Task[None] | None = None
         self._heartbeat_waiters: list[asyncio.Future[Any]] = []
         self._ack_waiters: dict[int, asyncio.Future[Any]] = {}
@@ -190,6 +266,38 @@ class MavlinkLink:
         self._command_locks: dict[int, asyncio.Lock] = {}
         self._started = False
         self._closed = False
+
+    def add_fast_handler(self, msg_id: int, fields: Sequence[str], handler: FastHandler) -> None:
+        """Hand the autopilot's ``msg_id`` messages to ``handler`` instead of ``on_message``.
+
+        ``handler`` receives a tuple of the values of ``fields`` (scalar
+        fields, in the message's wire order, e.g. ``("time_usec", "xgyro",
+        "ygyro", "zgyro")`` of HIGHRES_IMU), exactly as pymavlink decodes
+        them. Whole unsigned frames are decoded straight from the chunk (see
+        the module docstring); the rest through pymavlink. Checks, counters,
+        ``on_raw`` and the handling of exceptions are those of ``on_message``.
+
+        Raises
+        ------
+        ValueError
+            For an unknown message id or field, a non-scalar field, or fields
+            out of wire order.
+        """
+        layout, full_len = _fast_layout(msg_id, fields)
+        names = tuple(fields)
+        getter: Callable[[Any], tuple[Any, ...]]
+        if len(names) == 1:
+            name = names[0]
+
+            def getter(msg: Any) -> tuple[Any, ...]:
+                return (getattr(msg, name),)
+
+        else:
+            getter = operator.attrgetter(*names)
+        self._fast[msg_id] = (getter, handler)
+        if self.signing is None:
+            crc_extra = mavlink2.mavlink_map[msg_id].crc_extra
+            self._fast_wire[msg_id] = (layout, bytes((crc_extra,)), full_len, handler)
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -300,7 +408,7 @@ class MavlinkLink:
             )
             return
         payload = _ACTUATOR.pack(time_usec, *controls, group, sysid, compid)
-        self._write_fast(_ID_ACTUATOR, _CRC_ACTUATOR, payload)
+        self._write_fast(_ID_ACTUATOR, _EXTRA_ACTUATOR, payload)
 
     def send_body_rates(
         self,
@@ -325,32 +433,30 @@ class MavlinkLink:
         payload = _ATTITUDE_TARGET.pack(
             time_boot_ms, 1.0, 0.0, 0.0, 0.0, r0, r1, r2, thrust, sysid, compid, type_mask
         )
-        self._write_fast(_ID_ATTITUDE_TARGET, _CRC_ATTITUDE_TARGET, payload)
+        self._write_fast(_ID_ATTITUDE_TARGET, _EXTRA_ATTITUDE_TARGET, payload)
 
-    def _write_fast(self, msg_id: int, crc_extra: int, payload: bytes) -> None:
+    def _write_fast(self, msg_id: int, crc_extra: bytes, payload: bytes) -> None:
         # MAVLink 2 drops trailing zero bytes of a payload (at least one byte stays).
-        n = len(payload)
-        while n > 1 and payload[n - 1] == 0:
-            n -= 1
+        body = payload.rstrip(b"\x00") or payload[:1]
         mav = self.mav
+        seq = mav.seq
         frame = (
             _HEADER.pack(
                 0xFD,
-                n,
+                len(body),
                 0,
                 0,
-                mav.seq,
+                seq,
                 mav.srcSystem,
                 mav.srcComponent,
                 msg_id & 0xFFFF,
                 msg_id >> 16,
             )
-            + payload[:n]
+            + body
         )
-        crc = x25crc(frame[1:])
-        crc.accumulate(_CRC_EXTRA[crc_extra])
-        mav.seq = (mav.seq + 1) % 256
-        self._write_frame(frame + _U16.pack(crc.crc))
+        mav.seq = (seq + 1) & 0xFF
+        frame += _U16.pack(_crc16(crc_extra, _crc16(frame[1:])))
+        self._write_frame(frame)
 
     def _write_frame(self, buf: bytes) -> None:
         self.transport.write(buf)
@@ -384,19 +490,67 @@ class MavlinkLink:
     # ----------------------------------------------------------------- receiving
 
     def _on_bytes(self, chunk: bytes) -> None:
-        try:
-            msgs = self._parser.parse_buffer(chunk)
-        except mavlink2.MAVError:  # only without robust_parsing; kept as a guard
-            self.counters["bad_data"] += 1
-            return
-        if msgs is None:
-            return
-        counters = self.counters
+        self.rx_perf_s = time.perf_counter()
         on_raw = self.on_raw
-        checker = self._checker
         # Stamped on arrival, recorded after the callback: the tlog entry of an IMU
         # sample is written after the command it caused has left.
         t_rx = time.time() if on_raw is not None else 0.0
+        counters = self.counters
+        wire = self._fast_wire
+        if wire and self._parser_idle:
+            # The short road: whole unsigned MAVLink 2 frames of registered ids from
+            # the autopilot, CRC checked; the first frame that is anything else
+            # sends the rest of the chunk to pymavlink.
+            n = len(chunk)
+            i = 0
+            target = self.target
+            while i + 12 <= n:
+                magic, plen, incompat, _c, _s, sysid, compid, id_lo, id_hi = _HEADER.unpack_from(
+                    chunk, i
+                )
+                end = i + 12 + plen
+                spec = wire.get(id_lo | id_hi << 16)
+                if (
+                    spec is None
+                    or magic != _MAGIC_V2
+                    or incompat
+                    or end > n
+                    or (sysid, compid) != target
+                ):
+                    break
+                layout, crc_extra, full_len, handler = spec
+                if plen > full_len or _crc16(crc_extra, _crc16(chunk[i + 1 : end - 2])) != (
+                    chunk[end - 2] | chunk[end - 1] << 8
+                ):
+                    break
+                if plen >= layout.size:
+                    values = layout.unpack_from(chunk, i + 10)
+                else:  # MAVLink 2 dropped the payload's trailing zeros
+                    values = layout.unpack(chunk[i + 10 : end - 2] + bytes(layout.size - plen))
+                counters["received"] += 1
+                counters["accepted"] += 1
+                try:
+                    handler(values)
+                except Exception:
+                    self._callback_failed()
+                if on_raw is not None:
+                    on_raw(t_rx, chunk if end == n and i == 0 else chunk[i:end], False)
+                i = end
+            if i == n:
+                return
+            if i:
+                chunk = chunk[i:]
+        try:
+            msgs = self._parser.parse_buffer(chunk)
+        except mavlink2.MAVError:  # only without robust_parsing; kept as a guard
+            counters["bad_data"] += 1
+            return
+        finally:
+            self._parser_idle = self._parser.buf_len() == 0
+        if msgs is None:
+            return
+        checker = self._checker
+        fast = self._fast
         for msg in msgs:
             mtype = msg._type
             if mtype == "BAD_DATA":
@@ -411,16 +565,23 @@ class MavlinkLink:
                     self._on_command_ack(msg)
                 elif mtype == "PARAM_VALUE":
                     self._on_param_value(msg)
-                on_message = self.on_message
-                if on_message is not None:
-                    try:
-                        on_message(msg)
-                    except Exception:
-                        counters["callback_errors"] += 1
-                        if counters["callback_errors"] == 1:
-                            logger.exception("on_message raised (logged once, counted after)")
+                registered = fast.get(msg.get_msgId()) if fast else None
+                try:
+                    if registered is not None:
+                        getter, handler = registered
+                        handler(getter(msg))
+                    elif self.on_message is not None:
+                        self.on_message(msg)
+                except Exception:
+                    self._callback_failed()
             if on_raw is not None:
                 on_raw(t_rx, bytes(msg._msgbuf), False)
+
+    def _callback_failed(self) -> None:
+        counters = self.counters
+        counters["callback_errors"] += 1
+        if counters["callback_errors"] == 1:
+            logger.exception("on_message raised (logged once, counted after)")
 
     def _accept(self, msg: Any, mtype: str, checker: Any, counters: dict[str, int]) -> bool:
         """Signature, dialect and sender checks; counts what it rejects."""

@@ -238,6 +238,48 @@ async def test_auto_engagement_on_px4_then_one_command_per_sample(start: Start) 
     assert is_mode(fake.commands(CMD_DO_SET_MODE)[-1], 3.0)  # handed back to POSCTL
 
 
+async def test_records_hold_every_frame_and_one_row_per_sample(
+    start: Start, tmp_path: Path
+) -> None:
+    from pymavlink import mavutil
+
+    from companion.records import read_columnar
+
+    f = await start(engage="auto", output="actuator", log_dir=tmp_path)
+    await engage_px4_auto(f)
+    fake = f.fake
+    for _ in range(30):
+        f.imu((0.1, -0.2, 0.05))
+        await settle()
+    with fake.bundle():  # several samples in one datagram
+        for _ in range(5):
+            f.imu()
+    await settle()
+    f.companion._stop.set()
+    assert await f.finish() == 0
+
+    # The .tlog: every IMU frame received and every command sent, readable by mavutil.
+    log = mavutil.mavlink_connection(str(tmp_path / "flight.tlog"))
+    seen: dict[str, list[Any]] = {}
+    try:
+        while (m := log.recv_match()) is not None:
+            seen.setdefault(m.get_type(), []).append(m)
+    finally:
+        log.close()
+    assert [m.time_usec for m in seen["HIGHRES_IMU"]] == fake.imu_sent
+    assert setpoint_times(seen["SET_ACTUATOR_CONTROL_TARGET"]) == setpoint_times(fake.setpoints())
+
+    # The columnar log: one row per processed sample, the latency measured to the send.
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    assert len(cols["t_s"]) == f.companion.counters["imu_samples"] == len(fake.imu_sent)
+    assert [round(t * 1e6) for t in cols["t_s"]] == fake.imu_sent
+    engaged = cols["engaged"] > 0.5
+    assert engaged.sum() >= 35
+    lat = cols["latency_us"][engaged]
+    assert ((lat > 0.0) & (lat < 1e5)).all()
+    assert (cols["wall_s"][1:] >= cols["wall_s"][:-1]).all()
+
+
 # ------------------------------------------------------------- 2. duplicate / late
 
 
