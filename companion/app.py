@@ -125,6 +125,14 @@ class RunOptions:
     It sets the input gain the law sees through the autopilot's rate loop:
     measured on paper-acro with the PX4-like SITL, the profile's 1080 deg/s made
     the Tarot oscillate into the envelope failsafe, 360 flew every vehicle."""
+    rates_lead_s: float = 0.03
+    """With ``output="rates"`` (not pass-through): a feed-forward lead added to the
+    setpoint, ``rates_lead_s`` times the derivative of the prefiltered pilot rate.
+    The autopilot's closed rate loop lags its setpoint (about 70 ms for the SITL's
+    ArduPilot personality); the law's own feed-forward ``y_r''/alpha``, with alpha
+    identified on that closed loop, is only about 8 ms of it. The lead is not
+    taught to the F estimate as applied: taught, it drags the identified alpha
+    down and the law's feedback rings. Measured: docs/ardupilot.md."""
     rates_passthrough: bool = False
     """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
     MFC-on-top is compared with); the law still runs and is logged."""
@@ -360,9 +368,16 @@ class Companion:
             # The law wraps the autopilot's rate loop: the pilot's rate plus the
             # law's correction, within the profile's rate limits.
             rm = self._rate_max_rad_s
-            k = 0.0 if self.opts.rates_passthrough else 1.0
-            fs = self._rate_fs_rad_s
-            sp = [max(-rm[i], min(rm[i], ref[i] + k * out.torque[i] * fs[i])) for i in range(3)]
+            if self.opts.rates_passthrough:
+                sp = [max(-rm[i], min(rm[i], ref[i])) for i in range(3)]
+            else:
+                fs = self._rate_fs_rad_s
+                lead = self.opts.rates_lead_s
+                rd = self.controller.reference_rate_dot
+                sp = [
+                    max(-rm[i], min(rm[i], ref[i] + lead * rd[i] + out.torque[i] * fs[i]))
+                    for i in range(3)
+                ]
             # The pilot's collective: the autopilot mixes it with its own rate
             # loop; our mixer's air-mode shift belongs to torques we do not send.
             self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, self._thrust)

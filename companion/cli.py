@@ -206,6 +206,14 @@ def simulate(
     help="With --output rates: the rate correction of a full-scale law output.",
 )
 @click.option(
+    "--rates-lead-s",
+    type=click.FloatRange(min=0.0, max=0.2),
+    default=0.03,
+    show_default=True,
+    help="With --output rates: feed-forward lead on the pilot's rate, s (the autopilot's "
+    "rate loop lags its setpoint); 0 turns it off.",
+)
+@click.option(
     "--rates-passthrough",
     is_flag=True,
     help="With --output rates: send the pilot's rates unchanged (baseline for comparison).",
@@ -305,6 +313,7 @@ def run(
     engage: str,
     engage_channel: int,
     rates_full_scale_deg_s: float,
+    rates_lead_s: float,
     rates_passthrough: bool,
     imu_source: str,
     rate_hz: float,
@@ -358,6 +367,7 @@ def run(
         engage_channel=engage_channel,
         rates_passthrough=rates_passthrough,
         rates_full_scale_deg_s=rates_full_scale_deg_s,
+        rates_lead_s=rates_lead_s,
         log_dir=log_dir,
         mqtt_url=mqtt_url,
         signing_key=signing_key,
@@ -409,6 +419,12 @@ def run(
     show_default=True,
     help="The SITL's personality; ardupilot implies --output rates.",
 )
+@click.option(
+    "--compare-passthrough",
+    is_flag=True,
+    help="Rates output: fly the same scenario again sending the pilot's rates straight "
+    "through (into OUT/passthrough) and report both.",
+)
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def fly(
     profile_path: Path,
@@ -420,6 +436,7 @@ def fly(
     controller_profile: Path | None,
     out_dir: Path,
     autopilot: str,
+    compare_passthrough: bool,
     progress: bool,
 ) -> None:
     """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
@@ -432,6 +449,10 @@ def fly(
     from sitl.scenario import load_scenario
 
     flown_output = "rates" if autopilot == "ardupilot" else output
+    if compare_passthrough and flown_output != "rates":
+        click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
+                   err=True)  # fmt: skip
+        sys.exit(EXIT_BAD_INPUT)
     profile, _cfg, ctrl_path = _load_inputs(profile_path, controller_path, flown_output)
     try:
         sc = load_scenario(scenario)
@@ -452,17 +473,30 @@ def fly(
             err=True,
         )
         sys.exit(1)
-    record = merge_logs(
-        flight,
-        meta={"scenario": sc.name, "seed": sc.seed if seed is None else seed,
-              "controller_profile": str(controller_profile or profile_path)},
-    )  # fmt: skip
+    meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
+            "controller_profile": str(controller_profile or profile_path)}  # fmt: skip
+    record = merge_logs(flight, meta=meta)
+    baseline = None
+    if compare_passthrough:
+        with _percent_bar(f"{sc.name} on {profile.name}, pass-through", progress) as tick:
+            pt = fly_mavlink(
+                profile_path, scenario, out_dir / "passthrough", controller_path=ctrl_path,
+                output=output, duration_s=duration, seed=seed,
+                controller_profile_path=controller_profile, autopilot=autopilot,
+                companion_args=("--rates-passthrough",), progress=tick,
+            )  # fmt: skip
+        if not pt.control_log.exists():
+            click.echo(f"error: the pass-through flight wrote no control log (exit "
+                       f"{pt.companion_rc}); see {out_dir / 'passthrough'}", err=True)  # fmt: skip
+            sys.exit(1)
+        baseline = merge_logs(pt, meta=meta)
     metrics = write_report(
         record,
         out_dir,
         controller_path=str(ctrl_path),
         profile_path=str(profile_path),
         scenario_desc=sc.description.strip(),
+        passthrough=baseline,
     )
     mae = metrics["mae_deg_s"]
     click.echo(
@@ -470,6 +504,12 @@ def fly(
         f"{flight.wall_time_s:.1f} s wall; MAE roll {mae['roll']} pitch {mae['pitch']} "
         f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
     )
+    if baseline is not None:
+        ptm = metrics["passthrough"]["mae_deg_s"]
+        click.echo(
+            f"pass-through: MAE roll {ptm['roll']} pitch {ptm['pitch']} yaw {ptm['yaw']} deg/s"
+            f"{' (ended by a failsafe)' if metrics['passthrough']['failsafe_events'] else ''}"
+        )
     if flight.companion_rc != 0:
         sys.exit(1)
 

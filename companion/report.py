@@ -149,11 +149,19 @@ def write_report(
     controller_path: str,
     profile_path: str,
     scenario_desc: str = "",
+    passthrough: FlightRecord | None = None,
 ) -> dict[str, Any]:
-    """Write ``metrics.json``, the plots, ``flight.npz`` and ``report.md`` into ``out_dir``."""
+    """Write ``metrics.json``, the plots, ``flight.npz`` and ``report.md`` into ``out_dir``.
+
+    With ``passthrough`` (the same scenario flown sending the pilot's rates
+    straight to the autopilot), its metrics go under ``metrics["passthrough"]``
+    and the report compares the two.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     metrics = compute_metrics(record)
+    if passthrough is not None:
+        metrics["passthrough"] = compute_metrics(passthrough)
     metrics["versions"] = versions()
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
     record.save(str(out / "flight.npz"))
@@ -161,9 +169,28 @@ def write_report(
     title = f"{meta.get('profile')} / {meta.get('controller')} / {meta.get('scenario')}"
     images = plot_flight(record, out, title=title)
 
-    def row(key: str) -> str:
-        vals = metrics[key]
+    def row(key: str, m: dict[str, Any] = metrics) -> str:
+        vals = m[key]
         return " | ".join("-" if vals[a] is None else f"{vals[a]:.1f}" for a in AXES)
+
+    compare: list[str] = []
+    if passthrough is not None:
+        pt = metrics["passthrough"]
+        pt_end = (
+            f" (ended at {pt['sim_time_s']:.1f} s by: "
+            + ", ".join(str(e["kind"]) for e in pt["failsafe_events"]) + ")"
+            if pt["failsafe_events"] else ""
+        )  # fmt: skip
+        compare = [
+            "MFC on top of the autopilot's rate loop against the pilot's rates sent straight "
+            "through (same scenario, seed and SITL; logs in `passthrough/`), MAE deg/s:",
+            "",
+            "| flight | roll | pitch | yaw |",
+            "|---|---|---|---|",
+            f"| MFC on top | {row('mae_deg_s')} |",
+            f"| pass-through{pt_end} | {row('mae_deg_s', pt)} |",
+            "",
+        ]
 
     status = f"CRASHED at {metrics['crashed_at_s']:.2f} s" if metrics["crashed"] else "no crash"
     lines = [
@@ -188,6 +215,7 @@ def write_report(
         f"| MAE against the true rate | {row('mae_true_deg_s')} |",
         f"| time in saturation (s) | {row('time_in_saturation_s')} |",
         "",
+        *compare,
         *[f"![{p.stem}]({p.name})" for p in images],
         "",
         "Versions: " + ", ".join(f"{k} {v}" for k, v in metrics["versions"].items()),

@@ -669,6 +669,13 @@ class MfcController:
         self._applied = _ZERO3
         self._last = None
 
+    @property
+    def reference_rate_dot(self) -> Vec3:
+        """Derivative of the prefiltered pilot rate after the last update, rad/s^2
+        (zeros without a prefilter): what a feed-forward on the reference uses."""
+        f = self._filter
+        return f.rate_dot if f is not None else _ZERO3
+
     def learn(self) -> None:
         """Online identification for the sample just processed.
 
@@ -772,6 +779,11 @@ class PidController:
         self._pid.reset()
         self._last = None
         self._sat_pos = self._sat_neg = (False, False, False)
+
+    @property
+    def reference_rate_dot(self) -> Vec3:
+        """No reference prefilter: zeros (same interface as :class:`MfcController`)."""
+        return _ZERO3
 
     def learn(self) -> None:
         """Nothing to learn: same interface as :meth:`MfcController.learn`."""

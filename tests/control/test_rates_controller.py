@@ -11,7 +11,9 @@ from companion.config import (
 )
 
 
-def test_rates_default_is_the_shipped_law_with_a_wider_margin() -> None:
+def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
+    """mfc_rates.yaml differs from mfc_default.yaml only where its header says:
+    roll/pitch margin 1.0 and kd 10, a 60 Hz prefilter."""
     base = load_controller(DEFAULT_CONTROLLER)
     rates = load_controller(RATES_CONTROLLER)
     assert isinstance(base, MfcConfig) and isinstance(rates, MfcConfig)
@@ -19,12 +21,14 @@ def test_rates_default_is_the_shipped_law_with_a_wider_margin() -> None:
         b, r = getattr(base.axes, axis), getattr(rates.axes, axis)
         assert b.alpha_adapt is not None and r.alpha_adapt is not None
         assert (b.alpha_adapt.margin, r.alpha_adapt.margin) == (0.4, 1.0)
+        assert (b.kd, r.kd) == (25.0, 10.0)
         # Everything else is the same law.
-        assert b.model_copy(update={"alpha_adapt": None}) == r.model_copy(
-            update={"alpha_adapt": None}
-        )
+        same = {"alpha_adapt": None, "kd": 0.0}
+        assert b.model_copy(update=same) == r.model_copy(update=same)
     assert base.axes.yaw == rates.axes.yaw
-    assert base.model_copy(update={"axes": None}) == rates.model_copy(update={"axes": None})
+    assert (base.prefilter_hz, rates.prefilter_hz) == (25.0, 60.0)
+    same_top = {"axes": None, "prefilter_hz": None}
+    assert base.model_copy(update=same_top) == rates.model_copy(update=same_top)
 
 
 def test_default_controller_by_output() -> None:

@@ -156,9 +156,9 @@ def test_rates_output_wraps_the_autopilot_rate_loop_and_beats_passthrough(tmp_pa
     """PX4 >= 1.14 / ArduPilot style: the law's correction rides on the pilot's rates.
 
     The baseline sends the pilot's rates straight to the same autopilot rate loop.
-    Measured on the F450, paper-acro, with the rates default (mfc_rates.yaml): MFC on
-    top 11.3/11.3/6.8 deg/s, pass-through 15.5/13.9/19.4 (the in-process PX4-default
-    PID gives 15.3/13.7/19.3).
+    Measured on the F450, paper-acro, with the rates default (mfc_rates.yaml and the
+    30 ms lead): MFC on top 10.8/9.3/6.5 deg/s, pass-through 15.4/13.9/19.3 (the
+    in-process PX4-default PID gives 15.3/13.7/19.3).
     """
     maes = {}
     for label, extra in (("mfc", ()), ("passthrough", ("--rates-passthrough",))):

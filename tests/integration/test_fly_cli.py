@@ -1,0 +1,90 @@
+"""``companion fly``, the main job, as a user runs it: a subprocess, its files read back."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
+AXES = ("roll", "pitch", "yaw")
+
+
+def companion_fly(out: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "companion", "fly", "--out", str(out), "--no-progress", *args],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+
+
+def read_metrics(out: Path) -> dict[str, Any]:
+    doc: dict[str, Any] = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    return doc
+
+
+def test_a_short_fly_writes_its_report_and_the_numbers_hold(tmp_path: Path) -> None:
+    """The default flight (F450, paper-acro, PX4 personality), first 10 s.
+
+    Measured: MAE 7.0 / 2.7 / 1.2 deg/s, max 293 / 53 / 25, yaw saturated 0.57 s,
+    10.0 s simulated in 4.4 s wall. The bounds are about 1.5x those.
+    """
+    out = tmp_path / "fly"
+    proc = companion_fly(out, "--duration", "10")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    for name in ("metrics.json", "report.md", "rates.png", "motors_and_estimate.png",
+                 "flight.npz", "sitl.npz", "companion/control.bin"):  # fmt: skip
+        assert (out / name).stat().st_size > 0, name
+    for png in out.glob("*.png"):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    m = read_metrics(out)
+    assert m["crashed"] is False and m["failsafe_events"] == []
+    assert m["scenario"] == "paper-acro" and m["sim_time_s"] == pytest.approx(10.0, abs=0.05)
+    assert 0.0 < m["wall_time_s"] < 60.0
+    bounds = {"roll": 10.5, "pitch": 4.1, "yaw": 1.8}
+    for a in AXES:
+        assert 0.0 < m["mae_deg_s"][a] < bounds[a], (a, m["mae_deg_s"])
+        assert m["mae_deg_s"][a] <= m["rms_deg_s"][a] <= m["max_abs_deg_s"][a]
+        assert 0.0 <= m["time_in_saturation_s"][a] <= m["sim_time_s"]
+    # The report and the line printed carry the same numbers as metrics.json.
+    report = (out / "report.md").read_text(encoding="utf-8")
+    mae_row = " | ".join(f"{m['mae_deg_s'][a]:.1f}" for a in AXES)
+    assert f"| mean absolute error | {mae_row} |" in report
+    assert "vehicle_profiles/f450.yaml" in report and "mfc_default.yaml" in report
+    assert f"MAE roll {m['mae_deg_s']['roll']} pitch" in proc.stdout
+    assert "passthrough" not in m
+
+
+def test_ardupilot_rates_mfc_on_top_beats_passthrough_in_the_report(tmp_path: Path) -> None:
+    """Issue #7: ArduPilot personality, paper-acro (60 s), F450, shipped rates config.
+
+    Measured: MFC on top 13.8 / 12.1 / 14.4 deg/s, pass-through 16.8 / 14.9 / 25.6
+    (ratios 0.82 / 0.82 / 0.56).
+    """
+    out = tmp_path / "ap"
+    proc = companion_fly(out, "--autopilot", "ardupilot", "--compare-passthrough")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    m = read_metrics(out)
+    pt = m["passthrough"]
+    assert not m["crashed"] and not pt["crashed"]
+    assert m["failsafe_events"] == [] and pt["failsafe_events"] == []
+    assert m["sim_time_s"] > 59.0 and pt["sim_time_s"] > 59.0
+    for a in AXES:
+        assert m["mae_deg_s"][a] < 0.92 * pt["mae_deg_s"][a], (a, m["mae_deg_s"], pt["mae_deg_s"])
+    report = (out / "report.md").read_text(encoding="utf-8")
+    pt_row = " | ".join(f"{pt['mae_deg_s'][a]:.1f}" for a in AXES)
+    assert f"| pass-through | {pt_row} |" in report
+    assert (out / "passthrough" / "companion" / "control.bin").stat().st_size > 0
+    assert "pass-through: MAE roll" in proc.stdout
+
+
+def test_compare_passthrough_needs_rates_output(tmp_path: Path) -> None:
+    proc = companion_fly(tmp_path / "x", "--compare-passthrough", "--duration", "1")
+    assert proc.returncode == 2
+    assert "--compare-passthrough needs --output rates" in proc.stderr
+    assert not (tmp_path / "x").exists()
