@@ -256,14 +256,10 @@ class Companion:
 
     # -------------------------------------------------------------- hot path
     def _on_message(self, msg: Any) -> None:
+        # HIGHRES_IMU, ATTITUDE and RC_CHANNELS never come here: run() registers
+        # them with the link's fast handlers, which take them on either road.
         mid = msg.get_msgId()
-        if mid == _MSG_HIGHRES_IMU:  # normally taken by the link's fast handler (run())
-            self._on_highres_imu((msg.time_usec, msg.xgyro, msg.ygyro, msg.zgyro))
-        elif mid == _MSG_ATTITUDE:
-            self._on_attitude((msg.time_boot_ms, msg.rollspeed, msg.pitchspeed, msg.yawspeed))
-        elif mid == _MSG_RC_CHANNELS:
-            self._on_rc(tuple(getattr(msg, name) for name in _RC_FIELDS))
-        elif mid == _MSG_HEARTBEAT:
+        if mid == _MSG_HEARTBEAT:
             self._on_heartbeat(msg)
         elif mid == _MSG_STATUSTEXT:
             text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text

@@ -443,9 +443,10 @@ def fly(
 
     Writes metrics.json, plots, report.md, and both processes' logs into OUT.
     """
-    from companion.fly import fly_mavlink, merge_logs
+    from companion.fly import FlightProcesses, fly_mavlink, merge_logs
     from companion.profile import load_profile
     from companion.report import write_report
+    from companion.simulate import FlightRecord
     from sitl.scenario import load_scenario
 
     flown_output = "rates" if autopilot == "ardupilot" else output
@@ -460,36 +461,32 @@ def fly(
             load_profile(controller_profile)
     except ConfigError as exc:
         _fail_config(exc)
-    with _percent_bar(f"{sc.name} on {profile.name} (MAVLink)", progress) as tick:
-        flight = fly_mavlink(
-            profile_path, scenario, out_dir, controller_path=ctrl_path, output=output,
-            duration_s=duration, seed=seed, controller_profile_path=controller_profile,
-            autopilot=autopilot, progress=tick,
-        )  # fmt: skip
-    if not flight.control_log.exists():
-        click.echo(
-            f"error: the companion wrote no control log (exit {flight.companion_rc}); "
-            f"see {out_dir / 'companion.stderr'}",
-            err=True,
-        )
-        sys.exit(1)
     meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
             "controller_profile": str(controller_profile or profile_path)}  # fmt: skip
-    record = merge_logs(flight, meta=meta)
+
+    def fly_once(
+        label: str, out: Path, companion_args: tuple[str, ...] = ()
+    ) -> tuple[FlightProcesses, FlightRecord]:
+        """One MAVLink flight of the scenario into ``out``, merged into a record."""
+        with _percent_bar(f"{sc.name} on {profile.name}{label}", progress) as tick:
+            fl = fly_mavlink(
+                profile_path, scenario, out, controller_path=ctrl_path, output=output,
+                duration_s=duration, seed=seed, controller_profile_path=controller_profile,
+                autopilot=autopilot, companion_args=companion_args, progress=tick,
+            )  # fmt: skip
+        if not fl.control_log.exists():
+            click.echo(
+                f"error: the companion wrote no control log (exit {fl.companion_rc}); "
+                f"see {out / 'companion.stderr'}",
+                err=True,
+            )
+            sys.exit(1)
+        return fl, merge_logs(fl, meta=meta)
+
+    flight, record = fly_once(" (MAVLink)", out_dir)
     baseline = None
     if compare_passthrough:
-        with _percent_bar(f"{sc.name} on {profile.name}, pass-through", progress) as tick:
-            pt = fly_mavlink(
-                profile_path, scenario, out_dir / "passthrough", controller_path=ctrl_path,
-                output=output, duration_s=duration, seed=seed,
-                controller_profile_path=controller_profile, autopilot=autopilot,
-                companion_args=("--rates-passthrough",), progress=tick,
-            )  # fmt: skip
-        if not pt.control_log.exists():
-            click.echo(f"error: the pass-through flight wrote no control log (exit "
-                       f"{pt.companion_rc}); see {out_dir / 'passthrough'}", err=True)  # fmt: skip
-            sys.exit(1)
-        baseline = merge_logs(pt, meta=meta)
+        _, baseline = fly_once(", pass-through", out_dir / "passthrough", ("--rates-passthrough",))
     metrics = write_report(
         record,
         out_dir,
