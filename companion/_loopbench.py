@@ -37,9 +37,15 @@ alike):
   runs on a quiet machine); sending them all right before the sample instead
   made the idle server's work compete with the timed one for the two cores.
   Now both see the same order and nothing of the other's.
-* A sample is *missed* when its command is not back within 20 ms
-  (``_MISS_AFTER_US``, by the same stamps); an answer that is later is not
-  timed.
+* A sample is *missed* when no command carrying its ``time_usec`` ever
+  comes back (the harness waits ``_STRAGGLER_S`` after the run for the last
+  ones). A command that comes back later than 20 ms (``_LATE_AFTER_US``, by
+  the same stamps) is counted as *late* as well as timed: on this shared
+  2-core VM the whole machine stalls now and then for 20-40 ms (an
+  independent 1 ms sleeper process sees the same gaps), and a sample sent
+  just before such a stall comes back late from the floor and from the
+  companion alike. Until November 2026 such answers counted as missed, which
+  mixed "the companion dropped a sample" with "the machine stopped".
 * The IMU keeps time like an autopilot's: when the harness is woken a whole
   period or more late (descheduled on a loaded machine), it skips the slots
   that passed instead of sending them in a burst, and counts them
@@ -85,8 +91,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # each datagram carries the CLOCK_REALTIME time the kernel received it.
 _SO_TIMESTAMPNS = 35
 _TIMESPEC = struct.Struct("@qq")
-_MISS_AFTER_US = 20_000.0
-"""A command that comes back later than this after its sample is a miss."""
+_LATE_AFTER_US = 20_000.0
+"""A command that comes back later than this after its sample is late."""
+_STRAGGLER_S = 1.0
+"""After the run, how long the harness waits for commands still on their way."""
 
 
 class _Sink:
@@ -129,6 +137,7 @@ def run_harness(
     lat: list[list[float]] = [[] for _ in ports]
     measured = [0] * n
     skipped = [0] * n
+    late = [0] * n
     # Every target gets the same number of whole blocks.
     blocks_each = max(1, math.ceil(seconds_each / block_s - 1e-9))
     wall_ns = time.time_ns  # the clock of the kernel's receive stamps
@@ -163,8 +172,9 @@ def run_harness(
                     entry = sent[i].pop(m.time_usec, None)
                     if entry is not None and entry[1]:
                         dt_us = (t_rx - entry[0]) / 1000.0
-                        if dt_us <= _MISS_AFTER_US:  # later than that: a miss
-                            lat[i].append(dt_us)
+                        lat[i].append(dt_us)
+                        if dt_us > _LATE_AFTER_US:
+                            late[i] += 1
                 elif mid == mavlink2.MAVLINK_MSG_ID_COMMAND_LONG:
                     send(i, mavlink2.MAVLink_command_ack_message(
                         m.command, 0, 0, 0, m.get_srcSystem(), m.get_srcComponent()))  # fmt: skip
@@ -235,10 +245,17 @@ def run_harness(
                 r, _, _ = select.select(socks, [], [], wait)
                 for sk in r:
                     drain(socks.index(sk))
-        deadline = time.perf_counter() + _MISS_AFTER_US * 1e-6 + 0.03
-        while time.perf_counter() < deadline:
-            for i in range(n):
-                drain(i)
+        # Stragglers: heartbeat and RC go on (as from an autopilot), so no
+        # server's lost-link or lost-RC watchdog ends it while it is awaited.
+        deadline = time.perf_counter() + _STRAGGLER_S
+        while (now := time.perf_counter()) < deadline:
+            if now >= next_hk:
+                for i in range(n):
+                    housekeeping(i)
+                next_hk = now + 0.02
+            r, _, _ = select.select(socks, [], [], max(0.0, min(deadline, next_hk) - now))
+            for sk in r:
+                drain(socks.index(sk))
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -251,11 +268,13 @@ def run_harness(
             "samples": measured[i],
             "answered": len(xs),
             "missed": max(0, measured[i] - len(xs)),
+            "late": late[i],
             "skipped": skipped[i],
         }
         if xs:
             stats["p50_us"] = statistics.median(xs)
             stats["p99_us"] = _percentile(xs, 0.99)
+            stats["max_us"] = max(xs)
         out.append(stats)
     return out
 
@@ -346,8 +365,12 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
         "latency_us_p99": round(comp.get("p99_us", nan), 1),
         "floor_us_p50": round(floor.get("p50_us", nan), 1),
         "floor_us_p99": round(floor.get("p99_us", nan), 1),
+        "latency_us_max": round(comp.get("max_us", nan), 1),
+        "floor_us_max": round(floor.get("max_us", nan), 1),
         "samples": comp["samples"],
         "floor_missed": floor["missed"],
+        "late": comp["late"],
+        "floor_late": floor["late"],
         "skipped": comp["skipped"],
         "floor_skipped": floor["skipped"],
         "ended_early": ended_early[1],

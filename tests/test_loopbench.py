@@ -26,3 +26,57 @@ def test_harness_times_the_echo_server_and_accounts_for_every_sample() -> None:
     assert stats["samples"] == stats["answered"] + stats["missed"]
     assert stats["answered"] > 0
     assert 0.0 < stats["p50_us"] <= stats["p99_us"]
+
+
+_PICKY_SERVER = """
+import asyncio, os
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink.dialects.v20 import common as m2
+
+class Sink:
+    def write(self, b): pass
+
+async def main(port):
+    loop = asyncio.get_running_loop()
+    mav = m2.MAVLink(Sink(), srcSystem=1, srcComponent=191)
+
+    class P(asyncio.DatagramProtocol):
+        def connection_made(self, t): self.t = t
+        def datagram_received(self, data, addr):
+            for m in mav.parse_buffer(data) or []:
+                if m.get_msgId() != m2.MAVLINK_MSG_ID_HIGHRES_IMU:
+                    continue
+                slot = m.time_usec // 5000  # 200 Hz
+                out = m2.MAVLink_set_actuator_control_target_message(
+                    m.time_usec, 0, 1, 1, [0.0] * 8).pack(mav)
+                if slot % 5 == 0:
+                    continue  # dropped: never answered
+                if slot % 5 == 1:
+                    loop.call_later(0.05, self.t.sendto, out, addr)  # late
+                else:
+                    self.t.sendto(out, addr)
+
+    await loop.create_datagram_endpoint(P, local_addr=("127.0.0.1", port))
+    await asyncio.sleep(30)
+
+asyncio.run(main(PORT))
+"""
+
+
+def test_harness_tells_a_dropped_sample_from_a_late_one() -> None:
+    port = _free_port()
+    server = subprocess.Popen([sys.executable, "-c", _PICKY_SERVER.replace("PORT", str(port))])
+    try:
+        time.sleep(1.0)
+        assert server.poll() is None
+        (stats,) = run_harness([port], rate_hz=200.0, seconds_each=1.0, block_s=0.5, warmup_s=0.2)
+    finally:
+        server.kill()
+        server.wait(timeout=10)
+    n = stats["samples"]
+    assert n >= 150
+    # One slot in five is dropped, one in five answered 50 ms late (and timed).
+    assert abs(stats["missed"] - n / 5) <= 0.05 * n
+    assert abs(stats["late"] - n / 5) <= 0.05 * n
+    assert stats["samples"] == stats["answered"] + stats["missed"]
+    assert stats["p99_us"] > 20_000.0
