@@ -131,6 +131,7 @@ def run_harness(
         socks.append(sk)
     parser = mavlink2.MAVLink(_Sink(), srcSystem=255, srcComponent=0)
     period = 1.0 / rate_hz
+    period_us = round(period * 1e6)
     n = len(ports)
     # time_usec -> (sent at, ns CLOCK_REALTIME; sent while measuring)
     sent: list[dict[int, tuple[int, bool]]] = [{} for _ in ports]
@@ -138,6 +139,8 @@ def run_harness(
     measured = [0] * n
     skipped = [0] * n
     late = [0] * n
+    late_episodes = [0] * n  # late samples less than 20 ms apart are one episode (a stall)
+    last_late = [-2] * n  # time_usec slot of the last late sample
     # Every target gets the same number of whole blocks.
     blocks_each = max(1, math.ceil(seconds_each / block_s - 1e-9))
     wall_ns = time.time_ns  # the clock of the kernel's receive stamps
@@ -175,6 +178,10 @@ def run_harness(
                         lat[i].append(dt_us)
                         if dt_us > _LATE_AFTER_US:
                             late[i] += 1
+                            slot = round(m.time_usec / period_us)
+                            if slot - last_late[i] > 1 + round(_LATE_AFTER_US / period_us):
+                                late_episodes[i] += 1
+                            last_late[i] = slot
                 elif mid == mavlink2.MAVLINK_MSG_ID_COMMAND_LONG:
                     send(i, mavlink2.MAVLink_command_ack_message(
                         m.command, 0, 0, 0, m.get_srcSystem(), m.get_srcComponent()))  # fmt: skip
@@ -226,7 +233,7 @@ def run_harness(
                     if measuring:
                         skipped[target] += behind
                 k += 1
-                time_usec = k * round(period * 1e6)
+                time_usec = k * period_us
                 buf = mavlink2.MAVLink_highres_imu_message(
                     time_usec, 0, 0, -9.81, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0b111111
                 ).pack(mav)
@@ -269,6 +276,7 @@ def run_harness(
             "answered": len(xs),
             "missed": max(0, measured[i] - len(xs)),
             "late": late[i],
+            "late_episodes": late_episodes[i],
             "skipped": skipped[i],
         }
         if xs:
@@ -371,6 +379,8 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
         "floor_missed": floor["missed"],
         "late": comp["late"],
         "floor_late": floor["late"],
+        "late_episodes": comp["late_episodes"],
+        "floor_late_episodes": floor["late_episodes"],
         "skipped": comp["skipped"],
         "floor_skipped": floor["skipped"],
         "ended_early": ended_early[1],
