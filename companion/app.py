@@ -43,6 +43,7 @@ import logging
 import math
 import signal
 import time
+from collections.abc import Coroutine, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -52,6 +53,9 @@ from companion.errors import EngageError, LinkError
 from companion.profile import VehicleProfile
 from companion.reference import ReferenceScript
 from companion.stacks import FlightStack, stack_for
+
+_NO_RATES = (math.nan, math.nan, math.nan)
+"""The ``sent_*`` log columns of a sample for which no body rates were sent."""
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -202,6 +206,8 @@ class Companion:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._engage_task: asyncio.Task[None] | None = None
         self._handing_back = False
+        self._hand_back_idle = asyncio.Event()
+        self._hand_back_idle.set()
         self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
         self._restart_dt = False
@@ -320,8 +326,9 @@ class Companion:
             if scripted_thrust is not None:
                 thrust = scripted_thrust
         out = self.controller.update(dt, gyro, ref, thrust)
+        sent: Sequence[float] = _NO_RATES
         if self.commanding:
-            self._send_output(t_s, out, ref)
+            sent = self._send_output(t_s, out, ref, thrust)
         t_sent = time.perf_counter()
         # ---- the command has left: what follows is off the latency path
         self.controller.learn()
@@ -348,18 +355,23 @@ class Companion:
                     ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
                     ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
-                    thrust, out.thrust, *out.motors,
+                    thrust, out.thrust, *out.motors, *sent,
                 ]
             )  # fmt: skip
         if self._telemetry is not None:
             self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
 
-    def _send_output(self, t_s: float, out: Any, ref: tuple[float, float, float]) -> None:
+    def _send_output(
+        self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
+    ) -> Sequence[float]:
+        """Send this sample's command; returns the body rates sent (NaN: none)."""
         if self._actuator_output:
             r, p, y = out.torque
             self.link.send_actuator_controls(
                 round(t_s * 1e6), (r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0)
             )
+            self.n_commands += 1
+            return _NO_RATES
         else:
             # The law wraps the autopilot's rate loop: the pilot's rate plus the
             # law's correction, within the profile's rate limits.
@@ -374,10 +386,12 @@ class Companion:
                     max(-rm[i], min(rm[i], ref[i] + lead * rd[i] + out.torque[i] * fs[i]))
                     for i in range(3)
                 ]
-            # The pilot's collective: the autopilot mixes it with its own rate
-            # loop; our mixer's air-mode shift belongs to torques we do not send.
-            self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, self._thrust)
-        self.n_commands += 1
+            # The pilot's (or the script's) collective: the autopilot mixes it with
+            # its own rate loop; our mixer's air-mode shift belongs to torques we
+            # do not send.
+            self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust)
+            self.n_commands += 1
+            return sp
 
     def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
         """Rates beyond the profile's limits, or a tracking error that stays large.
@@ -545,8 +559,12 @@ class Companion:
         stopped the commands; otherwise the current state decides.
         """
         if self._handing_back:
+            # One is under way (a failsafe's): let it finish rather than be
+            # cancelled with the run's tasks. Its commands time out within ~1 s.
+            await self._hand_back_idle.wait()
             return
         self._handing_back = True
+        self._hand_back_idle.clear()
         try:
             released = self._release()
             was_commanding = released if was_commanding is None else was_commanding
@@ -571,6 +589,7 @@ class Companion:
                 self._event("handed_back", f"{reason}; mode switch unanswered ({exc})")
         finally:
             self._handing_back = False
+            self._hand_back_idle.set()
 
     def _failsafe(self, kind: str, detail: str) -> None:
         if self._stop.is_set() or self._in_failsafe:
@@ -673,16 +692,10 @@ class Companion:
             with contextlib.suppress(NotImplementedError, RuntimeError):
                 loop.add_signal_handler(sig, self._on_signal, sig)
         try:
-            await self.link.start()
-            if opts.mqtt_url:
-                from companion.telemetry import MqttTelemetry
-
-                self._telemetry = MqttTelemetry(opts.mqtt_url)
-                self._spawn(self._telemetry.run(), "mqtt")
-            hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
-            self.autopilot = int(hb.autopilot)
-            await self._recognise_stack()
-            await self._request_streams()
+            if not await self._until_stopped(self._start_up()):
+                # A signal during start-up: nothing was engaged, nothing to hand back.
+                self._event("stopped", "signal during start-up")
+                return self._exit_code
             # Everything built during start-up lives as long as the run: move it out
             # of the cyclic collector's reach so its passes stay short.
             gc.collect()
@@ -712,6 +725,37 @@ class Companion:
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
         return self._exit_code
+
+    async def _start_up(self) -> None:
+        """Link up, wait for the autopilot, recognise it, request the streams."""
+        opts = self.opts
+        await self.link.start()
+        if opts.mqtt_url:
+            from companion.telemetry import MqttTelemetry
+
+            self._telemetry = MqttTelemetry(opts.mqtt_url)
+            self._spawn(self._telemetry.run(), "mqtt")
+        hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
+        self.autopilot = int(hb.autopilot)
+        await self._recognise_stack()
+        await self._request_streams()
+
+    async def _until_stopped(self, coro: Coroutine[Any, Any, None]) -> bool:
+        """Run ``coro`` unless the run is stopped first (then cancel it); True if it ran."""
+        work = asyncio.ensure_future(coro)
+        stop = asyncio.ensure_future(self._stop.wait())
+        try:
+            await asyncio.wait({work, stop}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            stop.cancel()
+            if not work.done():
+                work.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await work
+        if work.cancelled():
+            return False
+        work.result()  # its exception, if it raised one
+        return True
 
     def _on_signal(self, sig: int) -> None:
         self._event("signal", signal.Signals(sig).name)

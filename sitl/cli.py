@@ -124,8 +124,8 @@ def cli(verbose: int) -> None:
     "--fault",
     "faults",
     multiple=True,
-    help="Inject a fault: imu-stop@T, imu-nan@T, link-drop@T, motor-fail@T:INDEX "
-    "(T in simulated s; repeatable).",
+    help="Inject a fault: imu-stop@T, imu-nan@T, imu-range@T, link-drop@T, "
+    "heartbeat-stop@T, motor-fail@T:INDEX (T in simulated s; repeatable).",
 )
 @click.option(
     "--autopilot",

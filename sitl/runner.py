@@ -85,7 +85,14 @@ from sitl.autopilot import (
 )
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.mavlink_face import Endpoint, MavlinkFace, default_streams, enable_signing
+from sitl.mavlink_face import (
+    ID_HEARTBEAT,
+    ID_HIGHRES_IMU,
+    Endpoint,
+    MavlinkFace,
+    default_streams,
+    enable_signing,
+)
 from sitl.physics import Quadrotor, hover_motor_command
 from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.wind import Wind, WindConfig
@@ -99,7 +106,18 @@ logger = logging.getLogger(__name__)
 
 Status = Literal["completed", "stopped", "crashed"]
 
-FAULT_KINDS = ("imu-stop", "imu-nan", "link-drop", "motor-fail")
+FAULT_KINDS = (
+    "imu-stop",
+    "imu-nan",
+    "link-drop",
+    "motor-fail",
+    "heartbeat-stop",
+    "imu-range",
+)
+
+IMU_RANGE_GYRO_RAD_S = 40.0
+"""The HIGHRES_IMU ``xgyro`` an ``imu-range`` fault reports: finite, but beyond
+every bundled profile's gyro range (2000 deg/s = 34.9 rad/s)."""
 
 
 @dataclass(frozen=True)
@@ -117,7 +135,12 @@ def parse_fault(text: str) -> Fault:
     ``imu-stop``: no more IMU streams (HIGHRES_IMU, ATTITUDE...);
     ``imu-nan``: HIGHRES_IMU gyro fields become NaN;
     ``link-drop``: nothing is sent or read any more;
-    ``motor-fail``: motor INDEX (0-based) stops.
+    ``motor-fail``: motor INDEX (0-based) stops;
+    ``heartbeat-stop``: no more HEARTBEAT (requested or periodic); every other
+    message still flows both ways (a lost-link test without a stale IMU);
+    ``imu-range``: HIGHRES_IMU ``xgyro`` reads :data:`IMU_RANGE_GYRO_RAD_S`
+    (finite, beyond the gyro's range); the other fields and streams are true.
+    The autopilot's own loop keeps the true samples in every case.
     """
     kind, _, rest = text.partition("@")
     when, _, arg = rest.partition(":")
@@ -129,6 +152,31 @@ def parse_fault(text: str) -> Fault:
     if kind not in FAULT_KINDS or not (t_s >= 0.0 and math.isfinite(t_s)):
         raise ValueError(f"fault {text!r}: KIND is one of {', '.join(FAULT_KINDS)}, SECONDS >= 0")
     return Fault(kind, t_s, index)
+
+
+class _OutgoingFaults:
+    """Faults applied to messages as the face encodes them.
+
+    Wraps the face's pymavlink ``send`` (every message it sends goes through it,
+    HEARTBEAT included, before signing and packing); installed only when such a
+    fault is injected, so a run without one sends exactly what it always did.
+    """
+
+    def __init__(self, mav: Any) -> None:
+        self._send = mav.send
+        self.drop_heartbeat = False
+        self.gyro_x_rad_s: float | None = None
+        self.dropped_heartbeats = 0
+        mav.send = self.send
+
+    def send(self, msg: Any, force_mavlink1: bool = False) -> None:
+        mid = msg.get_msgId()
+        if mid == ID_HEARTBEAT and self.drop_heartbeat:
+            self.dropped_heartbeats += 1
+            return
+        if mid == ID_HIGHRES_IMU and self.gyro_x_rad_s is not None:
+            msg.xgyro = self.gyro_x_rad_s
+        self._send(msg, force_mavlink1=force_mavlink1)
 
 
 _MODE_BY_NAME = {m.name: m for m in MainMode}
@@ -416,6 +464,7 @@ class Runner:
             self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
+        self._outgoing: _OutgoingFaults | None = None
         self.stop = threading.Event()
         self.duration_s = config.duration_s
         if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
@@ -530,6 +579,13 @@ class Runner:
             face.muted = True
         elif fault.kind == "motor-fail":
             self.quad.set_motor_failure(fault.arg, 0.0)
+        elif fault.kind in ("heartbeat-stop", "imu-range"):
+            if self._outgoing is None:
+                self._outgoing = _OutgoingFaults(face.mav)
+            if fault.kind == "heartbeat-stop":
+                self._outgoing.drop_heartbeat = True
+            else:
+                self._outgoing.gyro_x_rad_s = IMU_RANGE_GYRO_RAD_S
         logger.warning("fault injected at t=%.3f s: %s", t, fault)
         log.event(Event(t, "fault", {"kind": fault.kind, "arg": fault.arg}))
 

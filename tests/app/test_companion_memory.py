@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -28,6 +29,8 @@ from companion.cli import cli
 from companion.config import DEFAULT_CONTROLLER, load_controller
 from companion.link.transport import MemoryTransport
 from companion.profile import load_profile
+from companion.records import read_columnar
+from companion.reference import ReferenceScript
 from tests.app.fakes import (
     APM_ALT_HOLD,
     APM_GUIDED_NOGPS,
@@ -128,6 +131,7 @@ async def start() -> AsyncIterator[Start]:
         armed: bool = False,
         results: dict[int, Any] | None = None,
         params: dict[str, float] | None = None,
+        heartbeat: bool = True,
         **opts: Any,
     ) -> Flight:
         ours, theirs = MemoryTransport.pair()
@@ -138,6 +142,7 @@ async def start() -> AsyncIterator[Start]:
             armed=armed,
             results=results,
             params=params,
+            heartbeat_period_s=0.2 if heartbeat else 3600.0,
         ).open()
         opts.setdefault("failsafe", LOOSE)
         options = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, **opts)
@@ -146,7 +151,8 @@ async def start() -> AsyncIterator[Start]:
         flight = Flight(companion, fake, task)
         flights.append(flight)
         await fake.wait_until(lambda: ours.is_open, 1.0)
-        fake.heartbeat()
+        if heartbeat:
+            fake.heartbeat()
         return flight
 
     yield _start
@@ -500,6 +506,40 @@ async def test_ardupilot_rates_engage_guided_nogps_and_send_attitude_targets(
     assert is_mode(fake.commands(CMD_DO_SET_MODE)[-1], float(APM_ALT_HOLD))
 
 
+async def test_rates_output_sends_the_reference_files_thrust_and_logs_the_rates(
+    start: Start, tmp_path: Path
+) -> None:
+    script = ReferenceScript(
+        t_s=(0.0, 10.0), rates_rad_s=((0.2, 0.0, 0.0),) * 2, thrust=(0.62, 0.62)
+    )
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="auto",
+                    output="rates", params={"GUID_OPTIONS": 8.0}, reference=script,
+                    log_dir=tmp_path)  # fmt: skip
+    fake = f.fake
+    await streams_requested(f, MSG_ATTITUDE)
+    fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # the pilot's collective: 0.5
+    await f.feed_until(lambda: fake.commands(CMD_ARM), send=f.att, what="ARM")
+    fake.set_state(APM_GUIDED_NOGPS, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=f.att, what="engaged")
+    n0 = len(fake.setpoints())
+    for _ in range(20):
+        f.att()
+        await settle()
+    new = fake.setpoints()[n0:]
+    assert len(new) == 20
+    assert {round(m.thrust, 5) for m in new} == {0.62}  # the script's, not the stick's
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    sent = cols["engaged"] == 1.0
+    assert sent.sum() >= 20
+    # What went out is in the log, as sent (float32 on the wire).
+    assert np.allclose(cols["sent_roll_rad_s"][sent][-20:], [m.body_roll_rate for m in new],
+                       atol=1e-6)  # fmt: skip
+    assert np.isfinite(cols["sent_roll_rad_s"][sent]).all()
+    assert np.isnan(cols["sent_roll_rad_s"][0])  # before the setpoint stream began
+
+
 async def test_ardupilot_denied_400_hz_falls_back_to_333_hz(start: Start) -> None:
     def interval(msg: Any) -> int:
         if int(msg.param1) == MSG_ATTITUDE and msg.param2 < 1e6 / 350.0:
@@ -575,6 +615,37 @@ async def test_sigterm_while_engaged_hands_back_and_exits_0(start: Start) -> Non
     modes = f.fake.commands(CMD_DO_SET_MODE)[n_modes:]
     assert [m.param2 for m in modes] == [3.0]
     assert f.details("signal") == ["SIGTERM"]
+    assert any("POSCTL accepted" in d for d in f.details("handed_back"))
+
+
+async def test_sigterm_before_the_autopilot_answers_exits_0_at_once_sending_nothing(
+    start: Start,
+) -> None:
+    f = await start(engage="auto", heartbeat=False)  # a silent autopilot
+    await asyncio.sleep(0.1)
+    f.companion._on_signal(signal.SIGTERM)
+    assert await f.finish(timeout_s=1.0) == 0  # not after the 10 s heartbeat timeout
+    assert f.kinds()[-1] == "stopped"
+    assert not f.fake.of_type("COMMAND_LONG", "SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
+
+
+async def test_a_signal_during_a_failsafe_hand_back_lets_it_finish(start: Start) -> None:
+    tries: list[float] = []
+
+    def first_mode_switch_lost(m: Any) -> int | None:
+        if m.param2 == 3.0:  # POSCTL: the hand-back
+            tries.append(m.param2)
+            return None if len(tries) == 1 else ACCEPTED
+        return ACCEPTED
+
+    f = await start(engage="auto", output="actuator",
+                    results={CMD_DO_SET_MODE: first_mode_switch_lost})  # fmt: skip
+    await engage_px4_auto(f)
+    f.companion._failsafe("failsafe_envelope", "test")
+    await settle()
+    f.companion._on_signal(signal.SIGTERM)  # while the first try waits for its ACK
+    assert await f.finish(timeout_s=3.0) == 3  # the failsafe came first
+    assert len(tries) == 2  # retried, not cancelled with the run's tasks
     assert any("POSCTL accepted" in d for d in f.details("handed_back"))
 
 

@@ -83,7 +83,7 @@ def write_log(
                     o.torque[a],
                     o.saturated_axes[a],
                 ]
-            row += [cols["thrust"][i], o.thrust, *o.motors]
+            row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan]
             log.append(row)
 
 
