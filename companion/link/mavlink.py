@@ -633,6 +633,9 @@ class MavlinkLink:
         return True
 
     def _on_heartbeat(self, hb: Any) -> None:
+        # The autopilot's own heartbeat (accepted: right sender, right signature):
+        # replies go where it came from.
+        self.transport.confirm_peer()
         self.last_heartbeat = hb
         self.last_heartbeat_monotonic_s = time.monotonic()
         waiters = self._heartbeat_waiters

@@ -17,9 +17,20 @@ now is dropped (UDP: a stale setpoint is worth less than the next one) or, for
 serial, queued in a bounded buffer flushed by a loop writer.
 
 Counters (``transport.counters``): ``bytes_in``, ``bytes_out``, ``chunks_in``,
-``chunks_out``, ``dropped_no_peer`` (UDP in before anyone talked to us),
-``dropped_not_open``, ``dropped_would_block`` (socket/serial buffer full),
-``send_errors``, ``recv_errors``, ``peer_changes`` (udpin only).
+``chunks_out``, ``dropped_no_peer`` (UDP in before the autopilot talked to
+us), ``dropped_not_open``, ``dropped_would_block`` (socket/serial buffer full),
+``send_errors``, ``recv_errors``; udpin only: ``peer_changes``,
+``other_sender_chunks`` (datagrams from an address that was not the peer
+when they arrived).
+
+Who ``udpin`` answers is the link's decision, not the network's: the
+transport replies to the address the link last confirmed
+(:meth:`Transport.confirm_peer`, called by the link for each HEARTBEAT it
+accepts from the autopilot, i.e. from the right system and, with signing,
+correctly signed). A datagram from anyone else is delivered to the link
+(which ignores and counts what is not from the autopilot) but does not move
+our replies: before, any sender, even of junk, became the peer until the
+autopilot spoke again, and our setpoints and hand-back went to it.
 """
 
 from __future__ import annotations
@@ -107,6 +118,12 @@ class Transport(abc.ABC):
     def is_open(self) -> bool:
         return False
 
+    def confirm_peer(self) -> None:  # noqa: B027 (a no-op by default, not abstract)
+        """Called while the chunk being delivered is from the autopilot: answer its sender.
+
+        Only ``udpin`` has anything to learn; other transports have one peer.
+        """
+
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.description}>"
 
@@ -131,6 +148,7 @@ class _UdpTransport(Transport):
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._on_bytes: OnBytes | None = None
+        self._rx_addr: tuple[Any, ...] | None = None  # sender of the chunk being delivered
 
     @property
     def is_open(self) -> bool:
@@ -177,6 +195,7 @@ class _UdpTransport(Transport):
         counters["bytes_in"] += len(data)
         if addr != self.peer:
             self._on_new_sender(addr)
+        self._rx_addr = addr
         on_bytes(data)
 
     def _on_new_sender(self, addr: tuple[Any, ...]) -> None:
@@ -217,16 +236,18 @@ class _UdpTransport(Transport):
 
 
 class UdpInTransport(_UdpTransport):
-    """Bind ``host:port`` and reply to the last peer that sent to us.
+    """Bind ``host:port`` and reply to the address the autopilot's frames come from.
 
-    Until someone sends a datagram there is nobody to reply to: writes are dropped
-    and counted in ``dropped_no_peer``. Port 0 binds an ephemeral port
-    (see :attr:`local_address` after :meth:`open`).
+    The link says which sender that is (:meth:`confirm_peer`); until it has,
+    there is nobody to reply to: writes are dropped and counted in
+    ``dropped_no_peer``. Port 0 binds an ephemeral port (see
+    :attr:`local_address` after :meth:`open`).
     """
 
     def __init__(self, host: str, port: int) -> None:
         super().__init__("udpin", host, port)
         self.counters["peer_changes"] = 0
+        self.counters["other_sender_chunks"] = 0
 
     async def open(self, on_bytes: OnBytes) -> None:
         if self._sock is not None:
@@ -244,6 +265,12 @@ class UdpInTransport(_UdpTransport):
         logger.info("%s: listening on %s", self.description, self.local_address)
 
     def _on_new_sender(self, addr: tuple[Any, ...]) -> None:
+        self.counters["other_sender_chunks"] += 1
+
+    def confirm_peer(self) -> None:
+        addr = self._rx_addr
+        if addr is None or addr == self.peer:
+            return
         if self.peer is not None:
             self.counters["peer_changes"] += 1
         logger.info("%s: peer is now %s", self.description, addr)

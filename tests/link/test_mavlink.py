@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import socket
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -11,7 +12,7 @@ import pytest
 
 from companion.errors import LinkError
 from companion.link.mavlink import MavlinkLink, mavlink2
-from companion.link.transport import MemoryTransport
+from companion.link.transport import MemoryTransport, open_transport
 
 from .peer import FakeAutopilot, settle
 
@@ -286,3 +287,39 @@ async def test_constructor_touches_nothing() -> None:
         MavlinkLink(ours, heartbeat_hz=-1)
     with pytest.raises(ValueError):
         MavlinkLink(ours, target_component=1)
+
+
+async def test_udpin_answers_the_autopilot_not_whoever_sent_last() -> None:
+    """Real UDP: junk and a ground station's heartbeat do not redirect our commands."""
+    t = open_transport("udpin:127.0.0.1:0")
+    link = MavlinkLink(t, heartbeat_hz=0)
+    await link.start()
+    try:
+        assert t.local_address is not None
+        port = t.local_address[1]
+        ap, gcs = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+        for s in (ap, gcs):
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(0.3)
+        enc_ap = mavlink2.MAVLink(None, srcSystem=1, srcComponent=1)
+        enc_gcs = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+        hb = enc_ap.heartbeat_encode(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4,
+                                     0, 0, 0)  # fmt: skip
+        ap.sendto(hb.pack(enc_ap), ("127.0.0.1", port))
+        await link.wait_heartbeat(2.0)
+        assert link.target == (1, 1)
+        gcs.sendto(b"junk, not MAVLink", ("127.0.0.1", port))
+        gcs_hb = enc_gcs.heartbeat_encode(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID,
+                                          0, 0, 0)  # fmt: skip
+        gcs.sendto(gcs_hb.pack(enc_gcs), ("127.0.0.1", port))
+        await asyncio.sleep(0.1)
+        link.send_actuator_controls(1, [0.1] * 8)
+        got = ap.recv(1000)
+        assert got and got[0] == 0xFD  # our MAVLink 2 frame went to the autopilot
+        with pytest.raises(TimeoutError):
+            gcs.recv(1000)
+        assert t.counters["peer_changes"] == 0
+        ap.close()
+        gcs.close()
+    finally:
+        await link.close()

@@ -67,11 +67,17 @@ async def test_memory_pair_round_trip() -> None:
 # --------------------------------------------------------------------------- UDP
 
 
-async def test_udpin_replies_to_last_sender() -> None:
+async def test_udpin_replies_only_to_the_sender_the_link_confirmed() -> None:
     port = free_udp_port()
     t = UdpInTransport("127.0.0.1", port)
     inbox = Inbox()
-    await t.open(inbox)
+
+    def deliver(chunk: bytes) -> None:
+        inbox(chunk)
+        if chunk.startswith(b"ap:"):  # the link recognised its autopilot in this chunk
+            t.confirm_peer()
+
+    await t.open(deliver)
     try:
         t.write(b"to nobody")
         assert t.counters["dropped_no_peer"] == 1
@@ -79,18 +85,29 @@ async def test_udpin_replies_to_last_sender() -> None:
         s2 = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         for s in (s1, s2):
             s.bind(("127.0.0.1", 0))
-            s.settimeout(2.0)
-        s1.sendto(b"from one", ("127.0.0.1", port))
-        assert await inbox.get() == b"from one"
+            s.settimeout(0.3)
+        s2.sendto(b"junk", ("127.0.0.1", port))
+        assert await inbox.get() == b"junk"  # delivered, but nobody to answer yet
+        t.write(b"reply")
+        assert t.counters["dropped_no_peer"] == 2
+        s1.sendto(b"ap: one", ("127.0.0.1", port))
+        assert await inbox.get() == b"ap: one"
         t.write(b"reply one")
         assert s1.recv(100) == b"reply one"
-        s2.sendto(b"from two", ("127.0.0.1", port))
-        assert await inbox.get() == b"from two"
+        s2.sendto(b"junk again", ("127.0.0.1", port))
+        assert await inbox.get() == b"junk again"
         t.write(b"reply two")
-        assert s2.recv(100) == b"reply two"
+        assert s1.recv(100) == b"reply two"  # a stranger does not move our replies
+        with pytest.raises(TimeoutError):
+            s2.recv(100)
+        s2.sendto(b"ap: moved", ("127.0.0.1", port))  # the autopilot from a new address
+        assert await inbox.get() == b"ap: moved"
+        t.write(b"reply three")
+        assert s2.recv(100) == b"reply three"
         assert t.peer == s2.getsockname()
         assert t.counters["peer_changes"] == 1
-        assert t.counters["chunks_in"] == 2 and t.counters["chunks_out"] == 2
+        assert t.counters["other_sender_chunks"] == 4  # each arrived from a non-peer
+        assert t.counters["chunks_in"] == 4 and t.counters["chunks_out"] == 3
         s1.close()
         s2.close()
     finally:
