@@ -654,7 +654,7 @@ class Companion:
             d / "control.bin", columns(self.opts.profile.n_motors), meta=meta
         )
         self._log_append = self._log_rows.append
-        self._events_file = (d / "events.jsonl").open("a", encoding="utf-8")
+        self._events_file = (d / "events.jsonl").open("w", encoding="utf-8")
 
     def _close_records(self) -> None:
         for obj in (self._log_rows, self._tlog, self._events_file):

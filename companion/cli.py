@@ -351,6 +351,10 @@ def run(
             MqttTelemetry(mqtt_url)
         if signing_key:
             load_signing_key(signing_key)
+        if log_dir is not None:
+            from companion.records import check_log_dir
+
+            check_log_dir(log_dir)
     except (ValueError, MfcError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -128,6 +129,9 @@ def fly_mavlink(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    # The companion refuses a log folder holding a run's records; this one is
+    # fly's own, from an earlier flight into the same OUT: it is replaced.
+    shutil.rmtree(out / "companion", ignore_errors=True)
     sc = load_scenario(scenario)
     if duration_s is None:
         duration_s = sc.duration_s or make_pilot(sc.pilot, rng=np.random.default_rng(0)).duration_s

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import struct
 import sys
 import time
@@ -34,8 +35,10 @@ import numpy as np
 __all__ = [
     "AXES",
     "FORMAT",
+    "RECORD_FILES",
     "ColumnarLog",
     "TlogWriter",
+    "check_log_dir",
     "columns",
     "last_row",
     "read_columnar",
@@ -49,6 +52,38 @@ FORMAT = "companion-columnar 2 (binary float64 rows)"
 _MARKER = b"# float64 rows follow\n"
 
 _pack_usec = struct.Struct(">Q").pack
+
+
+RECORD_FILES = ("flight.tlog", "control.bin", "events.jsonl")
+"""What ``companion run --log-dir DIR`` writes into DIR."""
+
+
+def check_log_dir(path: str | Path) -> Path:
+    """Make ``path`` ready for one run's records, or say why it cannot be.
+
+    Creates the folder if needed. A folder that already holds a run's records
+    is refused: a second run would overwrite the first one's (the flight a
+    failsafe ended, say).
+
+    Raises
+    ------
+    ValueError
+        Naming the folder (or the record already in it) and what is expected.
+    """
+    d = Path(path)
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--log-dir {d}: cannot create the folder: {exc.strerror}") from None
+    if not os.access(d, os.W_OK | os.X_OK):
+        raise ValueError(f"--log-dir {d}: the folder is not writable")
+    held = [n for n in RECORD_FILES if (d / n).exists()]
+    if held:
+        raise ValueError(
+            f"--log-dir {d}: holds a previous run's records ({', '.join(held)}); "
+            "give each run its own folder, e.g. --log-dir logs/$(date +%Y%m%d-%H%M%S)"
+        )
+    return d
 
 
 def columns(n_motors: int) -> list[str]:

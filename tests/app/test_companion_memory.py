@@ -688,6 +688,31 @@ def test_cli_run_with_a_bad_profile_exits_2_before_opening_anything(
     assert nothing_arrived(held_udp)
 
 
+def test_cli_run_refuses_a_log_dir_holding_a_runs_records(
+    tmp_path: Path, held_udp: socket.socket
+) -> None:
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "control.bin").write_bytes(b"the last flight")
+    port = held_udp.getsockname()[1]
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
+              "--engage", "none", "--log-dir", str(logs)],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert f"--log-dir {logs}" in res.output and "control.bin" in res.output
+    assert (logs / "control.bin").read_bytes() == b"the last flight"  # not overwritten
+    assert nothing_arrived(held_udp)
+    # A path that cannot be a folder: exit 2 too, no traceback.
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
+              "--engage", "none", "--log-dir", str(logs / "control.bin" / "x")],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "cannot create the folder" in res.output
+    assert nothing_arrived(held_udp)
+
+
 def test_cli_run_with_a_bad_mqtt_url_exits_2(held_udp: socket.socket) -> None:
     port = held_udp.getsockname()[1]
     res = CliRunner().invoke(

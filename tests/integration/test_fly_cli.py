@@ -35,6 +35,12 @@ def test_a_short_fly_writes_its_report_and_the_numbers_hold(tmp_path: Path) -> N
     10.0 s simulated in 4.4 s wall. The bounds are about 1.5x those.
     """
     out = tmp_path / "fly"
+    # An earlier flight into the same folder (as scripts/fly does every time):
+    # its events must not reach this flight's report.
+    (out / "companion").mkdir(parents=True)
+    (out / "companion" / "events.jsonl").write_text(
+        '{"t_s": 99.0, "kind": "failsafe_link_lost", "detail": "an earlier flight"}\n'
+    )
     proc = companion_fly(out, "--duration", "10")
     assert proc.returncode == 0, proc.stderr[-2000:]
     for name in ("metrics.json", "report.md", "rates.png", "motors_and_estimate.png",
