@@ -54,6 +54,9 @@ from companion.profile import VehicleProfile
 from companion.reference import ReferenceScript
 from companion.stacks import FlightStack, stack_for
 
+_COUNTERS_PERIOD_S = 10.0
+"""How often the counters (ours, the link's, the transport's) go to the events."""
+
 _NO_RATES = (math.nan, math.nan, math.nan)
 """The ``sent_*`` log columns of a sample for which no body rates were sent."""
 
@@ -147,6 +150,9 @@ class RunOptions:
     reference: ReferenceScript | None = None
     """Scripted rates (and maybe thrust) from engagement on, instead of the sticks."""
     heartbeat_timeout_s: float = 10.0
+    autopilot_sysid: int | None = None
+    autopilot_compid: int | None = None
+    """Pin the autopilot; ``None``: learn it from its first HEARTBEAT."""
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
 
 
@@ -228,6 +234,14 @@ class Companion:
             "imu_invalid": self.n_imu_invalid,
             "commands_sent": self.n_commands,
         }
+
+    def counters_detail(self) -> str:
+        """Ours, the link's and the transport's non-zero counters, as ``name=value``."""
+        c = {k: v for k, v in self.counters.items() if v}
+        if self.link is not None:
+            c.update({f"link.{k}": v for k, v in self.link.counters.items() if v})
+            c.update({f"transport.{k}": v for k, v in self.link.transport.counters.items() if v})
+        return " ".join(f"{k}={v}" for k, v in c.items())
 
     # ------------------------------------------------------------------ events
     def _event(self, kind: str, detail: str) -> None:
@@ -612,9 +626,13 @@ class Companion:
         """Wall-clock watchdogs: stale IMU, lost link, lost RC (invalid IMU samples
         are judged where they arrive, in :meth:`_on_imu`)."""
         fs = self.opts.failsafe
+        next_counters = time.perf_counter() + _COUNTERS_PERIOD_S
         while not self._stop.is_set():
             await asyncio.sleep(0.05)  # watchdog thresholds are >= 0.1 s
             now = time.perf_counter()
+            if now >= next_counters:
+                next_counters = now + _COUNTERS_PERIOD_S
+                self._event("counters", self.counters_detail())
             hb = self.link.last_heartbeat_monotonic_s
             if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
                 if self.commanding or self.engaged:
@@ -674,7 +692,12 @@ class Companion:
         self._open_records()
         on_raw = self._tlog.write if self._tlog is not None else None
         self.link = MavlinkLink(
-            transport, signing=signing, on_message=self._on_message, on_raw=on_raw
+            transport,
+            signing=signing,
+            on_message=self._on_message,
+            on_raw=on_raw,
+            target_system=opts.autopilot_sysid,
+            target_component=opts.autopilot_compid,
         )
         # The IMU sample skips pymavlink's generic parser when its frame allows.
         self.link.add_fast_handler(
@@ -719,6 +742,8 @@ class Companion:
                     await task
             with contextlib.suppress(Exception):
                 await self.link.close()
+            with contextlib.suppress(Exception):
+                self._event("counters", self.counters_detail())  # what was counted, and ignored
             self._close_records()
             gc.unfreeze()
             for sig in (signal.SIGINT, signal.SIGTERM):

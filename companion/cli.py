@@ -285,6 +285,40 @@ def simulate(
     show_default=True,
 )
 @click.option(
+    "--invalid-imu-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.05,
+    show_default=True,
+    help="Failsafe after this long of non-finite or out-of-range gyro samples.",
+)
+@click.option(
+    "--rc-timeout-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="Failsafe when engaged and no valid RC for this long.",
+)
+@click.option(
+    "--envelope-time-s",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="How long a rate beyond the profile's limit, or the averaging time of the "
+    "tracking error, before the envelope failsafe.",
+)
+@click.option(
+    "--autopilot-sysid",
+    type=click.IntRange(1, 255),
+    default=None,
+    help="Listen only to this system [default: learnt from the first autopilot heartbeat].",
+)
+@click.option(
+    "--autopilot-compid",
+    type=click.IntRange(1, 255),
+    default=None,
+    help="With --autopilot-sysid: and only to this component.",
+)
+@click.option(
     "--reference",
     "reference_path",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -325,6 +359,11 @@ def run(
     safe_mode: str,
     stale_imu_s: float,
     link_timeout_s: float,
+    invalid_imu_s: float,
+    rc_timeout_s: float,
+    envelope_time_s: float,
+    autopilot_sysid: int | None,
+    autopilot_compid: int | None,
     reference_path: Path | None,
     heartbeat_timeout_s: float,
     envelope_error_deg_s: float,
@@ -351,6 +390,8 @@ def run(
             MqttTelemetry(mqtt_url)
         if signing_key:
             load_signing_key(signing_key)
+        if autopilot_compid is not None and autopilot_sysid is None:
+            raise ValueError("--autopilot-compid: needs --autopilot-sysid as well")
         if log_dir is not None:
             from companion.records import check_log_dir
 
@@ -378,9 +419,14 @@ def run(
         duration_s=duration,
         heartbeat_timeout_s=heartbeat_timeout_s,
         reference=reference,
+        autopilot_sysid=autopilot_sysid,
+        autopilot_compid=autopilot_compid,
         failsafe=FailsafeConfig(
             stale_imu_s=stale_imu_s,
             link_timeout_s=link_timeout_s,
+            invalid_imu_s=invalid_imu_s,
+            rc_timeout_s=rc_timeout_s,
+            envelope_time_s=envelope_time_s,
             tracking_error_max_deg_s=envelope_error_deg_s,
             on_failsafe=on_failsafe,  # type: ignore[arg-type]
             safe_mode=safe_mode,

@@ -625,7 +625,7 @@ async def test_sigterm_before_the_autopilot_answers_exits_0_at_once_sending_noth
     await asyncio.sleep(0.1)
     f.companion._on_signal(signal.SIGTERM)
     assert await f.finish(timeout_s=1.0) == 0  # not after the 10 s heartbeat timeout
-    assert f.kinds()[-1] == "stopped"
+    assert f.kinds()[-2:] == ["stopped", "counters"]
     assert not f.fake.of_type("COMMAND_LONG", "SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
 
 
@@ -647,6 +647,19 @@ async def test_a_signal_during_a_failsafe_hand_back_lets_it_finish(start: Start)
     assert await f.finish(timeout_s=3.0) == 3  # the failsafe came first
     assert len(tries) == 2  # retried, not cancelled with the run's tasks
     assert any("POSCTL accepted" in d for d in f.details("handed_back"))
+
+
+async def test_a_pinned_autopilot_ignores_others_and_the_counters_say_so(start: Start) -> None:
+    f = await start(engage="none", autopilot_sysid=9, heartbeat_timeout_s=0.5)
+    f.fake.heartbeat()  # from system 1: not ours
+    # No heartbeat from system 9: start-up fails as a link error (exit 1) ...
+    assert await f.finish(timeout_s=2.0) == 1
+    assert f.companion.link.target is None
+    assert any("no HEARTBEAT" in d for d in f.details("error"))
+    # ... and the last event says what was received and ignored.
+    assert f.kinds()[-1] == "counters"
+    detail = f.details("counters")[-1]
+    assert "link.foreign_ignored=" in detail and "transport.chunks_in=" in detail
 
 
 # -------------------------------------------------------------------------- 9. CLI
@@ -710,6 +723,17 @@ def test_cli_run_refuses_a_log_dir_holding_a_runs_records(
     )  # fmt: skip
     assert res.exit_code == 2, res.output
     assert "cannot create the folder" in res.output
+    assert nothing_arrived(held_udp)
+
+
+def test_cli_run_refuses_a_component_pin_without_a_system(held_udp: socket.socket) -> None:
+    port = held_udp.getsockname()[1]
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
+              "--engage", "none", "--autopilot-compid", "1"],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "--autopilot-compid" in res.output and "--autopilot-sysid" in res.output
     assert nothing_arrived(held_udp)
 
 
