@@ -47,6 +47,15 @@ def failsafe(flight: FlightProcesses) -> dict[str, Any]:
     return next(e for e in flight.companion_events if str(e["kind"]).startswith("failsafe"))
 
 
+# MAE roll / pitch / yaw, deg/s, first 20 s of paper-acro over MAVLink.
+MEASURED_20S = {
+    "f450": (8.3, 4.7, 4.3),
+    "f450_cut_props": (12.3, 7.2, 14.0),
+    "tarot650": (16.2, 7.8, 7.7),
+    "x500": (7.3, 4.0, 4.8),
+}
+
+
 @pytest.mark.parametrize("profile", ["f450", "f450_cut_props", "tarot650", "x500"])
 def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profile: str) -> None:
     flight = fly_mavlink(PROFILES / f"{profile}.yaml", "paper-acro", tmp_path, duration_s=20.0)
@@ -55,10 +64,11 @@ def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profi
     m = compute_metrics(merge_logs(flight))
     assert not m["crashed"]
     assert m["airborne_time_s"] > 15.0
-    # Bounds: twice what the shipped controller measured on this slice (see the
-    # issue's closing note); they catch a controller that stops tracking, not noise.
-    for axis in ("roll", "pitch", "yaw"):
-        assert m["mae_deg_s"][axis] < 150.0, (axis, m["mae_deg_s"])
+    # Bounds: 1.5x what the shipped controller measured on this 20 s slice
+    # (`companion fly --profile P --duration 20`, November 2026); they catch a
+    # controller that tracks worse, not the +-0.3 deg/s a loaded machine adds.
+    for axis, mae in zip(("roll", "pitch", "yaw"), MEASURED_20S[profile], strict=True):
+        assert m["mae_deg_s"][axis] < 1.5 * mae, (axis, m["mae_deg_s"])
 
 
 def test_sigterm_hands_back_and_exits_zero(tmp_path: Path) -> None:
