@@ -121,14 +121,14 @@ def test_unsaturated_allocation_round_trips() -> None:
 
 
 def test_yaw_gives_way_to_roll() -> None:
-    """Large yaw with roll at mid throttle, F450 (idle 0.05), worked by hand.
+    """Large yaw with roll at mid throttle, F450 (idle 0.05), without the yaw allowance.
 
     roll 0.8 -> d = 0.5*0.8*R = (-0.4, 0.4, 0.4, -0.4), fits, thrust stays 0.5.
     Yaw room per motor (yaw factor 0.5*Y = +-0.5, request 0.8):
     m2 (d=+0.4, up): (1-0.5-0.4)/0.4 = 0.25; m4 (d=-0.4, down): (0.05-0.5+0.4)/-0.4 = 0.125.
     So yaw is scaled by 0.125: 0.1 realised. Motors 0.15, 0.95, 0.85, 0.05.
     """
-    m = f450_mixer()
+    m = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_down=0.0, yaw_thrust_up=0.0)
     res = m.mix(0.5, 0.8, 0.0, 0.8)
     np.testing.assert_allclose(res.achieved, [0.8, 0.0, 0.1], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.15, 0.95, 0.85, 0.05], rtol=1e-12)
@@ -137,6 +137,37 @@ def test_yaw_gives_way_to_roll() -> None:
     assert res.thrust == 0.5
     # What the motors do is what the result says was achieved.
     np.testing.assert_allclose(torques_from_motors(m, res.motors)[1:], res.achieved, atol=1e-12)
+
+
+def test_yaw_moves_the_collective_within_its_allowance() -> None:
+    """The same request with the shipped allowance (0.15 down, 0.1 up), worked by hand.
+
+    The yaw-raised motors are m1, m2 (d = -0.4, 0.4), the lowered m3, m4 (0.4, -0.4);
+    q = 0.4. Room for yaw at collective t: min((1 - t - 0.4)/0.4, (t - 0.4 - 0.05)/0.4),
+    largest at t = (1 + 0.05 - 0.4 + 0.4)/2 = 0.525 (inside [0.35, 0.6] and inside
+    roll's range [0.45, 0.6]): 0.1875 of the request, yaw 0.15 instead of 0.1.
+    Motors 0.525 + d + 0.5*Y*0.15: 0.2, 1.0, 0.85, 0.05.
+    """
+    m = f450_mixer()
+    res = m.mix(0.5, 0.8, 0.0, 0.8)
+    np.testing.assert_allclose(res.achieved, [0.8, 0.0, 0.15], rtol=1e-12)
+    np.testing.assert_allclose(res.motors, [0.2, 1.0, 0.85, 0.05], rtol=1e-12)
+    assert res.thrust == pytest.approx(0.525)
+    assert res.saturated_axes == (False, False, True)
+    np.testing.assert_allclose(torques_from_motors(m, res.motors)[1:], res.achieved, atol=1e-12)
+    # The whole request fits after a small shift: the least shift is taken.
+    # At 0.9 with yaw 0.4 alone (q = 0.2): the raised motors need t <= 0.8.
+    res = m.mix(0.9, 0.0, 0.0, 0.4)
+    assert res.achieved == (0.0, 0.0, 0.4)
+    assert res.thrust == pytest.approx(0.8) and res.saturated_axes == (False, False, False)
+    # Beyond the allowance: at 1.0 the collective may drop only to 0.85.
+    res = m.mix(1.0, 0.0, 0.0, 1.0)
+    assert res.thrust == pytest.approx(0.85)
+    assert res.achieved[2] == pytest.approx(0.3)  # (1 - 0.85) / 0.5
+    # Upwards at low collective: 0.1 at most.
+    res = m.mix(0.1, 0.0, 0.0, 1.0)
+    assert res.thrust == pytest.approx(0.2)
+    assert res.achieved[2] == pytest.approx(0.3)  # (0.2 - 0.05) / 0.5
 
 
 def test_roll_and_pitch_scaled_together_when_they_exceed_the_range() -> None:
@@ -199,9 +230,11 @@ def test_zero_yaw_factor_mixer_does_not_divide_by_zero() -> None:
     # (1 - 0.5 - 0)/0.45 = 1.11, motor 3 (-0.45): (0 - 0.5 - 0.1)/-0.45 = 1.33.
     np.testing.assert_allclose(res.achieved, [0.1, 0.1, 0.9], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.95, 0.5, 0.15, 0.4], rtol=1e-12)
-    # Saturating yaw on the remaining motors.
+    # Saturating yaw on the remaining motors: (1 - 0.9)/0.5 = 0.2 of it at 0.9,
+    # 0.5 with the collective lowered by the allowance's 0.15.
     res = m.mix(0.9, 0.0, 0.0, 1.0)
-    np.testing.assert_allclose(res.achieved, [0.0, 0.0, 0.2], rtol=1e-12)
+    np.testing.assert_allclose(res.achieved, [0.0, 0.0, 0.5], rtol=1e-12)
+    assert res.thrust == pytest.approx(0.75)
     assert res.saturated_axes == (False, False, True)
 
 
@@ -241,3 +274,26 @@ def test_quad_path_equals_generic_path(
     np.testing.assert_allclose(quad.motors, generic.motors, rtol=0, atol=1e-15)
     np.testing.assert_allclose(quad.achieved, generic.achieved, rtol=0, atol=1e-15)
     np.testing.assert_allclose(quad.thrust, generic.thrust, rtol=0, atol=1e-15)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    thrust=st.floats(0.0, 1.0),
+    roll=st.floats(-1.0, 1.0),
+    pitch=st.floats(-1.0, 1.0),
+    yaw=st.floats(-1.0, 1.0),
+    idle=st.sampled_from([0.0, 0.05, 0.2]),
+)
+def test_the_yaw_allowance_never_costs_roll_or_pitch(
+    thrust: float, roll: float, pitch: float, yaw: float, idle: float
+) -> None:
+    """Against the same mixer without it: roll/pitch as before, yaw at least as much,
+    the collective within the allowance, and the motors deliver what is reported."""
+    m = quad_x_mixer(idle=idle)
+    plain = Mixer(*m.factors(), idle=idle, yaw_thrust_down=0.0, yaw_thrust_up=0.0)
+    got, ref = m.mix(thrust, roll, pitch, yaw), plain.mix(thrust, roll, pitch, yaw)
+    assert got.achieved[:2] == ref.achieved[:2]
+    assert abs(got.achieved[2]) >= abs(ref.achieved[2]) - 1e-12
+    assert -0.15 - 1e-12 <= got.thrust - ref.thrust <= 0.1 + 1e-12
+    assert all(idle <= x <= 1.0 for x in got.motors)
+    np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-9)
