@@ -345,14 +345,18 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
              # The harness serves the floor half the time: gaps are expected here.
              "--stale-imu-s", "5", "--link-timeout-s", "10"],
         ]  # fmt: skip
-        procs = [
-            subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for c in cmds
-        ]
+        # stderr to files, not pipes: a pipe nobody reads fills up at 64 KiB and
+        # blocks the writer in the middle of the measurement.
+        errs = [Path(logs) / f"server{i}.stderr" for i in range(len(cmds))]
+        procs = []
+        for c, e in zip(cmds, errs, strict=True):
+            with e.open("wb") as f:
+                procs.append(subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=f))
         try:
             time.sleep(1.5)  # imports and socket set-up
-            for p in procs:
+            for p, e in zip(procs, errs, strict=True):
                 if p.poll() is not None:
-                    err = p.stderr.read().decode() if p.stderr else ""
+                    err = e.read_text(errors="replace")
                     raise RuntimeError(f"a benchmark server exited: {err}")
             floor, comp = run_harness([fport, cport], rate_hz=rate_hz, seconds_each=seconds)
             # A server that ended by itself (a failsafe) missed everything after: say so.
@@ -364,6 +368,7 @@ def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[st
                     p.wait(timeout=10)
                 except subprocess.TimeoutExpired:
                     p.kill()
+                    p.wait()
     nan = float("nan")
     out: dict[str, Any] = {
         "rate_hz": rate_hz,

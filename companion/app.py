@@ -175,7 +175,9 @@ class Companion:
         self._rate_max_rad_s = tuple(math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
         fs = opts.rates_full_scale_deg_s
         self._rate_fs_rad_s = self._rate_max_rad_s if fs is None else (math.radians(fs),) * 3
-        self._gyro_limit_rad_s = math.radians(2000.0) * 1.05
+        # Beyond the gyro's full scale (5 % over, for its own overshoot) a sample
+        # is not a measurement: an invalid-IMU failsafe input.
+        self._gyro_limit_rad_s = math.radians(opts.profile.physics.imu.gyro_range_deg_s) * 1.05
         self.link: Any = None
         # Per-sample counters are plain attributes (a dict lookup per sample
         # adds up at 1 kHz); ``counters`` gathers them.

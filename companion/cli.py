@@ -253,7 +253,12 @@ def simulate(
     "(--engage none), after this long since the first sample.",
 )
 @click.option(
-    "--on-failsafe", type=click.Choice(["exit", "wait"]), default="exit", show_default=True
+    "--on-failsafe",
+    type=click.Choice(["exit", "wait"]),
+    default="exit",
+    show_default=True,
+    help="After the hand-back: exit (code 3), or wait for the pilot's switch to engage "
+    "again (--engage rc-switch only).",
 )
 @click.option(
     "--safe-mode",
@@ -390,6 +395,11 @@ def run(
             MqttTelemetry(mqtt_url)
         if signing_key:
             load_signing_key(signing_key)
+        if on_failsafe == "wait" and engage != "rc-switch":
+            raise ValueError(
+                f"--on-failsafe wait: needs --engage rc-switch (with {engage} nothing "
+                "would engage again; a failsafe ends the run)"
+            )
         if autopilot_compid is not None and autopilot_sysid is None:
             raise ValueError("--autopilot-compid: needs --autopilot-sysid as well")
         if log_dir is not None:
@@ -403,8 +413,9 @@ def run(
         connect=connect,
         profile=profile,
         controller=cfg,
-        profile_path=str(profile_path),
-        controller_path=str(ctrl_path),
+        # Absolute in the log's header, so `companion replay` finds them from anywhere.
+        profile_path=str(Path(profile_path).resolve()),
+        controller_path=str(Path(ctrl_path).resolve()),
         output=output,  # type: ignore[arg-type]
         engage=engage,  # type: ignore[arg-type]
         imu_source=imu_source,  # type: ignore[arg-type]

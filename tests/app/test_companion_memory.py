@@ -737,6 +737,19 @@ def test_cli_run_refuses_a_component_pin_without_a_system(held_udp: socket.socke
     assert nothing_arrived(held_udp)
 
 
+def test_cli_run_refuses_to_wait_after_a_failsafe_when_nothing_could_engage_again(
+    held_udp: socket.socket,
+) -> None:
+    port = held_udp.getsockname()[1]
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
+              "--engage", "auto", "--on-failsafe", "wait"],
+    )  # fmt: skip
+    assert res.exit_code == 2, res.output
+    assert "--on-failsafe wait: needs --engage rc-switch" in res.output
+    assert nothing_arrived(held_udp)
+
+
 def test_cli_run_with_a_bad_mqtt_url_exits_2(held_udp: socket.socket) -> None:
     port = held_udp.getsockname()[1]
     res = CliRunner().invoke(

@@ -1,0 +1,97 @@
+"""``companion replay LOG`` through the command line, on a log a real flight wrote.
+
+The contract (companion/cli.py ``replay_cmd``, companion/replay.py): re-run a
+controller on the ``control.bin`` of a flight; with the recorded controller the
+outputs match the log to rounding, with another one they show what it would
+have commanded; it prints the engaged sample count, the largest differences
+per column and the largest one overall, and with ``--out`` writes the replayed
+outputs as a columnar log. A file that is not a control log is exit 2.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.fly import fly_mavlink
+from companion.records import read_columnar
+from companion.replay import output_columns
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[1]
+F450 = ROOT / "vehicle_profiles" / "f450.yaml"
+DATA = ROOT / "companion" / "data"
+
+
+def companion(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "companion", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+
+
+def largest(stdout: str) -> float:
+    m = re.search(r"^largest difference: (\S+)$", stdout, re.MULTILINE)
+    assert m, stdout
+    return float(m.group(1))
+
+
+def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_path: Path) -> None:
+    # A short lockstep flight (5 s engaged, paper-acro's first maneuvers) records
+    # control.bin; the paths in its header are absolute, so replay finds the
+    # recorded controller and profile from any working directory.
+    flight = fly_mavlink(F450, "paper-acro", tmp_path / "flight", duration_s=5.0, timeout_s=60.0)
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    log = flight.control_log
+    cols, meta = read_columnar(log)
+    n_engaged = int((cols["engaged"] > 0.5).sum())
+    assert n_engaged >= 5.0 * 250 - 5  # 5 s of samples at 250 Hz
+    out = tmp_path / "replayed.bin"
+
+    res = companion("replay", str(log), "--out", str(out), cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert lines[0] == (
+        f"replayed {n_engaged} engaged samples of {log} with {meta['controller_path']} "
+        f"on {meta['profile_path']}"
+    )
+    per_column = [ln for ln in lines if "max |recorded - replayed| =" in ln]
+    assert 1 <= len(per_column) <= 8
+    # The recorded controller reproduces the flight: to rounding (outputs are of
+    # order 1 to 500, in us for u; the laws are deterministic).
+    assert largest(res.stdout) < 1e-6
+    assert lines[-1] == f"wrote {out}"
+
+    rep, rep_meta = read_columnar(out)
+    assert list(rep) == ["t_s", "engaged", *output_columns(4)]
+    assert rep_meta["replay_of"] == str(log)
+    assert rep_meta["controller"] == meta["controller_path"]
+    np.testing.assert_array_equal(rep["t_s"], cols["t_s"])
+    eng = cols["engaged"] > 0.5
+    for name in ("u_roll", "torque_pitch", "f_hat_yaw", "motor_1", "thrust_out"):
+        np.testing.assert_allclose(rep[name][eng], cols[name][eng], rtol=0, atol=1e-6)
+        assert np.all(np.isnan(rep[name][~eng]))  # not flying then: no output
+
+    # Another controller on the same samples commands something else (open loop).
+    other = DATA / "mfc_table1.yaml"
+    res2 = companion("replay", str(log), "--controller", str(other), cwd=tmp_path)
+    assert res2.returncode == 0, res2.stderr
+    assert res2.stdout.startswith(f"replayed {n_engaged} engaged samples of {log} with {other} ")
+    assert largest(res2.stdout) > 1.0
+    assert "wrote" not in res2.stdout
+
+
+def test_replay_of_a_file_that_is_not_a_control_log_exits_2(tmp_path: Path) -> None:
+    bogus = tmp_path / "not_a_log.bin"
+    bogus.write_bytes(b"\x00\x01 definitely not a columnar log\n" * 10)
+    res = companion("replay", str(bogus), cwd=tmp_path)
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    assert res.stderr.startswith("error: ")
+    assert str(bogus) in res.stderr
+    assert "replayed" not in res.stdout
