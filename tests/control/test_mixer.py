@@ -140,11 +140,11 @@ def test_yaw_gives_way_to_roll() -> None:
 
 
 def test_yaw_moves_the_collective_within_its_allowance() -> None:
-    """The same request with the shipped allowance (0.15 down, 0.1 up), worked by hand.
+    """The same request with the shipped allowance (up to 0.2 up, never down), by hand.
 
     The yaw-raised motors are m1, m2 (d = -0.4, 0.4), the lowered m3, m4 (0.4, -0.4);
     q = 0.4. Room for yaw at collective t: min((1 - t - 0.4)/0.4, (t - 0.4 - 0.05)/0.4),
-    largest at t = (1 + 0.05 - 0.4 + 0.4)/2 = 0.525 (inside [0.35, 0.6] and inside
+    largest at t = (1 + 0.05 - 0.4 + 0.4)/2 = 0.525 (inside [0.5, 0.7] and inside
     roll's range [0.45, 0.6]): 0.1875 of the request, yaw 0.15 instead of 0.1.
     Motors 0.525 + d + 0.5*Y*0.15: 0.2, 1.0, 0.85, 0.05.
     """
@@ -155,19 +155,20 @@ def test_yaw_moves_the_collective_within_its_allowance() -> None:
     assert res.thrust == pytest.approx(0.525)
     assert res.saturated_axes == (False, False, True)
     np.testing.assert_allclose(torques_from_motors(m, res.motors)[1:], res.achieved, atol=1e-12)
-    # The whole request fits after a small shift: the least shift is taken.
-    # At 0.9 with yaw 0.4 alone (q = 0.2): the raised motors need t <= 0.8.
+    # Never down: at 0.9, yaw 0.4 alone (q = 0.2) would need t <= 0.8; it gets
+    # (1 - 0.9) / 0.2 = 0.5 of the request at 0.9.
     res = m.mix(0.9, 0.0, 0.0, 0.4)
-    assert res.achieved == (0.0, 0.0, 0.4)
-    assert res.thrust == pytest.approx(0.8) and res.saturated_axes == (False, False, False)
-    # Beyond the allowance: at 1.0 the collective may drop only to 0.85.
-    res = m.mix(1.0, 0.0, 0.0, 1.0)
-    assert res.thrust == pytest.approx(0.85)
-    assert res.achieved[2] == pytest.approx(0.3)  # (1 - 0.85) / 0.5
-    # Upwards at low collective: 0.1 at most.
+    assert res.thrust == 0.9
+    assert res.achieved[2] == pytest.approx(0.2)
+    # Up at low collective, 0.2 at most: at 0.1 the lowered motors need
+    # t >= 0.05 + 0.5 for the whole request; 0.3 gives (0.3 - 0.05) / 0.5 = 0.5 of it.
     res = m.mix(0.1, 0.0, 0.0, 1.0)
-    assert res.thrust == pytest.approx(0.2)
-    assert res.achieved[2] == pytest.approx(0.3)  # (0.2 - 0.05) / 0.5
+    assert res.thrust == pytest.approx(0.3)
+    assert res.achieved[2] == pytest.approx(0.5)
+    # The least rise that gives the whole request: yaw 0.4 at 0.1 needs t >= 0.25.
+    res = m.mix(0.1, 0.0, 0.0, 0.4)
+    assert res.achieved == (0.0, 0.0, 0.4)
+    assert res.thrust == pytest.approx(0.25) and res.saturated_axes == (False, False, False)
 
 
 def test_roll_and_pitch_scaled_together_when_they_exceed_the_range() -> None:
@@ -230,11 +231,11 @@ def test_zero_yaw_factor_mixer_does_not_divide_by_zero() -> None:
     # (1 - 0.5 - 0)/0.45 = 1.11, motor 3 (-0.45): (0 - 0.5 - 0.1)/-0.45 = 1.33.
     np.testing.assert_allclose(res.achieved, [0.1, 0.1, 0.9], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.95, 0.5, 0.15, 0.4], rtol=1e-12)
-    # Saturating yaw on the remaining motors: (1 - 0.9)/0.5 = 0.2 of it at 0.9,
-    # 0.5 with the collective lowered by the allowance's 0.15.
+    # Saturating yaw on the remaining motors: (1 - 0.9)/0.5 = 0.2 of it at 0.9
+    # (the collective may rise for yaw, never fall).
     res = m.mix(0.9, 0.0, 0.0, 1.0)
-    np.testing.assert_allclose(res.achieved, [0.0, 0.0, 0.5], rtol=1e-12)
-    assert res.thrust == pytest.approx(0.75)
+    np.testing.assert_allclose(res.achieved, [0.0, 0.0, 0.2], rtol=1e-12)
+    assert res.thrust == 0.9
     assert res.saturated_axes == (False, False, True)
 
 
@@ -294,6 +295,6 @@ def test_the_yaw_allowance_never_costs_roll_or_pitch(
     got, ref = m.mix(thrust, roll, pitch, yaw), plain.mix(thrust, roll, pitch, yaw)
     assert got.achieved[:2] == ref.achieved[:2]
     assert abs(got.achieved[2]) >= abs(ref.achieved[2]) - 1e-12
-    assert -0.15 - 1e-12 <= got.thrust - ref.thrust <= 0.1 + 1e-12
+    assert 0.0 <= got.thrust - ref.thrust <= 0.2 + 1e-12
     assert all(idle <= x <= 1.0 for x in got.motors)
     np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-9)
