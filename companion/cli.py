@@ -61,13 +61,24 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def _find_profile(_ctx: click.Context, _param: click.Parameter, path: Path) -> Path:
+    """A relative profile path missing here is looked up in the checkout's folder too,
+    so the defaults work from any directory."""
+    if path.is_absolute() or path.exists():
+        return path
+    bundled = Path(__file__).resolve().parents[1] / path
+    return bundled if bundled.exists() else path
+
+
 _profile_opt = click.option(
     "--profile",
     "profile_path",
     type=click.Path(dir_okay=False, path_type=Path),
     default=Path("vehicle_profiles/f450.yaml"),
     show_default=True,
-    help="Vehicle profile YAML.",
+    callback=_find_profile,
+    help="Vehicle profile YAML (a relative path not found here is also looked up in "
+    "the checkout, so vehicle_profiles/NAME.yaml works from any directory).",
 )
 _controller_opt = click.option(
     "--controller",
@@ -862,6 +873,7 @@ def campaign(
     type=click.Path(dir_okay=False, path_type=Path),
     default=Path("vehicle_profiles/f450.yaml"),
     show_default=True,
+    callback=_find_profile,
     help="The profile MFC is given, whatever vehicle it flies.",
 )
 @click.option(

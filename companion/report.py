@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import platform
 from importlib.metadata import PackageNotFoundError, version
@@ -142,6 +143,14 @@ def plot_flight(record: FlightRecord, out_dir: Path, *, title: str = "") -> list
     return written
 
 
+def _digest(path: str) -> str:
+    """``sha256 <first 12 hex digits>`` of the file, to tell which version flew."""
+    try:
+        return "sha256 " + hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+    except OSError:
+        return "file not readable"
+
+
 def write_report(
     record: FlightRecord,
     out_dir: str | Path,
@@ -196,9 +205,10 @@ def write_report(
     lines = [
         f"# Flight report: {title}",
         "",
-        f"- vehicle profile: `{profile_path}` ({meta.get('profile')})",
+        f"- vehicle profile: `{profile_path}` ({meta.get('profile')}; {_digest(profile_path)})",
         f"- controller given the profile of: {meta.get('controller_profile')}",
-        f"- controller config: `{controller_path}` (kind `{meta.get('controller')}`)",
+        f"- controller config: `{controller_path}` (kind `{meta.get('controller')}`; "
+        f"{_digest(controller_path)})",
         f"- scenario: `{meta.get('scenario')}`, seed {meta.get('seed')}. {scenario_desc}".rstrip(),
         f"- outcome: {status}; simulated {metrics['sim_time_s']:.1f} s "
         f"(airborne {metrics['airborne_time_s']:.1f} s) in {metrics['wall_time_s']:.1f} s wall",

@@ -750,6 +750,15 @@ def test_cli_run_refuses_to_wait_after_a_failsafe_when_nothing_could_engage_agai
     assert nothing_arrived(held_udp)
 
 
+def test_cli_default_profile_is_found_from_any_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # no vehicle_profiles/ here
+    res = CliRunner().invoke(cli, ["check-config"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output)["profile"]["path"] == str(PROFILE_PATH)
+
+
 def test_cli_run_with_a_bad_mqtt_url_exits_2(held_udp: socket.socket) -> None:
     port = held_udp.getsockname()[1]
     res = CliRunner().invoke(

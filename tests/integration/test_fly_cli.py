@@ -62,6 +62,7 @@ def test_a_short_fly_writes_its_report_and_the_numbers_hold(tmp_path: Path) -> N
     mae_row = " | ".join(f"{m['mae_deg_s'][a]:.1f}" for a in AXES)
     assert f"| mean absolute error | {mae_row} |" in report
     assert "vehicle_profiles/f450.yaml" in report and "mfc_default.yaml" in report
+    assert report.count("; sha256 ") == 2  # which versions of the two files flew
     assert f"MAE roll {m['mae_deg_s']['roll']} pitch" in proc.stdout
     assert "passthrough" not in m
 
