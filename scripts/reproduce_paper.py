@@ -403,19 +403,12 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
     c = F["f450_cut_props_mfc"]["mae_deg_s"]
     sat = F["f450_cut_props_mfc"]["saturation_fraction"]
     if any(c[a] is None or c[a] >= 20.0 for a in AXES):
-        pid_yaw = F.get("f450_cut_props_pid_tuned", {}).get("mae_deg_s", {}).get("yaw")
-        pid = (
-            f": the Tarot-tuned PID, flown here for context, measured {pid_yaw:.1f} on this axis"
-            if pid_yaw is not None
-            else ""
-        )
         out.append(
             "The cut-prop F450 has about 65 % of its thrust per rotor, so full throttle "
             "leaves little differential authority: the shipped set saturated "
-            f"{100 * (sat.get('yaw') or 0.0):.0f} % of the airborne time on yaw (roll "
-            "and pitch come first; yaw gets the headroom left and may raise the collective "
-            "by up to 0.2, never lower it: companion/control/mixer.py says why), which bounds "
-            f"the yaw tracking whatever the controller{pid}."
+            f"{100 * (sat.get('yaw') or 0.0):.0f} % of the airborne time on yaw (air mode "
+            "gives yaw only the headroom left after roll and pitch), which bounds the yaw "
+            "tracking whatever the controller."
         )
     return out
 

@@ -21,26 +21,25 @@ the paper's units a full-scale command is 500 us of differential PWM.
 Saturation priority (air mode): roll and pitch first, scaled together when
 their spread alone exceeds the motor range; then the collective is shifted so
 they fit (authority is kept at zero throttle and at full throttle); yaw gets
-the headroom left, and when that is not enough at a low collective, the
-collective may rise a little for it (``yaw_thrust_up``, 0.2; never so far that
-roll and pitch stop fitting). The result reports what was achieved and what
+only the headroom left. The result reports what was achieved and what
 saturated, so a caller can keep an estimator from learning a command that was
 never applied.
 
-Why up only, and why 0.2 (measured on train-acro, the design flight, MFC with
-the F450 profile, over 21 vehicles: the 4 paper profiles, the 5 envelope
-corners and 12 sampled envelope vehicles, seed 7): the mean yaw MAE went from
-2.89 deg/s with no allowance to 2.76 / 2.62 / 2.41 / 2.34 with 0.05 / 0.1 /
-0.2 / 0.3 up (the 5 kg T/W 10 corner 7.7 -> 2.8 at 0.2). Up to 0.2 no vehicle
-got worse on any axis; 0.3 made the 250 g fast corner's yaw worse (1.3 ->
-1.7) and roll/pitch a little. No crash, intact or with motor 1 at 60 or 80 %.
-Letting yaw also *lower* the collective (as PX4 does by default,
-``MC_REDUCE_THRUST``) helped yaw more (cut-prop F450 8.3 -> 6.0 with 0.15
-down) but trades altitude for yaw: on a vehicle with a weak motor the yaw
-demand never ends, and the vehicle sinks. With 0.15 down the X500 with motor
-1 at 60 % crashed in 3 of 3 flights (0 of 3 without), the cut-prop F450 with
-motor 1 at 80 % in 1 of 3; 0.05 down still crashed the X500 twice. So
-``yaw_thrust_down`` exists but defaults to 0.
+``yaw_thrust_down`` / ``yaw_thrust_up`` let yaw move the collective too, by at
+most that much and never so far that roll and pitch stop fitting. Both are 0
+by default, which is the air mode above exactly. Measured in November 2026
+(MFC given the F450 profile) and not shipped:
+
+* Down (PX4's default, ``MC_REDUCE_THRUST``) trades altitude for yaw. On a
+  vehicle with a weak motor the yaw demand never ends and the vehicle sinks:
+  with 0.15 down, the default ``companion campaign`` grid went from 11 to 25
+  crashes (X500 with motor 1 at 60 %: 0 -> 5 of 6 for both controllers).
+* Up, on train-acro over 21 vehicles (4 paper profiles, 5 envelope corners,
+  12 sampled), looked good: mean yaw MAE 2.89 -> 2.41 deg/s with 0.2, no
+  vehicle worse, no crash. On the held-out envelope-test flight the 250 g
+  T/W 10 corner's yaw went from about 2.2 to 4.8 deg/s (ratio to its tuned
+  PID 0.98 -> 2.28, and worse than PX4's default PID): on a vehicle that
+  hovers near 10 % collective, 0.2 more is two extra g.
 """
 
 from __future__ import annotations
@@ -108,7 +107,7 @@ class Mixer:
         *,
         idle: float = 0.0,
         yaw_thrust_down: float = 0.0,
-        yaw_thrust_up: float = 0.2,
+        yaw_thrust_up: float = 0.0,
     ) -> None:
         n = len(roll_factors)
         if not (len(pitch_factors) == n == len(yaw_factors)) or n < 3:
@@ -144,7 +143,7 @@ class Mixer:
         *,
         idle: float = 0.0,
         yaw_thrust_down: float = 0.0,
-        yaw_thrust_up: float = 0.2,
+        yaw_thrust_up: float = 0.0,
     ) -> Mixer:
         """Derive the factors from motor positions and spin directions.
 

@@ -140,7 +140,7 @@ def test_yaw_gives_way_to_roll() -> None:
 
 
 def test_yaw_moves_the_collective_within_its_allowance() -> None:
-    """The same request with the shipped allowance (up to 0.2 up, never down), by hand.
+    """The same request with an allowance of 0.2 up (not shipped: the default is 0), by hand.
 
     The yaw-raised motors are m1, m2 (d = -0.4, 0.4), the lowered m3, m4 (0.4, -0.4);
     q = 0.4. Room for yaw at collective t: min((1 - t - 0.4)/0.4, (t - 0.4 - 0.05)/0.4),
@@ -148,7 +148,7 @@ def test_yaw_moves_the_collective_within_its_allowance() -> None:
     roll's range [0.45, 0.6]): 0.1875 of the request, yaw 0.15 instead of 0.1.
     Motors 0.525 + d + 0.5*Y*0.15: 0.2, 1.0, 0.85, 0.05.
     """
-    m = f450_mixer()
+    m = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_up=0.2)
     res = m.mix(0.5, 0.8, 0.0, 0.8)
     np.testing.assert_allclose(res.achieved, [0.8, 0.0, 0.15], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.2, 1.0, 0.85, 0.05], rtol=1e-12)
@@ -169,6 +169,13 @@ def test_yaw_moves_the_collective_within_its_allowance() -> None:
     res = m.mix(0.1, 0.0, 0.0, 0.4)
     assert res.achieved == (0.0, 0.0, 0.4)
     assert res.thrust == pytest.approx(0.25) and res.saturated_axes == (False, False, False)
+    # Down, when allowed: at 0.9 the whole yaw 0.4 needs t <= 0.8, within 0.15.
+    down = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_down=0.15)
+    res = down.mix(0.9, 0.0, 0.0, 0.4)
+    assert res.achieved == (0.0, 0.0, 0.4)
+    assert res.thrust == pytest.approx(0.8)
+    # The shipped mixer has no allowance: the air mode of the test above.
+    assert (f450_mixer().yaw_thrust_down, f450_mixer().yaw_thrust_up) == (0.0, 0.0)
 
 
 def test_roll_and_pitch_scaled_together_when_they_exceed_the_range() -> None:
@@ -290,11 +297,11 @@ def test_the_yaw_allowance_never_costs_roll_or_pitch(
 ) -> None:
     """Against the same mixer without it: roll/pitch as before, yaw at least as much,
     the collective within the allowance, and the motors deliver what is reported."""
-    m = quad_x_mixer(idle=idle)
-    plain = Mixer(*m.factors(), idle=idle, yaw_thrust_down=0.0, yaw_thrust_up=0.0)
+    plain = quad_x_mixer(idle=idle)
+    m = Mixer(*plain.factors(), idle=idle, yaw_thrust_down=0.15, yaw_thrust_up=0.2)
     got, ref = m.mix(thrust, roll, pitch, yaw), plain.mix(thrust, roll, pitch, yaw)
     assert got.achieved[:2] == ref.achieved[:2]
     assert abs(got.achieved[2]) >= abs(ref.achieved[2]) - 1e-12
-    assert 0.0 <= got.thrust - ref.thrust <= 0.2 + 1e-12
+    assert -0.15 - 1e-12 <= got.thrust - ref.thrust <= 0.2 + 1e-12
     assert all(idle <= x <= 1.0 for x in got.motors)
     np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-9)
