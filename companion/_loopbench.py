@@ -40,7 +40,8 @@ alike):
 * A sample is *missed* when no command carrying its ``time_usec`` ever
   comes back (the harness waits ``_STRAGGLER_S`` after the run for the last
   ones). A command that comes back later than 20 ms (``_LATE_AFTER_US``, by
-  the same stamps) is counted as *late* as well as timed: on this shared
+  the same stamps) is counted as *late* as well as timed (so a stall shows in
+  the p99 and the ratio too, of whichever target it hit): on this shared
   2-core VM the whole machine stalls now and then for 20-40 ms (an
   independent 1 ms sleeper process sees the same gaps), and a sample sent
   just before such a stall comes back late from the floor and from the
@@ -139,7 +140,8 @@ def run_harness(
     measured = [0] * n
     skipped = [0] * n
     late = [0] * n
-    late_episodes = [0] * n  # late samples less than 20 ms apart are one episode (a stall)
+    # Late samples at most 20 ms plus one period apart are one episode (a stall).
+    late_episodes = [0] * n
     last_late = [-2] * n  # time_usec slot of the last late sample
     # Every target gets the same number of whole blocks.
     blocks_each = max(1, math.ceil(seconds_each / block_s - 1e-9))

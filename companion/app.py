@@ -216,6 +216,8 @@ class Companion:
         self._handing_back = False
         self._hand_back_idle = asyncio.Event()
         self._hand_back_idle.set()
+        self._hand_back_accepted = False  # the last hand-back's mode switch was ACKed
+        self._counted_final = False
         self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
         self._restart_dt = False
@@ -257,6 +259,8 @@ class Companion:
             self._events_file.flush()
         if self._telemetry is not None:
             self._telemetry.publish_event(kind, detail, t)
+            if kind == "counters":
+                return  # bookkeeping: the retained status keeps the event that matters
             self._telemetry.publish_status(
                 {
                     "state": "engaged"
@@ -575,11 +579,17 @@ class Companion:
         stopped the commands; otherwise the current state decides.
         """
         if self._handing_back:
-            # One is under way (a failsafe's): let it finish rather than be
-            # cancelled with the run's tasks. Its commands time out within ~1 s.
+            # One is under way (a failsafe's, the pilot's switch): stop any
+            # engagement that waits behind it, and let it finish rather than be
+            # cancelled with the run's tasks (its commands time out within ~1 s).
+            self._release()
             await self._hand_back_idle.wait()
-            return
+            if self._hand_back_accepted or not self._autopilot_in_engage_mode():
+                return
+            # It ended unanswered with the autopilot still in OFFBOARD: try again.
+            was_commanding = True
         self._handing_back = True
+        self._hand_back_accepted = False
         self._hand_back_idle.clear()
         try:
             released = self._release()
@@ -596,6 +606,7 @@ class Companion:
                 res = await self.link.command_long(
                     _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.3, retries=2
                 )
+                self._hand_back_accepted = res == _RESULT_ACCEPTED
                 self._event(
                     "handed_back",
                     f"{reason}; {self._safe_mode.upper()} "
@@ -606,6 +617,14 @@ class Companion:
         finally:
             self._handing_back = False
             self._hand_back_idle.set()
+
+    def _autopilot_in_engage_mode(self) -> bool:
+        """The autopilot's last heartbeat showed the mode we engage in (OFFBOARD, GUIDED_NOGPS)."""
+        return (
+            self.stack is not None
+            and self._ap_mode is not None
+            and self.stack.is_engage_mode(self._ap_mode)
+        )
 
     def _failsafe(self, kind: str, detail: str) -> None:
         if self._stop.is_set() or self._in_failsafe:
@@ -730,6 +749,7 @@ class Companion:
                 self._start_engage(arm=True)
             await self._stop.wait()
             await self._hand_back("run ended")
+            self._final_counters()
             if self._telemetry is not None:
                 await self._telemetry.drain(1.0)  # the last events say why it ended
         except (LinkError, EngageError) as exc:
@@ -744,8 +764,7 @@ class Companion:
                     await task
             with contextlib.suppress(Exception):
                 await self.link.close()
-            with contextlib.suppress(Exception):
-                self._event("counters", self.counters_detail())  # what was counted, and ignored
+            self._final_counters()  # if an error or a signal ended the run early
             self._close_records()
             gc.unfreeze()
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -783,6 +802,14 @@ class Companion:
             return False
         work.result()  # its exception, if it raised one
         return True
+
+    def _final_counters(self) -> None:
+        """Once per run, last: what was counted (and ignored) over the whole run."""
+        if self._counted_final:
+            return
+        self._counted_final = True
+        with contextlib.suppress(Exception):
+            self._event("counters", self.counters_detail())
 
     def _on_signal(self, sig: int) -> None:
         self._event("signal", signal.Signals(sig).name)

@@ -67,7 +67,10 @@ def _find_profile(_ctx: click.Context, _param: click.Parameter, path: Path) -> P
     if path.is_absolute() or path.exists():
         return path
     bundled = Path(__file__).resolve().parents[1] / path
-    return bundled if bundled.exists() else path
+    if not bundled.exists():
+        return path  # the loader will say it is missing
+    click.echo(f"note: {path} is not in {Path.cwd()}; using {bundled}", err=True)
+    return bundled
 
 
 _profile_opt = click.option(
@@ -413,13 +416,16 @@ def run(
             )
         if autopilot_compid is not None and autopilot_sysid is None:
             raise ValueError("--autopilot-compid: needs --autopilot-sysid as well")
+        moved = None
         if log_dir is not None:
-            from companion.records import check_log_dir
+            from companion.records import prepare_log_dir
 
-            check_log_dir(log_dir)
+            moved = prepare_log_dir(log_dir)
     except (ValueError, MfcError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)
+    if moved is not None:
+        click.echo(f"--log-dir {log_dir}: an earlier run's records moved to {moved}", err=True)
     opts = RunOptions(
         connect=connect,
         profile=profile,

@@ -129,8 +129,8 @@ def fly_mavlink(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    # The companion refuses a log folder holding a run's records; this one is
-    # fly's own, from an earlier flight into the same OUT: it is replaced.
+    # The companion would move an earlier flight's records aside; OUT/companion
+    # is fly's own, from an earlier flight into the same OUT: it is replaced.
     shutil.rmtree(out / "companion", ignore_errors=True)
     sc = load_scenario(scenario)
     if duration_s is None:

@@ -38,9 +38,9 @@ __all__ = [
     "RECORD_FILES",
     "ColumnarLog",
     "TlogWriter",
-    "check_log_dir",
     "columns",
     "last_row",
+    "prepare_log_dir",
     "read_columnar",
 ]
 
@@ -58,17 +58,18 @@ RECORD_FILES = ("flight.tlog", "control.bin", "events.jsonl")
 """What ``companion run --log-dir DIR`` writes into DIR."""
 
 
-def check_log_dir(path: str | Path) -> Path:
-    """Make ``path`` ready for one run's records, or say why it cannot be.
+def prepare_log_dir(path: str | Path) -> Path | None:
+    """Make ``path`` ready for one run's records; never overwrite an earlier run's.
 
-    Creates the folder if needed. A folder that already holds a run's records
-    is refused: a second run would overwrite the first one's (the flight a
-    failsafe ended, say).
+    Creates the folder if needed. Records already in it (an earlier run's, or a
+    start-up that failed: a service restarting into the same folder) are moved,
+    untouched, into a subfolder ``earlier-<UTC time of their last write>`` first.
+    Returns that subfolder, or None when there was nothing to move.
 
     Raises
     ------
     ValueError
-        Naming the folder (or the record already in it) and what is expected.
+        If the folder cannot be created or written, naming it.
     """
     d = Path(path)
     try:
@@ -77,13 +78,21 @@ def check_log_dir(path: str | Path) -> Path:
         raise ValueError(f"--log-dir {d}: cannot create the folder: {exc.strerror}") from None
     if not os.access(d, os.W_OK | os.X_OK):
         raise ValueError(f"--log-dir {d}: the folder is not writable")
-    held = [n for n in RECORD_FILES if (d / n).exists()]
-    if held:
-        raise ValueError(
-            f"--log-dir {d}: holds a previous run's records ({', '.join(held)}); "
-            "give each run its own folder, e.g. --log-dir logs/$(date +%Y%m%d-%H%M%S)"
-        )
-    return d
+    held = [d / n for n in RECORD_FILES if (d / n).exists()]
+    if not held:
+        return None
+    when = datetime.fromtimestamp(max(p.stat().st_mtime for p in held), tz=timezone.utc)
+    base = d / f"earlier-{when:%Y%m%dT%H%M%SZ}"
+    dest, n = base, 1
+    while dest.exists():
+        dest, n = base.with_name(f"{base.name}-{n}"), n + 1
+    try:
+        dest.mkdir()
+        for p in held:
+            p.rename(dest / p.name)
+    except OSError as exc:
+        raise ValueError(f"--log-dir {d}: cannot move the earlier records aside: {exc}") from None
+    return dest
 
 
 def columns(n_motors: int) -> list[str]:

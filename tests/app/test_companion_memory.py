@@ -662,6 +662,76 @@ async def test_a_pinned_autopilot_ignores_others_and_the_counters_say_so(start: 
     assert "link.foreign_ignored=" in detail and "transport.chunks_in=" in detail
 
 
+async def test_a_signal_while_the_pilots_hand_back_retries_leaves_the_safe_mode_last(
+    start: Start,
+) -> None:
+    """Switch low (the POSCTL goes unanswered twice), high again, then SIGTERM: the
+    engagement waiting behind the hand-back must not send OFFBOARD after the signal,
+    and the last mode asked is the safe one (found by review; failed before)."""
+    tries: list[float] = []
+
+    def first_posctl_lost(m: Any) -> int | None:
+        if m.param2 == 3.0:
+            tries.append(m.param2)
+            return None if len(tries) <= 2 else ACCEPTED
+        return ACCEPTED
+
+    f = await start(
+        engage="rc-switch",
+        output="actuator",
+        custom_mode=PX4_MANUAL,
+        armed=True,
+        results={CMD_DO_SET_MODE: first_posctl_lost},
+    )
+    await streams_requested(f)
+    fake = f.fake
+    fake.rc(1000)
+    await settle()
+    fake.rc(2000)
+    await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="OFFBOARD")
+    fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, what="engaged")
+    fake.rc(1000)  # pilot: hand back (first POSCTL will go unanswered)
+    await f.feed_until(lambda: len(fake.commands(CMD_DO_SET_MODE)) >= 2, what="hand-back")
+    fake.rc(2000)  # pilot: take over again while the hand-back is under way
+    for _ in range(5):
+        f.imu()
+        await asyncio.sleep(0.004)
+    assert f.companion.commanding
+    f.companion._on_signal(signal.SIGTERM)
+    for _ in range(30):
+        f.imu()
+        await asyncio.sleep(0.004)
+    rc = await f.finish(timeout_s=3.0)
+    await asyncio.sleep(0.2)
+    modes = [m.param2 for m in fake.commands(CMD_DO_SET_MODE)]
+    assert modes[-1] == 3.0, f"last mode asked is not the safe mode: {modes}"
+    assert rc == 0
+    i_signal = f.kinds().index("signal")
+    assert "engaged" not in f.kinds()[i_signal:]
+
+
+async def test_an_unanswered_hand_back_is_tried_again_by_the_runs_own(start: Start) -> None:
+    tries: list[float] = []
+
+    def posctl_lost(m: Any) -> int | None:
+        if m.param2 == 3.0:
+            tries.append(m.param2)
+            return None
+        return ACCEPTED
+
+    f = await start(engage="auto", output="actuator", results={CMD_DO_SET_MODE: posctl_lost})
+    await engage_px4_auto(f)
+    f.companion._failsafe("failsafe_envelope", "test")
+    await settle()
+    f.companion._on_signal(signal.SIGTERM)
+    assert await f.finish(timeout_s=5.0) == 3
+    assert len(tries) == 6  # the failsafe's 3 tries, then the run's 3: the autopilot
+    # still showed OFFBOARD after the first went unanswered
+    assert len(f.details("handed_back")) == 2
+    assert all("unanswered" in d for d in f.details("handed_back"))
+
+
 # -------------------------------------------------------------------------- 9. CLI
 
 
@@ -701,22 +771,40 @@ def test_cli_run_with_a_bad_profile_exits_2_before_opening_anything(
     assert nothing_arrived(held_udp)
 
 
-def test_cli_run_refuses_a_log_dir_holding_a_runs_records(
+def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log_dir(
     tmp_path: Path, held_udp: socket.socket
 ) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
     (logs / "control.bin").write_bytes(b"the last flight")
+    (logs / "events.jsonl").write_text('{"kind": "failsafe_link_lost"}\n')
     port = held_udp.getsockname()[1]
+    # A config error first: nothing moved, nothing sent.
     res = CliRunner().invoke(
         cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
-              "--engage", "none", "--log-dir", str(logs)],
+              "--engage", "none", "--log-dir", str(logs), "--autopilot-compid", "1"],
     )  # fmt: skip
     assert res.exit_code == 2, res.output
-    assert f"--log-dir {logs}" in res.output and "control.bin" in res.output
-    assert (logs / "control.bin").read_bytes() == b"the last flight"  # not overwritten
-    assert nothing_arrived(held_udp)
-    # A path that cannot be a folder: exit 2 too, no traceback.
+    assert (logs / "control.bin").read_bytes() == b"the last flight"
+    # A run that starts: the earlier records are moved, untouched, not overwritten.
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", str(PROFILE_PATH),
+              "--engage", "none", "--log-dir", str(logs), "--heartbeat-timeout-s", "0.2"],
+    )  # fmt: skip
+    assert res.exit_code == 1, res.output  # no autopilot: a link error, after the move
+    (earlier,) = logs.glob("earlier-*")
+    assert (earlier / "control.bin").read_bytes() == b"the last flight"
+    assert "failsafe_link_lost" in (earlier / "events.jsonl").read_text()
+    assert f"moved to {earlier}" in res.output
+    assert "no HEARTBEAT" in (logs / "events.jsonl").read_text()  # this run's own
+    # The same again (a service restarting): a second folder, nothing lost.
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", str(PROFILE_PATH),
+              "--engage", "none", "--log-dir", str(logs), "--heartbeat-timeout-s", "0.2"],
+    )  # fmt: skip
+    assert res.exit_code == 1, res.output
+    assert len(list(logs.glob("earlier-*"))) == 2
+    # A path that cannot be a folder: exit 2, no traceback.
     res = CliRunner().invoke(
         cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
               "--engage", "none", "--log-dir", str(logs / "control.bin" / "x")],
@@ -750,13 +838,28 @@ def test_cli_run_refuses_to_wait_after_a_failsafe_when_nothing_could_engage_agai
     assert nothing_arrived(held_udp)
 
 
+def test_cli_run_logs_absolute_paths_so_replay_works_from_anywhere(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(ROOT)
+    res = CliRunner().invoke(
+        cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", "vehicle_profiles/f450.yaml",
+              "--engage", "none", "--log-dir", str(tmp_path), "--heartbeat-timeout-s", "0.2"],
+    )  # fmt: skip
+    assert res.exit_code == 1, res.output  # no autopilot; the log header is written first
+    _, meta = read_columnar(tmp_path / "control.bin")
+    assert meta["profile_path"] == str(PROFILE_PATH)
+    assert Path(meta["controller_path"]).is_absolute()
+
+
 def test_cli_default_profile_is_found_from_any_directory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.chdir(tmp_path)  # no vehicle_profiles/ here
     res = CliRunner().invoke(cli, ["check-config"])
     assert res.exit_code == 0, res.output
-    assert json.loads(res.output)["profile"]["path"] == str(PROFILE_PATH)
+    assert json.loads(res.stdout)["profile"]["path"] == str(PROFILE_PATH)
+    assert f"using {PROFILE_PATH}" in res.stderr  # said, not silent
 
 
 def test_cli_run_with_a_bad_mqtt_url_exits_2(held_udp: socket.socket) -> None:
