@@ -269,11 +269,18 @@ finite_or_not = st.one_of(
     pitch=finite_or_not,
     yaw=finite_or_not,
     idle=st.sampled_from([0.0, 0.05, 0.2]),
+    allowance=st.sampled_from([(0.0, 0.0), (0.15, 0.2)]),
 )
 def test_quad_path_equals_generic_path(
-    thrust: float, roll: float, pitch: float, yaw: float, idle: float
+    thrust: float,
+    roll: float,
+    pitch: float,
+    yaw: float,
+    idle: float,
+    allowance: tuple[float, float],
 ) -> None:
-    m = quad_x_mixer(idle=idle)
+    down, up = allowance
+    m = Mixer(*quad_x_mixer().factors(), idle=idle, yaw_thrust_down=down, yaw_thrust_up=up)
     assert m._quad  # the fast path is the one used
     quad = m._mix_quad(thrust, roll, pitch, yaw)
     generic = m._mix_generic(thrust, roll, pitch, yaw)
