@@ -242,6 +242,8 @@ class Mixer:
         the whole request, else the shift that gives the most. Roll and pitch
         keep fitting (the collective stays in their range).
         """
+        if self.yaw_thrust_down == 0.0 and self.yaw_thrust_up == 0.0:
+            return t_eff, y_scale  # the shipped default: plain air mode, no shift to find
         idle = self.idle
         lo = max(t_eff - self.yaw_thrust_down, idle - min(d))
         hi = min(t_eff + self.yaw_thrust_up, 1.0 - max(d))
