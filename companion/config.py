@@ -118,6 +118,13 @@ class MfcAxisConfig(StrictModel):
     )
     alpha_adapt: AlphaAdaptConfig | None = None
     lag_scaled_gains: bool = False
+    lag_scaling_authority_ref: float = Field(
+        0.0,
+        ge=0.0,
+        le=1e5,
+        description="rad/s^m at full-scale command; above it a slow lag cuts kd less "
+        "(by sqrt(authority/ref), at most back to kd); 0: off",
+    )
 
     @model_validator(mode="after")
     def _adapt_needs_window(self) -> MfcAxisConfig:
@@ -239,6 +246,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             estimator=a.estimator,
             actuator_tau_s=a.actuator_tau_s,
             lag_scaled_gains=a.lag_scaled_gains,
+            lag_scaling_authority_ref=a.lag_scaling_authority_ref,
             adapt=None
             if a.alpha_adapt is None
             else AlphaAdaptation(

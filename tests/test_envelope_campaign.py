@@ -89,15 +89,17 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
 
 
 # The issue's targets are ratio <= RATIO_TARGET (1.25) on every corner and axis, and
-# MFC better than PX4's default PID everywhere. NOT MET on one corner; measured with the
-# shipped controller (this test's short tuning, 25 flights on 15 s of train-acro), ratio
-# MFC / tuned PID roll/pitch/yaw: tiny-fast 0.97/1.13/0.98, tiny-slow-motor
-# 1.65/1.47/0.35, heavy-weak 0.93/0.77/0.75, heavy-strong 0.95/0.80/0.90, mid
-# 1.01/1.09/0.29; MFC over the default PID: worse only on tiny-slow-motor roll/pitch
-# (1.39/1.42). The tests below hold what is achieved so that a regression fails;
-# docs/envelope.md has the full campaign.
-MEASURED_WORST_RATIO = 1.65
-MEASURED_MEDIAN_RATIO = 0.95
+# MFC better than PX4's default PID everywhere. NOT MET on one corner axis; measured
+# with the shipped controller (this test's short tuning, 25 flights on 15 s of
+# train-acro), ratio MFC / tuned PID roll/pitch/yaw: tiny-fast 0.96/1.12/0.98,
+# tiny-slow-motor 1.12/1.40/0.35, heavy-weak 0.93/0.77/0.75, heavy-strong
+# 0.93/0.79/0.90, mid 0.98/1.04/0.29; MFC over the default PID: worse only on
+# tiny-slow-motor pitch (1.36). (Before kd kept more of itself on strong vehicles,
+# tiny-slow-motor was 1.65/1.47/0.35, and 1.39/1.42 over the default PID.) The tests
+# below hold what is achieved so that a regression fails; docs/envelope.md has the
+# full campaign.
+MEASURED_WORST_RATIO = 1.40
+MEASURED_MEDIAN_RATIO = 0.93
 
 
 @pytest.mark.slow
@@ -107,15 +109,16 @@ def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) ->
     detail = "MAE M/T/D: " + _table(corner_records)
     assert max(ratios) <= 1.15 * MEASURED_WORST_RATIO, detail
     assert sorted(ratios)[len(ratios) // 2] <= max(1.15 * MEASURED_MEDIAN_RATIO, 1.0), detail
-    # Where the target is met today it must stay met: every corner but the 250 g quad
-    # with 60 ms motors, on every axis.
+    # Where the target is met today it must stay met: every corner and axis but the
+    # 250 g quad with 60 ms motors' pitch.
     for r in corner_records:
-        if r["vehicle"] != "tiny-slow-motor":
-            assert all(r["ratio_mfc_tuned"][a] <= RATIO_TARGET for a in AXES), detail
+        for a in AXES:
+            if (r["vehicle"], a) != ("tiny-slow-motor", "pitch"):
+                assert r["ratio_mfc_tuned"][a] <= RATIO_TARGET, (r["vehicle"], a, detail)
 
 
 @pytest.mark.slow
-def test_mfc_beats_px4_default_pid_except_the_slow_motored_250g_quad(
+def test_mfc_beats_px4_default_pid_except_the_slow_motored_250g_quads_pitch(
     corner_records: Records,
 ) -> None:
     worse = [
@@ -124,8 +127,8 @@ def test_mfc_beats_px4_default_pid_except_the_slow_motored_250g_quad(
         for a in AXES
         if r["ratio_mfc_default"][a] is None or r["ratio_mfc_default"][a] >= 1.0
     ]
-    assert all(v == "tiny-slow-motor" and a != "yaw" for v, a, _ in worse), worse
-    assert all(x <= 1.15 * 1.42 for _, _, x in worse), worse
+    assert all((v, a) == ("tiny-slow-motor", "pitch") for v, a, _ in worse), worse
+    assert all(x <= 1.15 * 1.36 for _, _, x in worse), worse
 
 
 @pytest.mark.slow

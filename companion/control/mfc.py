@@ -168,6 +168,10 @@ class MfcAxisGains:
     estimator: Literal["window", "algebraic"] = "window"
     actuator_tau_s: float = 0.0
     lag_scaled_gains: bool = False
+    lag_scaling_authority_ref: float = 0.0
+    """With ``lag_scaled_gains``, rad/s^m per full-scale command (0: off). A vehicle
+    identified with more authority than this keeps more of ``kd`` on a slow lag:
+    kd is multiplied by ``sqrt(authority / ref)``, at most back to the unscaled kd."""
     adapt: AlphaAdaptation | None = None
 
     def __post_init__(self) -> None:
@@ -337,6 +341,11 @@ class PlantIdentifier:
         self.alpha = self.alpha0
         self.tau = self.tau0
 
+    @property
+    def margin(self) -> float:
+        """alpha / b_hat once identified (the configured margin)."""
+        return self._cfg.margin
+
     def _set_dt(self, dt_s: float) -> None:
         cfg = self._cfg
         self._dt = dt_s
@@ -408,7 +417,8 @@ class IntelligentController:
     """
 
     __slots__ = (
-        "_alpha", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff", "_kp", "_kp_eff",
+        "_alpha", "_authority_ref", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff",
+        "_kp", "_kp_eff",
         "_lag_dt", "_lag_k",
         "_lag_scaled", "_lag_tau", "_lim", "_pending", "_pending_dt", "_plain", "_scale", "_tau",
         "_u_a", "adapting", "e", "e_dot", "f_hat", "order", "u_prev", "update",
@@ -435,6 +445,7 @@ class IntelligentController:
         )
         self._plain = self._ident is None and self._tau <= 0.0
         self._lag_scaled = gains.lag_scaled_gains and self._ident is not None and self._tau > 0.0
+        self._authority_ref = gains.lag_scaling_authority_ref
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
         self.adapting = False
@@ -506,16 +517,32 @@ class IntelligentController:
             self._pending_dt = 0.0
             ident = self._ident
             tau = ident.tau
+            alpha = ident.alpha
             ident.update(dt, p[0], p[1], self.adapting)
-            if self._lag_scaled and ident.tau != tau:
+            if self._lag_scaled and (
+                ident.tau != tau or (self._authority_ref > 0.0 and ident.alpha != alpha)
+            ):
                 self._scale_gains()
 
     def _scale_gains(self) -> None:
         """Gains for the lag in use (lag_scaled_gains): a gain on ``y^(m-1)``'s error
         scales as 1/tau, one on ``y^(m-2)``'s as 1/tau^2: iPD kd ~ 1/tau and
-        kp ~ 1/tau^2, iP kp ~ 1/tau."""
-        r = self._tau / self._ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
-        self._kd_eff = self._kd * r
+        kp ~ 1/tau^2, iP kp ~ 1/tau.
+
+        With ``lag_scaling_authority_ref``, a slow lag on a vehicle with much
+        authority (identified input gain times the full-scale command) takes
+        back part of the kd cut: by ``sqrt(authority / ref)``, never beyond the
+        unscaled kd. A strong vehicle can afford the faster error dynamics
+        without saturating; a weak one, which saturates, keeps the full cut
+        (docs/gains.md, point 6)."""
+        ident = self._ident
+        r = self._tau / ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
+        g = 1.0
+        if self._authority_ref > 0.0 and r < 1.0 and ident is not None:
+            authority = ident.alpha / ident.margin * self._scale  # rad/s^m, full scale
+            if authority > self._authority_ref:
+                g = min(1.0 / r, math.sqrt(authority / self._authority_ref))
+        self._kd_eff = self._kd * r * g
         self._kp_eff = self._kp * (r * r if self.order == 2 else r)
 
     def _update_ipd(

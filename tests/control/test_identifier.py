@@ -176,3 +176,36 @@ def test_shipped_controller_never_emits_non_finite_or_out_of_range(
         out = ctrl.update(0.001, (rate, -rate, 0.5 * rate), (ref, ref, -ref), thrust)
         assert all(math.isfinite(m) and 0.0 <= m <= 1.0 for m in out.motors)
         assert all(math.isfinite(t) and -1.0 <= t <= 1.0 for t in out.torque)
+
+
+@pytest.mark.parametrize("ref", [0.0, 50.0, 1000.0])
+def test_a_strong_vehicle_keeps_more_of_kd_on_a_slow_lag(ref: float) -> None:
+    """lag_scaling_authority_ref: the kd cut 30/80 is eased by sqrt(authority / ref),
+    authority = identified b (alpha / margin) x the full-scale 500 us, and never past
+    the unscaled kd; below ref (or with ref 0) the cut stays whole."""
+    gains = MfcAxisGains(
+        order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+        lag_scaling_authority_ref=ref,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    ax.adapting = True
+    dt, k = 0.001, -math.expm1(-0.001 / 0.08)
+    rng = np.random.default_rng(3)
+    w = u_a = u = ref_rate = 0.0
+    for i in range(6000):
+        if i % 150 == 0:
+            ref_rate = float(rng.uniform(-3.0, 3.0))
+        u_a += (u - u_a) * k
+        w += (0.35 * u_a - 0.5 * w) * dt
+        u = ax.update(dt, w, ref_rate, 0.0)
+        ax.learn()
+    assert ax.tau_s == 0.08
+    authority = ax.alpha / ADAPT.margin * 500.0
+    assert 100.0 < authority < 250.0  # b ~ 0.35 per us
+    r = 0.03 / 0.08
+    g = min(1.0 / r, math.sqrt(authority / ref)) if 0.0 < ref < authority else 1.0
+    got = ax.update(dt, w + 0.1, ref_rate, 0.0)
+    want = -(ax.f_hat + 15.0 * r * g * ax.e_dot) / ax.alpha
+    assert abs(want) < 500.0
+    assert got == pytest.approx(want, rel=1e-9)
