@@ -117,15 +117,9 @@ def test_identified_law_holds_its_worst_case_where_fixed_alpha_does_not() -> Non
     assert _closed_loop_mae(adaptive, 4.0, 0.01) < 0.2 * _closed_loop_mae(fixed, 4.0, 0.01)
 
 
-@pytest.mark.parametrize("order", [1, 2])
-def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
-    """With the lag identified at 80 ms instead of the configured 30 ms, the gain on
-    the rate error scales by 30/80 (iPD kd, iP kp) and the iPD's kp by (30/80)^2."""
-    gains = MfcAxisGains(
-        order=order, alpha=1.0, window_s=0.02, kp=40.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
-    )  # fmt: skip
-    ax = IntelligentController(gains)
+def _fly_a_slow_lag(ax: IntelligentController, order: int) -> tuple[float, float]:
+    """6 s of random rate steps on y^(m) = 0.35 u_a + F with an 80 ms actuator lag,
+    learning; returns the last rate and reference."""
     ax.adapting = True
     dt, k = 0.001, -math.expm1(-0.001 / 0.08)
     rng = np.random.default_rng(3)
@@ -140,6 +134,20 @@ def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
             w = 0.35 * u_a + 0.2
         u = ax.update(dt, w, ref, 0.0)
         ax.learn()
+    return w, ref
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
+    """With the lag identified at 80 ms instead of the configured 30 ms, the gain on
+    the rate error scales by 30/80 (iPD kd, iP kp) and the iPD's kp by (30/80)^2."""
+    gains = MfcAxisGains(
+        order=order, alpha=1.0, window_s=0.02, kp=40.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    w, ref = _fly_a_slow_lag(ax, order)
+    dt = 0.001
     assert ax.tau_s == 0.08
     # The next command from public state: u = -(F_hat - v + gains) / alpha.
     got = ax.update(dt, w + 0.1, ref, 0.0)
@@ -189,17 +197,8 @@ def test_a_strong_vehicle_keeps_more_of_kd_on_a_slow_lag(ref: float) -> None:
         lag_scaling_authority_ref=ref,
     )  # fmt: skip
     ax = IntelligentController(gains)
-    ax.adapting = True
-    dt, k = 0.001, -math.expm1(-0.001 / 0.08)
-    rng = np.random.default_rng(3)
-    w = u_a = u = ref_rate = 0.0
-    for i in range(6000):
-        if i % 150 == 0:
-            ref_rate = float(rng.uniform(-3.0, 3.0))
-        u_a += (u - u_a) * k
-        w += (0.35 * u_a - 0.5 * w) * dt
-        u = ax.update(dt, w, ref_rate, 0.0)
-        ax.learn()
+    w, ref_rate = _fly_a_slow_lag(ax, 2)
+    dt = 0.001
     assert ax.tau_s == 0.08
     authority = ax.alpha / ADAPT.margin * 500.0
     assert 100.0 < authority < 250.0  # b ~ 0.35 per us
