@@ -50,9 +50,9 @@ def failsafe(flight: FlightProcesses) -> dict[str, Any]:
 # MAE roll / pitch / yaw, deg/s, first 20 s of paper-acro over MAVLink.
 MEASURED_20S = {
     "f450": (8.3, 4.7, 4.3),
-    "f450_cut_props": (12.3, 7.2, 14.0),
-    "tarot650": (16.2, 7.8, 7.7),
-    "x500": (7.3, 4.0, 4.8),
+    "f450_cut_props": (12.4, 7.1, 14.0),
+    "tarot650": (16.2, 7.4, 7.7),
+    "x500": (7.1, 3.9, 4.8),
 }
 
 
