@@ -585,6 +585,14 @@ def _met(flag: bool) -> str:
     return "**met**" if flag else "**not met**"
 
 
+def _shown(path: str) -> str:
+    """A file inside this checkout as a path from its root (the summary is kept in the
+    repository: docs/envelope/), any other as given."""
+    root = Path(__file__).resolve().parents[1]
+    p = Path(path)
+    return str(p.relative_to(root)) if p.is_absolute() and p.is_relative_to(root) else path
+
+
 def summary_markdown(
     records: Sequence[dict[str, Any]],
     meta: dict[str, Any],
@@ -602,7 +610,7 @@ def summary_markdown(
         f"PID tuned on `{tr['name']}` (seed {tr['seed']}, {tr['duration_s']} s), "
         f"{meta['tune_budget']} flights per case, search seed {meta['tune_seed']}; every "
         f"controller then flies `{te['name']}` (seed {te['seed']}, {te['duration_s']} s). "
-        f"MFC is `{meta.get('mfc_controller', 'the shipped file')}`, given the profile of "
+        f"MFC is `{_shown(meta.get('mfc_controller', 'the shipped file'))}`, given the profile of "
         f"{meta['mfc_controller_profile']}, never retuned. "
         f"{meta.get('workers', '?')} workers, {meta.get('wall_time_s', float('nan')):.0f} s wall.",
         "",
