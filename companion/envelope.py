@@ -92,6 +92,9 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
+_ROOT = Path(__file__).resolve().parents[1]
+"""The checkout (or install) this module belongs to: bundled profiles are found from it."""
+
 CASES: tuple[str, ...] = ("intact", "motor60", "imbalance", "cg10")
 """Vehicle cases: the intact vehicle and the generator's damage variants."""
 
@@ -206,7 +209,7 @@ def load_setup(
 
     prof_path = Path(controller_profile)
     if not prof_path.exists() and not prof_path.is_absolute():
-        prof_path = Path(__file__).resolve().parents[1] / prof_path
+        prof_path = _ROOT / prof_path
     mfc_path = Path(controller) if controller is not None else DEFAULT_CONTROLLER
     mfc = load_controller(mfc_path)
     if not isinstance(mfc, MfcConfig):
@@ -588,9 +591,8 @@ def _met(flag: bool) -> str:
 def _shown(path: str) -> str:
     """A file inside this checkout as a path from its root (the summary is kept in the
     repository: docs/envelope/), any other as given."""
-    root = Path(__file__).resolve().parents[1]
     p = Path(path)
-    return str(p.relative_to(root)) if p.is_absolute() and p.is_relative_to(root) else path
+    return str(p.relative_to(_ROOT)) if p.is_absolute() and p.is_relative_to(_ROOT) else path
 
 
 def summary_markdown(
