@@ -89,6 +89,13 @@ class AlphaAdaptConfig(StrictModel):
     min_samples_weight_us2: float = Field(2.0e4, ge=0.0)
     tau_candidates_s: tuple[float, ...] = Field((), max_length=8)
     min_response_rad_s2: float = Field(2.0, ge=0.0, le=1000.0)
+    margin_min: float = Field(
+        0.0,
+        ge=0.0,
+        le=10.0,
+        description="lowest margin on a lag slower than actuator_tau_s (falls as "
+        "sqrt(actuator_tau_s/tau), eased on weak vehicles); 0: constant margin",
+    )
 
     @field_validator("tau_candidates_s")
     @classmethod
@@ -101,6 +108,8 @@ class AlphaAdaptConfig(StrictModel):
     def _range(self) -> AlphaAdaptConfig:
         if self.alpha_min > self.alpha_max:
             raise ValueError("alpha_min must not exceed alpha_max")
+        if self.margin_min > self.margin:
+            raise ValueError("margin_min must not exceed margin")
         return self
 
 
@@ -130,6 +139,9 @@ class MfcAxisConfig(StrictModel):
     def _adapt_needs_window(self) -> MfcAxisConfig:
         if self.alpha_adapt is not None and self.estimator != "window":
             raise ValueError("alpha_adapt needs estimator: window")
+        adapt = self.alpha_adapt
+        if adapt is not None and adapt.margin_min > 0.0 and self.actuator_tau_s <= 0.0:
+            raise ValueError("alpha_adapt.margin_min needs actuator_tau_s > 0")
         return self
 
     @field_validator("alpha")
@@ -259,6 +271,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
                 min_samples_weight=a.alpha_adapt.min_samples_weight_us2,
                 tau_candidates_s=a.alpha_adapt.tau_candidates_s,
                 min_response=a.alpha_adapt.min_response_rad_s2,
+                margin_min=a.alpha_adapt.margin_min,
             ),
         )
 

@@ -5,8 +5,8 @@ corner vehicles (:func:`sitl.envelope.corners`), intact, on the real test flight
 (``envelope-test``, 30 s). To stay quick the PID is tuned on the first
 :data:`TRAIN_SLICE_S` seconds of ``train-acro`` with :data:`BUDGET` flights (two
 rounds of the search) instead of the campaign's 35 s and 40 flights. No crash
-is asserted as the target says; the ratio targets are not met yet, so what is
-asserted is what was measured (see the comment above those tests).
+and the ratio targets are asserted as the issue states them; the median ratio is
+also held near what was measured, so that a regression fails.
 """
 
 from __future__ import annotations
@@ -89,18 +89,16 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
     assert crashed == [], crashed
 
 
-# The issue's targets are ratio <= RATIO_TARGET (1.25) on every corner and axis, and
-# MFC better than PX4's default PID everywhere. NOT MET on one corner axis; measured
-# with the shipped controller (this test's short tuning, 25 flights on 15 s of
-# train-acro), ratio MFC / tuned PID roll/pitch/yaw: tiny-fast 0.97/1.12/0.98,
-# tiny-slow-motor 1.11/1.39/0.35, heavy-weak 0.94/0.77/0.75, heavy-strong
-# 0.92/0.79/0.90, mid 0.98/1.04/0.29; MFC over the default PID: worse only on
-# tiny-slow-motor pitch (1.35). (Before kd kept more of itself on strong vehicles,
-# tiny-slow-motor was 1.65/1.47/0.35, and 1.39/1.42 over the default PID.) The tests
-# below hold what is achieved so that a regression fails; docs/envelope.md has the
-# full campaign.
-MEASURED_WORST_RATIO = 1.39
-MEASURED_MEDIAN_RATIO = 0.94
+# The issue's targets at the corners: ratio <= RATIO_TARGET (1.25) on every corner and
+# axis, and MFC better than PX4's default PID everywhere. Both met since the margin
+# falls on slow lags with much authority (docs/gains.md, point 7). Measured with the
+# shipped controller (this test's short tuning, 25 flights on 15 s of train-acro),
+# ratio MFC / tuned PID roll/pitch/yaw: tiny-fast 0.97/1.12/0.98, tiny-slow-motor
+# 0.86/1.01/0.35, heavy-weak 0.94/0.77/0.75, heavy-strong 0.79/0.71/0.91, mid
+# 1.01/1.00/0.29; MFC over the default PID at most 0.98 (tiny-slow-motor pitch).
+# Before that change tiny-slow-motor was 1.11/1.39/0.35, and 1.35 over the default
+# PID on pitch. docs/envelope.md has the full campaign.
+MEASURED_MEDIAN_RATIO = 0.91
 
 
 @pytest.mark.slow
@@ -108,28 +106,19 @@ def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) ->
     ratios = [r["ratio_mfc_tuned"][a] for r in corner_records for a in AXES]
     assert None not in ratios
     detail = "MAE M/T/D: " + _table(corner_records)
-    assert max(ratios) <= 1.15 * MEASURED_WORST_RATIO, detail
+    assert max(ratios) <= RATIO_TARGET, detail
     assert sorted(ratios)[len(ratios) // 2] <= max(1.15 * MEASURED_MEDIAN_RATIO, 1.0), detail
-    # Where the target is met today it must stay met: every corner and axis but the
-    # 250 g quad with 60 ms motors' pitch.
-    for r in corner_records:
-        for a in AXES:
-            if (r["vehicle"], a) != ("tiny-slow-motor", "pitch"):
-                assert r["ratio_mfc_tuned"][a] <= RATIO_TARGET, (r["vehicle"], a, detail)
 
 
 @pytest.mark.slow
-def test_mfc_beats_px4_default_pid_except_the_slow_motored_250g_quads_pitch(
-    corner_records: Records,
-) -> None:
+def test_mfc_beats_px4_default_pid_at_the_corners(corner_records: Records) -> None:
     worse = [
         (r["vehicle"], a, r["ratio_mfc_default"][a])
         for r in corner_records
         for a in AXES
         if r["ratio_mfc_default"][a] is None or r["ratio_mfc_default"][a] >= 1.0
     ]
-    assert all((v, a) == ("tiny-slow-motor", "pitch") for v, a, _ in worse), worse
-    assert all(x <= 1.15 * 1.35 for _, _, x in worse), worse
+    assert worse == [], worse
 
 
 @pytest.mark.slow

@@ -112,6 +112,9 @@ class AlphaAdaptation:
     min_response
         Smallest :math:`|z|` (rad/s^m) that updates the slope: a vehicle that
         does not move (on the ground) teaches nothing, rather than "b = 0".
+    margin_min
+        0: the margin is constant. Otherwise the lowest margin a slow lag
+        brings it to (:meth:`PlantIdentifier.margin_for`).
     """
 
     alpha_min: float
@@ -123,6 +126,7 @@ class AlphaAdaptation:
     min_samples_weight: float = 2.0e4
     tau_candidates_s: tuple[float, ...] = ()
     min_response: float = 2.0
+    margin_min: float = 0.0
 
     def __post_init__(self) -> None:
         vals = (self.alpha_min, self.alpha_max, self.margin, self.memory_s, self.highpass_s)
@@ -134,6 +138,8 @@ class AlphaAdaptation:
             raise ValueError("min_excitation and min_samples_weight must be >= 0")
         if not all(math.isfinite(t) and t >= 0.0 for t in self.tau_candidates_s):
             raise ValueError("tau_candidates_s must be finite and >= 0")
+        if not 0.0 <= self.margin_min <= self.margin:
+            raise ValueError("margin_min must be in [0, margin]")
 
 
 @dataclass(frozen=True)
@@ -314,18 +320,33 @@ class PlantIdentifier:
     (collective), so hover, the ground and noise teach it nothing; until
     ``min_samples_weight`` of excitation is gathered the configured
     ``alpha`` and ``actuator_tau_s`` stay.
+
+    :attr:`margin` is alpha over the slope in use: the configured one unless
+    ``margin_min`` lowers it for a slow lag (:meth:`margin_for`), which is
+    where ``authority_ref`` and ``full_scale`` (the axis's
+    ``lag_scaling_authority_ref`` and full-scale command) serve.
     """
 
     __slots__ = (
-        "_cfg", "_dt", "_hp", "_ks", "_lam", "_sxx", "_sxz", "_szz", "_taus", "_u_lp", "_x",
-        "_y_lp", "alpha", "alpha0", "tau", "tau0",
+        "_authority_ref", "_cfg", "_dt", "_full_scale", "_hp", "_ks", "_lam", "_sxx", "_sxz",
+        "_szz", "_taus", "_u_lp", "_x", "_y_lp", "alpha", "alpha0", "margin", "tau", "tau0",
     )  # fmt: skip
 
-    def __init__(self, cfg: AlphaAdaptation, alpha: float, tau_s: float) -> None:
+    def __init__(
+        self,
+        cfg: AlphaAdaptation,
+        alpha: float,
+        tau_s: float,
+        *,
+        authority_ref: float = 0.0,
+        full_scale: float = 500.0,
+    ) -> None:
         self._cfg = cfg
         self._taus = cfg.tau_candidates_s or (tau_s,)
         self.alpha0 = alpha
         self.tau0 = tau_s
+        self._authority_ref = authority_ref
+        self._full_scale = full_scale
         self._dt = -1.0
         self._hp = self._lam = 0.0
         self._ks = [0.0] * len(self._taus)
@@ -340,11 +361,32 @@ class PlantIdentifier:
         self._u_lp = self._y_lp = 0.0
         self.alpha = self.alpha0
         self.tau = self.tau0
+        self.margin = self._cfg.margin
 
-    @property
-    def margin(self) -> float:
-        """alpha / b_hat once identified (the configured margin)."""
-        return self._cfg.margin
+    def margin_for(self, b: float, tau: float) -> float:
+        r"""The margin for an identified slope ``b`` and lag ``tau``.
+
+        With ``margin_min`` > 0 and ``tau`` slower than the axis's
+        ``actuator_tau_s`` :math:`\tau_0`, the margin falls to
+        :math:`\max(m_{min},\, m \max(\sqrt{\tau_0/\tau},\,
+        \min(1, \sqrt{A_{ref}/A})))`, :math:`A = b` times the full-scale command
+        (with ``authority_ref`` 0, the lag term alone). A lower margin is a larger
+        loop gain: slow motors need it to stop a reversal's overshoot, and a
+        vehicle with much authority can give it without saturating, while a
+        weak one keeps the whole margin (docs/gains.md, point 7).
+        """
+        cfg = self._cfg
+        tau0 = self.tau0
+        if cfg.margin_min <= 0.0 or tau <= tau0 or tau0 <= 0.0:
+            return cfg.margin
+        h = math.sqrt(tau0 / tau)
+        if self._authority_ref > 0.0:
+            authority = b * self._full_scale
+            if authority <= self._authority_ref:
+                return cfg.margin
+            h = max(h, math.sqrt(self._authority_ref / authority))
+        m = cfg.margin * h
+        return m if m > cfg.margin_min else cfg.margin_min
 
     def _set_dt(self, dt_s: float) -> None:
         cfg = self._cfg
@@ -389,9 +431,11 @@ class PlantIdentifier:
                     best = i
         if best < 0:
             return
-        a = cfg.margin * sxz[best] / sxx[best]
+        b = sxz[best] / sxx[best]
+        self.tau = tau = self._taus[best]
+        self.margin = m = self.margin_for(b, tau) if cfg.margin_min > 0.0 else cfg.margin
+        a = m * b
         self.alpha = cfg.alpha_max if a > cfg.alpha_max else max(a, cfg.alpha_min)
-        self.tau = self._taus[best]
 
 
 class IntelligentController:
@@ -439,7 +483,13 @@ class IntelligentController:
         self.update = self._update_ipd if gains.order == 2 else self._update_ip
         self._tau = gains.actuator_tau_s
         self._ident = (
-            PlantIdentifier(gains.adapt, gains.alpha, gains.actuator_tau_s)
+            PlantIdentifier(
+                gains.adapt,
+                gains.alpha,
+                gains.actuator_tau_s,
+                authority_ref=gains.lag_scaling_authority_ref,
+                full_scale=command_full_scale,
+            )
             if gains.adapt is not None
             else None
         )

@@ -120,6 +120,19 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
         pytest.param(_set("axes.roll.alpha", 0.0), "axes.roll.alpha", id="alpha-zero"),
         pytest.param(_set("axes.roll.window_s", -0.02), "axes.roll.window_s", id="negative-window"),
         pytest.param(_set("dt_max_s", -1.0), "dt_max_s", id="negative-dt"),
+        pytest.param(
+            _set("axes.roll.alpha_adapt.margin_min", 0.5),
+            "axes.roll.alpha_adapt",
+            id="margin-min-above-margin",
+        ),
+        pytest.param(
+            _set("axes.roll.alpha_adapt.margin_min", -0.1),
+            "axes.roll.alpha_adapt.margin_min",
+            id="negative-margin-min",
+        ),
+        pytest.param(
+            _set("axes.roll.actuator_tau_s", 0.0), "axes.roll", id="margin-min-without-lag"
+        ),
     ],
 )
 def test_bad_controller_file_names_file_and_key(

@@ -19,11 +19,15 @@ ADAPT = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=1.0, tau_candidat
 
 
 def _excited_plant(
-    b: float, tau: float, seconds: float = 6.0, dt: float = 0.001
+    b: float,
+    tau: float,
+    seconds: float = 6.0,
+    dt: float = 0.001,
+    ident: PlantIdentifier | None = None,
 ) -> PlantIdentifier:
     """Feed an identifier the window means of y'' = F + b * lag_tau(u) under random steps."""
     rng = np.random.default_rng(7)
-    ident = PlantIdentifier(ADAPT, alpha=1.0, tau_s=0.03)
+    ident = ident or PlantIdentifier(ADAPT, alpha=1.0, tau_s=0.03)
     n_win = 20
     u_hist: list[float] = []
     acc_hist: list[float] = []
@@ -69,11 +73,63 @@ def test_reset_restores_the_configured_values() -> None:
     assert (ident.alpha, ident.tau) == (1.0, 0.03)
 
 
+SLOW_LAG = AlphaAdaptation(
+    alpha_min=0.03, alpha_max=10.0, margin=0.4, margin_min=0.3, tau_candidates_s=TAUS
+)
+
+
+def _slow_lag_ident(
+    cfg: AlphaAdaptation = SLOW_LAG, authority_ref: float = 150.0
+) -> PlantIdentifier:
+    return PlantIdentifier(
+        cfg, alpha=1.0, tau_s=0.03, authority_ref=authority_ref, full_scale=500.0
+    )
+
+
+@pytest.mark.parametrize(
+    ("b", "tau", "authority_ref", "want"),
+    [
+        (4.0, 0.02, 150.0, 0.4),  # lag faster than actuator_tau_s: the margin stays
+        (0.2, 0.08, 150.0, 0.4),  # authority 100 <= 150: a weak vehicle keeps it
+        (0.6, 0.04, 150.0, 0.4 * math.sqrt(0.03 / 0.04)),  # the lag term: max(0.87, 0.71)
+        (0.45, 0.08, 150.0, 0.4 * math.sqrt(150.0 / 225.0)),  # the authority term: max(0.61, 0.82)
+        (4.0, 0.08, 150.0, 0.3),  # 0.4 * 0.61 = 0.24: the floor
+        (0.2, 0.04, 0.0, 0.4 * math.sqrt(0.03 / 0.04)),  # no authority_ref: the lag alone
+    ],
+)
+def test_margin_falls_on_a_slow_lag_with_much_authority(
+    b: float, tau: float, authority_ref: float, want: float
+) -> None:
+    assert _slow_lag_ident(authority_ref=authority_ref).margin_for(b, tau) == pytest.approx(want)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(1e-4, 1e3), st.sampled_from(TAUS), st.floats(0.0, 1e4))
+def test_margin_stays_between_its_floor_and_the_configured_one(
+    b: float, tau: float, authority_ref: float
+) -> None:
+    assert 0.3 <= _slow_lag_ident(authority_ref=authority_ref).margin_for(b, tau) <= 0.4
+    assert PlantIdentifier(ADAPT, alpha=1.0, tau_s=0.03).margin_for(b, tau) == ADAPT.margin
+
+
+def test_identified_alpha_uses_the_slow_lag_margin() -> None:
+    """b = 4 per us (authority 2000 rad/s^2) behind 80 ms motors: margin 0.3, alpha 1.2;
+    reset brings back the configured margin."""
+    ident = _excited_plant(4.0, 0.08, ident=_slow_lag_ident())
+    assert ident.tau == 0.08
+    assert ident.margin == 0.3
+    assert ident.alpha == pytest.approx(0.3 * 4.0, rel=0.1)
+    ident.reset()
+    assert ident.margin == 0.4
+
+
 def test_bad_adaptation_settings_are_rejected() -> None:
     with pytest.raises(ValueError, match="alpha_min"):
         AlphaAdaptation(alpha_min=2.0, alpha_max=1.0)
     with pytest.raises(ValueError, match="tau_candidates_s"):
         AlphaAdaptation(alpha_min=0.1, alpha_max=1.0, tau_candidates_s=(math.nan,))
+    with pytest.raises(ValueError, match="margin_min"):
+        AlphaAdaptation(alpha_min=0.1, alpha_max=1.0, margin=0.4, margin_min=0.5)
     with pytest.raises(ValueError, match="window estimator"):
         MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, estimator="algebraic", adapt=ADAPT)
 
