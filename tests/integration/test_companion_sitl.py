@@ -49,10 +49,10 @@ def failsafe(flight: FlightProcesses) -> dict[str, Any]:
 
 # MAE roll / pitch / yaw, deg/s, first 20 s of paper-acro over MAVLink.
 MEASURED_20S = {
-    "f450": (8.3, 4.7, 4.3),
-    "f450_cut_props": (12.5, 6.9, 13.5),
-    "tarot650": (16.2, 7.4, 7.7),
-    "x500": (7.1, 3.8, 4.8),
+    "f450": (8.4, 4.7, 4.3),
+    "f450_cut_props": (12.3, 6.9, 13.8),
+    "tarot650": (16.1, 7.1, 7.7),
+    "x500": (7.1, 3.9, 5.0),
 }
 
 
