@@ -7,6 +7,7 @@ vehicle profile's geometry (the mixer) and nothing else from the profile.
 
 from __future__ import annotations
 
+import math
 from importlib.resources import files
 from pathlib import Path
 from typing import Literal
@@ -134,6 +135,13 @@ class MfcAxisConfig(StrictModel):
         description="rad/s^m at full-scale command; above it a slow lag cuts kd less "
         "(by sqrt(authority/ref), at most back to kd); 0: off",
     )
+    lag_scaling_max: float | None = Field(
+        None,
+        ge=1.0,
+        le=100.0,
+        description="largest factor a lag faster than actuator_tau_s raises the gains by; "
+        "null: no cap",
+    )
 
     @model_validator(mode="after")
     def _adapt_needs_window(self) -> MfcAxisConfig:
@@ -259,6 +267,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             actuator_tau_s=a.actuator_tau_s,
             lag_scaled_gains=a.lag_scaled_gains,
             lag_scaling_authority_ref=a.lag_scaling_authority_ref,
+            lag_scaling_max=math.inf if a.lag_scaling_max is None else a.lag_scaling_max,
             adapt=None
             if a.alpha_adapt is None
             else AlphaAdaptation(

@@ -178,6 +178,9 @@ class MfcAxisGains:
     """With ``lag_scaled_gains``, rad/s^m per full-scale command (0: off). A vehicle
     identified with more authority than this keeps more of ``kd`` on a slow lag:
     kd is multiplied by ``sqrt(authority / ref)``, at most back to the unscaled kd."""
+    lag_scaling_max: float = math.inf
+    """With ``lag_scaled_gains``, the largest factor (>= 1) a lag faster than
+    ``actuator_tau_s`` may raise the gains by (``inf``: no cap)."""
     adapt: AlphaAdaptation | None = None
 
     def __post_init__(self) -> None:
@@ -195,6 +198,8 @@ class MfcAxisGains:
                 raise ValueError(f"{name} must be finite, got {v}")
         if self.alpha == 0.0 or self.window_s <= 0.0 or self.output_limit <= 0.0:
             raise ValueError("alpha must be non-zero; window_s and output_limit positive")
+        if not self.lag_scaling_max >= 1.0:
+            raise ValueError("lag_scaling_max must be >= 1 (it caps a raise, not a cut)")
 
 
 @dataclass(frozen=True)
@@ -433,7 +438,7 @@ class PlantIdentifier:
             return
         b = sxz[best] / sxx[best]
         self.tau = tau = self._taus[best]
-        self.margin = m = self.margin_for(b, tau) if cfg.margin_min > 0.0 else cfg.margin
+        self.margin = m = self.margin_for(b, tau)
         a = m * b
         self.alpha = cfg.alpha_max if a > cfg.alpha_max else max(a, cfg.alpha_min)
 
@@ -463,7 +468,7 @@ class IntelligentController:
     __slots__ = (
         "_alpha", "_authority_ref", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff",
         "_kp", "_kp_eff",
-        "_lag_dt", "_lag_k",
+        "_lag_dt", "_lag_k", "_lag_max",
         "_lag_scaled", "_lag_tau", "_lim", "_pending", "_pending_dt", "_plain", "_scale", "_tau",
         "_u_a", "adapting", "e", "e_dot", "f_hat", "order", "u_prev", "update",
     )  # fmt: skip
@@ -496,6 +501,7 @@ class IntelligentController:
         self._plain = self._ident is None and self._tau <= 0.0
         self._lag_scaled = gains.lag_scaled_gains and self._ident is not None and self._tau > 0.0
         self._authority_ref = gains.lag_scaling_authority_ref
+        self._lag_max = gains.lag_scaling_max
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
         self.adapting = False
@@ -584,9 +590,16 @@ class IntelligentController:
         back part of the kd cut: by ``sqrt(authority / ref)``, never beyond the
         unscaled kd. A strong vehicle can afford the faster error dynamics
         without saturating; a weak one, which saturates, keeps the full cut
-        (docs/gains.md, point 6)."""
+        (docs/gains.md, point 6).
+
+        A fast lag raises the gains by at most ``lag_scaling_max``: below the
+        configured lag, the estimate's window and the reference prefilter, not
+        the motors, bound how fast the error may be driven (docs/gains.md,
+        point 8)."""
         ident = self._ident
         r = self._tau / ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
+        if r > self._lag_max:
+            r = self._lag_max
         g = 1.0
         if self._authority_ref > 0.0 and r < 1.0 and ident is not None:
             authority = ident.alpha / ident.margin * self._scale  # rad/s^m, full scale

@@ -133,6 +133,11 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
         pytest.param(
             _set("axes.roll.actuator_tau_s", 0.0), "axes.roll", id="margin-min-without-lag"
         ),
+        pytest.param(
+            _set("axes.roll.lag_scaling_max", 0.8),
+            "axes.roll.lag_scaling_max",
+            id="lag-scaling-max-below-one",
+        ),
     ],
 )
 def test_bad_controller_file_names_file_and_key(

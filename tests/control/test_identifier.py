@@ -132,6 +132,9 @@ def test_bad_adaptation_settings_are_rejected() -> None:
         AlphaAdaptation(alpha_min=0.1, alpha_max=1.0, margin=0.4, margin_min=0.5)
     with pytest.raises(ValueError, match="window estimator"):
         MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, estimator="algebraic", adapt=ADAPT)
+    for cap in (0.5, math.nan):
+        with pytest.raises(ValueError, match="lag_scaling_max"):
+            MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_max=cap)
 
 
 def _closed_loop_mae(gains: MfcAxisGains, b: float, tau: float) -> float:
@@ -173,11 +176,13 @@ def test_identified_law_holds_its_worst_case_where_fixed_alpha_does_not() -> Non
     assert _closed_loop_mae(adaptive, 4.0, 0.01) < 0.2 * _closed_loop_mae(fixed, 4.0, 0.01)
 
 
-def _fly_a_slow_lag(ax: IntelligentController, order: int) -> tuple[float, float]:
-    """6 s of random rate steps on y^(m) = 0.35 u_a + F with an 80 ms actuator lag,
-    learning; returns the last rate and reference."""
+def _fly_a_slow_lag(
+    ax: IntelligentController, order: int, tau: float = 0.08
+) -> tuple[float, float]:
+    """6 s of random rate steps on y^(m) = 0.35 u_a + F with an 80 ms (or ``tau``)
+    actuator lag, learning; returns the last rate and reference."""
     ax.adapting = True
-    dt, k = 0.001, -math.expm1(-0.001 / 0.08)
+    dt, k = 0.001, -math.expm1(-0.001 / tau)
     rng = np.random.default_rng(3)
     w = u_a = u = ref = 0.0
     for i in range(6000):
@@ -215,6 +220,23 @@ def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
         fb -= ref  # the iP's reference term is the rate itself
     want = -(ax.f_hat + fb) / ax.alpha
     assert abs(want) < 500.0  # unsaturated, so the gains show
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+@pytest.mark.parametrize(("cap", "want_r"), [(math.inf, 3.0), (1.0, 1.0), (2.0, 2.0)])
+def test_a_fast_lag_raises_kd_at_most_by_lag_scaling_max(cap: float, want_r: float) -> None:
+    """Identified at 10 ms against the configured 30 ms, kd would triple; with
+    lag_scaling_max it rises by at most that factor."""
+    gains = MfcAxisGains(
+        order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_max=cap,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    w, ref = _fly_a_slow_lag(ax, 2, tau=0.01)
+    assert ax.tau_s == 0.01
+    got = ax.update(0.001, w + 0.1, ref, 0.0)
+    want = -(ax.f_hat + 15.0 * want_r * ax.e_dot) / ax.alpha
+    assert abs(want) < 500.0
     assert got == pytest.approx(want, rel=1e-9)
 
 

@@ -311,4 +311,7 @@ def test_the_yaw_allowance_never_costs_roll_or_pitch(
     assert abs(got.achieved[2]) >= abs(ref.achieved[2]) - 1e-12
     assert -0.15 - 1e-12 <= got.thrust - ref.thrust <= 0.2 + 1e-12
     assert all(idle <= x <= 1.0 for x in got.motors)
-    np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-9)
+    # A motor within 1e-9 of a limit is snapped to it (and reported saturated), so
+    # the torques the motors give may differ from those reported by a few 1e-9
+    # (hypothesis found roll = pitch = 1e-9 at zero thrust: yaw off by 1.0000000000000003e-9).
+    np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-8)
