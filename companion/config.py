@@ -144,7 +144,7 @@ class MfcAxisConfig(StrictModel):
     )
 
     @model_validator(mode="after")
-    def _adapt_needs_window(self) -> MfcAxisConfig:
+    def _adapt_requirements(self) -> MfcAxisConfig:
         if self.alpha_adapt is not None and self.estimator != "window":
             raise ValueError("alpha_adapt needs estimator: window")
         adapt = self.alpha_adapt

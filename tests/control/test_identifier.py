@@ -176,9 +176,7 @@ def test_identified_law_holds_its_worst_case_where_fixed_alpha_does_not() -> Non
     assert _closed_loop_mae(adaptive, 4.0, 0.01) < 0.2 * _closed_loop_mae(fixed, 4.0, 0.01)
 
 
-def _fly_a_slow_lag(
-    ax: IntelligentController, order: int, tau: float = 0.08
-) -> tuple[float, float]:
+def _fly_a_lag(ax: IntelligentController, order: int, tau: float = 0.08) -> tuple[float, float]:
     """6 s of random rate steps on y^(m) = 0.35 u_a + F with an 80 ms (or ``tau``)
     actuator lag, learning; returns the last rate and reference."""
     ax.adapting = True
@@ -207,7 +205,7 @@ def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
         actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
     )  # fmt: skip
     ax = IntelligentController(gains)
-    w, ref = _fly_a_slow_lag(ax, order)
+    w, ref = _fly_a_lag(ax, order)
     dt = 0.001
     assert ax.tau_s == 0.08
     # The next command from public state: u = -(F_hat - v + gains) / alpha.
@@ -232,7 +230,7 @@ def test_a_fast_lag_raises_kd_at_most_by_lag_scaling_max(cap: float, want_r: flo
         actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_max=cap,
     )  # fmt: skip
     ax = IntelligentController(gains)
-    w, ref = _fly_a_slow_lag(ax, 2, tau=0.01)
+    w, ref = _fly_a_lag(ax, 2, tau=0.01)
     assert ax.tau_s == 0.01
     got = ax.update(0.001, w + 0.1, ref, 0.0)
     want = -(ax.f_hat + 15.0 * want_r * ax.e_dot) / ax.alpha
@@ -275,7 +273,7 @@ def test_a_strong_vehicle_keeps_more_of_kd_on_a_slow_lag(ref: float) -> None:
         lag_scaling_authority_ref=ref,
     )  # fmt: skip
     ax = IntelligentController(gains)
-    w, ref_rate = _fly_a_slow_lag(ax, 2)
+    w, ref_rate = _fly_a_lag(ax, 2)
     dt = 0.001
     assert ax.tau_s == 0.08
     authority = ax.alpha / ADAPT.margin * 500.0
