@@ -488,7 +488,8 @@ class Companion:
         was = self.engaged
         now = offboard and armed and self.commanding
         self._ap_mode, self._ap_armed = mode, armed
-        if now and not was:
+        if now and not was and not self._stop.is_set():
+            # (After a stop signal nothing engages: the run's hand-back is next.)
             self.controller.reset()  # learn F only from commands that are applied
             self._restart_dt = True  # the next sample primes it, as a replay does
             self._err_ema = [0.0, 0.0, 0.0]
@@ -815,6 +816,11 @@ class Companion:
         self._event("signal", signal.Signals(sig).name)
         self._exit_code = EXIT_OK
         self._stop.set()
+        # An engagement in flight sends no more mode commands; ``commanding`` is
+        # left as it is, so the run's hand-back still switches to the safe mode.
+        task = self._engage_task
+        if task is not None and not task.done():
+            task.cancel()
 
     async def _recognise_stack(self) -> None:
         """Pick the stack's dialect and refuse what it cannot do, before sending anything."""

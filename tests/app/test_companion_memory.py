@@ -18,6 +18,7 @@ import socket
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -709,6 +710,34 @@ async def test_a_signal_while_the_pilots_hand_back_retries_leaves_the_safe_mode_
     assert rc == 0
     i_signal = f.kinds().index("signal")
     assert "engaged" not in f.kinds()[i_signal:]
+
+
+async def test_a_heartbeat_between_the_signal_and_the_hand_back_does_not_engage(
+    start: Start,
+) -> None:
+    """The autopilot reports OFFBOARD in the loop turns between SIGTERM and the run's
+    hand-back: that must not start an engagement (it did, about once in ten CI runs
+    of the test above: 'engaged' logged after 'signal'). The hand-back still ends
+    in the safe mode."""
+    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    await streams_requested(f)
+    fake = f.fake
+    fake.rc(1000)
+    await settle()
+    fake.rc(2000)
+    await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="OFFBOARD")
+    assert f.companion.commanding and not f.companion.engaged
+    f.companion._on_signal(signal.SIGTERM)
+    # The heartbeat handled before the run's task wakes from its stop event.
+    f.companion._on_heartbeat(
+        SimpleNamespace(custom_mode=PX4_OFFBOARD, base_mode=mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
+    )
+    assert not f.companion.engaged
+    rc = await f.finish(timeout_s=3.0)
+    assert rc == 0
+    i_signal = f.kinds().index("signal")
+    assert "engaged" not in f.kinds()[i_signal:]
+    assert [m.param2 for m in fake.commands(CMD_DO_SET_MODE)][-1] == 3.0
 
 
 async def test_an_unanswered_hand_back_is_tried_again_by_the_runs_own(start: Start) -> None:
