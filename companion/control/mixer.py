@@ -34,6 +34,12 @@ by default, which is the air mode above exactly. Measured in November 2026
   vehicle with a weak motor the yaw demand never ends and the vehicle sinks:
   with 0.15 down, the default ``companion campaign`` grid went from 11 to 25
   crashes (X500 with motor 1 at 60 %: 0 -> 5 of 6 for both controllers).
+  Re-measured with the current MFC set (November 2026, second half): 0.15
+  down takes the cut-prop F450's paper-acro yaw from 26.8 to 19.6 deg/s, and the
+  campaign from 10 to 23 crashes. A leaky budget on the borrowed collective
+  (0.3 collective-seconds, refilling over 10 s) still crashed the X500 with
+  motor 1 at 60 % in 5 of 6 flights (20 crashes in all) and gave back most
+  of the yaw gain (23.4).
 * Up, on train-acro over 21 vehicles (4 paper profiles, 5 envelope corners,
   12 sampled), looked good: mean yaw MAE 2.89 -> 2.41 deg/s with 0.2, no
   vehicle worse, no crash. On the held-out envelope-test flight the 250 g
