@@ -3,13 +3,20 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.config import DEFAULT_CONTROLLER, build_controller, load_controller
+from companion.config import (
+    DEFAULT_CONTROLLER,
+    MfcConfig,
+    build_controller,
+    load_controller,
+    mfc_gains,
+)
 from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains
 from companion.control.mfc import PlantIdentifier
 from companion.profile import load_profile
@@ -24,8 +31,10 @@ def _excited_plant(
     seconds: float = 6.0,
     dt: float = 0.001,
     ident: PlantIdentifier | None = None,
+    u_max: float = 150.0,
 ) -> PlantIdentifier:
-    """Feed an identifier the window means of y'' = F + b * lag_tau(u) under random steps."""
+    """Feed an identifier the window means of y'' = F + b * lag_tau(u) under random
+    steps of up to ``u_max`` us."""
     rng = np.random.default_rng(7)
     ident = ident or PlantIdentifier(ADAPT, alpha=1.0, tau_s=0.03)
     n_win = 20
@@ -36,7 +45,7 @@ def _excited_plant(
     k = -math.expm1(-dt / tau)
     for i in range(int(seconds / dt)):
         if i % 60 == 0:
-            u = float(rng.uniform(-150.0, 150.0))
+            u = float(rng.uniform(-u_max, u_max))
         u_a += (u - u_a) * k
         f = 5.0 * math.sin(0.5 * i * dt)  # a slow F the identifier must ignore
         acc_hist.append(f + b * u_a)
@@ -60,6 +69,29 @@ def test_learns_nothing_when_not_flying_or_not_moving() -> None:
         ident.update(0.001, u, 0.0, True)  # on the ground: the command moves, nothing answers
         ident.update(0.001, u, 50.0 * u, False)  # the caller says: not flying
     assert (ident.alpha, ident.tau) == (1.0, 0.03)
+
+
+def test_the_shipped_roll_identifier_learns_from_small_motions() -> None:
+    """Steps of at most 2 us on the F450's input gain (0.35 rad/s^2 per us).
+
+    Until it has learnt, alpha is 1.0, the strong end of the envelope, and the
+    command is divided by it, so the corrections before the first maneuver are
+    small. The shipped thresholds learn from them (docs/gains.md, point 9); the
+    ones before (3 us, 0.5 rad/s^2, 500 us^2) learnt nothing. (On 0.2 per us the
+    slope from such small steps comes out about 30 % high, probably because the
+    response gate keeps the samples where the slow F adds to the answer. Too high
+    an alpha is the stable side.)
+    """
+    shipped = load_controller(DEFAULT_CONTROLLER)
+    assert isinstance(shipped, MfcConfig)
+    cfg = mfc_gains(shipped).roll.adapt
+    assert cfg is not None
+    learnt = _excited_plant(0.35, 0.02, ident=PlantIdentifier(cfg, 1.0, 0.03), u_max=2.0)
+    assert learnt.tau == 0.02
+    assert learnt.alpha == pytest.approx(cfg.margin * 0.35, rel=0.1)
+    before = replace(cfg, min_excitation=3.0, min_response=0.5, min_samples_weight=500.0)
+    untrained = _excited_plant(0.35, 0.02, ident=PlantIdentifier(before, 1.0, 0.03), u_max=2.0)
+    assert (untrained.alpha, untrained.tau) == (1.0, 0.03)
 
 
 def test_alpha_is_clipped_to_its_bounds() -> None:
