@@ -176,6 +176,75 @@ def transient_split(record: Any) -> dict[str, dict[str, float | None]]:
     return out
 
 
+FLOOR_GRID_RAD_S = 0.01
+
+
+def acceleration_floor_deg_s(t_s: Any, ref_rad_s: Any, accel_up: float, accel_down: float) -> float:
+    """A lower bound on the rate-tracking MAE that peak angular acceleration allows.
+
+    The least mean ``|ref - w|`` over every rate trajectory ``w`` whose change
+    between samples is within ``accel_up * dt`` upwards and ``accel_down * dt``
+    downwards, found by dynamic programming over a grid of
+    ``FLOOR_GRID_RAD_S``: motor lag, the gyro filter, noise and the other axes
+    are ignored, and the trajectory may know the stick in advance, so no
+    controller can do better (deg/s). The grid search allows one extra grid
+    step per sample and the result is lowered by half a step, which keeps it a
+    bound: a real trajectory rounded to the grid is then feasible and costs at
+    most half a step more per sample.
+    """
+    import numpy as np
+
+    t = np.asarray(t_s, dtype=float)
+    ref = np.asarray(ref_rad_s, dtype=float)
+    if ref.size == 0:
+        return 0.0
+    step = FLOOR_GRID_RAD_S
+    grid = np.arange(ref.min() - step, ref.max() + 2 * step, step)
+    cost = np.abs(ref[0] - grid)  # the start is free: a lower bound needs no initial state
+    dts = np.diff(t)
+    for k in range(1, ref.size):
+        up = math.ceil(accel_up * dts[k - 1] / step) + 1
+        down = math.ceil(accel_down * dts[k - 1] / step) + 1
+        # w_k = grid[j] is reachable from grid[i] for j - up <= i <= j + down
+        cost = np.minimum(_running_min(cost, up), _running_min(cost[::-1], down)[::-1])
+        cost += np.abs(ref[k] - grid)
+    return math.degrees(max(float(cost.min()) / ref.size - step / 2, 0.0))
+
+
+def _running_min(a: Any, width: int) -> Any:
+    """``out[j] = min(a[max(0, j - width)] .. a[j])``, by doubling spans."""
+    import numpy as np
+
+    out = a.copy()
+    span = 1
+    while span <= width:
+        s = min(span, width - span + 1)
+        out[s:] = np.minimum(out[s:], out[:-s])
+        span += s
+    return out
+
+
+def acceleration_floors(record: Any, profile: Any) -> dict[str, float]:
+    """:func:`acceleration_floor_deg_s` on roll and pitch of one flight, airborne samples.
+
+    Yaw is left out: a rotor's spin-up reaction gives yaw far more than its
+    steady peak for a moment, so a bound from the steady figure would not hold.
+    """
+    import numpy as np
+
+    from sitl.envelope import angular_accel_limits_rad_s2
+
+    c = record.columns
+    air = np.asarray(c["airborne"], dtype=bool)
+    t = np.asarray(c["t_s"])[air]
+    ref = np.asarray(c["ref_rad_s"])[air]
+    limits = angular_accel_limits_rad_s2(profile)
+    return {
+        a: round(acceleration_floor_deg_s(t, ref[:, i], *limits[i]), 2)
+        for i, a in enumerate(AXES[:2])
+    }
+
+
 def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
     """Fly one flight, write its report folder, return its metrics (runs in a worker)."""
     from companion.config import load_controller
@@ -190,7 +259,8 @@ def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
     sc = load_scenario(SCENARIO)
     if duration_s is not None:
         sc = sc.model_copy(update={"duration_s": duration_s})
-    record = simulate_flight(load_profile(profile_path), load_controller(ctrl_path), sc)
+    profile = load_profile(profile_path)
+    record = simulate_flight(profile, load_controller(ctrl_path), sc)
     metrics = write_report(
         record,
         Path(out) / flight.name,
@@ -201,6 +271,8 @@ def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
         scenario_desc=sc.description.strip(),
     )
     metrics["after_fast_changes"] = transient_split(record)
+    if flight.role == "paper" and flight.controller == "mfc":
+        metrics["acceleration_floor_deg_s"] = acceleration_floors(record, profile)
     return metrics
 
 
@@ -400,6 +472,31 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "reversals within 0.3 s. The scenario was not changed to match: it is frozen as "
             "the test flight."
         )
+    floors = {
+        f["profile"]: f["acceleration_floor_deg_s"]
+        for f in F.values()
+        if "acceleration_floor_deg_s" in f
+    }
+    if floors:
+        parts = []
+        for p, fl in floors.items():
+            m = F[f"{p}_mfc"]["mae_deg_s"]
+            measured = " / ".join("-" if m[a] is None else f"{m[a]:.1f}" for a in AXES[:2])
+            parts.append(f"{p} {fl['roll']:.1f} / {fl['pitch']:.1f} against {measured}")
+        lags = ", ".join(
+            f"{p} {g['motor_tau_up_s'] * 1e3:.0f} / {g['motor_tau_down_s'] * 1e3:.0f} ms"
+            for p, g in gains.items()
+        )
+        out.append(
+            "Peak angular acceleration is not what holds these figures up. The best any "
+            "rate trajectory could do on this stick input with each vehicle's peak roll and "
+            "pitch acceleration (full differential, from the profile), with no motor lag "
+            "or gyro filter and the stick known in advance, is (roll / pitch, deg/s, MFC): "
+            + "; ".join(parts)
+            + ". What the controllers lose beyond that is the time the loop takes to answer "
+            "at each flip entry, exit and reversal: the motors (spin-up / spin-down: "
+            f"{lags}), the sampling, the gyro filter and the controller's own filters."
+        )
     c = F["f450_cut_props_mfc"]["mae_deg_s"]
     sat = F["f450_cut_props_mfc"]["saturation_fraction"]
     if any(c[a] is None or c[a] >= 20.0 for a in AXES):
@@ -408,7 +505,7 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "leaves little differential authority: the shipped set saturated "
             f"{100 * (sat.get('yaw') or 0.0):.0f} % of the airborne time on yaw (air mode "
             "gives yaw only the headroom left after roll and pitch), which bounds the yaw "
-            "tracking whatever the controller."
+            "tracking of any controller behind this mixer."
         )
     return out
 
@@ -546,6 +643,8 @@ def main(argv: list[str] | None = None) -> int:
             "report": f"{f.name}/report.md",
             "plots": [f"{f.name}/rates.png", f"{f.name}/motors_and_estimate.png"],
         }
+        if "acceleration_floor_deg_s" in m:
+            flights[f.name]["acceleration_floor_deg_s"] = m["acceleration_floor_deg_s"]
     gains = {
         p: input_gains(load_profile(PROFILE_DIR / f"{p}.yaml"))
         for p in ("f450", "f450_cut_props", "tarot650")

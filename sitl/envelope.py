@@ -123,6 +123,7 @@ __all__ = [
     "PROP_THRUST_COEFF",
     "TIP_SPEED_MAX_M_S",
     "EnvelopeVehicle",
+    "angular_accel_limits_rad_s2",
     "corners",
     "damage_variants",
     "derive",
@@ -526,7 +527,23 @@ def damage_variants(vehicle: EnvelopeVehicle) -> dict[str, VehicleProfile]:
 
 
 def peak_angular_accel_rad_s2(profile: VehicleProfile) -> tuple[float, float, float]:
-    r"""Angular acceleration for a full-scale torque command on each axis (rad/s²).
+    """Angular acceleration for a full-scale torque command on each axis (rad/s²): the
+    smaller of the two directions of :func:`angular_accel_limits_rad_s2`, the
+    authority available both ways.
+
+    Returns
+    -------
+    tuple of 3 float
+        Roll, pitch, yaw (rad/s²).
+    """
+    roll, pitch, yaw = angular_accel_limits_rad_s2(profile)
+    return (min(roll), min(pitch), min(yaw))
+
+
+def angular_accel_limits_rad_s2(
+    profile: VehicleProfile,
+) -> tuple[tuple[float, float], tuple[float, float], tuple[float, float]]:
+    r"""Angular acceleration for a full-scale torque command, each axis, each way (rad/s²).
 
     For axis ``a`` and direction ``s = +/-1``, motor ``i`` runs at full command
     (``w_max``) when ``s`` times its mixer factor is positive, at the idle
@@ -538,13 +555,12 @@ def peak_angular_accel_rad_s2(profile: VehicleProfile) -> tuple[float, float, fl
     .. math::  \tau = \sum_i r_i \times (0, 0, -k_{T,i} w_i^2) + (0, 0, \sigma_i k_{Q,i} w_i^2),
                \qquad \dot\omega = J^{-1} \tau,
 
-    at zero body rate (no gyroscopic or drag terms). The figure is the smaller of
-    ``s * dot omega_a`` over both directions: the authority available both ways.
+    at zero body rate (no gyroscopic or drag terms, and no rotor spin-up reaction).
 
     Returns
     -------
-    tuple of 3 float
-        Roll, pitch, yaw (rad/s²).
+    tuple of 3 (float, float)
+        Roll, pitch, yaw: ``s * dot omega_a`` for ``s = +1`` and ``s = -1`` (rad/s²).
     """
     P = VehicleParams.from_profile(profile)
     w_hi = P.w_max_rad_s
@@ -557,9 +573,9 @@ def peak_angular_accel_rad_s2(profile: VehicleProfile) -> tuple[float, float, fl
         [p[0] for p in geom],
         list(P.spin_sign),
     )
-    peaks = []
+    limits = []
     for axis, fac in enumerate(factors):
-        worst = math.inf
+        both = []
         for s in (1.0, -1.0):
             tau = np.zeros(3)
             for i, f in enumerate(fac):
@@ -567,9 +583,9 @@ def peak_angular_accel_rad_s2(profile: VehicleProfile) -> tuple[float, float, fl
                 thrust = P.thrust_coeff[i] * w * w
                 rx, ry, _ = P.arm_frd_m[i]
                 tau += (-ry * thrust, rx * thrust, P.spin_sign[i] * P.torque_coeff[i] * w * w)
-            worst = min(worst, s * float((J_inv @ tau)[axis]))
-        peaks.append(worst)
-    return (peaks[0], peaks[1], peaks[2])
+            both.append(s * float((J_inv @ tau)[axis]))
+        limits.append((both[0], both[1]))
+    return (limits[0], limits[1], limits[2])
 
 
 def write_profile_yaml(profile: VehicleProfile, path: Path) -> None:
