@@ -90,6 +90,8 @@ _RESULT_DENIED = 2
 _MODE_FLAG_CUSTOM = 1
 _BASE_MODE_ARMED = 128
 _MSG_STATUSTEXT = 253
+_MSG_EXTENDED_SYS_STATE = 245
+_LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
@@ -291,6 +293,18 @@ class Companion:
             text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text
             self._last_statustext = text.rstrip("\x00")
             self._event("autopilot_says", self._last_statustext)
+        elif mid == _MSG_EXTENDED_SYS_STATE:
+            self._on_landed_state(int(msg.landed_state))
+
+    def _on_landed_state(self, state: int) -> None:
+        """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
+
+        An autopilot that never sends it (or sends UNDEFINED) leaves the
+        collective as the only gate, as before."""
+        on_ground = state == _LANDED_STATE_ON_GROUND
+        if on_ground != self.controller.on_ground:
+            self.controller.on_ground = on_ground
+            self._event("landed_state", "on the ground" if on_ground else f"in the air ({state})")
 
     def _on_highres_imu(self, v: tuple[Any, ...]) -> None:
         """HIGHRES_IMU ``(time_usec, xgyro, ygyro, zgyro)``, from the link's fast road."""

@@ -748,6 +748,13 @@ class MfcController:
         self._last: ControlOutput | None = None
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
+        self.on_ground = False
+        """Set while the autopilot reports the vehicle on the ground: the identifiers
+        then learn nothing, whatever the collective. On the ground the command
+        answers the gyro's noise and the "response" is that noise again, which a
+        least-squares slope reads as a small input gain, the most aggressive alpha
+        (docs/gains.md, point 9). Not reset by :meth:`reset`: it is the
+        autopilot's state, not the controller's."""
 
     def reset(self) -> None:
         """Forget all state (call on disarm or hand-back)."""
@@ -818,7 +825,7 @@ class MfcController:
             self._prev_ref = rate_ref_rad_s
         a0, a1, a2 = self._axes
         if self._any_adapt:
-            on = thrust >= self._adapt_thrust
+            on = thrust >= self._adapt_thrust and not self.on_ground
             a0.adapting = a1.adapting = a2.adapting = on
         # Teach the estimators what was applied last time, not what was asked.
         p0, p1, p2 = self._applied
@@ -864,6 +871,8 @@ class PidController:
         self._sat_neg = (False, False, False)
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
+        self.on_ground = False
+        """Same attribute as :attr:`MfcController.on_ground`; the PID learns nothing anyway."""
 
     def reset(self) -> None:
         self._pid.reset()

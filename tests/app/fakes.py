@@ -195,6 +195,9 @@ class FakeAutopilot:
             mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY,
         )
 
+    def extended_sys_state(self, landed_state: int) -> None:
+        self.mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, landed_state)
+
     def highres_imu(self, time_usec: int, gyro: tuple[float, float, float]) -> None:
         self.imu_sent.append(time_usec)
         self.mav.highres_imu_send(

@@ -245,6 +245,24 @@ async def test_auto_engagement_on_px4_then_one_command_per_sample(start: Start) 
     assert is_mode(fake.commands(CMD_DO_SET_MODE)[-1], 3.0)  # handed back to POSCTL
 
 
+async def test_the_autopilots_landed_state_stops_identification_on_the_ground(
+    start: Start,
+) -> None:
+    """EXTENDED_SYS_STATE ON_GROUND stops the identifiers whatever the collective; an
+    engagement (which resets the controller) keeps it; IN_AIR lets them learn again."""
+    f = await start(engage="auto", output="actuator")
+    assert not f.companion.controller.on_ground  # nothing said yet: the collective decides
+    f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_ON_GROUND)
+    await f.fake.wait_until(lambda: f.companion.controller.on_ground, 1.0)
+    await engage_px4_auto(f)
+    assert f.companion.controller.on_ground
+    f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_IN_AIR)
+    await f.fake.wait_until(lambda: not f.companion.controller.on_ground, 1.0)
+    assert f.details("landed_state") == ["on the ground", "in the air (2)"]
+    f.companion._stop.set()
+    assert await f.finish() == 0
+
+
 async def test_records_hold_every_frame_and_one_row_per_sample(
     start: Start, tmp_path: Path
 ) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,10 +18,11 @@ from companion.config import (
     load_controller,
     mfc_gains,
 )
-from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains
+from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains, MfcController
 from companion.control.mfc import PlantIdentifier
 from companion.profile import load_profile
 
+F450 = load_profile(Path(__file__).resolve().parents[2] / "vehicle_profiles" / "f450.yaml")
 TAUS = (0.01, 0.02, 0.04, 0.08)
 ADAPT = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=1.0, tau_candidates_s=TAUS)
 
@@ -92,6 +94,34 @@ def test_the_shipped_roll_identifier_learns_from_small_motions() -> None:
     before = replace(cfg, min_excitation=3.0, min_response=0.5, min_samples_weight=500.0)
     untrained = _excited_plant(0.35, 0.02, ident=PlantIdentifier(before, 1.0, 0.03), u_max=2.0)
     assert (untrained.alpha, untrained.tau) == (1.0, 0.03)
+
+
+def _on_the_ground(on_ground: bool, noise_rad_s: float) -> float:
+    """20 s of the shipped controller on the F450, sticks centred, collective 0.4,
+    the gyro reading only noise (the vehicle does not move); the roll alpha after."""
+    ctl = build_controller(load_controller(DEFAULT_CONTROLLER), F450)
+    assert isinstance(ctl, MfcController)
+    ctl.on_ground = on_ground
+    rng = np.random.default_rng(0)
+    for _ in range(5000):
+        gyro = rng.normal(0.0, noise_rad_s, 3)
+        ctl.update(0.004, (float(gyro[0]), float(gyro[1]), float(gyro[2])), (0.0, 0.0, 0.0), 0.4)
+        ctl.learn()
+    ident = ctl._axes[0]._ident
+    assert ident is not None
+    return ident.alpha
+
+
+def test_on_the_ground_a_noisy_gyro_teaches_nothing_once_the_autopilot_says_so() -> None:
+    """The command answers the gyro's noise and the "response" is that noise again: a
+    least-squares slope reads it as a small input gain, the most aggressive alpha
+    (measured: alpha_min, 0.03, from 0.01 rad/s of noise; 2 mrad/s, the SITL's,
+    teaches nothing). With the autopilot's landed state (EXTENDED_SYS_STATE) the
+    companion sets on_ground, and nothing is learnt whatever the noise."""
+    assert _on_the_ground(on_ground=False, noise_rad_s=0.002) == 1.0
+    assert _on_the_ground(on_ground=False, noise_rad_s=0.03) < 0.1
+    assert _on_the_ground(on_ground=True, noise_rad_s=0.03) == 1.0
+    assert _on_the_ground(on_ground=True, noise_rad_s=0.3) == 1.0
 
 
 def test_alpha_is_clipped_to_its_bounds() -> None:
