@@ -389,7 +389,7 @@ class Companion:
                     ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
                     ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
-                    thrust, out.thrust, *out.motors, *sent,
+                    thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
                 ]
             )  # fmt: skip
         if self._telemetry is not None:

@@ -104,8 +104,9 @@ def columns(n_motors: int) -> list[str]:
     ``meas_<axis>_rad_s``, ``err_<axis>_rad_s``, ``f_hat_<axis>``,
     ``u_<axis>``, ``torque_<axis>``, ``sat_<axis>`` (0/1); then ``thrust``
     (pilot's collective, 0..1), ``thrust_out`` (realised),
-    ``motor_1`` .. ``motor_<n_motors>`` and ``sent_<axis>_rad_s``, the body
-    rates sent with ``--output rates`` (NaN when none were sent).
+    ``motor_1`` .. ``motor_<n_motors>``, ``sent_<axis>_rad_s``, the body
+    rates sent with ``--output rates`` (NaN when none were sent), and
+    ``on_ground`` (0/1: the autopilot said ON_GROUND, so nothing was learnt).
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -123,6 +124,7 @@ def columns(n_motors: int) -> list[str]:
     cols += ["thrust", "thrust_out"]
     cols += [f"motor_{i}" for i in range(1, n_motors + 1)]
     cols += [f"sent_{a}_rad_s" for a in AXES]
+    cols.append("on_ground")
     return cols
 
 

@@ -17,6 +17,8 @@ Conventions, matching the live loop and :func:`companion.simulate.simulate_fligh
   to ``dt_min_s`` and primes its filters).
 * Rows with ``engaged == 0``: the controller was not flying then; it is reset
   there and its outputs are NaN. :func:`compare` ignores those rows.
+* ``on_ground`` (when the log has it) is given to the controller every row, as
+  the autopilot's landed state was live: nothing is learnt while it is 1.
 """
 
 from __future__ import annotations
@@ -106,6 +108,7 @@ def replay(
         raise ValueError(f"{where}: cannot replay, missing columns {missing}")
     n = len(cols["t_s"])
     engaged = cols["engaged"] if "engaged" in cols else np.ones(n)
+    ground = (cols["on_ground"] != 0.0).tolist() if "on_ground" in cols else [False] * n
     controller = build_controller(cfg, prof)
     n_motors = controller.mixer.n_motors
     names = output_columns(n_motors)
@@ -130,6 +133,7 @@ def replay(
         dt = 0.0 if fresh else t[i] - prev_t
         fresh = False
         prev_t = t[i]
+        controller.on_ground = ground[i]
         o = update(dt, (w[0][i], w[1][i], w[2][i]), (r[0][i], r[1][i], r[2][i]), thrust[i])
         learn()
         row = out[i]

@@ -23,11 +23,11 @@ def test_columns_layout() -> None:
         "torque_roll", "sat_roll",
     ]  # fmt: skip
     assert cols[12] == "ref_pitch_rad_s" and cols[19] == "ref_yaw_rad_s"
-    assert cols[-10:] == [
+    assert cols[-11:] == [
         "sat_yaw", "thrust", "thrust_out", "motor_1", "motor_2", "motor_3", "motor_4",
-        "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s",
+        "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s", "on_ground",
     ]  # fmt: skip
-    assert len(cols) == 5 + 21 + 2 + 4 + 3
+    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1
     assert len(columns(6)) == len(cols) + 2
     with pytest.raises(ValueError):
         columns(0)
@@ -70,11 +70,11 @@ def test_round_trip_with_metadata(tmp_path: Path) -> None:
 def test_wrong_row_length_raises(tmp_path: Path) -> None:
     cols = columns(4)
     with ColumnarLog(tmp_path / "x.bin", cols) as log:
-        with pytest.raises(ValueError, match="34 values, expected 35"):
-            log.append([0.0] * 34)
-        with pytest.raises(ValueError, match="36 values, expected 35"):
-            log.append([0.0] * 36)
-        log.append([0.0] * 35)
+        with pytest.raises(ValueError, match="35 values, expected 36"):
+            log.append([0.0] * 35)
+        with pytest.raises(ValueError, match="37 values, expected 36"):
+            log.append([0.0] * 37)
+        log.append([0.0] * 36)
     got, _ = read_columnar(tmp_path / "x.bin")
     assert len(got["t_s"]) == 1
 

@@ -83,7 +83,7 @@ def write_log(
                     o.torque[a],
                     o.saturated_axes[a],
                 ]
-            row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan]
+            row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan, 0.0]
             log.append(row)
 
 
