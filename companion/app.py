@@ -9,7 +9,8 @@ queue, no task switch on that path. Logs and telemetry hang off the side
 Start-up
     Wait for the autopilot's heartbeat; refuse a stack that cannot take the
     chosen output; request the IMU stream at the loop rate and RC_CHANNELS
-    (ACK-checked); then engage per ``engage``:
+    (ACK-checked) and EXTENDED_SYS_STATE (best effort: its landed state stops
+    identification on the ground); then engage per ``engage``:
 
     ``auto``       stream setpoints, switch to OFFBOARD, arm (ACK-checked, retried);
     ``rc-switch``  take over while an RC channel is high, hand back when low;
@@ -92,6 +93,7 @@ _BASE_MODE_ARMED = 128
 _MSG_STATUSTEXT = 253
 _MSG_EXTENDED_SYS_STATE = 245
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
+_LANDED_STATE_RATE_HZ = 4.0
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
@@ -872,7 +874,8 @@ class Companion:
 
     async def _request_streams(self) -> None:
         """The IMU stream at the highest rate the stack accepts up to the loop rate,
-        falling back when a rate is DENIED; then RC_CHANNELS. ACK-checked."""
+        falling back when a rate is DENIED; then RC_CHANNELS. ACK-checked. Then
+        EXTENDED_SYS_STATE, best effort (a refusal is logged, not fatal)."""
         assert self.stack is not None
         imu_id = _MSG_HIGHRES_IMU if self._imu_source == "highres_imu" else _MSG_ATTITUDE
         want = min(self.opts.loop_rate_hz, self.stack.max_imu_rate_hz)
@@ -897,4 +900,15 @@ class Companion:
         if res != _RESULT_ACCEPTED:
             raise EngageError(
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
+            )
+        # The landed state stops identification on the ground (MfcController.on_ground).
+        # Best effort: without it the collective is the only gate, as before.
+        res = await self.link.command_long(
+            _CMD_SET_MESSAGE_INTERVAL, _MSG_EXTENDED_SYS_STATE, 1e6 / _LANDED_STATE_RATE_HZ
+        )
+        if res != _RESULT_ACCEPTED:
+            self._event(
+                "landed_state_refused",
+                f"EXTENDED_SYS_STATE at {_LANDED_STATE_RATE_HZ:g} Hz refused (MAV_RESULT {res}): "
+                "identification is gated by the collective alone unless the autopilot sends it",
             )

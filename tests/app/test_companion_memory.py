@@ -57,6 +57,7 @@ ARDUPILOT = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
 MSG_ATTITUDE = 30
 MSG_RC_CHANNELS = 65
 MSG_HIGHRES_IMU = 105
+MSG_EXTENDED_SYS_STATE = 245
 DENIED = mavlink2.MAV_RESULT_DENIED
 ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
 
@@ -255,10 +256,27 @@ async def test_the_autopilots_landed_state_stops_identification_on_the_ground(
     f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_ON_GROUND)
     await f.fake.wait_until(lambda: f.companion.controller.on_ground, 1.0)
     await engage_px4_auto(f)
+    asked = {int(m.param1): m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
+    assert asked[MSG_EXTENDED_SYS_STATE] == pytest.approx(250_000.0)  # 4 Hz
     assert f.companion.controller.on_ground
     f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_IN_AIR)
     await f.fake.wait_until(lambda: not f.companion.controller.on_ground, 1.0)
     assert f.details("landed_state") == ["on the ground", "in the air (2)"]
+    f.companion._stop.set()
+    assert await f.finish() == 0
+
+
+async def test_a_refused_landed_state_stream_is_logged_and_flying_goes_on(start: Start) -> None:
+    def interval(msg: Any) -> int:
+        return DENIED if int(msg.param1) == MSG_EXTENDED_SYS_STATE else ACCEPTED
+
+    f = await start(engage="auto", output="actuator", results={CMD_SET_MESSAGE_INTERVAL: interval})
+    await engage_px4_auto(f)
+    assert f.details("landed_state_refused") == [
+        "EXTENDED_SYS_STATE at 4 Hz refused (MAV_RESULT 2): identification is gated by the "
+        "collective alone unless the autopilot sends it"
+    ]
+    assert not f.companion.controller.on_ground
     f.companion._stop.set()
     assert await f.finish() == 0
 
