@@ -201,6 +201,16 @@ def setpoint_times(msgs: list[Any]) -> list[int]:
     return [m.time_usec if hasattr(m, "time_usec") else m.time_boot_ms for m in msgs]
 
 
+async def switch_flicked_high(start: Start) -> Flight:
+    """An armed PX4 in MANUAL with ``--engage rc-switch``: streams up, switch low, then high."""
+    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    await streams_requested(f)
+    f.fake.rc(1000)
+    await settle()
+    f.fake.rc(2000)
+    return f
+
+
 # --------------------------------------------------------------------- 1. auto PX4
 
 
@@ -461,12 +471,8 @@ async def test_rc_switch_flicked_back_low_leaves_the_autopilot_in_the_safe_mode(
 ) -> None:
     """The pilot flicks the switch high and back low within the engage delay:
     the last mode the companion asks for must be the safe mode, not OFFBOARD."""
-    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
-    await streams_requested(f)
+    f = await switch_flicked_high(start)
     fake = f.fake
-    fake.rc(1000)
-    await settle()
-    fake.rc(2000)
     for _ in range(10):
         f.imu()
         await asyncio.sleep(0.004)
@@ -755,12 +761,8 @@ async def test_a_heartbeat_between_the_signal_and_the_hand_back_does_not_engage(
     hand-back: that must not start an engagement (it did, about once in ten CI runs
     of the test above: 'engaged' logged after 'signal'). The hand-back still ends
     in the safe mode."""
-    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
-    await streams_requested(f)
+    f = await switch_flicked_high(start)
     fake = f.fake
-    fake.rc(1000)
-    await settle()
-    fake.rc(2000)
     await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="OFFBOARD")
     assert f.companion.commanding and not f.companion.engaged
     f.companion._on_signal(signal.SIGTERM)
