@@ -224,9 +224,93 @@ def _running_min(a: Any, width: int) -> Any:
     return out
 
 
-def acceleration_floors(record: Any, profile: Any) -> dict[str, float]:
-    """:func:`acceleration_floor_deg_s` on roll and pitch of one flight, airborne samples.
+def ideal_tracker_rates(
+    t_s: Any, ref_rad_s: Any, accel_up: float, accel_down: float, tau_s: float
+) -> Any:
+    r"""The rates, at the samples, of an ideal digital controller on a lagged plant.
 
+    The plant: the angular acceleration ``a`` follows a target in
+    ``[-accel_down, accel_up]`` (the command) through a first-order lag
+    ``tau_s``, and ``w' = a``; nothing else acts on it. The controller runs at
+    the samples and holds its command until the next one; it sees ``w`` and
+    ``a`` exactly and the stick only as it comes (no preview), and it knows the
+    plant. It aims the point where the vehicle would stop if it braked at full
+    opposite command, :math:`w + \tau (a - A \ln(1 + a / A))` (``A`` the
+    opposite limit), at the reference as seen at the end of the sample
+    interval: the time-optimal switching curve of this plant, so on a stick
+    step it accelerates at full command and then brakes at full command onto
+    the new rate. Integrated exactly between samples; starts on the
+    reference, at rest.
+    """
+    import numpy as np
+
+    t = np.asarray(t_s, dtype=float)
+    ref = np.asarray(ref_rad_s, dtype=float)
+    w_out = np.empty_like(ref)
+    if ref.size == 0:
+        return w_out
+    lo, hi = -accel_down, accel_up
+
+    def miss(target: float, w: float, a: float, h: float, d: float, r: float) -> float:
+        """Where the vehicle would stop, braking from the end of the interval, minus ``r``."""
+        w += target * h + (a - target) * tau_s * (1.0 - d)
+        a = target + (a - target) * d
+        if a > 0.0:
+            return w + tau_s * (a - accel_down * math.log1p(a / accel_down)) - r
+        return w - tau_s * (-a - accel_up * math.log1p(-a / accel_up)) - r
+
+    w = float(ref[0])
+    a = 0.0
+    for k in range(ref.size):
+        w_out[k] = w
+        if k + 1 == ref.size:
+            break
+        h = float(t[k + 1] - t[k])
+        d = math.exp(-h / tau_s)
+        r = float(ref[k])
+        if miss(hi, w, a, h, d, r) <= 0.0:
+            target = hi
+        elif miss(lo, w, a, h, d, r) >= 0.0:
+            target = lo
+        else:  # the miss grows with the target: bisect
+            t_lo, t_hi = lo, hi
+            for _ in range(40):
+                target = 0.5 * (t_lo + t_hi)
+                if miss(target, w, a, h, d, r) > 0.0:
+                    t_hi = target
+                else:
+                    t_lo = target
+        w += target * h + (a - target) * tau_s * (1.0 - d)
+        a = target + (a - target) * d
+    return w_out
+
+
+def ideal_tracker_deg_s(
+    t_s: Any, ref_rad_s: Any, accel_up: float, accel_down: float, tau_s: float
+) -> float:
+    """Mean ``|ref - w|`` of :func:`ideal_tracker_rates`, deg/s.
+
+    Not a bound (a controller with preview, or luckier with a later stick
+    change, can do better), but what motor lag alone costs a controller that
+    is perfect in every other way; never below :func:`acceleration_floor_deg_s`
+    for the same limits, since its acceleration stays within them.
+    """
+    import numpy as np
+
+    ref = np.asarray(ref_rad_s, dtype=float)
+    if ref.size == 0:
+        return 0.0
+    w = ideal_tracker_rates(t_s, ref, accel_up, accel_down, tau_s)
+    return math.degrees(float(np.mean(np.abs(ref - w))))
+
+
+def motion_limits(record: Any, profile: Any) -> dict[str, dict[str, float]]:
+    """Roll and pitch of one flight (airborne samples) against the vehicle's limits.
+
+    ``acceleration_floor_deg_s``: :func:`acceleration_floor_deg_s` with the
+    profile's peak accelerations (:func:`sitl.envelope.angular_accel_limits_rad_s2`).
+    ``ideal_tracker_deg_s``: :func:`ideal_tracker_deg_s` with the same limits
+    and the faster of the profile's two motor time constants (the kinder one).
     Yaw is left out: a rotor's spin-up reaction gives yaw far more than its
     steady peak for a moment, so a bound from the steady figure would not hold.
     """
@@ -239,9 +323,15 @@ def acceleration_floors(record: Any, profile: Any) -> dict[str, float]:
     t = np.asarray(c["t_s"])[air]
     ref = np.asarray(c["ref_rad_s"])[air]
     limits = angular_accel_limits_rad_s2(profile)
+    tau = min(profile.physics.motor_tau_up_s, profile.physics.motor_tau_down_s)
+    axes = list(enumerate(AXES[:2]))
     return {
-        a: round(acceleration_floor_deg_s(t, ref[:, i], *limits[i]), 2)
-        for i, a in enumerate(AXES[:2])
+        "acceleration_floor_deg_s": {
+            a: round(acceleration_floor_deg_s(t, ref[:, i], *limits[i]), 2) for i, a in axes
+        },
+        "ideal_tracker_deg_s": {
+            a: round(ideal_tracker_deg_s(t, ref[:, i], *limits[i], tau), 2) for i, a in axes
+        },
     }
 
 
@@ -272,7 +362,7 @@ def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
     )
     metrics["after_fast_changes"] = transient_split(record)
     if flight.role == "paper" and flight.controller == "mfc":
-        metrics["acceleration_floor_deg_s"] = acceleration_floors(record, profile)
+        metrics.update(motion_limits(record, profile))
     return metrics
 
 
@@ -472,17 +562,8 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "reversals within 0.3 s. The scenario was not changed to match: it is frozen as "
             "the test flight."
         )
-    floors = {
-        f["profile"]: f["acceleration_floor_deg_s"]
-        for f in F.values()
-        if "acceleration_floor_deg_s" in f
-    }
+    floors = _roll_pitch_against_flown(F, "acceleration_floor_deg_s")
     if floors:
-        parts = []
-        for p, fl in floors.items():
-            m = F[f"{p}_mfc"]["mae_deg_s"]
-            measured = " / ".join("-" if m[a] is None else f"{m[a]:.1f}" for a in AXES[:2])
-            parts.append(f"{p} {fl['roll']:.1f} / {fl['pitch']:.1f} against {measured}")
         lags = ", ".join(
             f"{p} {g['motor_tau_up_s'] * 1e3:.0f} / {g['motor_tau_down_s'] * 1e3:.0f} ms"
             for p, g in gains.items()
@@ -492,10 +573,31 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "rate trajectory could do on this stick input with each vehicle's peak roll and "
             "pitch acceleration (full differential, from the profile), with no motor lag "
             "or gyro filter and the stick known in advance, is (roll / pitch, deg/s, MFC): "
-            + "; ".join(parts)
+            + floors
             + ". What the controllers lose beyond that is the time the loop takes to answer "
             "at each flip entry, exit and reversal: the motors (spin-up / spin-down: "
             f"{lags}), the sampling, the gyro filter and the controller's own filters."
+        )
+    ideal = _roll_pitch_against_flown(F, "ideal_tracker_deg_s")
+    if ideal:
+        over5 = [
+            f["profile"]
+            for f in F.values()
+            if "ideal_tracker_deg_s" in f and max(f["ideal_tracker_deg_s"].values()) >= 5.0
+        ]
+        out.append(
+            "Motor lag is. An ideal controller that runs at the IMU's rate, sees the rate "
+            "and the angular acceleration exactly, knows the plant (peak accelerations as "
+            "above, a first-order motor lag at the faster of the profile's two time "
+            "constants, no gyro filter, no wind) and brakes on the plant's time-optimal "
+            "curve, but does not know the stick in advance, gets (roll / pitch, deg/s, MFC): "
+            + ideal
+            + ". A target is within reach only as far as it sits above that figure; "
+            + (
+                "the aim of < 5 deg/s is below it on " + ", ".join(over5) + "."
+                if over5
+                else "the aim of < 5 deg/s is above it on every vehicle."
+            )
         )
     c = F["f450_cut_props_mfc"]["mae_deg_s"]
     sat = F["f450_cut_props_mfc"]["saturation_fraction"]
@@ -508,6 +610,19 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "tracking of any controller behind this mixer."
         )
     return out
+
+
+def _roll_pitch_against_flown(flights: dict[str, Any], key: str) -> str:
+    """``"f450 0.6 / 0.3 against 6.9 / 6.4; ..."``: a per-flight roll/pitch figure
+    beside the MFC flight's MAE, for the flights that carry ``key``."""
+    parts = []
+    for f in flights.values():
+        if key in f:
+            fig, m = f[key], flights[f"{f['profile']}_mfc"]["mae_deg_s"]
+            measured = " / ".join("-" if m[a] is None else f"{m[a]:.1f}" for a in AXES[:2])
+            flown = f"{fig['roll']:.1f} / {fig['pitch']:.1f} against {measured}"
+            parts.append(f"{f['profile']} {flown}")
+    return "; ".join(parts)
 
 
 def write_markdown(result: dict[str, Any], path: Path) -> None:
@@ -643,8 +758,9 @@ def main(argv: list[str] | None = None) -> int:
             "report": f"{f.name}/report.md",
             "plots": [f"{f.name}/rates.png", f"{f.name}/motors_and_estimate.png"],
         }
-        if "acceleration_floor_deg_s" in m:
-            flights[f.name]["acceleration_floor_deg_s"] = m["acceleration_floor_deg_s"]
+        for key in ("acceleration_floor_deg_s", "ideal_tracker_deg_s"):
+            if key in m:
+                flights[f.name][key] = m[key]
     gains = {
         p: input_gains(load_profile(PROFILE_DIR / f"{p}.yaml"))
         for p in ("f450", "f450_cut_props", "tarot650")

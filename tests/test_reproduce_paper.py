@@ -1,4 +1,4 @@
-"""The acceleration floor of scripts/reproduce_paper.py: a lower bound that holds and is tight."""
+"""The acceleration floor and the ideal tracker of scripts/reproduce_paper.py."""
 
 from __future__ import annotations
 
@@ -69,3 +69,37 @@ def test_unbounded_acceleration_tracks_everything() -> None:
     t = np.arange(200) * DT
     ref = np.sin(t * 20.0) * 8.0
     assert rp.acceleration_floor_deg_s(t, ref, 1e6, 1e6) == 0.0
+
+
+def test_ideal_tracker_holds_a_steady_stick() -> None:
+    t = np.arange(300) * DT
+    ref = np.full(300, 3.0)
+    assert rp.ideal_tracker_deg_s(t, ref, 100.0, 100.0, 0.05) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_ideal_tracker_brakes_onto_a_step() -> None:
+    """0 -> 10 rad/s at 100 rad/s^2 with a 50 ms motor lag: full command up, full
+    command down onto the new rate, settled within the lag-free ramp plus three lags."""
+    n, accel, tau = 500, 100.0, 0.05
+    t = np.arange(n) * DT
+    ref = np.where(np.arange(n) < 50, 0.0, 10.0)
+    w = rp.ideal_tracker_rates(t, ref, accel, accel, tau)
+    assert w.max() < 10.0 * 1.001  # brakes in time: no overshoot to speak of
+    settled = t >= t[50] + 10.0 / accel + 3 * tau
+    assert np.all(np.abs(w[settled] - 10.0) < 0.01)
+    lagged = rp.ideal_tracker_deg_s(t, ref, accel, accel, tau)
+    lag_free = _mae_deg_s(ref, _greedy(np.r_[ref[0], ref[:-1]], accel))  # a sample late
+    assert lag_free < lagged < rp.ideal_tracker_deg_s(t, ref, accel, accel, 2 * tau)
+    # without a lag it is the fastest causal ramp, one sample behind the stick
+    assert rp.ideal_tracker_deg_s(t, ref, accel, accel, 1e-4) == pytest.approx(lag_free, rel=0.01)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_ideal_tracker_never_beats_the_floor(seed: int) -> None:
+    """Its acceleration stays within the limits, so the floor's bound holds for it."""
+    rng = np.random.default_rng(seed)
+    n, accel = 400, 150.0
+    t = np.arange(n) * DT
+    ref = np.repeat(rng.uniform(-12.0, 12.0, n // 40), 40)
+    floor = rp.acceleration_floor_deg_s(t, ref, accel, 0.7 * accel)
+    assert floor <= rp.ideal_tracker_deg_s(t, ref, accel, 0.7 * accel, 0.03)
