@@ -142,6 +142,13 @@ class MfcAxisConfig(StrictModel):
         description="largest factor a lag faster than actuator_tau_s raises the gains by; "
         "null: no cap",
     )
+    lag_scaling_min: float | None = Field(
+        None,
+        gt=0.0,
+        le=1.0,
+        description="smallest factor a lag slower than actuator_tau_s cuts the gains to; "
+        "null: no floor",
+    )
 
     @model_validator(mode="after")
     def _adapt_requirements(self) -> MfcAxisConfig:
@@ -268,6 +275,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             lag_scaled_gains=a.lag_scaled_gains,
             lag_scaling_authority_ref=a.lag_scaling_authority_ref,
             lag_scaling_max=math.inf if a.lag_scaling_max is None else a.lag_scaling_max,
+            lag_scaling_min=0.0 if a.lag_scaling_min is None else a.lag_scaling_min,
             adapt=None
             if a.alpha_adapt is None
             else AlphaAdaptation(

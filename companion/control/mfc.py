@@ -181,6 +181,9 @@ class MfcAxisGains:
     lag_scaling_max: float = math.inf
     """With ``lag_scaled_gains``, the largest factor (>= 1) a lag faster than
     ``actuator_tau_s`` may raise the gains by (``inf``: no cap)."""
+    lag_scaling_min: float = 0.0
+    """With ``lag_scaled_gains``, the smallest factor (<= 1) a lag slower than
+    ``actuator_tau_s`` may cut the gains to (0: no floor)."""
     adapt: AlphaAdaptation | None = None
 
     def __post_init__(self) -> None:
@@ -200,6 +203,8 @@ class MfcAxisGains:
             raise ValueError("alpha must be non-zero; window_s and output_limit positive")
         if not self.lag_scaling_max >= 1.0:
             raise ValueError("lag_scaling_max must be >= 1 (it caps a raise, not a cut)")
+        if not 0.0 <= self.lag_scaling_min <= 1.0:
+            raise ValueError("lag_scaling_min must be in [0, 1] (it floors a cut, not a raise)")
 
 
 @dataclass(frozen=True)
@@ -468,7 +473,7 @@ class IntelligentController:
     __slots__ = (
         "_alpha", "_authority_ref", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff",
         "_kp", "_kp_eff",
-        "_lag_dt", "_lag_k", "_lag_max",
+        "_lag_dt", "_lag_k", "_lag_max", "_lag_min",
         "_lag_scaled", "_lag_tau", "_lim", "_pending", "_pending_dt", "_plain", "_scale", "_tau",
         "_u_a", "adapting", "e", "e_dot", "f_hat", "order", "u_prev", "update",
     )  # fmt: skip
@@ -502,6 +507,7 @@ class IntelligentController:
         self._lag_scaled = gains.lag_scaled_gains and self._ident is not None and self._tau > 0.0
         self._authority_ref = gains.lag_scaling_authority_ref
         self._lag_max = gains.lag_scaling_max
+        self._lag_min = gains.lag_scaling_min
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
         self.adapting = False
@@ -595,11 +601,15 @@ class IntelligentController:
         A fast lag raises the gains by at most ``lag_scaling_max``: below the
         configured lag, the estimate's window and the reference prefilter, not
         the motors, bound how fast the error may be driven (docs/gains.md,
-        point 8)."""
+        point 8). A slow lag cuts them to no less than ``lag_scaling_min``: beyond the
+        slowest lag worth scaling for, part of what the identifier calls lag is
+        the loop's delays, which a cut in kd does not serve (point 10)."""
         ident = self._ident
         r = self._tau / ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
         if r > self._lag_max:
             r = self._lag_max
+        elif r < self._lag_min:
+            r = self._lag_min
         g = 1.0
         if self._authority_ref > 0.0 and r < 1.0 and ident is not None:
             authority = ident.alpha / ident.margin * self._scale  # rad/s^m, full scale

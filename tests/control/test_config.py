@@ -138,6 +138,11 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
             "axes.roll.lag_scaling_max",
             id="lag-scaling-max-below-one",
         ),
+        pytest.param(
+            _set("axes.roll.lag_scaling_min", 1.5),
+            "axes.roll.lag_scaling_min",
+            id="lag-scaling-min-above-one",
+        ),
     ],
 )
 def test_bad_controller_file_names_file_and_key(

@@ -197,6 +197,9 @@ def test_bad_adaptation_settings_are_rejected() -> None:
     for cap in (0.5, math.nan):
         with pytest.raises(ValueError, match="lag_scaling_max"):
             MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_max=cap)
+    for floor in (-0.1, 1.5, math.nan):
+        with pytest.raises(ValueError, match="lag_scaling_min"):
+            MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_min=floor)
 
 
 def _closed_loop_mae(gains: MfcAxisGains, b: float, tau: float) -> float:
@@ -294,6 +297,23 @@ def test_a_fast_lag_raises_kd_at_most_by_lag_scaling_max(cap: float, want_r: flo
     ax = IntelligentController(gains)
     w, ref = _fly_a_lag(ax, 2, tau=0.01)
     assert ax.tau_s == 0.01
+    got = ax.update(0.001, w + 0.1, ref, 0.0)
+    want = -(ax.f_hat + 15.0 * want_r * ax.e_dot) / ax.alpha
+    assert abs(want) < 500.0
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+@pytest.mark.parametrize(("floor", "want_r"), [(0.0, 0.375), (0.5, 0.5), (0.3, 0.375)])
+def test_a_slow_lag_cuts_kd_at_most_to_lag_scaling_min(floor: float, want_r: float) -> None:
+    """Identified at 80 ms against the configured 30 ms, kd would fall to 30/80 of
+    itself; with lag_scaling_min it falls no lower than that factor."""
+    gains = MfcAxisGains(
+        order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_min=floor,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    w, ref = _fly_a_lag(ax, 2)
+    assert ax.tau_s == 0.08
     got = ax.update(0.001, w + 0.1, ref, 0.0)
     want = -(ax.f_hat + 15.0 * want_r * ax.e_dot) / ax.alpha
     assert abs(want) < 500.0

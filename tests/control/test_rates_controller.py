@@ -14,7 +14,7 @@ from companion.config import (
 def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     """mfc_rates.yaml differs from mfc_default.yaml only where its header says:
     roll/pitch margin 1.0 and kd 10, a 60 Hz prefilter, and none of the lag
-    scaling's later changes (authority easing, margin_min, lag_scaling_max)."""
+    scaling's later changes (authority easing, margin_min, lag_scaling_max and _min)."""
     base = load_controller(DEFAULT_CONTROLLER)
     rates = load_controller(RATES_CONTROLLER)
     assert isinstance(base, MfcConfig) and isinstance(rates, MfcConfig)
@@ -26,10 +26,11 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         assert (b.lag_scaling_authority_ref, r.lag_scaling_authority_ref) == (150.0, 0.0)
         assert (b.alpha_adapt.margin_min, r.alpha_adapt.margin_min) == (0.3, 0.0)
         assert (b.lag_scaling_max, r.lag_scaling_max) == (1.0, None)
+        assert (b.lag_scaling_min, r.lag_scaling_min) == (0.526, None)
         # Everything else is the same law.
         same = {
             "alpha_adapt": None, "kd": 0.0, "lag_scaling_authority_ref": 0.0,
-            "lag_scaling_max": None,
+            "lag_scaling_max": None, "lag_scaling_min": None,
         }  # fmt: skip
         assert b.model_copy(update=same) == r.model_copy(update=same)
     assert base.axes.yaw == rates.axes.yaw

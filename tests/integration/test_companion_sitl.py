@@ -49,10 +49,10 @@ def failsafe(flight: FlightProcesses) -> dict[str, Any]:
 
 # MAE roll / pitch / yaw, deg/s, first 20 s of paper-acro over MAVLink.
 MEASURED_20S = {
-    "f450": (8.7, 4.6, 4.4),
-    "f450_cut_props": (12.3, 6.9, 14.3),
-    "tarot650": (16.6, 6.9, 7.6),
-    "x500": (7.2, 4.0, 5.1),
+    "f450": (8.4, 4.6, 4.4),
+    "f450_cut_props": (12.3, 6.7, 13.9),
+    "tarot650": (14.9, 6.4, 7.7),
+    "x500": (7.1, 3.9, 4.9),
 }
 
 
