@@ -251,10 +251,13 @@ def ideal_tracker_rates(
         return w_out
     lo, hi = -accel_down, accel_up
 
+    def advance(target: float, w: float, a: float, h: float, d: float) -> tuple[float, float]:
+        """``w`` and ``a`` after ``h`` s of ``target`` (``d`` = exp(-h / tau_s))."""
+        return w + target * h + (a - target) * tau_s * (1.0 - d), target + (a - target) * d
+
     def miss(target: float, w: float, a: float, h: float, d: float, r: float) -> float:
         """Where the vehicle would stop, braking from the end of the interval, minus ``r``."""
-        w += target * h + (a - target) * tau_s * (1.0 - d)
-        a = target + (a - target) * d
+        w, a = advance(target, w, a, h, d)
         if a > 0.0:
             return w + tau_s * (a - accel_down * math.log1p(a / accel_down)) - r
         return w - tau_s * (-a - accel_up * math.log1p(-a / accel_up)) - r
@@ -280,8 +283,7 @@ def ideal_tracker_rates(
                     t_hi = target
                 else:
                     t_lo = target
-        w += target * h + (a - target) * tau_s * (1.0 - d)
-        a = target + (a - target) * d
+        w, a = advance(target, w, a, h, d)
     return w_out
 
 
