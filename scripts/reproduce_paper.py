@@ -381,8 +381,8 @@ def _fmt_rest(flight: dict[str, Any]) -> str:
     )
 
 
-def _fmt_mae(mae: dict[str, float | None]) -> str:
-    return " / ".join("-" if mae[a] is None else f"{mae[a]:.1f}" for a in AXES)
+def _fmt_mae(mae: dict[str, float | None], axes: tuple[str, ...] = AXES) -> str:
+    return " / ".join("-" if mae[a] is None else f"{mae[a]:.1f}" for a in axes)
 
 
 def assess(
@@ -620,10 +620,9 @@ def _roll_pitch_against_flown(flights: dict[str, Any], key: str) -> str:
     parts = []
     for f in flights.values():
         if key in f:
-            fig, m = f[key], flights[f"{f['profile']}_mfc"]["mae_deg_s"]
-            measured = " / ".join("-" if m[a] is None else f"{m[a]:.1f}" for a in AXES[:2])
-            flown = f"{fig['roll']:.1f} / {fig['pitch']:.1f} against {measured}"
-            parts.append(f"{f['profile']} {flown}")
+            flown = flights[f"{f['profile']}_mfc"]["mae_deg_s"]
+            rp = AXES[:2]
+            parts.append(f"{f['profile']} {_fmt_mae(f[key], rp)} against {_fmt_mae(flown, rp)}")
     return "; ".join(parts)
 
 
