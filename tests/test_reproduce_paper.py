@@ -1,4 +1,4 @@
-"""The acceleration floor and the ideal tracker of scripts/reproduce_paper.py."""
+"""The acceleration floor, the ideal tracker and the gyro filter of scripts/reproduce_paper.py."""
 
 from __future__ import annotations
 
@@ -103,3 +103,32 @@ def test_ideal_tracker_never_beats_the_floor(seed: int) -> None:
     ref = np.repeat(rng.uniform(-12.0, 12.0, n // 40), 40)
     floor = rp.acceleration_floor_deg_s(t, ref, accel, 0.7 * accel)
     assert floor <= rp.ideal_tracker_deg_s(t, ref, accel, 0.7 * accel, 0.03)
+
+
+@pytest.mark.parametrize("weight", [0.3, 1.0])
+def test_gyro_filter_is_the_simulated_imus(weight: float) -> None:
+    """The ideal is measured as the flights are: through sitl.imu.Imu's filter."""
+    from companion.profile import ImuModel
+    from sitl.imu import Imu
+
+    rates = np.random.default_rng(7).uniform(-10.0, 10.0, 200)
+    imu = Imu(
+        ImuModel(rate_hz=250.0, first_stage_filter_weight=weight),
+        rng=np.random.default_rng(0),
+        dt_s=DT,
+    )
+    got = []
+    for k, r in enumerate(rates.tolist()):
+        sample = imu.update(k * DT, (r, 0.0, 0.0), (0.0, 0.0, -9.81))
+        assert sample is not None
+        got.append(sample.gyro_frd_rad_s[0])
+    np.testing.assert_allclose(rp.through_gyro_filter(rates, weight), got, rtol=0, atol=1e-12)
+
+
+def test_a_filtered_ideal_lags_a_step() -> None:
+    """Seen through the filter, the same ideal tracks a stick step worse."""
+    n, accel, tau = 500, 100.0, 0.05
+    t = np.arange(n) * DT
+    ref = np.where(np.arange(n) < 50, 0.0, 10.0)
+    w = rp.ideal_tracker_rates(t, ref, accel, accel, tau)
+    assert _mae_deg_s(ref, rp.through_gyro_filter(w, 0.3)) > _mae_deg_s(ref, w)

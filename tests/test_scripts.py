@@ -46,9 +46,12 @@ def test_reproduce_paper_quick(tmp_path: Path) -> None:
     for name in ("f450_mfc", "f450_cut_props_mfc", "tarot650_mfc"):
         floor = doc["flights"][name]["acceleration_floor_deg_s"]
         ideal = doc["flights"][name]["ideal_tracker_deg_s"]
+        measured = doc["flights"][name]["ideal_tracker_measured_deg_s"]
         for a in ("roll", "pitch"):  # a lower bound: never above what was flown
             assert 0.0 <= floor[a] <= doc["flights"][name]["mae_deg_s"][a], (name, a, floor)
             assert floor[a] <= ideal[a], (name, a, floor, ideal)
+            # the filtered rate changes no faster than the rate: the floor holds for it too
+            assert floor[a] <= measured[a], (name, a, floor, measured)
     assert {c["id"] for c in doc["claims"]} >= {"f450_under_10", "pid_degrades_when_moved"}
     assert all(c["holds"] in (True, False, None) for c in doc["claims"])
     md = (out / "results.md").read_text(encoding="utf-8")
