@@ -40,6 +40,19 @@ by default, which is the air mode above exactly. Measured in November 2026
   (0.3 collective-seconds, refilling over 10 s) still crashed the X500 with
   motor 1 at 60 % in 5 of 6 flights (20 crashes in all) and gave back most
   of the yaw gain (23.4).
+  Gated borrowing, measured later (MFC alone on the default grid: 72 flights
+  of train-acro, 6 crashes without borrowing, all the cut-prop F450 with a
+  further 60 % motor). Ungated 0.15 down: 12 crashes (adds the X500 at 60 %
+  and the cut-prop F450 at 80 %), while the yaw median / p90 of the flights
+  that flew goes 4.0 / 20.5 -> 1.2 / 5.0 deg/s. Borrowing only while the
+  yaw trim (the yaw law's output while neither the pilot nor the vehicle
+  yaws, averaged over 2 s) is under 0.1 of full scale: 7 crashes (the
+  cut-prop F450 at 80 % in 2 of 6), paper-acro's cut-prop yaw 20.6. Never
+  below the collective held in quiet flight (a hover estimate): 11 crashes
+  (the X500 at 60 % in 4 of 6), cut-prop yaw 22.1. Both gates: 6 crashes,
+  one of them the cut-prop F450 at 80 %, which never crashes without the
+  borrow; cut-prop yaw 22.6. A weak vehicle needs all the collective the
+  pilot asks for, even above hover.
 * Up, on train-acro over 21 vehicles (4 paper profiles, 5 envelope corners,
   12 sampled), looked good: mean yaw MAE 2.89 -> 2.41 deg/s with 0.2, no
   vehicle worse, no crash. On the held-out envelope-test flight the 250 g
