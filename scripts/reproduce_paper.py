@@ -612,9 +612,9 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             "at each flip entry, exit and reversal: the motors (spin-up / spin-down: "
             f"{lags}), the sampling, the gyro filter and the controller's own filters."
         )
-    ideal = _roll_pitch_against_flown(F, "ideal_tracker_measured_deg_s")
+    key = "ideal_tracker_measured_deg_s"
+    ideal = _roll_pitch_against_flown(F, key)
     if ideal:
-        key = "ideal_tracker_measured_deg_s"
         over5 = [f["profile"] for f in F.values() if key in f and max(f[key].values()) >= 5.0]
         true = _roll_pitch_against_flown(F, "ideal_tracker_deg_s", "mae_true_deg_s")
         out.append(
