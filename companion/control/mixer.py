@@ -34,9 +34,10 @@ by default, which is the air mode above exactly. Measured in November 2026
   vehicle with a weak motor the yaw demand never ends and the vehicle sinks:
   with 0.15 down, the default ``companion campaign`` grid went from 11 to 25
   crashes (X500 with motor 1 at 60 %: 0 -> 5 of 6 for both controllers).
-  Re-measured with the current MFC set (November 2026, second half): 0.15
+  Re-measured with the MFC set of the time (November 2026, second half): 0.15
   down takes the cut-prop F450's paper-acro yaw from 26.8 to 19.6 deg/s, and the
-  campaign from 10 to 23 crashes. A leaky budget on the borrowed collective
+  campaign from 10 to 23 crashes (with the set after docs/gains.md point 10:
+  25.5 to 19.9). A leaky budget on the borrowed collective
   (0.3 collective-seconds, refilling over 10 s) still crashed the X500 with
   motor 1 at 60 % in 5 of 6 flights (20 crashes in all) and gave back most
   of the yaw gain (23.4).
