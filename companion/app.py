@@ -685,7 +685,16 @@ class Companion:
             if self._last_imu_wall is not None and now - self._last_imu_wall > fs.stale_imu_s:
                 self._failsafe("failsafe_stale_imu", f"no IMU sample for {fs.stale_imu_s} s")
             elif self._rc_wall is None or now - self._rc_wall > fs.rc_timeout_s:
-                self._failsafe("failsafe_rc_lost", f"no RC for {fs.rc_timeout_s} s")
+                # When all traffic stops (a crash, a cut cable), RC, sent at a lower
+                # rate, can expire first; the IMU's age says whether it was RC alone.
+                imu_age = (
+                    "none yet"
+                    if self._last_imu_wall is None
+                    else f"{now - self._last_imu_wall:.2f} s ago"
+                )
+                self._failsafe(
+                    "failsafe_rc_lost", f"no RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})"
+                )
 
     # ------------------------------------------------------------------- run
     def _open_records(self) -> None:

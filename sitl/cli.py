@@ -125,7 +125,7 @@ def cli(verbose: int) -> None:
     "faults",
     multiple=True,
     help="Inject a fault: imu-stop@T, imu-nan@T, imu-range@T, link-drop@T, "
-    "heartbeat-stop@T, motor-fail@T:INDEX (T in simulated s; repeatable).",
+    "heartbeat-stop@T, rc-lost@T, motor-fail@T:INDEX (T in simulated s; repeatable).",
 )
 @click.option(
     "--autopilot",

@@ -254,11 +254,13 @@ class MavlinkFace:
         self.setpoints_received = 0
         self.imu_messages_sent = 0
         # Fault injection (sitl.runner --fault): a muted face neither sends nor
-        # reads; IMU streams can be stopped or their gyro replaced by NaN.
+        # reads; IMU streams can be stopped or their gyro replaced by NaN; the RC
+        # receiver can lose its signal.
         self.muted = False
         self._heartbeat_now = False
         self.imu_stopped = False
         self.imu_nan = False
+        self.rc_lost = False
         self.messages_sent = 0
         self.messages_received = 0
         self.bad_packets = 0
@@ -559,7 +561,9 @@ class MavlinkFace:
                 round(s.imu_t_s * 1e3), q[0], q[1], q[2], q[3], g[0], g[1], g[2]
             )
         elif msg_id == ID_RC_CHANNELS:
-            chans = list(s.sticks_us or ())[:18]
+            # No sticks, or a receiver without signal: no channel (chancount 0),
+            # every one UINT16_MAX ("unused"), RSSI 0.
+            chans = [] if self.rc_lost else list(s.sticks_us or ())[:18]
             n = len(chans)
             chans += [65535] * (18 - n)
             mav.rc_channels_send(round(s.t_s * 1e3), n, *chans, 254 if n else 0)

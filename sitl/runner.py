@@ -113,6 +113,7 @@ FAULT_KINDS = (
     "motor-fail",
     "heartbeat-stop",
     "imu-range",
+    "rc-lost",
 )
 
 IMU_RANGE_GYRO_RAD_S = 40.0
@@ -139,8 +140,12 @@ def parse_fault(text: str) -> Fault:
     ``heartbeat-stop``: no more HEARTBEAT (requested or periodic); every other
     message still flows both ways (a lost-link test without a stale IMU);
     ``imu-range``: HIGHRES_IMU ``xgyro`` reads :data:`IMU_RANGE_GYRO_RAD_S`
-    (finite, beyond the gyro's range); the other fields and streams are true.
-    The autopilot's own loop keeps the true samples in every case.
+    (finite, beyond the gyro's range); the other fields and streams are true;
+    ``rc-lost``: RC_CHANNELS goes on, as a receiver without signal reports
+    (chancount 0, every channel UINT16_MAX, RSSI 0); everything else is true.
+    The autopilot's own loop keeps the true samples in every case, and its
+    pilot's sticks (its own RC-loss failsafe is not modelled: PX4's
+    ``COM_RCL_EXCEPT`` can exempt offboard from it).
     """
     kind, _, rest = text.partition("@")
     when, _, arg = rest.partition(":")
@@ -181,11 +186,11 @@ class _OutgoingFaults:
 
 _MODE_BY_NAME = {m.name: m for m in MainMode}
 RC_PERIOD_S = 0.01
+"""The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
 PILOT_END_GRACE_S = 2.0
 """With ``pilot_from_arm``, the flight goes on this long after the pilot's timeline
 ends (the pilot holds its last segment), so a companion flying the same duration
 from its own engagement finishes and hands back before the SITL stops."""
-"""The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
 
 
 @dataclass(frozen=True)
@@ -428,6 +433,12 @@ class Runner:
         self.profile = profile
         self.config = config
         self.profile_name = profile_name or profile.name
+        for fault in config.faults:
+            if fault.kind == "motor-fail" and not 0 <= fault.arg < profile.n_motors:
+                raise ValueError(
+                    f"fault motor-fail@{fault.t_s:g}:{fault.arg}: MOTOR is 0.."
+                    f"{profile.n_motors - 1} on {self.profile_name}"
+                )
         rng_phys = np.random.default_rng(config.seed).spawn(4)[0]
         try:
             hover = hover_motor_command(profile)
@@ -577,6 +588,8 @@ class Runner:
             face.imu_nan = True
         elif fault.kind == "link-drop":
             face.muted = True
+        elif fault.kind == "rc-lost":
+            face.rc_lost = True
         elif fault.kind == "motor-fail":
             self.quad.set_motor_failure(fault.arg, 0.0)
         elif fault.kind in ("heartbeat-stop", "imu-range"):

@@ -6,6 +6,8 @@ so exactly one failsafe can fire, and its kind, timing and outcome are pinned:
 
 * a lost link alone (``heartbeat-stop``: only the autopilot's HEARTBEAT stops)
   -> ``failsafe_link_lost`` within ``--link-timeout-s`` of the last heartbeat;
+* the RC receiver's signal lost (``rc-lost``: RC_CHANNELS without channels)
+  -> ``failsafe_rc_lost`` within ``--rc-timeout-s`` of the last valid frame;
 * a finite gyro beyond its range (``imu-range``) -> ``failsafe_invalid_imu``;
 * a tracking error beyond ``--envelope-error-deg-s`` -> ``failsafe_envelope``;
 * SIGINT during a flight -> hand-back, exit 0;
@@ -53,6 +55,7 @@ ID_HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT
 ID_HIGHRES_IMU = mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU
 ID_SETPOINT = mavlink2.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
 ID_COMMAND_LONG = mavlink2.MAVLINK_MSG_ID_COMMAND_LONG
+ID_RC_CHANNELS = mavlink2.MAVLINK_MSG_ID_RC_CHANNELS
 EXIT_FAILSAFE = 3
 GYRO_LIMIT_RAD_S = math.radians(2000.0) * 1.05  # companion.app: the gyro's range + 5 %
 
@@ -127,6 +130,39 @@ def tlog_of(flight: FlightProcesses) -> list[Frame]:
 def write_stick_script(path: Path, text: str) -> Path:
     path.write_text(text, encoding="utf-8")
     return path
+
+
+def fly_one_failsafe(
+    tmp_path: Path, fault: str, kind: str, companion_args: tuple[str, ...]
+) -> tuple[FlightProcesses, dict[str, Any], float]:
+    """paper-acro on the real-time clock with ``fault`` (``KIND@T``), which must end
+    the run in exactly one failsafe, ``kind``, after the fault: the flight, that
+    failsafe's event and the fault's simulation time."""
+    flight = fly_mavlink(
+        F450, "paper-acro", tmp_path, duration_s=30.0, timeout_s=60.0,
+        sitl_args=("--fault", fault, "--clock", "realtime"),
+        companion_args=companion_args,
+    )  # fmt: skip
+    ev = flight.companion_events
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert kinds(failsafes(ev)) == [kind], kinds(ev)
+    fs = failsafes(ev)[0]
+    t_fault = fault_time(flight.sitl_events, fault.partition("@")[0])
+    assert fs["t_s"] > t_fault, (fs, t_fault)
+    return flight, fs, t_fault
+
+
+def assert_handed_back_to_posctl(flight: FlightProcesses, fs: dict[str, Any]) -> None:
+    """The failsafe ``fs`` handed the vehicle back (POSCTL, acknowledged) and no
+    setpoint was sent after it."""
+    ev = flight.companion_events
+    ks = kinds(ev)
+    back = ev[ks.index("handed_back")]
+    assert ks.index(fs["kind"]) < ks.index("handed_back")
+    assert back["detail"].endswith("POSCTL accepted"), back
+    assert modes(flight.sitl_events)[-1] == "POSCTL"
+    sent = times(tlog_of(flight), COMPANION_IDS, ID_SETPOINT)
+    assert sent and max(sent) < float(fs["wall"]) + 1e-3
 
 
 # The envelope cases fly a hover, then a +-200 deg/s roll-rate doublet of rate
@@ -251,18 +287,11 @@ def test_heartbeat_loss_alone_is_failsafe_link_lost(tmp_path: Path) -> None:
     fires before the fault.
     """
     link_timeout_s = 1.5
-    flight = fly_mavlink(
-        F450, "paper-acro", tmp_path, duration_s=30.0, timeout_s=60.0,
-        sitl_args=("--fault", "heartbeat-stop@3", "--clock", "realtime"),
-        companion_args=("--link-timeout-s", str(link_timeout_s)),
-    )  # fmt: skip
-    ev = flight.companion_events
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
     # Exactly one failsafe, and it is the lost link: IMU and RC never went stale.
-    assert kinds(failsafes(ev)) == ["failsafe_link_lost"], kinds(ev)
-    fs = failsafes(ev)[0]
-    t_fault = fault_time(flight.sitl_events, "heartbeat-stop")
-    assert fs["t_s"] > t_fault, (fs, t_fault)
+    flight, fs, t_fault = fly_one_failsafe(
+        tmp_path, "heartbeat-stop@3", "failsafe_link_lost",
+        ("--link-timeout-s", str(link_timeout_s)),
+    )  # fmt: skip
 
     frames = tlog_of(flight)
     beats = times(frames, SITL_IDS, ID_HEARTBEAT)
@@ -282,14 +311,35 @@ def test_heartbeat_loss_alone_is_failsafe_link_lost(tmp_path: Path) -> None:
     assert fs["t_s"] - t_fault < link_timeout_s + 2.0, (fs, t_fault)
 
     # The hand-back still works: only heartbeats are lost, the mode switch is ACKed.
-    ks = kinds(ev)
-    back = ev[ks.index("handed_back")]
-    assert ks.index("failsafe_link_lost") < ks.index("handed_back")
-    assert back["detail"].endswith("POSCTL accepted"), back
-    assert modes(flight.sitl_events)[-1] == "POSCTL"
-    # No setpoint left after the failsafe released the vehicle.
-    sent = times(frames, COMPANION_IDS, ID_SETPOINT)
-    assert sent and max(sent) < float(fs["wall"]) + 1e-3
+    assert_handed_back_to_posctl(flight, fs)
+
+
+def test_rc_signal_loss_alone_is_failsafe_rc_lost(tmp_path: Path) -> None:
+    """The SITL's RC_CHANNELS go on as a receiver without signal reports them
+    (chancount 0, every channel UINT16_MAX); IMU and heartbeats keep flowing.
+
+    Real-time clock, as for the lost link: ``--rc-timeout-s`` is wall-clock time.
+    """
+    rc_timeout_s = 0.5  # the default, given explicitly
+    flight, fs, _ = fly_one_failsafe(
+        tmp_path, "rc-lost@3", "failsafe_rc_lost", ("--rc-timeout-s", str(rc_timeout_s))
+    )
+    # The detail tells RC alone from all traffic stopping: the IMU was fresh.
+    imu_age_s = float(fs["detail"].split("last IMU sample ")[1].split(" s ago")[0])
+    assert imu_age_s < 0.1, fs
+
+    frames = tlog_of(flight)
+    rc = [(f.unix_s, f.decode()) for f in frames if f.msg_id == ID_RC_CHANNELS]
+    valid = [t for t, m in rc if m.chancount > 0]
+    lost = [m for t, m in rc if t > valid[-1]]
+    # The fault as specified: frames kept coming, without channels.
+    assert lost and all(m.chancount == 0 and m.chan1_raw == 65535 for m in lost)
+    assert max(t for t, _ in rc) > float(fs["wall"]) - 0.3
+    # Bounded: the watchdog fires once rc_timeout_s has passed since the last valid
+    # frame (never before), polling every 50 ms, with 1 s of slack as above.
+    waited = float(fs["wall"]) - valid[-1]
+    assert rc_timeout_s <= waited < rc_timeout_s + 1.0, waited
+    assert_handed_back_to_posctl(flight, fs)
 
 
 # ------------------------------------------------------------ 2. out-of-range gyro

@@ -1,0 +1,62 @@
+"""``--fault`` parsing: what each spelling means, and the error a bad one gets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from companion.profile import load_profile
+from sitl.mavlink_face import parse_endpoint
+from sitl.runner import FAULT_KINDS, Fault, RunConfig, Runner, parse_fault
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize(
+    ("text", "fault"),
+    [
+        ("imu-stop@6", Fault("imu-stop", 6.0)),
+        ("rc-lost@2.5", Fault("rc-lost", 2.5)),
+        ("motor-fail@6:3", Fault("motor-fail", 6.0, 3)),
+        ("heartbeat-stop@0", Fault("heartbeat-stop", 0.0)),
+    ],
+)
+def test_a_fault_is_kind_time_and_motor(text: str, fault: Fault) -> None:
+    assert parse_fault(text) == fault
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("rc-gone@3", "KIND is one of"),
+        ("rc-lost@-1", "SECONDS >= 0"),
+        ("rc-lost@nan", "SECONDS >= 0"),
+        ("rc-lost@x", "expected KIND@SECONDS[:MOTOR]"),
+        ("motor-fail@6:a", "expected KIND@SECONDS[:MOTOR]"),
+        ("rc-lost", "expected KIND@SECONDS[:MOTOR]"),
+    ],
+)
+def test_a_bad_fault_names_itself_and_what_was_expected(text: str, expected: str) -> None:
+    with pytest.raises(ValueError, match=r"fault '.*'") as err:
+        parse_fault(text)
+    assert expected in str(err.value)
+    assert repr(text) in str(err.value)
+
+
+def test_every_kind_is_listed_in_the_error() -> None:
+    with pytest.raises(ValueError) as err:
+        parse_fault("nope@1")
+    assert all(k in str(err.value) for k in FAULT_KINDS)
+
+
+def test_a_motor_the_vehicle_lacks_is_refused_before_the_run() -> None:
+    profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
+    config = RunConfig(
+        mavlink=parse_endpoint("udpout:127.0.0.1:9"), faults=(Fault("motor-fail", 1.0, 4),)
+    )
+    with pytest.raises(ValueError, match=r"motor-fail@1:4: MOTOR is 0\.\.3 on f450"):
+        Runner(profile, config, profile_name="f450")
+    # The last motor is fine.
+    ok = RunConfig(mavlink=config.mavlink, faults=(Fault("motor-fail", 1.0, 3),))
+    Runner(profile, ok, profile_name="f450").face.close()
