@@ -699,6 +699,7 @@ class Companion:
     # ------------------------------------------------------------------- run
     def _open_records(self) -> None:
         from companion import __version__
+        from companion.control import COMPILED
         from companion.records import ColumnarLog, TlogWriter, columns
 
         d = self.opts.log_dir
@@ -714,6 +715,7 @@ class Companion:
             "output": self.opts.output,
             "engage": self.opts.engage,
             "version": __version__,
+            "control_compiled": COMPILED,
         }
         self._log_rows = ColumnarLog(
             d / "control.bin", columns(self.opts.profile.n_motors), meta=meta

@@ -12,7 +12,9 @@
     call measured in the same run) and the ratios to it, which travel
     between machines better than raw microseconds; ``mfc_table1_update_us``
     is the paper's Table I law (no lag model, no identification) for
-    comparison. Target: ``mfc_update_us`` <= 5.
+    comparison; ``control_compiled``: whether the control core imported is the
+    mypyc-compiled one (``MFC_COMPILE=1 pip install .``; README). Target:
+    ``mfc_update_us`` <= 5 (met by the compiled core, not by pure Python).
 ``loop``
     ``latency_us_p50``/``latency_us_p99``: an IMU datagram's arrival to its
     command leaving ``companion run`` (logging on), measured from outside by a
@@ -108,7 +110,10 @@ def bench_control(n_updates: int = 200_000) -> dict[str, Any]:
         def update(self, dt_s: float, a: Any, b: Any, c: float) -> None:
             return None
 
+    import companion.control
+
     out: dict[str, Any] = {"updates": n_batches * BATCH}
+    out["control_compiled"] = companion.control.COMPILED
     base = _Empty()
     out["baseline_call_us"] = round(_median_us_per_call(base.update, batches, n_batches), 4)
     for name, ctl in (

@@ -3,8 +3,16 @@
 Everything here takes ``dt_s`` and samples from its caller and returns plain
 values, so the same code runs against hardware, a real-time simulator or a
 lockstep simulator at any speed.
+
+The modules can be compiled with mypyc (``MFC_COMPILE=1 pip install .``, see
+``setup.py``); :data:`COMPILED` says whether they were. An extension whose
+source has changed since it was built is refused here, before it is imported:
+flying yesterday's control law while reading today's is not an option.
 """
 
+# First, so its check runs before any control module is imported (a submodule
+# imported directly imports this package first).
+from companion.control._compiled import COMPILED
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
 from companion.control.mfc import (
     AlphaAdaptation,
@@ -21,6 +29,7 @@ from companion.control.pid import PX4_DEFAULT_GAINS, PidAxisGains, PidGains, Rat
 from companion.control.sticks import AxisRates, PilotCommand, StickMap
 
 __all__ = [
+    "COMPILED",
     "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",
     "AlphaAdaptation",

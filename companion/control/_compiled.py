@@ -1,0 +1,59 @@
+"""Whether the control modules are compiled, and whether they are current.
+
+``setup.py`` (with ``MFC_COMPILE=1``) compiles the modules in :data:`MODULES`
+with mypyc and writes ``_compiled.json`` beside them: the SHA-256 of each
+source it compiled. Python imports an extension module in preference to its
+``.py``, so an extension left over from before an edit would silently run the
+old law; :func:`check_extensions` refuses that.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from importlib.machinery import EXTENSION_SUFFIXES
+from pathlib import Path
+
+MODULES = ("estimator", "mfc", "mixer", "pid", "sticks")
+MANIFEST = "_compiled.json"
+
+
+class StaleExtensionError(ImportError):
+    """A compiled control module does not match its source."""
+
+
+def check_extensions(package_dir: Path | None = None) -> bool:
+    """True if every control module has a current compiled extension, False if
+    none has one; raises :class:`StaleExtensionError` naming the files otherwise
+    (an extension built from another source, or only some modules compiled)."""
+    here = package_dir or Path(__file__).resolve().parent
+    compiled = [m for m in MODULES if any((here / f"{m}{s}").exists() for s in EXTENSION_SUFFIXES)]
+    if not compiled:
+        return False
+    rebuild = "rebuild (MFC_COMPILE=1 pip install ...) or delete the extensions"
+    manifest = here / MANIFEST
+    try:
+        digests = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise StaleExtensionError(
+            f"{here}: compiled control modules ({', '.join(compiled)}) but {manifest} "
+            f"is unreadable ({exc}); {rebuild}"
+        ) from None
+    stale = [
+        m
+        for m in compiled
+        if digests.get(m) != hashlib.sha256((here / f"{m}.py").read_bytes()).hexdigest()
+    ]
+    if stale:
+        raise StaleExtensionError(
+            f"{here}: the compiled {', '.join(stale)} differ from the source "
+            f"(changed since {MANIFEST} was written); {rebuild}"
+        )
+    if len(compiled) != len(MODULES):
+        missing = [m for m in MODULES if m not in compiled]
+        raise StaleExtensionError(f"{here}: {', '.join(missing)} not compiled; {rebuild}")
+    return True
+
+
+COMPILED = check_extensions()
+"""True when the control modules are mypyc-compiled extensions (all of them)."""
