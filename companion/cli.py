@@ -10,14 +10,17 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from companion import __version__
+from companion._options import SEED, Finite, usable_out_dir, usable_out_file
 from companion.errors import ConfigError, MfcError
 
 __all__ = ["main"]
@@ -130,7 +133,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @_profile_opt
 @_controller_opt
 @click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=int, default=None, help="Override the scenario's seed.")
+@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
 @click.option(
     "--controller-profile",
     type=click.Path(dir_okay=False, path_type=Path),
@@ -140,7 +143,8 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     default=Path("runs/latest"),
     show_default=True,
     help="Folder for metrics.json, plots, flight.npz and report.md.",
@@ -214,14 +218,14 @@ def simulate(
 @click.option("--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True)
 @click.option(
     "--rates-full-scale-deg-s",
-    type=click.FloatRange(min=10.0, max=2000.0),
+    type=Finite(min=10.0, max=2000.0),
     default=360.0,
     show_default=True,
     help="With --output rates: the rate correction of a full-scale law output.",
 )
 @click.option(
     "--rates-lead-s",
-    type=click.FloatRange(min=0.0, max=0.2),
+    type=Finite(min=0.0, max=0.2),
     default=0.03,
     show_default=True,
     help="With --output rates: feed-forward lead on the pilot's rate, s (the autopilot's "
@@ -241,14 +245,15 @@ def simulate(
 )
 @click.option(
     "--rate-hz",
-    type=click.FloatRange(50.0, 1000.0),
+    type=Finite(50.0, 1000.0),
     default=250.0,
     show_default=True,
     help="IMU stream (= control loop) rate requested from the autopilot.",
 )
 @click.option(
     "--log-dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     default=None,
     help="Write flight.tlog, control.bin and events.jsonl here.",
 )
@@ -261,7 +266,7 @@ def simulate(
 )
 @click.option(
     "--duration",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=None,
     help="Stop after this long engaged (sample time, s), handing back; in shadow mode "
     "(--engage none), after this long since the first sample.",
@@ -294,32 +299,30 @@ def simulate(
     help="Mode handed back to: auto = PX4 POSCTL, ArduPilot ALT_HOLD; PX4 posctl/altctl/"
     "stabilized/manual; ArduPilot alt_hold/land/stabilize/loiter (checked on connect).",
 )
-@click.option(
-    "--stale-imu-s", type=click.FloatRange(min=0.0, min_open=True), default=0.1, show_default=True
-)
+@click.option("--stale-imu-s", type=Finite(min=0.0, min_open=True), default=0.1, show_default=True)
 @click.option(
     "--link-timeout-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=2.0,
     show_default=True,
 )
 @click.option(
     "--invalid-imu-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=0.05,
     show_default=True,
     help="Failsafe after this long of non-finite or out-of-range gyro samples.",
 )
 @click.option(
     "--rc-timeout-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=0.5,
     show_default=True,
     help="Failsafe when engaged and no valid RC for this long.",
 )
 @click.option(
     "--envelope-time-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=0.5,
     show_default=True,
     help="How long a rate beyond the profile's limit, or the averaging time of the "
@@ -346,14 +349,14 @@ def simulate(
 )
 @click.option(
     "--heartbeat-timeout-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=10.0,
     show_default=True,
     help="How long to wait for the autopilot's first heartbeat (exit 1 after).",
 )
 @click.option(
     "--envelope-error-deg-s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=300.0,
     show_default=True,
     help="Failsafe when the tracking error averaged over 0.5 s exceeds this.",
@@ -398,6 +401,8 @@ def run(
     # Check everything a run needs before anything is opened or sent.
     reference = None
     try:
+        if rates_passthrough and output != "rates":
+            raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
         if reference_path is not None:
             from companion.reference import load_reference
 
@@ -467,13 +472,13 @@ def run(
 @_profile_opt
 @_controller_opt
 @click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=int, default=None, help="Override the scenario's seed.")
+@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
 @click.option(
     "--output", type=click.Choice(["actuator", "rates"]), default="actuator", show_default=True
 )
 @click.option(
     "--duration",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=None,
     help="Engaged flight time, s [default: the scenario's].",
 )
@@ -486,7 +491,8 @@ def run(
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     default=Path("runs/fly"),
     show_default=True,
 )
@@ -527,6 +533,11 @@ def fly(
     from companion.simulate import FlightRecord
     from sitl.scenario import load_scenario
 
+    source = click.get_current_context().get_parameter_source("output")
+    if autopilot == "ardupilot" and output == "actuator" and source == ParameterSource.COMMANDLINE:
+        click.echo("error: --output actuator: ArduPilot accepts body rates only (--output rates)",
+                   err=True)  # fmt: skip
+        sys.exit(EXIT_BAD_INPUT)
     flown_output = "rates" if autopilot == "ardupilot" else output
     if compare_passthrough and flown_output != "rates":
         click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
@@ -608,7 +619,8 @@ def fly(
 @click.option(
     "--out",
     "out_path",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=click.Path(dir_okay=False),
+    callback=usable_out_file,
     default=None,
     help="Write the replayed outputs here as a columnar log.",
 )
@@ -645,6 +657,12 @@ def replay_cmd(
     diffs = compare(cols, out)
     engaged = int((cols["engaged"] > 0.5).sum())
     click.echo(f"replayed {engaged} engaged samples of {log} with {ctrl} on {prof}")
+    if "partial_last_row_bytes" in meta:
+        click.echo(
+            f"note: {log} ends in a partial row ({meta['partial_last_row_bytes']} bytes, "
+            "ignored): its writer did not close it",
+            err=True,
+        )
     worst = max(diffs.values()) if diffs else 0.0
     for name, d in sorted(diffs.items(), key=lambda kv: -kv[1])[:8]:
         click.echo(f"  {name:24s} max |recorded - replayed| = {d:.3g}")
@@ -657,6 +675,21 @@ def replay_cmd(
             for row in zip(*(out[n].tolist() for n in names), strict=True):
                 w.append(row)
         click.echo(f"wrote {out_path}")
+    if controller_path is None and worst > REPLAY_TOLERANCE:
+        # The recorded controller must reproduce its own flight: the laws are
+        # deterministic, so a difference means the code or the file changed since.
+        click.echo(
+            f"error: the recorded controller {ctrl} does not reproduce {log} (largest "
+            f"difference {worst:.3g} > {REPLAY_TOLERANCE:g}): the controller file or the "
+            "code has changed since the flight",
+            err=True,
+        )
+        sys.exit(1)
+
+
+REPLAY_TOLERANCE = 1e-6
+"""Outputs are of order 1 to 500 (us for u); the recorded controller reproduces
+its flight far closer than this (exactly, on the same machine)."""
 
 
 def _split_list(values: tuple[str, ...]) -> list[str]:
@@ -667,7 +700,8 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     default=Path("runs/campaign"),
     show_default=True,
     help="Folder for campaign.json, summary.md and mae.png.",
@@ -709,7 +743,7 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
 )
 @click.option(
     "--duration",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=20.0,
     show_default=True,
     help="Fly only the first S seconds of the scenario.",
@@ -769,6 +803,13 @@ def campaign(
         raise click.BadParameter(f"expected comma-separated numbers: {exc}") from exc
     if not damages or not gust_list:
         raise click.BadParameter("--damage and --gusts need at least one value each")
+    if not all(0.0 < d <= 1.0 for d in damages):
+        raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
+    if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
+        raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
+    for flag, given in (("--profiles", profiles), ("--controllers", controllers)):
+        if given and not _split_list(given):
+            raise click.BadParameter(f"{flag}: expected names or files, got {list(given)!r}")
     prof_names = _split_list(profiles)
     if not prof_names:
         local = Path("vehicle_profiles")
@@ -822,7 +863,8 @@ def campaign(
 @click.option(
     "--out",
     "out_dir",
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     required=True,
     help="Folder for envelope.json, summary.md, ratio.png and worst-*.png.",
 )
@@ -835,7 +877,7 @@ def campaign(
 )
 @click.option(
     "--seed",
-    type=int,
+    type=SEED,
     default=1,
     show_default=True,
     help="Seeds the vehicle sample and every PID tuning search.",

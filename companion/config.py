@@ -221,18 +221,12 @@ def load_controller(path: str | Path = DEFAULT_CONTROLLER) -> MfcConfig | PidCon
     companion.errors.ConfigError
         Naming the file and the key path of every problem.
     """
-    import yaml
-
+    from companion._schema import read_yaml
     from companion.errors import ConfigError
 
     p = Path(path)
     # Validate through the wrapper but report paths as the user wrote them.
-    try:
-        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(str(p), [f"cannot read file: {exc.strerror or exc}"]) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(p), [f"not valid YAML: {exc}"]) from exc
+    raw = read_yaml(p)
     if not isinstance(raw, dict):
         raise ConfigError(str(p), ["(top level): expected a mapping of keys"])
     if raw.get("kind") not in ("mfc", "pid"):

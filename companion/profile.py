@@ -194,6 +194,19 @@ class VehicleProfile(StrictModel):
         return self
 
     @model_validator(mode="after")
+    def _can_hover(self) -> VehicleProfile:
+        # Undamaged, on equal motor speeds (the same test as sitl.physics's hover command).
+        p = self.physics
+        w = math.sqrt(p.mass_kg * 9.80665 / (self.n_motors * p.kf_n_per_rad_s2))
+        if not p.motor_w_idle_rad_s <= w <= p.motor_w_max_rad_s:
+            raise ValueError(
+                f"physics: cannot hover: mass_kg, kf_n_per_rad_s2 and {self.n_motors} motors "
+                f"need {w:.4g} rad/s, outside motor_w_idle_rad_s..motor_w_max_rad_s "
+                f"({p.motor_w_idle_rad_s:g}..{p.motor_w_max_rad_s:g})"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _damaged_inertia(self) -> VehicleProfile:
         J = np.array(self.physics.inertia_kg_m2) + np.array(self.physics.damage.inertia_delta_kg_m2)
         if not np.allclose(J, J.T, atol=1e-12) or np.linalg.eigvalsh(J).min() <= 0.0:

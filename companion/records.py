@@ -405,12 +405,13 @@ def last_row(path: str | Path) -> tuple[float, ...] | None:
 def read_columnar(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     """Read a :class:`ColumnarLog` file: ``({column: float64 array}, {key: value})``.
 
-    A last row cut short (a killed writer can leave one) is ignored.
+    A last row cut short (a killed writer can leave one) is ignored; the
+    returned metadata then has ``partial_last_row_bytes``.
 
     Raises
     ------
     ValueError
-        Naming the file when it has no header or no row marker.
+        Naming the file when it has no header, no row marker, or another format.
     """
     p = Path(path)
     raw = p.read_bytes()
@@ -429,11 +430,15 @@ def read_columnar(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, st
             names = line.strip().split(",")
     if not names:
         raise ValueError(f"{p}: no column-name line before the rows")
+    fmt = meta.get("format", "")
+    if fmt.split(" (")[0] != FORMAT.split(" (")[0]:
+        raise ValueError(f"{p}: format {fmt!r}; this version reads {FORMAT!r}")
     n = len(names)
     width = 8 * n
     n_rows = len(body) // width
     if len(body) % width:
         log.info("%s: ignoring a truncated last row", p)
+        meta["partial_last_row_bytes"] = str(len(body) % width)
     dtype = np.dtype("<f8" if meta.get("byteorder", "little") == "little" else ">f8")
     data = np.frombuffer(body[: n_rows * width], dtype=dtype).reshape(n_rows, n)
     cols = {

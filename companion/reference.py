@@ -23,6 +23,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from companion._schema import read_text
 from companion.errors import ConfigError
 
 __all__ = ["ReferenceScript", "load_reference"]
@@ -74,10 +75,7 @@ def load_reference(path: str | Path) -> ReferenceScript:
         Naming the file, the line and what was expected.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(str(p), [f"cannot read file: {exc.strerror or exc}"]) from exc
+    text = read_text(p)
     rows = list(csv.reader(line for line in text.splitlines() if line.strip()))
     if not rows:
         raise ConfigError(str(p), ["(file): expected a header line and at least one row"])

@@ -745,11 +745,19 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--out", type=Path, required=True, help="output folder")
+    ap.add_argument("--out", required=True, help="output folder")
     ap.add_argument("--quick", action="store_true", help=f"fly only the first {QUICK_S:g} s")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.workers < 1:
+        ap.error(f"--workers: expected 1 or more, got {args.workers}")
+    from companion._options import out_dir_problem
+
+    problem = out_dir_problem(args.out)
+    if problem is not None:
+        ap.error(f"--out: {problem}")
+    args.out = Path(args.out)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     # Each worker logs its flight's crash; keep the console for the bar and the summary.
     logging.getLogger("sitl").setLevel(logging.WARNING)

@@ -21,6 +21,7 @@ from typing import Any
 
 import click
 
+from companion._options import SEED, Finite, usable_out_dir, usable_out_file
 from companion.errors import ConfigError, SigningError
 from companion.profile import load_profile
 
@@ -56,7 +57,10 @@ def cli(verbose: int) -> None:
 )
 @click.option("--pilot", default=None, help="Maneuver name or stick-script YAML; none: no RC.")
 @click.option(
-    "--seed", default=None, type=int, help="Seed of all randomness [default: the scenario's, or 0]."
+    "--seed",
+    default=None,
+    type=SEED,
+    help="Seed of all randomness [default: the scenario's, or 0].",
 )
 @click.option(
     "--clock", type=click.Choice(["realtime", "lockstep"]), default="realtime", show_default=True
@@ -64,7 +68,7 @@ def cli(verbose: int) -> None:
 @click.option(
     "--duration",
     "duration_s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=None,
     help="Simulated seconds [default: the pilot's duration, else until SIGINT/SIGTERM].",
 )
@@ -72,7 +76,7 @@ def cli(verbose: int) -> None:
 @click.option(
     "--wind-gust",
     "wind_gust_m_s",
-    type=click.FloatRange(min=0.0),
+    type=Finite(min=0.0),
     default=0.0,
     show_default=True,
     help="Turbulence intensity, m/s (per-axis sigma).",
@@ -80,14 +84,15 @@ def cli(verbose: int) -> None:
 @click.option(
     "--log",
     "log_path",
-    type=click.Path(dir_okay=False, path_type=Path),
+    type=click.Path(dir_okay=False),
+    callback=usable_out_file,
     default=None,
     help="True-state log (.npz) plus FILE.events.jsonl; see sitl.runner.",
 )
 @click.option(
     "--offboard-timeout",
     "offboard_timeout_s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=1.0,
     show_default=True,
     help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T).",
@@ -95,7 +100,7 @@ def cli(verbose: int) -> None:
 @click.option(
     "--lockstep-timeout",
     "lockstep_timeout_s",
-    type=click.FloatRange(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True),
     default=0.5,
     show_default=True,
     help="Longest wall-clock wait for a setpoint in lockstep, s.",
@@ -186,6 +191,10 @@ def run(
         endpoint = parse_endpoint(mavlink)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--mavlink") from exc
+    if pilot is not None and not pilot.strip():
+        raise click.BadParameter(
+            "expected a maneuver name or a stick-script file", param_hint="--pilot"
+        )
     try:
         profile = load_profile(profile_path)
         extra: dict[str, Any] = {}
@@ -260,12 +269,13 @@ def run(
     show_default=True,
     help="Vehicles sampled from the envelope (Latin hypercube).",
 )
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the sample.")
 @click.option(
     "--out",
     "out_dir",
     required=True,
-    type=click.Path(file_okay=False, path_type=Path),
+    type=click.Path(file_okay=False),
+    callback=usable_out_dir,
     help="Directory for NAME.yaml per vehicle and envelope.json.",
 )
 @click.option("--corners", "with_corners", is_flag=True, help="Also write the named corners.")
@@ -297,7 +307,7 @@ def _parse_param(text: str) -> tuple[str, float]:
             raise ValueError
         return name.strip().upper(), float(value)
     except ValueError:
-        raise ValueError(f"--param {text!r}: expected NAME=VALUE") from None
+        raise ValueError(f"--param {text!r}: expected NAME=NUMBER") from None
 
 
 def main() -> None:

@@ -82,9 +82,9 @@ from pathlib import Path
 from typing import Literal, Protocol
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from companion._schema import read_yaml
 from companion.errors import ConfigError
 
 __all__ = [
@@ -1022,7 +1022,7 @@ MANEUVERS: dict[str, Callable[[np.random.Generator], tuple[list[Segment], float]
 
 
 class _ChirpModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     axis: Literal["roll", "pitch", "yaw"]
     amplitude_deg_s: float = Field(gt=0.0, le=2000.0)
@@ -1032,7 +1032,7 @@ class _ChirpModel(BaseModel):
 
 
 class _SegmentModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     t_s: float = Field(ge=0.0)
     level: bool = False
@@ -1062,7 +1062,7 @@ class _SegmentModel(BaseModel):
 
 
 class _ScriptModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     duration_s: float = Field(gt=0.0, le=36000.0)
     rate_full_scale_deg_s: tuple[float, float, float] = DEFAULT_RATE_FULL_SCALE_DEG_S
@@ -1133,12 +1133,7 @@ def load_stick_script(
         message names the file and the key path (e.g. ``segments.2.ramp_s``).
     """
     p = Path(path)
-    try:
-        raw = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise ConfigError(str(p), [f"cannot read: {exc}"]) from exc
-    except yaml.YAMLError as exc:
-        raise ConfigError(str(p), [f"not valid YAML: {exc}"]) from exc
+    raw = read_yaml(p)
     if not isinstance(raw, dict):
         raise ConfigError(str(p), ["top level: expected a mapping"])
     try:

@@ -148,7 +148,7 @@ def parse_fault(text: str) -> Fault:
     ``COM_RCL_EXCEPT`` can exempt offboard from it).
     """
     kind, _, rest = text.partition("@")
-    when, _, arg = rest.partition(":")
+    when, colon, arg = rest.partition(":")
     try:
         t_s = float(when)
         index = int(arg) if arg else 0
@@ -156,6 +156,10 @@ def parse_fault(text: str) -> Fault:
         raise ValueError(f"fault {text!r}: expected KIND@SECONDS[:MOTOR]") from None
     if kind not in FAULT_KINDS or not (t_s >= 0.0 and math.isfinite(t_s)):
         raise ValueError(f"fault {text!r}: KIND is one of {', '.join(FAULT_KINDS)}, SECONDS >= 0")
+    if (kind == "motor-fail") != bool(colon):
+        raise ValueError(
+            f"fault {text!r}: expected motor-fail@SECONDS:MOTOR (0-based), other kinds KIND@SECONDS"
+        )
     return Fault(kind, t_s, index)
 
 

@@ -96,4 +96,15 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         raise ConfigError(
             str(p), [f"no such scenario; bundled scenarios: {', '.join(list_scenarios())}"]
         )
-    return load_yaml_model(p, Scenario)
+    sc = load_yaml_model(p, Scenario)
+    from sitl.pilot import MANEUVERS
+
+    script = Path(sc.pilot)
+    if sc.pilot not in MANEUVERS and not script.is_file():
+        what = "no such stick-script file" if script.suffix in (".yaml", ".yml") else "unknown"
+        raise ConfigError(
+            str(p),
+            [f"pilot: {what} {sc.pilot!r}; expected one of {', '.join(sorted(MANEUVERS))} "
+             "or a stick-script file"],
+        )  # fmt: skip
+    return sc

@@ -5,7 +5,8 @@ controller on the ``control.bin`` of a flight; with the recorded controller the
 outputs match the log to rounding, with another one they show what it would
 have commanded; it prints the engaged sample count, the largest differences
 per column and the largest one overall, and with ``--out`` writes the replayed
-outputs as a columnar log. A file that is not a control log is exit 2.
+outputs as a columnar log. A file that is not a control log, or in another
+format, is exit 2; a log the recorded controller no longer reproduces is exit 1.
 """
 
 from __future__ import annotations
@@ -86,6 +87,28 @@ def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_pa
     assert largest(res2.stdout) > 1.0
     assert "wrote" not in res2.stdout
 
+    # The log says it was flown with another controller than the one that flew it
+    # (as when a controller file changes after its flight): the recorded controller
+    # no longer reproduces it, and replay says so and fails.
+    data = log.read_bytes()
+    head, marker, rows = data.partition(b"# float64 rows follow\n")
+    recorded = meta["controller_path"].encode()
+    forged = tmp_path / "forged.bin"
+    forged.write_bytes(head.replace(recorded, str(other).encode()) + marker + rows)
+    res3 = companion("replay", str(forged), cwd=tmp_path)
+    assert res3.returncode == 1, (res3.stdout, res3.stderr)
+    assert largest(res3.stdout) > 1.0
+    assert f"error: the recorded controller {other} does not reproduce {forged}" in res3.stderr
+
+    # A log cut in the middle of a row (its writer was killed): the whole rows
+    # replay, and the cut is reported.
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(data[:-3])
+    res4 = companion("replay", str(cut), cwd=tmp_path)
+    assert res4.returncode == 0, res4.stderr
+    assert "ends in a partial row" in res4.stderr
+    assert largest(res4.stdout) < 1e-6
+
 
 def test_replay_of_a_file_that_is_not_a_control_log_exits_2(tmp_path: Path) -> None:
     bogus = tmp_path / "not_a_log.bin"
@@ -95,3 +118,15 @@ def test_replay_of_a_file_that_is_not_a_control_log_exits_2(tmp_path: Path) -> N
     assert res.stderr.startswith("error: ")
     assert str(bogus) in res.stderr
     assert "replayed" not in res.stdout
+
+
+def test_replay_of_a_log_in_another_format_exits_2(tmp_path: Path) -> None:
+    future = tmp_path / "future.bin"
+    future.write_bytes(
+        b"# format: companion-columnar 9 (binary float64 rows)\nt_s\n# float64 rows follow\n"
+        + np.zeros(3).tobytes()
+    )
+    res = companion("replay", str(future), cwd=tmp_path)
+    assert res.returncode == 2, (res.stdout, res.stderr)
+    assert f"error: {future}: format 'companion-columnar 9" in res.stderr
+    assert "this version reads 'companion-columnar 2" in res.stderr

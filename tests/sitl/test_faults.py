@@ -35,6 +35,8 @@ def test_a_fault_is_kind_time_and_motor(text: str, fault: Fault) -> None:
         ("rc-lost@x", "expected KIND@SECONDS[:MOTOR]"),
         ("motor-fail@6:a", "expected KIND@SECONDS[:MOTOR]"),
         ("rc-lost", "expected KIND@SECONDS[:MOTOR]"),
+        ("motor-fail@6", "expected motor-fail@SECONDS:MOTOR"),
+        ("imu-stop@6:2", "other kinds KIND@SECONDS"),
     ],
 )
 def test_a_bad_fault_names_itself_and_what_was_expected(text: str, expected: str) -> None:

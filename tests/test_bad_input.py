@@ -1,0 +1,160 @@
+"""Bad input on the command lines: a clear error naming the flag or the file and
+field, exit 2, before anything starts and with nothing left behind.
+
+Each case here was found by feeding the CLIs bad values: nan through click's
+float ranges (a watchdog given ``nan`` never fires), a file that is not UTF-8,
+a non-finite or duplicated YAML value, a vehicle that cannot hover, an unknown
+pilot in a scenario, a negative seed, an output folder that cannot be made.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+import pytest
+from click.testing import CliRunner, Result
+
+from companion._options import usable_out_dir
+from companion.cli import cli as companion_cli
+from sitl.cli import cli as sitl_cli
+
+ROOT = Path(__file__).resolve().parents[1]
+F450 = ROOT / "vehicle_profiles" / "f450.yaml"
+EXIT_BAD_INPUT = 2
+
+# Every float option of `companion run` (the product): none may take nan.
+RUN_FLOATS = (
+    "--rate-hz", "--rates-full-scale-deg-s", "--rates-lead-s", "--stale-imu-s",
+    "--link-timeout-s", "--invalid-imu-s", "--rc-timeout-s", "--envelope-time-s",
+    "--envelope-error-deg-s", "--duration", "--heartbeat-timeout-s",
+)  # fmt: skip
+
+
+def companion(*args: str) -> Result:
+    return CliRunner().invoke(companion_cli, list(args))
+
+
+def refused(res: Result, *words: str) -> None:
+    """Exit 2, no traceback, and the message says each of ``words``."""
+    assert res.exit_code == EXIT_BAD_INPUT, (res.exit_code, res.output, res.exception)
+    assert "Traceback" not in res.output
+    for w in words:
+        assert w in res.output, res.output
+
+
+@pytest.mark.parametrize("flag", RUN_FLOATS)
+@pytest.mark.parametrize("value", ["nan", "inf"])
+def test_run_refuses_a_non_finite_number(flag: str, value: str) -> None:
+    # udpout to a closed port: if the value got through, the run would start.
+    res = companion("run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450), flag, value)
+    refused(res, flag)
+    # A bounded range says inf is out of it; nan, and inf past an open end, are not finite.
+    assert "is not a finite number" in res.output or "is not in the range" in res.output
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("--wind-gust", "nan"), ("--wind-gust", "not a finite number")),
+        (("--clock", "lockstep", "--lockstep-timeout", "nan"), ("--lockstep-timeout",)),
+        (("--duration", "inf"), ("--duration", "not a finite number")),
+        (("--seed", "-1"), ("--seed", "-1 is not in the range x>=0")),
+        (("--log", ""), ("--log", "expected a file path")),
+        (("--fault", "motor-fail@1"), ("motor-fail@SECONDS:MOTOR",)),
+        (("--pilot", ""), ("--pilot", "expected a maneuver name")),
+        (("--autopilot", "ardupilot", "--param", "SCHED_LOOP_RATE=fast"), ("NAME=NUMBER",)),
+    ],
+)
+def test_sitl_run_refuses(args: tuple[str, ...], words: tuple[str, ...]) -> None:
+    res = CliRunner().invoke(
+        sitl_cli, ["run", "--profile", str(F450), "--mavlink", "udpout:127.0.0.1:9", *args]
+    )
+    refused(res, *words)
+
+
+def test_fly_and_run_refuse_contradicting_outputs() -> None:
+    res = companion("fly", "--autopilot", "ardupilot", "--output", "actuator")
+    refused(res, "--output actuator: ArduPilot accepts body rates only")
+    res = companion("run", "--connect", "udpout:127.0.0.1:9", "--rates-passthrough")
+    refused(res, "--rates-passthrough: needs --output rates")
+
+
+def test_simulate_refuses_a_negative_seed_and_an_empty_or_impossible_out(tmp_path: Path) -> None:
+    refused(companion("simulate", "--seed", "-1"), "--seed")
+    refused(companion("simulate", "--out", ""), "--out", "expected a folder path")
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    refused(companion("simulate", "--out", str(afile)), "--out", "is a file")
+    refused(companion("simulate", "--out", str(afile / "sub")), "--out", "is not a folder")
+
+
+@pytest.mark.parametrize(
+    ("args", "words"),
+    [
+        (("--gusts", "nan"), ("--gusts: expected finite sigmas",)),
+        (("--gusts", "0,-1"), ("--gusts: expected finite sigmas",)),
+        (("--damage", "0"), ("--damage: expected efficiencies in (0, 1]",)),
+        (("--profiles", ","), ("--profiles: expected names or files",)),
+        (("--controllers", ""), ("--controllers: expected names or files",)),
+        (("--duration", "nan"), ("--duration", "not a finite number")),
+    ],
+)
+def test_campaign_refuses(tmp_path: Path, args: tuple[str, ...], words: tuple[str, ...]) -> None:
+    out = tmp_path / "campaign"
+    refused(companion("campaign", "--out", str(out), *args), *words)
+    assert not out.exists()
+
+
+def _profile_with(tmp_path: Path, old: str, new: str) -> Path:
+    text = F450.read_text(encoding="utf-8")
+    assert old in text
+    p = tmp_path / "profile.yaml"
+    p.write_text(text.replace(old, new, 1), encoding="utf-8")
+    return p
+
+
+def test_a_profile_that_is_not_utf8_names_the_file_and_the_byte(tmp_path: Path) -> None:
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes(F450.read_bytes().replace(b"name:", b"# caf\xe9\nname:", 1))
+    refused(companion("check-config", "--profile", str(p)), str(p), "not UTF-8 text (byte 0xe9")
+
+
+def test_a_non_finite_profile_value_names_the_field(tmp_path: Path) -> None:
+    text = F450.read_text(encoding="utf-8")
+    kf_line = next(ln for ln in text.splitlines() if "kf_n_per_rad_s2:" in ln)
+    p = _profile_with(tmp_path, kf_line, "  kf_n_per_rad_s2: .inf")
+    refused(
+        companion("check-config", "--profile", str(p)),
+        str(p), "physics.kf_n_per_rad_s2: Input should be a finite number",
+    )  # fmt: skip
+
+
+def test_a_profile_that_cannot_hover_says_so(tmp_path: Path) -> None:
+    text = F450.read_text(encoding="utf-8")
+    mass_line = next(ln for ln in text.splitlines() if "mass_kg:" in ln)
+    p = _profile_with(tmp_path, mass_line, "  mass_kg: 90.0")
+    refused(companion("check-config", "--profile", str(p)), str(p), "cannot hover")
+
+
+def test_a_key_given_twice_is_refused(tmp_path: Path) -> None:
+    p = _profile_with(tmp_path, "name:", "name: twice\nname:")
+    refused(companion("check-config", "--profile", str(p)), str(p), "key 'name' given twice")
+
+
+def test_a_scenario_with_an_unknown_pilot_is_refused_before_flying(tmp_path: Path) -> None:
+    text = (ROOT / "sitl" / "scenarios" / "paper-acro.yaml").read_text(encoding="utf-8")
+    pilot_line = next(ln for ln in text.splitlines() if ln.startswith("pilot:"))
+    sc = tmp_path / "scenario.yaml"
+    sc.write_text(text.replace(pilot_line, "pilot: no-such-pilot"), encoding="utf-8")
+    out = tmp_path / "out"
+    res = companion("simulate", "--scenario", str(sc), "--out", str(out), "--no-progress")
+    refused(res, str(sc), "pilot: unknown 'no-such-pilot'", "paper-acro")
+    assert not out.exists()
+
+
+def test_an_out_dir_check_leaves_nothing_behind(tmp_path: Path) -> None:
+    deep = tmp_path / "a" / "b" / "c"
+    param = click.Option(["--out"])
+    assert usable_out_dir(click.Context(click.Command("x")), param, str(deep)) == deep
+    assert list(tmp_path.iterdir()) == []
