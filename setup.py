@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import sys
 from pathlib import Path
 
 from setuptools import setup
@@ -28,15 +29,20 @@ class BuildExtWithManifest(build_ext):
         super().run()
         src = HERE / "companion" / "control"
         digests = {m: hashlib.sha256((src / f"{m}.py").read_bytes()).hexdigest() for m in CONTROL}
-        dest = (Path(".") if self.inplace else Path(self.build_lib)) / "companion" / "control"
+        dest = (HERE if self.inplace else Path(self.build_lib)) / "companion" / "control"
         dest.mkdir(parents=True, exist_ok=True)
         (dest / "_compiled.json").write_text(json.dumps(digests, indent=1) + "\n")
 
 
 kwargs = {}
-if os.environ.get("MFC_COMPILE") == "1":
+try:
     from mypyc.build import mypycify
-
+except ImportError:
+    mypycify = None
+if os.environ.get("MFC_COMPILE") == "1" and mypycify is None and "egg_info" not in sys.argv:
+    # (egg_info: the backend asking what the build needs, before mypy is there)
+    sys.exit("MFC_COMPILE=1: the compiled control core needs mypy (mypyc): pip install mypy")
+if os.environ.get("MFC_COMPILE") == "1" and mypycify is not None:
     # One shared library for the five modules, named after the package.
     # No config file: the project's (pyproject.toml) loads the pydantic plugin,
     # which the build environment lacks; the control modules need neither.

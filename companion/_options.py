@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -43,21 +44,23 @@ def out_dir_problem(value: str | Path) -> str | None:
     if isinstance(value, str) and not value.strip():
         return "expected a folder path, got an empty one"
     path = Path(value)
-    missing = []
-    p = path.absolute()
-    while not p.exists():
-        missing.append(p)
-        p = p.parent
-    if not p.is_dir():
-        return f"cannot create the folder {path}: {p} is not a folder"
     made: list[Path] = []
     try:
+        missing = []
+        p = Path(os.path.abspath(path))  # with any ".." resolved, as mkdir -p would
+        while not p.exists():
+            if p.is_symlink():
+                return f"cannot create the folder {path}: {p} is a broken symlink"
+            missing.append(p)
+            p = p.parent
+        if not p.is_dir():
+            return f"cannot create the folder {path}: {p} is not a folder"
         for d in reversed(missing):
             d.mkdir()
             made.append(d)
         with tempfile.TemporaryFile(dir=path):
             pass
-    except OSError as exc:
+    except OSError as exc:  # PermissionError from exists() in a folder we cannot enter
         return f"cannot create the folder or write in {path}: {exc.strerror or exc}"
     finally:
         for d in reversed(made):

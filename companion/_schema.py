@@ -40,14 +40,21 @@ def read_yaml(path: str | Path) -> Any:
 
     class _UniqueKeyLoader(yaml.SafeLoader):
         def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+            # The keys as written: a merge (<<: *anchor) may be overridden, which
+            # is not a duplicate; an unhashable key is PyYAML's to report.
             seen: set[Any] = set()
             for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
                 key = self.construct_object(key_node, deep=deep)
-                if key in seen:
-                    raise yaml.constructor.ConstructorError(
-                        None, None, f"key {key!r} given twice", key_node.start_mark
-                    )
-                seen.add(key)
+                try:
+                    if key in seen:
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"key {key!r} given twice", key_node.start_mark
+                        )
+                    seen.add(key)
+                except TypeError:
+                    continue
             return super().construct_mapping(node, deep=deep)
 
     text = read_text(path)

@@ -97,14 +97,18 @@ _controller_opt = click.option(
 
 
 def _load_inputs(
-    profile_path: Path, controller_path: Path | None, output: str = "actuator"
+    profile_path: Path,
+    controller_path: Path | None,
+    output: str = "actuator",
+    *,
+    simulated: bool = False,
 ) -> tuple[Any, Any, Path]:
     from companion.config import default_controller, load_controller
     from companion.profile import load_profile
 
     ctrl_path = controller_path or default_controller(output)
     try:
-        profile = load_profile(profile_path)
+        profile = load_profile(profile_path, simulated=simulated)
         cfg = load_controller(ctrl_path)
     except ConfigError as exc:
         _fail_config(exc)
@@ -165,7 +169,7 @@ def simulate(
     from companion.simulate import simulate_flight
     from sitl.scenario import load_scenario
 
-    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path, simulated=True)
     try:
         sc = load_scenario(scenario)
         ctrl_prof = load_profile(controller_profile) if controller_profile else None
@@ -543,7 +547,9 @@ def fly(
         click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
                    err=True)  # fmt: skip
         sys.exit(EXIT_BAD_INPUT)
-    profile, _cfg, ctrl_path = _load_inputs(profile_path, controller_path, flown_output)
+    profile, _cfg, ctrl_path = _load_inputs(
+        profile_path, controller_path, flown_output, simulated=True
+    )
     try:
         sc = load_scenario(scenario)
         if controller_profile:
@@ -675,13 +681,17 @@ def replay_cmd(
             for row in zip(*(out[n].tolist() for n in names), strict=True):
                 w.append(row)
         click.echo(f"wrote {out_path}")
-    if controller_path is None and worst > REPLAY_TOLERANCE:
-        # The recorded controller must reproduce its own flight: the laws are
-        # deterministic, so a difference means the code or the file changed since.
+    as_recorded = (
+        controller_path is None and profile_path is None and bool(meta.get("controller_path"))
+    )
+    if as_recorded and worst > REPLAY_TOLERANCE:
+        # The recorded controller and profile must reproduce their own flight: the
+        # laws are deterministic, so a difference means something changed since.
         click.echo(
-            f"error: the recorded controller {ctrl} does not reproduce {log} (largest "
-            f"difference {worst:.3g} > {REPLAY_TOLERANCE:g}): the controller file or the "
-            "code has changed since the flight",
+            f"error: the recorded controller {ctrl} on {prof} does not reproduce {log} "
+            f"(largest difference {worst:.3g} > {REPLAY_TOLERANCE:g}): one of the two files "
+            "or the code has changed since the flight, or the log was written on another "
+            "kind of machine (its floating-point library may round differently)",
             err=True,
         )
         sys.exit(1)
@@ -689,7 +699,9 @@ def replay_cmd(
 
 REPLAY_TOLERANCE = 1e-6
 """Outputs are of order 1 to 500 (us for u); the recorded controller reproduces
-its flight far closer than this (exactly, on the same machine)."""
+its flight far closer than this (exactly, on the same machine). Enforced only
+when replaying as recorded: no --controller or --profile, and a log that names
+its controller file."""
 
 
 def _split_list(values: tuple[str, ...]) -> list[str]:
@@ -820,7 +832,7 @@ def campaign(
         str(files("companion") / "data" / "pid_tarot_tuned.yaml"),
     ]
     try:
-        prof = {Path(n).stem: load_profile(profile_file(n)) for n in prof_names}
+        prof = {Path(n).stem: load_profile(profile_file(n), simulated=True) for n in prof_names}
         ctrl = {Path(c).stem: load_controller(c) for c in ctrl_files}
         sc = load_scenario(scenario)
     except ConfigError as exc:

@@ -26,6 +26,7 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from companion._schema import StrictModel, load_yaml_model
+from companion.errors import ConfigError
 
 __all__ = [
     "Damage",
@@ -194,19 +195,6 @@ class VehicleProfile(StrictModel):
         return self
 
     @model_validator(mode="after")
-    def _can_hover(self) -> VehicleProfile:
-        # Undamaged, on equal motor speeds (the same test as sitl.physics's hover command).
-        p = self.physics
-        w = math.sqrt(p.mass_kg * 9.80665 / (self.n_motors * p.kf_n_per_rad_s2))
-        if not p.motor_w_idle_rad_s <= w <= p.motor_w_max_rad_s:
-            raise ValueError(
-                f"physics: cannot hover: mass_kg, kf_n_per_rad_s2 and {self.n_motors} motors "
-                f"need {w:.4g} rad/s, outside motor_w_idle_rad_s..motor_w_max_rad_s "
-                f"({p.motor_w_idle_rad_s:g}..{p.motor_w_max_rad_s:g})"
-            )
-        return self
-
-    @model_validator(mode="after")
     def _damaged_inertia(self) -> VehicleProfile:
         J = np.array(self.physics.inertia_kg_m2) + np.array(self.physics.damage.inertia_delta_kg_m2)
         if not np.allclose(J, J.T, atol=1e-12) or np.linalg.eigvalsh(J).min() <= 0.0:
@@ -220,13 +208,33 @@ class VehicleProfile(StrictModel):
     def n_motors(self) -> int:
         return len(self.frame.motors)
 
+    def hover_problem(self) -> str | None:
+        """Why the simulator could not hover this vehicle (undamaged, on equal
+        motor speeds: sitl.physics's hover command), or None if it can."""
+        p = self.physics
+        w = math.sqrt(p.mass_kg * 9.80665 / (self.n_motors * p.kf_n_per_rad_s2))
+        if p.motor_w_idle_rad_s <= w <= p.motor_w_max_rad_s:
+            return None
+        return (
+            f"physics: cannot hover: mass_kg, kf_n_per_rad_s2 and {self.n_motors} motors "
+            f"need {w:.4g} rad/s, outside motor_w_idle_rad_s..motor_w_max_rad_s "
+            f"({p.motor_w_idle_rad_s:g}..{p.motor_w_max_rad_s:g})"
+        )
+
     def thrust_to_weight(self) -> float:
         """Total static thrust at full speed over weight (undamaged)."""
         p = self.physics
         return self.n_motors * p.kf_n_per_rad_s2 * p.motor_w_max_rad_s**2 / (p.mass_kg * 9.80665)
 
 
-def load_profile(path: str | Path) -> VehicleProfile:
-    """Load and validate a vehicle profile YAML file."""
+def load_profile(path: str | Path, *, simulated: bool = False) -> VehicleProfile:
+    """Load and validate a vehicle profile YAML file.
+
+    ``simulated``: the vehicle is to be flown in the simulator, so its physics
+    must also let it hover (:meth:`VehicleProfile.hover_problem`); the companion
+    alone never reads the physics section.
+    """
     prof: VehicleProfile = load_yaml_model(path, VehicleProfile)
+    if simulated and (problem := prof.hover_problem()) is not None:
+        raise ConfigError(str(path), [problem])
     return prof

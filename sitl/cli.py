@@ -196,12 +196,12 @@ def run(
             "expected a maneuver name or a stick-script file", param_hint="--pilot"
         )
     try:
-        profile = load_profile(profile_path)
+        profile = load_profile(profile_path, simulated=True)
         extra: dict[str, Any] = {}
         if scenario is not None:
             from sitl.scenario import load_scenario
 
-            sc = load_scenario(scenario)
+            sc = load_scenario(scenario, check_pilot=pilot is None)
             pilot = pilot or sc.pilot
             seed = sc.seed if seed is None else seed
             duration_s = duration_s if duration_s is not None else sc.duration_s

@@ -151,7 +151,7 @@ def parse_fault(text: str) -> Fault:
     when, colon, arg = rest.partition(":")
     try:
         t_s = float(when)
-        index = int(arg) if arg else 0
+        index = int(arg) if colon else 0  # "motor-fail@6:" has no motor: an error
     except ValueError:
         raise ValueError(f"fault {text!r}: expected KIND@SECONDS[:MOTOR]") from None
     if kind not in FAULT_KINDS or not (t_s >= 0.0 and math.isfinite(t_s)):

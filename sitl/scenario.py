@@ -80,8 +80,11 @@ def list_scenarios() -> list[str]:
     return [p.stem for p in sorted(SCENARIO_DIR.glob("*.yaml"))]
 
 
-def load_scenario(name_or_path: str | Path) -> Scenario:
+def load_scenario(name_or_path: str | Path, *, check_pilot: bool = True) -> Scenario:
     """Load a bundled scenario by name, or a scenario file by path.
+
+    ``check_pilot``: the scenario's pilot must be a maneuver name or an
+    existing stick-script file (off when the caller flies another pilot).
 
     Raises
     ------
@@ -100,7 +103,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     from sitl.pilot import MANEUVERS
 
     script = Path(sc.pilot)
-    if sc.pilot not in MANEUVERS and not script.is_file():
+    if check_pilot and sc.pilot not in MANEUVERS and not script.is_file():
         what = "no such stick-script file" if script.suffix in (".yaml", ".yml") else "unknown"
         raise ConfigError(
             str(p),

@@ -15,8 +15,9 @@ import click
 import pytest
 from click.testing import CliRunner, Result
 
-from companion._options import usable_out_dir
+from companion._options import out_dir_problem, usable_out_dir
 from companion.cli import cli as companion_cli
+from companion.errors import ConfigError
 from sitl.cli import cli as sitl_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -130,11 +131,19 @@ def test_a_non_finite_profile_value_names_the_field(tmp_path: Path) -> None:
     )  # fmt: skip
 
 
-def test_a_profile_that_cannot_hover_says_so(tmp_path: Path) -> None:
+def test_a_profile_that_cannot_hover_is_refused_by_the_simulator_only(tmp_path: Path) -> None:
     text = F450.read_text(encoding="utf-8")
     mass_line = next(ln for ln in text.splitlines() if "mass_kg:" in ln)
     p = _profile_with(tmp_path, mass_line, "  mass_kg: 90.0")
-    refused(companion("check-config", "--profile", str(p)), str(p), "cannot hover")
+    out = tmp_path / "out"
+    res = companion("simulate", "--profile", str(p), "--out", str(out), "--no-progress")
+    refused(res, str(p), "physics: cannot hover")
+    assert not out.exists()
+    res = CliRunner().invoke(sitl_cli, ["run", "--profile", str(p), "--duration", "1"])
+    refused(res, str(p), "physics: cannot hover")
+    # The companion alone never reads the physics: a real vehicle's profile may
+    # carry placeholder physics.
+    assert companion("check-config", "--profile", str(p)).exit_code == 0
 
 
 def test_a_key_given_twice_is_refused(tmp_path: Path) -> None:
@@ -158,3 +167,21 @@ def test_an_out_dir_check_leaves_nothing_behind(tmp_path: Path) -> None:
     param = click.Option(["--out"])
     assert usable_out_dir(click.Context(click.Command("x")), param, str(deep)) == deep
     assert list(tmp_path.iterdir()) == []
+
+
+def test_yaml_merge_keys_and_anchors_still_load(tmp_path: Path) -> None:
+    from companion._schema import read_yaml
+
+    p = tmp_path / "merge.yaml"
+    p.write_text("rp: &rp {kp: 1, kd: 2}\npitch: {<<: *rp, kd: 30}\n", encoding="utf-8")
+    assert read_yaml(p) == {"rp": {"kp": 1, "kd": 2}, "pitch": {"kp": 1, "kd": 30}}
+    p.write_text("? [1, 2]\n: v\n", encoding="utf-8")  # PyYAML's own error, not a TypeError
+    with pytest.raises(ConfigError, match="unhashable key"):
+        read_yaml(p)
+
+
+def test_an_out_dir_through_dotdot_or_a_broken_symlink(tmp_path: Path) -> None:
+    assert out_dir_problem(str(tmp_path / "missing" / ".." / "runs")) is None
+    assert list(tmp_path.iterdir()) == []
+    (tmp_path / "link").symlink_to(tmp_path / "gone")
+    assert "is a broken symlink" in str(out_dir_problem(str(tmp_path / "link" / "x")))

@@ -39,11 +39,16 @@ def check_extensions(package_dir: Path | None = None) -> bool:
             f"{here}: compiled control modules ({', '.join(compiled)}) but {manifest} "
             f"is unreadable ({exc}); {rebuild}"
         ) from None
-    stale = [
-        m
-        for m in compiled
-        if digests.get(m) != hashlib.sha256((here / f"{m}.py").read_bytes()).hexdigest()
-    ]
+    try:
+        stale = [
+            m
+            for m in compiled
+            if digests.get(m) != hashlib.sha256((here / f"{m}.py").read_bytes()).hexdigest()
+        ]
+    except OSError as exc:
+        raise StaleExtensionError(
+            f"{here}: cannot read a compiled module's source to check it ({exc}); {rebuild}"
+        ) from None
     if stale:
         raise StaleExtensionError(
             f"{here}: the compiled {', '.join(stale)} differ from the source "

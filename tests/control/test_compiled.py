@@ -74,6 +74,14 @@ def test_an_extension_without_its_manifest_is_refused(tmp_path: Path) -> None:
         check_extensions(pkg)
 
 
+def test_an_extension_without_its_source_is_refused(tmp_path: Path) -> None:
+    pkg = _package(tmp_path)
+    _compile(pkg)
+    (pkg / "pid.py").unlink()
+    with pytest.raises(StaleExtensionError, match=r"cannot read a compiled module's source"):
+        check_extensions(pkg)
+
+
 def test_some_modules_compiled_and_others_not_is_refused(tmp_path: Path) -> None:
     pkg = _package(tmp_path)
     _compile(pkg, modules=("mfc", "mixer"))

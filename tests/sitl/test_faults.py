@@ -36,6 +36,7 @@ def test_a_fault_is_kind_time_and_motor(text: str, fault: Fault) -> None:
         ("motor-fail@6:a", "expected KIND@SECONDS[:MOTOR]"),
         ("rc-lost", "expected KIND@SECONDS[:MOTOR]"),
         ("motor-fail@6", "expected motor-fail@SECONDS:MOTOR"),
+        ("motor-fail@6:", "expected KIND@SECONDS[:MOTOR]"),
         ("imu-stop@6:2", "other kinds KIND@SECONDS"),
     ],
 )
