@@ -334,15 +334,22 @@ def _free_ports(n: int) -> list[int]:
             s.close()
 
 
-def run_loop_bench(*, seconds: float = 60.0, rate_hz: float = 1000.0) -> dict[str, Any]:
-    """Companion (logging on) and floor, served alternately by one harness in one run."""
+def run_loop_bench(
+    *, seconds: float = 60.0, rate_hz: float = 1000.0, profile: Path | None = None
+) -> dict[str, Any]:
+    """Companion (logging on) and floor, served alternately by one harness in one run.
+
+    ``profile``: the vehicle profile the companion is given (default: the source
+    tree's F450, for a run from a checkout).
+    """
     py = sys.executable
+    profile = profile or ROOT / "vehicle_profiles" / "f450.yaml"
     fport, cport = _free_ports(2)
     with tempfile.TemporaryDirectory() as logs:
         cmds = [
             [py, "-c", f"from companion._loopbench import echo_server; echo_server({fport})"],
             [py, "-m", "companion", "run", "--connect", f"udpin:127.0.0.1:{cport}",
-             "--profile", str(ROOT / "vehicle_profiles" / "f450.yaml"), "--engage", "auto",
+             "--profile", str(profile), "--engage", "auto",
              "--rate-hz", str(rate_hz), "--log-dir", logs,
              # The harness serves the floor half the time: gaps are expected here.
              "--stale-imu-s", "5", "--link-timeout-s", "10"],
