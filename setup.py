@@ -20,7 +20,9 @@ from pathlib import Path
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
 
-CONTROL = ("estimator", "mfc", "mixer", "pid", "sticks")
+CONTROL = ("estimator", "mfc", "mixer", "pid", "sticks")  # = companion.control._compiled.MODULES
+# (not imported: that package checks its extensions on import; a module missing
+# here makes the check refuse the build, and tests/control/test_compiled.py fail)
 HERE = Path(__file__).resolve().parent
 
 

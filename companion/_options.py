@@ -3,8 +3,8 @@
 click's ``FloatRange`` lets ``nan`` through every bound (it compares false with
 anything) and ``inf`` past an open end; a watchdog given ``--stale-imu-s nan``
 would never fire. :class:`Finite` closes that. :func:`usable_out_dir` checks an
-output folder before any work starts, without creating it, so a bad ``--out``
-fails at once rather than after a long run.
+output folder before any work starts (making it and a file in it, then undoing
+that), so a bad ``--out`` fails at once rather than after a long run.
 """
 
 from __future__ import annotations

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, TypeVar
 
+import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from companion.errors import ConfigError
@@ -32,31 +33,32 @@ def read_text(path: str | Path) -> str:
         ) from None  # fmt: skip
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping."""
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        # The keys as written: a merge (<<: *anchor) may be overridden, which
+        # is not a duplicate; an unhashable key is PyYAML's to report.
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            try:
+                if key in seen:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} given twice", key_node.start_mark
+                    )
+                seen.add(key)
+            except TypeError:
+                continue
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_yaml(path: str | Path) -> Any:
     """``path`` parsed as YAML; :class:`ConfigError` naming it if unreadable, not
     YAML, or holding a key twice in one mapping (YAML forbids it; PyYAML would
     silently keep the last)."""
-    import yaml
-
-    class _UniqueKeyLoader(yaml.SafeLoader):
-        def construct_mapping(self, node: Any, deep: bool = False) -> Any:
-            # The keys as written: a merge (<<: *anchor) may be overridden, which
-            # is not a duplicate; an unhashable key is PyYAML's to report.
-            seen: set[Any] = set()
-            for key_node, _ in node.value:
-                if key_node.tag == "tag:yaml.org,2002:merge":
-                    continue
-                key = self.construct_object(key_node, deep=deep)
-                try:
-                    if key in seen:
-                        raise yaml.constructor.ConstructorError(
-                            None, None, f"key {key!r} given twice", key_node.start_mark
-                        )
-                    seen.add(key)
-                except TypeError:
-                    continue
-            return super().construct_mapping(node, deep=deep)
-
     text = read_text(path)
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader: no arbitrary objects

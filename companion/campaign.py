@@ -147,7 +147,11 @@ def build_grid(
         for dmg in damages:
             vehicle = damaged_profile(prof, dmg)
             for gust in gusts_m_s:
-                wind = base.wind.model_copy(update={"gust_sigma_m_s": float(gust)})
+                # Validated (model_copy is not): a bad gust is a ValueError here,
+                # not a failure inside a worker's flight.
+                wind = type(base.wind).model_validate(
+                    {**base.wind.model_dump(), "gust_sigma_m_s": float(gust)}
+                )
                 sc = base.model_copy(update={"wind": wind})
                 for seed in seeds:
                     for cname, cfg in controllers.items():

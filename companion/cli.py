@@ -606,6 +606,13 @@ def fly(
         sys.exit(1)
 
 
+REPLAY_TOLERANCE = 1e-6
+"""Outputs are of order 1 to 500 (us for u); the recorded controller reproduces
+its flight far closer than this (exactly, on the same machine). Enforced only
+when replaying as recorded: no --controller or --profile, and a log that names
+its controller file."""
+
+
 @cli.command("replay")
 @click.argument("log", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
@@ -695,13 +702,6 @@ def replay_cmd(
             err=True,
         )
         sys.exit(1)
-
-
-REPLAY_TOLERANCE = 1e-6
-"""Outputs are of order 1 to 500 (us for u); the recorded controller reproduces
-its flight far closer than this (exactly, on the same machine). Enforced only
-when replaying as recorded: no --controller or --profile, and a log that names
-its controller file."""
 
 
 def _split_list(values: tuple[str, ...]) -> list[str]:
@@ -819,15 +819,18 @@ def campaign(
         raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
     if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
         raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
-    for flag, given in (("--profiles", profiles), ("--controllers", controllers)):
-        if given and not _split_list(given):
+    prof_names, ctrl_names = _split_list(profiles), _split_list(controllers)
+    for flag, given, names in (
+        ("--profiles", profiles, prof_names),
+        ("--controllers", controllers, ctrl_names),
+    ):
+        if given and not names:
             raise click.BadParameter(f"{flag}: expected names or files, got {list(given)!r}")
-    prof_names = _split_list(profiles)
     if not prof_names:
         local = Path("vehicle_profiles")
         prof_dir = local if local.is_dir() else root / "vehicle_profiles"
         prof_names = [str(p) for p in sorted(prof_dir.glob("*.yaml"))]
-    ctrl_files = _split_list(controllers) or [
+    ctrl_files = ctrl_names or [
         str(DEFAULT_CONTROLLER),
         str(files("companion") / "data" / "pid_tarot_tuned.yaml"),
     ]

@@ -82,9 +82,9 @@ from pathlib import Path
 from typing import Literal, Protocol
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from companion._schema import read_yaml
+from companion._schema import StrictModel, read_yaml
 from companion.errors import ConfigError
 
 __all__ = [
@@ -1021,9 +1021,7 @@ MANEUVERS: dict[str, Callable[[np.random.Generator], tuple[list[Segment], float]
 # --------------------------------------------------------------------------- YAML loader
 
 
-class _ChirpModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
+class _ChirpModel(StrictModel):
     axis: Literal["roll", "pitch", "yaw"]
     amplitude_deg_s: float = Field(gt=0.0, le=2000.0)
     f0_hz: float = Field(gt=0.0, le=100.0)
@@ -1031,9 +1029,7 @@ class _ChirpModel(BaseModel):
     taper_s: float = Field(default=0.5, ge=0.0, le=10.0)
 
 
-class _SegmentModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
+class _SegmentModel(StrictModel):
     t_s: float = Field(ge=0.0)
     level: bool = False
     rate_deg_s: tuple[float | None, float | None, float | None] | None = None
@@ -1061,9 +1057,7 @@ class _SegmentModel(BaseModel):
         return self
 
 
-class _ScriptModel(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
+class _ScriptModel(StrictModel):
     duration_s: float = Field(gt=0.0, le=36000.0)
     rate_full_scale_deg_s: tuple[float, float, float] = DEFAULT_RATE_FULL_SCALE_DEG_S
     altitude_m: float = Field(default=10.0, gt=0.0, le=500.0)
