@@ -198,18 +198,39 @@ class _Sink:
 def enable_signing(mav: Any, key: bytes, *, link_id: int = 0) -> None:
     """Sign what ``mav`` sends and accept only validly signed frames (MAVLink 2).
 
-    pymavlink checks incoming signatures once ``secret_key`` is set: unsigned
-    frames and frames with a bad signature or an old timestamp are dropped
-    (``allow_unsigned_callback`` is left unset).
+    Once ``secret_key`` is set, pymavlink drops unsigned frames
+    (``allow_unsigned_callback`` is left unset) and asks ``mav.check_signature``
+    about each signed one. pymavlink's own ``check_signature`` stores a frame's
+    timestamp for its stream *before* verifying the signature, so a single forged
+    frame with a far-future timestamp would block the real sender's stream for
+    good. It is replaced here by :class:`companion.link.signing.SignatureChecker`
+    (the companion's checker): the signature is verified first, and only a valid
+    frame moves its stream's timestamp, and ours, forward. Frames with a bad
+    signature, replays and new streams more than a minute behind our clock are
+    dropped.
     """
-    from companion.link.signing import signing_timestamp_now
+    from companion.link.signing import SignatureChecker, signing_timestamp_now
 
     if len(key) != 32:
         raise ValueError("a MAVLink signing key is 32 bytes")
-    mav.signing.secret_key = key
-    mav.signing.link_id = link_id
-    mav.signing.timestamp = signing_timestamp_now()
-    mav.signing.sign_outgoing = True
+    signing = mav.signing
+    signing.secret_key = key
+    signing.link_id = link_id
+    signing.timestamp = signing_timestamp_now()
+    signing.sign_outgoing = True
+    checker = SignatureChecker(key)
+
+    def check_signature(msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        # src_system/src_component are the frame's header bytes, which the checker reads itself.
+        verdict, timestamp = checker.check(msgbuf, signing.timestamp)
+        if verdict != SignatureChecker.OK:
+            return False
+        if timestamp > signing.timestamp:  # spec: follow the newest valid timestamp
+            signing.timestamp = timestamp
+        return True
+
+    # pymavlink's decode() calls self.check_signature: an instance attribute wins.
+    mav.check_signature = check_signature
 
 
 class MavlinkFace:
