@@ -48,8 +48,9 @@ key                  shape        meaning
 
 and, while running, ``FILE`` with the suffix replaced by ``.events.jsonl``: one
 JSON object per line (``{"t_s": ..., "kind": "mode", ...}``), flushed as each
-event happens; the last line is ``{"kind": "summary", ...}``. Read both back with
-:func:`read_log`.
+event happens; an injected fault is ``{"t_s": ..., "kind": "fault", "fault":
+"imu-stop", "arg": 0}`` (``arg``: the motor of ``motor-fail``, else 0); the last
+line is ``{"kind": "summary", ...}``. Read both back with :func:`read_log`.
 
 Outcome
 -------
@@ -340,7 +341,10 @@ class _Log:
 
     def event(self, ev: Event) -> None:
         if self._events is not None:
-            self._events.write(json.dumps({"t_s": ev.t_s, "kind": ev.kind, **ev.detail}) + "\n")
+            # The event's own time and kind win over any same-named detail key.
+            record = {"t_s": ev.t_s, "kind": ev.kind, **ev.detail}
+            record["t_s"], record["kind"] = ev.t_s, ev.kind
+            self._events.write(json.dumps(record) + "\n")
             self._events.flush()
 
     def close(self, summary: RunSummary) -> None:
@@ -604,7 +608,7 @@ class Runner:
             else:
                 self._outgoing.gyro_x_rad_s = IMU_RANGE_GYRO_RAD_S
         logger.warning("fault injected at t=%.3f s: %s", t, fault)
-        log.event(Event(t, "fault", {"kind": fault.kind, "arg": fault.arg}))
+        log.event(Event(t, "fault", {"fault": fault.kind, "arg": fault.arg}))
 
     def _loop(self, log: _Log, summary: RunSummary, wall0: float) -> Status:
         cfg = self.config

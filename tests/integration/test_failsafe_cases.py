@@ -85,7 +85,10 @@ def modes(sitl_events: list[dict[str, Any]]) -> list[str]:
 
 def fault_time(sitl_events: list[dict[str, Any]], kind: str) -> float:
     """Simulation time at which the SITL injected the fault ``kind``."""
-    t = next((float(e["t_s"]) for e in sitl_events if e.get("kind") == kind), None)
+    t = next(
+        (float(e["t_s"]) for e in sitl_events if e.get("kind") == "fault" and e["fault"] == kind),
+        None,
+    )
     assert t is not None, f"the SITL never injected {kind}: {sitl_events}"
     return t
 
@@ -269,7 +272,7 @@ def test_sitl_heartbeat_stop_and_imu_range_faults_do_only_what_they_say(
     assert all(m.xgyro == IMU_RANGE_GYRO_RAD_S for m in hi_after)
     assert all(abs(m.ygyro) < 1.0 and abs(m.zgyro) < 1.0 for m in hi_after)
     sitl_events = read_log(sitl.log_path).events
-    assert [e["kind"] for e in sitl_events if e["kind"] in ("heartbeat-stop", "imu-range")] == [
+    assert [e["fault"] for e in sitl_events if e["kind"] == "fault"] == [
         "heartbeat-stop",
         "imu-range",
     ]

@@ -1,4 +1,4 @@
-"""``--fault`` parsing: what each spelling means, and the error a bad one gets."""
+"""``--fault``: what each spelling means, the error a bad one gets, and the event it logs."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ from pathlib import Path
 
 import pytest
 
+from companion.fly import free_udp_port
 from companion.profile import load_profile
 from sitl.mavlink_face import parse_endpoint
-from sitl.runner import FAULT_KINDS, Fault, RunConfig, Runner, parse_fault
+from sitl.runner import FAULT_KINDS, Fault, RunConfig, Runner, parse_fault, read_log
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -63,3 +64,22 @@ def test_a_motor_the_vehicle_lacks_is_refused_before_the_run() -> None:
     # The last motor is fine.
     ok = RunConfig(mavlink=config.mavlink, faults=(Fault("motor-fail", 1.0, 3),))
     Runner(profile, ok, profile_name="f450").face.close()
+
+
+def test_every_fault_is_logged_as_a_fault_event(tmp_path: Path) -> None:
+    profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
+    faults = tuple(Fault(k, 0.05, 2 if k == "motor-fail" else 0) for k in FAULT_KINDS)
+    config = RunConfig(
+        mavlink=parse_endpoint(f"udpout:127.0.0.1:{free_udp_port()}"),
+        clock="lockstep",
+        duration_s=0.1,
+        log_path=tmp_path / "sitl.npz",
+        faults=faults,
+    )
+    Runner(profile, config, profile_name="f450").run()
+    logged = read_log(tmp_path / "sitl.npz").events
+    # The fault events, whatever "kind" they carry (a fault's own kind must not replace it).
+    events = [e for e in logged if e.get("kind") in ("fault", *FAULT_KINDS)]
+    assert [e["kind"] for e in events] == ["fault"] * len(FAULT_KINDS)
+    assert [(e["fault"], e["arg"]) for e in events] == [(f.kind, f.arg) for f in faults]
+    assert all(e["t_s"] == pytest.approx(0.05) for e in events)
