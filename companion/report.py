@@ -5,9 +5,13 @@
 ``mae_deg_s``, ``rms_deg_s``, ``max_abs_deg_s``
     Per axis (``roll``, ``pitch``, ``yaw``): the pilot's commanded rate
     against the measured rate (the gyro as the controller saw it, as the
-    paper measures), over the samples where the vehicle is airborne.
+    paper measures), over the samples where the vehicle is airborne; held
+    samples (non-finite input, the controller repeated its last output) and
+    samples with a non-finite rate are left out. ``null`` when no sample is left.
 ``mae_true_deg_s``
-    The same against the simulator's true rate.
+    The same against the simulator's true rate, over the same samples.
+``mae_skipped_samples``
+    Airborne samples left out of the four error metrics above.
 ``time_in_saturation_s``, ``saturation_fraction``
     Per axis and ``any``: time the mixer could not realise the request.
 ``failsafe_events``
@@ -47,13 +51,22 @@ def compute_metrics(record: FlightRecord) -> dict[str, Any]:
     air = c["airborne"].astype(bool) if n else np.zeros(0, dtype=bool)
     dt = float(np.median(np.diff(t))) if n > 1 else 0.0
     out: dict[str, Any] = {}
-    if air.any():
-        err = np.degrees(c["meas_rad_s"][air] - c["ref_rad_s"][air])
-        err_true = np.degrees(c["true_rad_s"][air] - c["ref_rad_s"][air])
+    none = {a: None for a in AXES}
+    err = np.degrees(c["meas_rad_s"] - c["ref_rad_s"]).reshape(n, 3)
+    err_true = np.degrees(c["true_rad_s"] - c["ref_rad_s"]).reshape(n, 3)
+    # A held sample is one the controller did not act on (a non-finite input),
+    # often with a NaN gyro: one NaN would make every error metric NaN.
+    held = c["held"].astype(bool) if n else np.zeros(0, dtype=bool)
+    valid = air & ~held & np.isfinite(err).all(axis=1) & np.isfinite(err_true).all(axis=1)
+    if valid.any():
+        err, err_true = err[valid], err_true[valid]
         out["mae_deg_s"] = _per_axis(np.mean(np.abs(err), axis=0))
         out["rms_deg_s"] = _per_axis(np.sqrt(np.mean(err**2, axis=0)))
         out["max_abs_deg_s"] = _per_axis(np.max(np.abs(err), axis=0))
         out["mae_true_deg_s"] = _per_axis(np.mean(np.abs(err_true), axis=0))
+    else:  # never left the ground, or nothing valid while airborne: no tracking to speak of
+        out.update(mae_deg_s=none, rms_deg_s=none, max_abs_deg_s=none, mae_true_deg_s=none)
+    if air.any():
         sat = c["sat_axes"][air].astype(bool)
         sat_t = sat.sum(axis=0) * dt
         out["time_in_saturation_s"] = {
@@ -64,11 +77,9 @@ def compute_metrics(record: FlightRecord) -> dict[str, Any]:
             **_per_axis(sat.mean(axis=0)),
             "any": round(float(sat.any(axis=1).mean()), 4),
         }
-    else:  # never left the ground: no tracking to speak of
-        nan = {a: None for a in AXES}
-        out.update(mae_deg_s=nan, rms_deg_s=nan, max_abs_deg_s=nan, mae_true_deg_s=nan)
-        out["time_in_saturation_s"] = {**nan, "any": None}
-        out["saturation_fraction"] = {**nan, "any": None}
+    else:
+        out["time_in_saturation_s"] = {**none, "any": None}
+        out["saturation_fraction"] = {**none, "any": None}
     out["failsafe_events"] = list(meta.get("failsafe_events", []))
     out["crashed"] = bool(meta.get("crashed", False))
     out["crashed_at_s"] = meta.get("crashed_at_s")
@@ -76,6 +87,7 @@ def compute_metrics(record: FlightRecord) -> dict[str, Any]:
     out["wall_time_s"] = round(float(meta.get("wall_time_s", 0.0)), 3)
     out["airborne_time_s"] = round(float(air.sum() * dt), 3)
     out["samples"] = int(n)
+    out["mae_skipped_samples"] = int(np.sum(air & ~valid))
     out["nonfinite_events"] = int(meta.get("nonfinite_events", 0))
     for key in ("profile", "controller_profile", "controller", "scenario", "seed", "imu_rate_hz"):
         if key in meta:
