@@ -39,17 +39,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
-import json
 import logging
 import math
 import signal
 import time
+from collections import deque
 from collections.abc import Coroutine, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
+from companion.control.gate import gate_actuator, gate_rates
 from companion.errors import EngageError, LinkError
 from companion.profile import VehicleProfile
 from companion.reference import ReferenceScript
@@ -60,6 +61,15 @@ _COUNTERS_PERIOD_S = 10.0
 
 _NO_RATES = (math.nan, math.nan, math.nan)
 """The ``sent_*`` log columns of a sample for which no body rates were sent."""
+
+_TIME_JUMP_S = 1.0
+"""An IMU time step beyond this, either way, is a discontinuity, not a late
+sample or a gap (stale IMU fires after ``stale_imu_s``, far less)."""
+_NEW_CLOCK_SAMPLES = 3
+"""Samples in a row that must follow on from a jump before it is a new clock
+(an autopilot reboot) rather than one corrupt timestamp: 12 ms at 250 Hz."""
+_EVENTS_KEPT = 1000
+"""Events kept in memory (``Companion.events``); the events file has them all."""
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -105,10 +115,23 @@ class FailsafeConfig:
 
     stale_imu_s: float = 0.1
     invalid_imu_s: float = 0.05
-    link_timeout_s: float = 2.0
+    invalid_fraction_max: float = 0.2
+    """Invalid-IMU failsafe also when this share of the samples, averaged over
+    ``invalid_window_s`` (first order, in sample time), is invalid: a gyro that
+    fails every other sample never makes a run of ``invalid_imu_s``."""
+    invalid_window_s: float = 1.0
+    link_timeout_s: float = 3.5
+    """Three heartbeat periods at 1 Hz plus jitter: two lost heartbeats in a row
+    are not a lost link."""
     rc_timeout_s: float = 0.5
     tracking_error_max_deg_s: float = 300.0
     envelope_time_s: float = 0.5
+    sample_errors_max: int = 3
+    """A per-sample step (law, send) that raises this many times in a row is a
+    failsafe: at 250 Hz, 12 ms, well inside ``stale_imu_s``."""
+    on_record_error: Literal["continue", "failsafe"] = "continue"
+    """A record file that cannot be written (disk full): an event and a counter,
+    and with "failsafe" a failsafe too."""
     on_failsafe: Literal["exit", "wait"] = "exit"
     safe_mode: str = "auto"
     """A mode of the detected stack (companion.stacks), or "auto": PX4 POSCTL,
@@ -176,7 +199,8 @@ class Companion:
         self._transport = transport
         self.controller = build_controller(opts.controller, opts.profile)
         self.sticks = build_stick_map(opts.controller)
-        self._rate_max_rad_s = tuple(math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
+        r0, r1, r2 = (math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
+        self._rate_max_rad_s = (r0, r1, r2)
         fs = opts.rates_full_scale_deg_s
         self._rate_fs_rad_s = self._rate_max_rad_s if fs is None else (math.radians(fs),) * 3
         # Beyond the gyro's full scale (5 % over, for its own overshoot) a sample
@@ -188,8 +212,23 @@ class Companion:
         self.n_imu = 0
         self.n_imu_duplicate_or_late = 0
         self.n_imu_invalid = 0
+        self.n_imu_time_jumps = 0
+        self.n_imu_time_outliers = 0
+        self.n_imu_clock_resets = 0
         self.n_commands = 0
-        self.events: list[dict[str, Any]] = []
+        self.n_commands_gated = 0
+        self.n_sample_errors = 0
+        self.n_rc_invalid = 0
+        self.n_event_errors = 0
+        self.n_task_failures = 0
+        self.n_record_failures = 0
+        self._errors_in_row = 0
+        self._invalid_frac = 0.0
+        self._clock_candidate: tuple[float, int] | None = None
+        self._last_thrust_sent = 0.0
+        self.events: deque[dict[str, Any]] = deque(maxlen=_EVENTS_KEPT)
+        """The last ``_EVENTS_KEPT`` events (all of them go to the events file)."""
+        self.n_events = 0
         self.autopilot: int | None = None
         self.stack: FlightStack | None = None
         self._imu_source = opts.imu_source
@@ -221,6 +260,7 @@ class Companion:
         self._hand_back_idle = asyncio.Event()
         self._hand_back_idle.set()
         self._hand_back_accepted = False  # the last hand-back's mode switch was ACKed
+        self._hand_back_owed = False  # a hand-back task failed: the run's end tries again
         self._counted_final = False
         self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
@@ -233,6 +273,7 @@ class Companion:
         self._tlog: Any = None
         self._events_file: Any = None
         self._telemetry: Any = None
+        self._writer: Any = None  # companion.records.RecordWriter, with --log-dir
 
     @property
     def counters(self) -> dict[str, int]:
@@ -240,7 +281,17 @@ class Companion:
             "imu_samples": self.n_imu,
             "imu_duplicate_or_late": self.n_imu_duplicate_or_late,
             "imu_invalid": self.n_imu_invalid,
+            "imu_time_jumps": self.n_imu_time_jumps,
+            "imu_time_outliers": self.n_imu_time_outliers,
+            "imu_clock_resets": self.n_imu_clock_resets,
             "commands_sent": self.n_commands,
+            "commands_gated": self.n_commands_gated,
+            "sample_errors": self.n_sample_errors,
+            "rc_invalid": self.n_rc_invalid,
+            "events": self.n_events,
+            "event_errors": self.n_event_errors,
+            "task_failures": self.n_task_failures,
+            "record_failures": self.n_record_failures,
         }
 
     def counters_detail(self) -> str:
@@ -253,36 +304,75 @@ class Companion:
 
     # ------------------------------------------------------------------ events
     def _event(self, kind: str, detail: str) -> None:
+        """Record an event: in memory, the log, the events file, telemetry.
+
+        Never raises: a failsafe calls it, and recording must not stop one. What
+        fails is counted (``event_errors``) and logged once."""
         t = self._t_prev if self._t_prev is not None else 0.0
         ev = {"t_s": round(t, 6), "wall": time.time(), "kind": kind, "detail": detail}
         self.events.append(ev)
+        self.n_events += 1
         level = logging.WARNING if kind.startswith("failsafe") else logging.INFO
         _log.log(level, "%s: %s", kind, detail)
-        if self._events_file is not None:
-            self._events_file.write(json.dumps(ev) + "\n")
-            self._events_file.flush()
-        if self._telemetry is not None:
-            self._telemetry.publish_event(kind, detail, t)
-            if kind == "counters":
-                return  # bookkeeping: the retained status keeps the event that matters
-            self._telemetry.publish_status(
-                {
-                    "state": "engaged"
-                    if self.engaged
-                    else ("commanding" if self.commanding else "idle"),
-                    "last_event": kind,
-                    "t_s": t,
-                    "autopilot_mode": self._ap_mode,
-                    "armed": self._ap_armed,
-                    "output": self.opts.output,
-                    "engage": self.opts.engage,
-                }
-            )
+        try:
+            if self._events_file is not None:
+                self._events_file.append(ev)  # a buffer; the writer thread does the I/O
+            if self._telemetry is not None:
+                self._telemetry.publish_event(kind, detail, t)
+                if kind != "counters":  # bookkeeping: the retained status keeps what matters
+                    self._telemetry.publish_status(self._status(kind, t))
+        except Exception:
+            self.n_event_errors += 1
+            if self.n_event_errors == 1:
+                _log.exception("recording an event failed (logged once, counted after)")
 
-    def _spawn(self, coro: Any, name: str) -> None:
+    def _status(self, last_event: str, t: float) -> dict[str, Any]:
+        return {
+            "state": "engaged" if self.engaged else ("commanding" if self.commanding else "idle"),
+            "last_event": last_event,
+            "t_s": t,
+            "autopilot_mode": self._ap_mode,
+            "armed": self._ap_armed,
+            "output": self.opts.output,
+            "engage": self.opts.engage,
+        }
+
+    def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]:
+        """Start a background task that is watched: see :meth:`_task_done`."""
         task = asyncio.get_running_loop().create_task(coro, name=name)
         self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        task.add_done_callback(self._task_done)
+        return task
+
+    def _task_done(self, task: asyncio.Task[Any]) -> None:
+        """No background task ends quietly.
+
+        A task that raised is counted, logged and recorded; so is the
+        supervisor ending before the run does. Engaged (or commanding), either
+        is a failsafe. Without the supervisor nobody watches the vehicle, so
+        its loss also ends the run (exit 3), even with ``on_failsafe = wait``;
+        so does a failed hand-back, whose retry is the run's own at its end.
+        """
+        self._tasks.discard(task)
+        if task.cancelled():
+            return
+        name = task.get_name()
+        exc = task.exception()
+        if exc is None and not (name == "supervise" and not self._stop.is_set()):
+            return
+        self.n_task_failures += 1
+        what = f"task {name} " + (f"raised {exc!r}" if exc is not None else "ended")
+        _log.error("%s", what, exc_info=exc)
+        if self.engaged or self.commanding:
+            self._failsafe("failsafe_task_failed", what)
+        else:
+            self._event("task_failed", what)
+        if name in ("failsafe", "hand-back"):
+            self._hand_back_owed = True  # the run's own hand-back, at its end, tries again
+        if name in ("supervise", "failsafe", "hand-back") and not self._stop.is_set():
+            self._in_failsafe = False
+            self._exit_code = EXIT_FAILSAFE
+            self._stop.set()
 
     # -------------------------------------------------------------- hot path
     def _on_message(self, msg: Any) -> None:
@@ -325,35 +415,129 @@ class Companion:
         # range checks, the law, the send. Recording and the slower checks follow it.
         t0 = self.link.rx_perf_s  # the datagram's arrival
         t_prev = self._t_prev
-        if t_prev is not None and not t_s > t_prev:  # also rejects a NaN timestamp
-            self.n_imu_duplicate_or_late += 1
-            return
         if t_prev is None:
             self._t_first = t_s
-        dt = t_s - t_prev if t_prev is not None and not self._restart_dt else 0.0
+            dt = 0.0
+        else:
+            dt = t_s - t_prev
+            if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
+                if not self._on_time_anomaly(t_s, dt):
+                    return
+                dt = 0.0
+            elif self._clock_candidate is not None:
+                self._clock_candidate = None  # the old clock goes on: it was one outlier
+                self.n_imu_time_outliers += 1
+            if self._restart_dt:
+                dt = 0.0
         self._restart_dt = False
         self._t_prev = t_s
-        self._last_imu_wall = t0
         self.n_imu += 1
+        try:
+            self._step(t_s, dt, gyro, t0)
+        except Exception:
+            self._on_step_error()
+            return
+        self._errors_in_row = 0
+        # The stale-IMU clock counts samples the law has processed, not samples seen.
+        self._last_imu_wall = t0
+
+    def _on_time_anomaly(self, t_s: float, dt: float) -> bool:
+        """A sample whose time is not just after the last one's; True: start a new clock.
+
+        A step back within ``_TIME_JUMP_S`` is a duplicate or a late sample
+        (reordered on the link): dropped. A larger jump either way is a
+        discontinuity (the autopilot rebooted, or one sample is corrupt): the
+        sample is dropped, and only when ``_NEW_CLOCK_SAMPLES`` samples in a row
+        follow on from it is the new clock taken (a reboot); a sample that
+        follows the old clock again makes it an outlier, and nothing changes.
+        """
+        if dt != dt or -_TIME_JUMP_S <= dt <= 0.0:
+            self.n_imu_duplicate_or_late += 1
+            return False
+        cand = self._clock_candidate
+        if cand is not None and 0.0 < t_s - cand[0] <= _TIME_JUMP_S:
+            self._clock_candidate = (t_s, cand[1] + 1)
+            if cand[1] + 1 < _NEW_CLOCK_SAMPLES:
+                return False
+            self._clock_candidate = None
+            self._new_clock(t_s)
+            return True
+        if cand is not None:
+            self.n_imu_time_outliers += 1  # the previous candidate led nowhere
+        self._clock_candidate = (t_s, 1)
+        self.n_imu_time_jumps += 1
+        return False
+
+    def _new_clock(self, t_s: float) -> None:
+        """The autopilot's IMU clock restarted (a reboot) or jumped: start over.
+
+        Engaged, it is a failsafe first (whatever made the clock jump, the
+        vehicle was not ours to fly through it); then the controller forgets
+        what it learnt, and the streams are asked for again (a rebooted
+        autopilot has forgotten them)."""
+        detail = f"IMU time jumped from {self._t_prev:.6f} s to {t_s:.6f} s"
+        if self.engaged or self.commanding:
+            self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
+        self.controller.reset()
+        self._err_ema = [0.0, 0.0, 0.0]
+        self._envelope_since = None
+        self._invalid_since = None
+        self._invalid_frac = 0.0
+        self.n_imu_clock_resets += 1
+        self._event("imu_clock_reset", detail)
+        if self.stack is not None and not self._stop.is_set():
+            self._spawn(self._rerequest_streams("IMU clock reset"), "streams")
+
+    def _on_step_error(self) -> None:
+        """The law, the send or the records raised on this sample: count it; a few
+        in a row is a failsafe (nothing was sent for those samples)."""
+        self.n_sample_errors += 1
+        self._errors_in_row += 1
+        if self.n_sample_errors == 1:
+            _log.exception("the per-sample step raised (logged once, counted after)")
+        limit = self.opts.failsafe.sample_errors_max
+        if self._errors_in_row >= limit and (self.engaged or self.commanding):
+            self._failsafe(
+                "failsafe_sample_errors", f"the per-sample step raised {limit} times in a row"
+            )
+
+    def _step(self, t_s: float, dt: float, gyro: tuple[float, float, float], t0: float) -> None:
+        """One accepted sample: the range gate, the law, the command, then the rest."""
+        fs = self.opts.failsafe
         lim = self._gyro_limit_rad_s
         g0, g1, g2 = gyro
         if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
             # Non-finite or beyond the sensor's range: the law holds its last
-            # output (it sees NaN), and the failsafe fires if this persists.
-            # Persistence is judged in sample time, here: deterministic in lockstep,
-            # and a failed sensor is caught on the sample that proves it.
+            # output (it sees NaN), and the failsafe fires if this persists, in an
+            # unbroken run or as a share of the samples. Persistence is judged in
+            # sample time, here: deterministic in lockstep, and a failed sensor is
+            # caught on the sample that proves it.
             self.n_imu_invalid += 1
+            a = dt / fs.invalid_window_s
+            frac = self._invalid_frac
+            frac += (1.0 - frac) * (a if a < 1.0 else 1.0)
+            self._invalid_frac = frac
             if self._invalid_since is None:
                 self._invalid_since = t_s
-            elif self.engaged and t_s - self._invalid_since > self.opts.failsafe.invalid_imu_s:
-                self._failsafe(
-                    "failsafe_invalid_imu",
-                    "non-finite or out-of-range gyro for "
-                    f"{self.opts.failsafe.invalid_imu_s} s of samples",
-                )
+            if self.engaged:
+                if t_s - self._invalid_since > fs.invalid_imu_s:
+                    self._failsafe(
+                        "failsafe_invalid_imu",
+                        f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s of samples",
+                    )
+                elif frac > fs.invalid_fraction_max:
+                    self._failsafe(
+                        "failsafe_invalid_imu",
+                        f"non-finite or out-of-range gyro in {frac:.0%} of the samples "
+                        f"(limit {fs.invalid_fraction_max:.0%} over {fs.invalid_window_s} s)",
+                    )
             gyro = (math.nan, math.nan, math.nan)
         else:
             self._invalid_since = None
+            frac = self._invalid_frac
+            if frac:  # decays while the samples are good; free once it is back to 0
+                frac -= frac * dt / fs.invalid_window_s
+                self._invalid_frac = frac if frac > 1e-4 else 0.0
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
         script = self._script
@@ -400,34 +584,43 @@ class Companion:
     def _send_output(
         self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
     ) -> Sequence[float]:
-        """Send this sample's command; returns the body rates sent (NaN: none)."""
+        """Send this sample's command through the last gate; returns the body rates
+        sent (NaN: none)."""
         if self._actuator_output:
-            r, p, y = out.torque
-            self.link.send_actuator_controls(
-                round(t_s * 1e6), (r, p, y, out.thrust, 0.0, 0.0, 0.0, 0.0)
-            )
+            controls, replaced = gate_actuator(out.torque, out.thrust, thrust)
+            if replaced:
+                self._gated(replaced)
+            r, p, y, t = controls
+            self.link.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
             self.n_commands += 1
             return _NO_RATES
+        # The law wraps the autopilot's rate loop: the pilot's rate plus the law's
+        # correction, within the profile's rate limits (the gate clamps).
+        if self.opts.rates_passthrough:
+            want: tuple[float, float, float] | list[float] = ref
         else:
-            # The law wraps the autopilot's rate loop: the pilot's rate plus the
-            # law's correction, within the profile's rate limits.
-            rm = self._rate_max_rad_s
-            if self.opts.rates_passthrough:
-                sp = [max(-rm[i], min(rm[i], ref[i])) for i in range(3)]
-            else:
-                fs = self._rate_fs_rad_s
-                lead = self.opts.rates_lead_s
-                rd = self.controller.reference_rate_dot
-                sp = [
-                    max(-rm[i], min(rm[i], ref[i] + lead * rd[i] + out.torque[i] * fs[i]))
-                    for i in range(3)
-                ]
-            # The pilot's (or the script's) collective: the autopilot mixes it with
-            # its own rate loop; our mixer's air-mode shift belongs to torques we
-            # do not send.
-            self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust)
-            self.n_commands += 1
-            return sp
+            fs = self._rate_fs_rad_s
+            lead = self.opts.rates_lead_s
+            rd = self.controller.reference_rate_dot
+            tq = out.torque
+            want = [ref[i] + lead * rd[i] + tq[i] * fs[i] for i in range(3)]
+        # The pilot's (or the script's) collective: the autopilot mixes it with its
+        # own rate loop; our mixer's air-mode shift belongs to torques we do not send.
+        sp, thrust_out, replaced = gate_rates(
+            want, thrust, ref, self._rate_max_rad_s, self._last_thrust_sent
+        )
+        if replaced:
+            self._gated(replaced)
+        self._last_thrust_sent = thrust_out
+        self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
+        self.n_commands += 1
+        return sp
+
+    def _gated(self, n: int) -> None:
+        """The last gate replaced ``n`` non-finite fields of a command."""
+        self.n_commands_gated += n
+        if self.n_commands_gated == n:
+            self._event("command_gated", f"{n} non-finite field(s) replaced by safe values")
 
     def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
         """Rates beyond the profile's limits, or a tracking error that stays large.
@@ -473,13 +666,16 @@ class Companion:
         """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
         count = v[18]
         chans = v[: min(count, 18)] if count else v[:18]
-        self._rc = chans
         cmd = self.sticks.map(chans)
-        if cmd.valid:
-            self._ref, self._thrust = cmd.rate_rad_s, cmd.thrust
-            self._rc_wall = time.perf_counter()
-        else:  # centred sticks, no throttle; the RC-lost failsafe watches _rc_wall
-            self._ref, self._thrust = (0.0, 0.0, 0.0), 0.0
+        if not cmd.valid:
+            # A glitch (a channel missing or out of range) changes nothing: the last
+            # valid sticks and switch hold, as PX4 and ArduPilot hold theirs, until
+            # the RC-lost failsafe (which watches _rc_wall) says otherwise.
+            self.n_rc_invalid += 1
+            return
+        self._rc = chans
+        self._ref, self._thrust = cmd.rate_rad_s, cmd.thrust
+        self._rc_wall = time.perf_counter()
         if self.opts.engage != "rc-switch":
             return
         ch = self.opts.engage_channel
@@ -644,42 +840,66 @@ class Companion:
         )
 
     def _failsafe(self, kind: str, detail: str) -> None:
+        """Stop commanding now and hand back; record it afterwards, best effort.
+
+        Nothing here waits on or can be stopped by I/O: the commands stop in
+        this call, the hand-back task is started before the event is recorded,
+        and recording never raises (:meth:`_event`)."""
         if self._stop.is_set() or self._in_failsafe:
             return  # one failsafe at a time: the first reason is the one logged
         self._in_failsafe = True
         was = self._release()
-        self._event(kind, detail)
         self._spawn(self._after_failsafe(detail, was), "failsafe")
+        self._event(kind, detail)
 
     async def _after_failsafe(self, detail: str, was_commanding: bool) -> None:
-        await self._hand_back(detail, was_commanding=was_commanding)
-        self._in_failsafe = False
-        if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
-            self._exit_code = EXIT_FAILSAFE
-            self._stop.set()
+        try:
+            await self._hand_back(detail, was_commanding=was_commanding)
+        finally:
+            self._in_failsafe = False
+            if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
+                self._exit_code = EXIT_FAILSAFE
+                self._stop.set()
         # "wait": an rc-switch run re-engages on the next low-to-high edge; a
         # switch still high stays "high" until the pilot moves it low first.
 
     async def _supervise(self) -> None:
-        """Wall-clock watchdogs: stale IMU, lost link, lost RC (invalid IMU samples
-        are judged where they arrive, in :meth:`_on_imu`)."""
+        """Wall-clock watchdogs: stale IMU, lost link, lost RC, failed records
+        (invalid IMU samples are judged where they arrive, in :meth:`_on_imu`).
+
+        Watched itself (:meth:`_task_done`): if it raises or ends, that is a
+        failsafe and the end of the run."""
         fs = self.opts.failsafe
         next_counters = time.perf_counter() + _COUNTERS_PERIOD_S
+        link_lost = False
         while not self._stop.is_set():
             await asyncio.sleep(0.05)  # watchdog thresholds are >= 0.1 s
             now = time.perf_counter()
             if now >= next_counters:
                 next_counters = now + _COUNTERS_PERIOD_S
                 self._event("counters", self.counters_detail())
+            if self._events_file is not None:
+                self._events_file.flush()  # the tail of a burst goes out within a tick
+            self._check_records()
             hb = self.link.last_heartbeat_monotonic_s
             if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
-                if self.commanding or self.engaged:
-                    self._failsafe("failsafe_link_lost", f"no heartbeat for {fs.link_timeout_s} s")
-                elif self.opts.engage != "rc-switch":
-                    self._event("link_lost", f"no heartbeat for {fs.link_timeout_s} s")
-                    self._exit_code = EXIT_FAILSAFE
-                    self._stop.set()
+                if not link_lost:
+                    link_lost = True
+                    if self.commanding or self.engaged:
+                        self._failsafe(
+                            "failsafe_link_lost", f"no heartbeat for {fs.link_timeout_s} s"
+                        )
+                    else:
+                        self._event("link_lost", f"no heartbeat for {fs.link_timeout_s} s")
+                        if self.opts.engage != "rc-switch":
+                            self._exit_code = EXIT_FAILSAFE
+                            self._stop.set()
                 continue
+            if link_lost:
+                # Back (a reboot, a cable): streams asked for before are forgotten.
+                link_lost = False
+                self._event("link_restored", "the autopilot's heartbeat is back")
+                self._spawn(self._rerequest_streams("link restored"), "streams")
             if not self.engaged:
                 continue
             if self._last_imu_wall is not None and now - self._last_imu_wall > fs.stale_imu_s:
@@ -693,20 +913,53 @@ class Companion:
                     else f"{now - self._last_imu_wall:.2f} s ago"
                 )
                 self._failsafe(
-                    "failsafe_rc_lost", f"no RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})"
+                    "failsafe_rc_lost",
+                    f"no valid RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})",
                 )
+
+    def _check_records(self) -> None:
+        """A record file that stopped being written: an event, a counter, and with
+        ``on_record_error = failsafe`` a failsafe. Flying goes on otherwise."""
+        writer = self._writer
+        if writer is None:
+            return
+        for name, exc in writer.poll_failures():
+            self.n_record_failures += 1
+            detail = f"{name}: {exc}; that record stops, flying goes on"
+            if self.opts.failsafe.on_record_error == "failsafe" and (
+                self.engaged or self.commanding
+            ):
+                self._failsafe("failsafe_records", detail)
+            else:
+                self._event("records_failed", detail)
+
+    async def _rerequest_streams(self, why: str) -> None:
+        """Ask for the streams again after the autopilot may have forgotten them."""
+        try:
+            await self._request_streams()
+        except (LinkError, EngageError) as exc:
+            self._event("streams_refused", f"{why}: {exc}")
 
     # ------------------------------------------------------------------- run
     def _open_records(self) -> None:
+        """Open the run's records; their writes go through one writer thread
+        (companion.records.RecordWriter), so the disk never holds the loop.
+
+        Raises
+        ------
+        OSError
+            If a file cannot be created or its header written (start-up only).
+        """
         from companion import __version__
         from companion.control import COMPILED
-        from companion.records import ColumnarLog, TlogWriter, columns
+        from companion.records import ColumnarLog, EventLog, RecordWriter, TlogWriter, columns
 
         d = self.opts.log_dir
         if d is None:
             return
         d.mkdir(parents=True, exist_ok=True)
-        self._tlog = TlogWriter(d / "flight.tlog")
+        self._writer = writer = RecordWriter()
+        self._tlog = TlogWriter(d / "flight.tlog", writer=writer)
         meta = {
             "profile": self.opts.profile.name,
             "profile_path": self.opts.profile_path,
@@ -718,16 +971,20 @@ class Companion:
             "control_compiled": COMPILED,
         }
         self._log_rows = ColumnarLog(
-            d / "control.bin", columns(self.opts.profile.n_motors), meta=meta
+            d / "control.bin", columns(self.opts.profile.n_motors), meta=meta, writer=writer
         )
         self._log_append = self._log_rows.append
-        self._events_file = (d / "events.jsonl").open("w", encoding="utf-8")
+        self._events_file = EventLog(d / "events.jsonl", writer=writer)
 
     def _close_records(self) -> None:
+        """Hand the last buffers to the writer, then let it drain (bounded)."""
         for obj in (self._log_rows, self._tlog, self._events_file):
             if obj is not None:
                 with contextlib.suppress(Exception):
                     obj.close()
+        if self._writer is not None:
+            with contextlib.suppress(Exception):
+                self._writer.close(2.0)
 
     async def run(self) -> int:
         """Run until a signal, the duration, or a failsafe; returns the exit code."""
@@ -738,7 +995,12 @@ class Companion:
         opts = self.opts
         signing = load_signing_key(opts.signing_key) if opts.signing_key else None
         transport = self._transport or open_transport(opts.connect)
-        self._open_records()
+        try:
+            self._open_records()
+        except OSError as exc:
+            _log.error("cannot open the records in %s: %s", opts.log_dir, exc)
+            self._close_records()
+            return EXIT_ERROR
         on_raw = self._tlog.write if self._tlog is not None else None
         self.link = MavlinkLink(
             transport,
@@ -776,7 +1038,9 @@ class Companion:
             if opts.engage == "auto":
                 self._start_engage(arm=True)
             await self._stop.wait()
-            await self._hand_back("run ended")
+            await self._hand_back(
+                "run ended", was_commanding=True if self._hand_back_owed else None
+            )
             self._final_counters()
             if self._telemetry is not None:
                 await self._telemetry.drain(1.0)  # the last events say why it ended

@@ -198,6 +198,9 @@ class FakeAutopilot:
     def extended_sys_state(self, landed_state: int) -> None:
         self.mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, landed_state)
 
+    def statustext(self, text: bytes, severity: int = mavlink2.MAV_SEVERITY_INFO) -> None:
+        self.mav.statustext_send(severity, text)
+
     def highres_imu(self, time_usec: int, gyro: tuple[float, float, float]) -> None:
         self.imu_sent.append(time_usec)
         self.mav.highres_imu_send(

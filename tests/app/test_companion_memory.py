@@ -9,14 +9,10 @@ sockets. Every wait is bounded; the whole file runs in a few seconds.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import gc
 import json
 import math
 import signal
 import socket
-from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -25,11 +21,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from companion.app import Companion, FailsafeConfig, RunOptions
+from companion.app import FailsafeConfig
 from companion.cli import cli
-from companion.config import DEFAULT_CONTROLLER, load_controller
-from companion.link.transport import MemoryTransport
-from companion.profile import load_profile
 from companion.records import read_columnar
 from companion.reference import ReferenceScript
 from tests.app.fakes import (
@@ -42,174 +35,28 @@ from tests.app.fakes import (
     PX4_MANUAL,
     PX4_OFFBOARD,
     PX4_POSCTL,
-    FakeAutopilot,
     mavlink2,
     settle,
 )
-
-ROOT = Path(__file__).resolve().parents[2]
-PROFILE_PATH = ROOT / "vehicle_profiles" / "f450.yaml"
-PROFILE = load_profile(PROFILE_PATH)
-CONTROLLER = load_controller(DEFAULT_CONTROLLER)
-
-PX4 = mavlink2.MAV_AUTOPILOT_PX4
-ARDUPILOT = mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA
-MSG_ATTITUDE = 30
-MSG_RC_CHANNELS = 65
-MSG_HIGHRES_IMU = 105
-MSG_EXTENDED_SYS_STATE = 245
-DENIED = mavlink2.MAV_RESULT_DENIED
-ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
-
-# Watchdogs loose enough that a test's own pauses do not trip them; a test about
-# one failsafe tightens that one.
-LOOSE = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
-
-
-@dataclass
-class Flight:
-    """One running companion and its fake autopilot."""
-
-    companion: Companion
-    fake: FakeAutopilot
-    task: asyncio.Task[int]
-    t_us: int = 10_000_000
-    t_ms: int = 10_000
-
-    def imu(self, gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
-        """Send the next HIGHRES_IMU sample (250 Hz); returns its time_usec."""
-        self.t_us += 4000
-        self.fake.highres_imu(self.t_us, gyro)
-        return self.t_us
-
-    def att(self, rates: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
-        """Send the next ATTITUDE sample (~333 Hz); returns its time_boot_ms."""
-        self.t_ms += 3
-        self.fake.attitude(self.t_ms, rates)
-        return self.t_ms
-
-    async def feed_until(
-        self,
-        cond: Callable[[], Any],
-        *,
-        send: Callable[[], Any] | None = None,
-        timeout_s: float = 2.0,
-        what: str = "condition",
-    ) -> None:
-        """Stream samples (as an autopilot does) until ``cond()`` holds."""
-        send = send or self.imu
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout_s
-        while not cond():
-            if loop.time() > deadline:
-                raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-            if self.task.done():
-                raise AssertionError(f"run() ended ({self.task.result()}) waiting for {what}")
-            send()
-            await asyncio.sleep(0.004)
-
-    async def finish(self, timeout_s: float = 2.0) -> int:
-        return await asyncio.wait_for(asyncio.shield(self.task), timeout_s)
-
-    def kinds(self) -> list[str]:
-        return [e["kind"] for e in self.companion.events]
-
-    def details(self, kind: str) -> list[str]:
-        return [e["detail"] for e in self.companion.events if e["kind"] == kind]
-
-
-Start = Callable[..., Awaitable[Flight]]
-
-
-@pytest.fixture
-async def start() -> AsyncIterator[Start]:
-    """Factory: ``await start(autopilot=..., engage=..., **run_options)`` -> Flight."""
-    flights: list[Flight] = []
-
-    async def _start(
-        *,
-        autopilot: int = PX4,
-        custom_mode: int = PX4_MANUAL,
-        armed: bool = False,
-        results: dict[int, Any] | None = None,
-        params: dict[str, float] | None = None,
-        heartbeat: bool = True,
-        **opts: Any,
-    ) -> Flight:
-        ours, theirs = MemoryTransport.pair()
-        fake = await FakeAutopilot(
-            theirs,
-            autopilot=autopilot,
-            custom_mode=custom_mode,
-            armed=armed,
-            results=results,
-            params=params,
-            heartbeat_period_s=0.2 if heartbeat else 3600.0,
-        ).open()
-        opts.setdefault("failsafe", LOOSE)
-        options = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, **opts)
-        companion = Companion(options, transport=ours)
-        task = asyncio.get_running_loop().create_task(companion.run(), name="companion")
-        flight = Flight(companion, fake, task)
-        flights.append(flight)
-        await fake.wait_until(lambda: ours.is_open, 1.0)
-        if heartbeat:
-            fake.heartbeat()
-        return flight
-
-    yield _start
-    for f in flights:
-        if not f.task.done():
-            f.companion._stop.set()
-            with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError):
-                await asyncio.wait_for(f.task, 2.0)
-        await f.fake.close()
-    gc.unfreeze()  # run() freezes what start-up built; do not pile it up across tests
-
-
-async def streams_requested(f: Flight, imu_id: int = MSG_HIGHRES_IMU) -> None:
-    def both() -> bool:
-        ids = {int(m.param1) for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
-        return {imu_id, MSG_RC_CHANNELS} <= ids
-
-    await f.fake.wait_until(both, 2.0)
-
-
-async def engage_px4_auto(f: Flight) -> None:
-    """Start-up, setpoints, OFFBOARD, ARM, and the heartbeat that shows them applied."""
-    await streams_requested(f)
-    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # valid sticks, half throttle
-    await f.feed_until(lambda: f.fake.commands(CMD_ARM), what="ARM")
-    await settle()
-    assert not f.companion.engaged, "engaged on the ACKs alone, before the heartbeat said so"
-    f.fake.set_state(PX4_OFFBOARD, armed=True)
-    await f.fake.wait_until(lambda: f.companion.engaged, 1.0)
-
-
-def index_of(fake: FakeAutopilot, pred: Callable[[Any], bool]) -> int:
-    for i, m in enumerate(fake.received):
-        if pred(m):
-            return i
-    raise AssertionError("no such message received")
-
-
-def is_mode(m: Any, param2: float) -> bool:
-    return m.get_type() == "COMMAND_LONG" and m.command == CMD_DO_SET_MODE and m.param2 == param2
-
-
-def setpoint_times(msgs: list[Any]) -> list[int]:
-    return [m.time_usec if hasattr(m, "time_usec") else m.time_boot_ms for m in msgs]
-
-
-async def switch_flicked_high(start: Start) -> Flight:
-    """An armed PX4 in MANUAL with ``--engage rc-switch``: streams up, switch low, then high."""
-    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
-    await streams_requested(f)
-    f.fake.rc(1000)
-    await settle()
-    f.fake.rc(2000)
-    return f
-
+from tests.app.flight import (
+    ACCEPTED,
+    ARDUPILOT,
+    DENIED,
+    MSG_ATTITUDE,
+    MSG_EXTENDED_SYS_STATE,
+    MSG_HIGHRES_IMU,
+    MSG_RC_CHANNELS,
+    PROFILE,
+    PROFILE_PATH,
+    ROOT,
+    Start,
+    engage_px4_auto,
+    index_of,
+    is_mode,
+    setpoint_times,
+    streams_requested,
+    switch_flicked_high,
+)
 
 # --------------------------------------------------------------------- 1. auto PX4
 

@@ -1,0 +1,463 @@
+"""Fault injection on the product path: each fault ends in a defined outcome.
+
+Each test injects one fault into a running companion (a fake autopilot over a
+MemoryTransport, see tests/app/flight.py) and checks what follows and when, in
+sample time where the rule is judged in sample time. ``docs/failsafes.md``
+lists them with the bounds these tests hold the app to.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from companion.app import FailsafeConfig
+from tests.app.fakes import CMD_DO_SET_MODE, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
+from tests.app.flight import (
+    LOOSE,
+    Flight,
+    Start,
+    engage_px4_auto,
+    index_of,
+    is_mode,
+    setpoint_times,
+)
+
+POSCTL = 3.0  # PX4 main mode of the default hand-back
+
+
+def handed_back(f: Flight) -> bool:
+    return any(is_mode(m, POSCTL) for m in f.fake.commands(CMD_DO_SET_MODE))
+
+
+def commands_after_hand_back(f: Flight) -> list[Any]:
+    i = index_of(f.fake, lambda m: is_mode(m, POSCTL))
+    return [m for m in f.fake.received[i:] if m.get_type() == "SET_ACTUATOR_CONTROL_TARGET"]
+
+
+async def fly(f: Flight, n: int, gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    for _ in range(n):
+        f.imu(gyro)
+        await settle(3)
+
+
+# -------------------------------------------------------------------- RC glitch
+
+
+async def test_an_rc_glitch_holds_the_last_valid_sticks_never_idle_thrust(start: Start) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=1.0, link_timeout_s=5.0)
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)  # sticks centred, throttle at mid stick
+    f.fake.rc(1000, sticks=(1500, 1500, 1600, 1500))
+    await fly(f, 5)
+    thrust_before = f.fake.setpoints()[-1].controls[3]
+    assert thrust_before > 0.3
+
+    n0 = len(f.fake.setpoints())
+    f.fake.rc(1000, sticks=(1500, 1500, 0, 1500))  # throttle channel missing: a glitch
+    await fly(f, 10)
+    after = f.fake.setpoints()[n0:]
+    assert len(after) == 10
+    assert [m.controls[3] for m in after] == pytest.approx([thrust_before] * 10, abs=0.02)
+    assert f.companion.counters["rc_invalid"] == 1
+    assert f.companion.engaged
+
+    # Only glitches from here: the RC-lost failsafe, after rc_timeout_s of no valid RC.
+    t0 = time.perf_counter()
+    await f.feed_until(
+        lambda: "failsafe_rc_lost" in f.kinds(),
+        send=lambda: (f.imu(), f.fake.rc(1000, sticks=(1500, 1500, 0, 1500))),
+        timeout_s=2.0,
+        what="the RC-lost failsafe",
+    )
+    waited = time.perf_counter() - t0
+    assert 0.9 < waited < 1.0 + 0.5  # the timeout, and at most a few watchdog ticks more
+    assert await f.finish() == 3
+    assert handed_back(f)
+    assert min(m.controls[3] for m in f.fake.setpoints()) > 0.3  # never idle thrust
+
+
+# ------------------------------------------------------------- failing records
+
+
+def full_disk(log_dir: Path) -> Path:
+    """A log folder whose MAVLink log and events file are /dev/full: every write to
+    them fails with ENOSPC (the columnar log's header, written at start-up, goes
+    to a real file, so the disk fills in flight)."""
+    log_dir.mkdir()
+    for name in ("flight.tlog", "events.jsonl"):
+        os.symlink("/dev/full", log_dir / name)
+    return log_dir
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
+async def test_a_full_disk_leaves_the_watchdogs_running(start: Start, tmp_path: Path) -> None:
+    fs = FailsafeConfig(stale_imu_s=0.2, rc_timeout_s=5.0, link_timeout_s=5.0)
+    f = await start(
+        engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
+    )
+    await engage_px4_auto(f)
+    await fly(f, 100)  # enough rows and frames for every writer to have tried
+    for _ in range(40):
+        f.fake.statustext(b"flood")
+    await fly(f, 100)
+    loop = asyncio.get_running_loop()
+    t_end = loop.time() + 0.3  # past the writers' flush interval, samples flowing
+    while loop.time() < t_end:
+        await fly(f, 5)
+        await asyncio.sleep(0.01)
+    assert f.companion.engaged
+    assert f.companion.counters["record_failures"] >= 1
+    assert "records_failed" in f.kinds()
+
+    # The IMU stops: the supervisor is alive and fires within its bound.
+    t0 = time.perf_counter()
+    await f.fake.wait_until(lambda: "failsafe_stale_imu" in f.kinds(), 1.5)
+    assert time.perf_counter() - t0 < 0.2 + 0.3
+    assert await f.finish() == 3
+    assert handed_back(f)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
+async def test_a_full_disk_fails_safe_when_asked_to(start: Start, tmp_path: Path) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0,
+                        on_record_error="failsafe")  # fmt: skip
+    f = await start(
+        engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
+    )
+    f.fake.rc(1000)
+    # Commanding starts with the engagement (setpoints stream before OFFBOARD): from
+    # then on, the first failed write (within a flush interval) is a failsafe.
+    await f.feed_until(lambda: f.task.done(), timeout_s=3.0, what="the records failsafe")
+    assert await f.finish() == 3
+    assert "failsafe_records" in f.kinds()
+    assert handed_back(f)
+
+
+async def test_an_event_that_cannot_be_recorded_does_not_stop_a_failsafe(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+
+    def refuse(*_: Any) -> None:
+        raise OSError(28, "No space left on device")
+
+    class Broken:
+        """Telemetry whose event publishing raises (a bug: it should never)."""
+
+        publish_event = publish_status = staticmethod(refuse)
+
+        def publish_sample(self, *_: Any) -> None:
+            pass
+
+        async def drain(self, _timeout_s: float) -> None:
+            pass
+
+    f.companion._telemetry = Broken()
+    f.fake.set_state(0x10000, armed=True)  # the autopilot leaves OFFBOARD: a failsafe
+    assert await f.finish() == 3
+    assert handed_back(f)
+    assert f.companion.counters["event_errors"] >= 1
+    f.companion._telemetry = None
+
+
+# ------------------------------------------------------------ per-sample errors
+
+
+async def test_a_law_that_keeps_raising_is_a_failsafe_after_three_samples(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    n0 = len(f.fake.setpoints())
+
+    def broken(*_: Any) -> None:
+        raise ZeroDivisionError("a law with a bug")
+
+    monkeypatch.setattr(f.companion.controller, "update", broken)
+    f.imu()
+    f.imu()
+    await settle()
+    assert f.companion.engaged  # two in a row: not yet
+    f.imu()  # the third
+    await settle()
+    assert not f.companion.engaged
+    assert "failsafe_sample_errors" in f.kinds()
+    assert len(f.fake.setpoints()) == n0  # nothing was sent for the failed samples
+    assert f.companion.counters["sample_errors"] == 3
+    assert await f.finish() == 3
+    assert handed_back(f)
+
+
+async def test_an_occasional_error_is_counted_and_flying_goes_on(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    update = f.companion.controller.update
+    calls = [0]
+
+    def flaky(*args: Any) -> Any:
+        calls[0] += 1
+        if calls[0] % 3 == 0:
+            raise ValueError("one in three")
+        return update(*args)
+
+    monkeypatch.setattr(f.companion.controller, "update", flaky)
+    await fly(f, 30)
+    assert f.companion.engaged
+    assert f.companion.counters["sample_errors"] == 10
+
+
+# --------------------------------------------------------------- the last gate
+
+
+async def test_a_non_finite_law_output_never_reaches_the_wire(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    update = f.companion.controller.update
+
+    def poisoned(*args: Any) -> Any:
+        out = update(*args)
+        return out._replace(torque=(math.nan, math.inf, -math.inf), thrust=math.nan)
+
+    monkeypatch.setattr(f.companion.controller, "update", poisoned)
+    n0 = len(f.fake.setpoints())
+    await fly(f, 5)
+    sent = f.fake.setpoints()[n0:]
+    assert len(sent) == 5
+    for m in sent:
+        r, p, y, t = m.controls[:4]
+        assert (r, p, y) == (0.0, 1.0, -1.0)
+        assert t == pytest.approx(f.companion._thrust)  # the pilot's collective
+    assert f.companion.counters["commands_gated"] == 10  # two NaN fields per command
+    assert f.kinds().count("command_gated") == 1
+
+
+async def test_rates_output_gates_nan_to_the_pilots_rate(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="rates")
+    await engage_px4_auto(f)
+    update = f.companion.controller.update
+
+    def poisoned(*args: Any) -> Any:
+        return update(*args)._replace(torque=(math.nan, 0.0, math.nan))
+
+    monkeypatch.setattr(f.companion.controller, "update", poisoned)
+    f.fake.rc(1000, sticks=(1700, 1500, 1500, 1500))  # some roll rate from the pilot
+    await settle()
+    n0 = len(f.fake.setpoints())
+    await fly(f, 3)
+    pilot = f.companion._ref
+    assert pilot[0] > 0.1
+    for m in f.fake.setpoints()[n0:]:
+        assert m.body_roll_rate == pytest.approx(pilot[0], rel=1e-6)
+        assert m.body_yaw_rate == pytest.approx(pilot[2], abs=1e-6)
+        assert math.isfinite(m.body_pitch_rate) and 0.0 <= m.thrust <= 1.0
+
+
+# ---------------------------------------------------------- time discontinuity
+
+
+async def test_an_autopilot_reboot_while_engaged_fails_safe_then_flies_on_its_new_clock(
+    start: Start,
+) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    f = await start(engage="rc-switch", output="actuator", failsafe=fs,
+                    custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    f.fake.rc(1000)
+    await settle()
+    f.fake.rc(2000)  # engage
+    await f.feed_until(lambda: f.companion.engaged, what="engaged")
+    await fly(f, 5)
+    streams_before = len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL))
+
+    f.t_us = 0  # the autopilot rebooted: its clock starts again
+    f.imu()
+    f.imu()
+    await settle()
+    assert f.companion.engaged  # two samples may be one corrupt stretch: not yet
+    f.imu()  # the third in a row on the new clock: a reboot
+    await settle()
+    assert "failsafe_imu_clock" in f.kinds()
+    assert "imu_clock_reset" in f.kinds()
+    assert not f.companion.engaged
+    assert f.companion.counters["imu_clock_resets"] == 1
+    await f.fake.wait_until(lambda: handed_back(f), 1.0)
+
+    # Not locked out: samples on the new clock are processed (no longer "late").
+    n = f.companion.counters["imu_samples"]
+    late = f.companion.counters["imu_duplicate_or_late"]
+    await fly(f, 20)
+    assert f.companion.counters["imu_samples"] == n + 20
+    assert f.companion.counters["imu_duplicate_or_late"] == late
+    # ... and the streams were asked for again (a rebooted autopilot forgot them).
+    await f.fake.wait_until(
+        lambda: len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL)) > streams_before, 1.0
+    )
+    assert not f.task.done()
+
+
+async def test_a_reboot_while_idle_is_logged_and_the_new_clock_taken(start: Start) -> None:
+    f = await start(engage="none", output="actuator", failsafe=LOOSE)
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await fly(f, 10)
+    f.t_us = 1_000
+    await fly(f, 10)
+    assert "imu_clock_reset" in f.kinds()
+    assert not [k for k in f.kinds() if k.startswith("failsafe")]
+    assert f.companion._t_prev == pytest.approx(f.t_us * 1e-6)
+
+
+async def test_one_sample_stamped_10_s_ahead_is_an_outlier_not_a_new_clock(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    n0 = len(f.fake.setpoints())
+    f.fake.highres_imu(f.t_us + 10_000_000, (0.0, 0.0, 0.0))  # one corrupt timestamp
+    await settle()
+    sent = [f.imu() for _ in range(20)]
+    await settle()
+    assert setpoint_times(f.fake.setpoints()[n0:]) == sent  # every genuine sample flown
+    assert f.companion.counters["imu_time_outliers"] == 1
+    assert f.companion.counters["imu_clock_resets"] == 0
+    assert f.companion.engaged
+    assert not [k for k in f.kinds() if k.startswith("failsafe")]
+
+
+# ---------------------------------------------------------- intermittent gyro
+
+
+async def test_a_gyro_invalid_every_other_sample_trips_the_invalid_imu_failsafe(
+    start: Start,
+) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+    t_start = f.t_us
+    flip = [False]
+
+    def half_nan() -> None:
+        flip[0] = not flip[0]
+        f.imu((math.nan, 0.0, 0.0) if flip[0] else (0.1, 0.0, 0.0))
+
+    await f.feed_until(lambda: f.task.done() or "failsafe_invalid_imu" in f.kinds(),
+                       send=half_nan, timeout_s=3.0, what="the invalid-IMU failsafe")  # fmt: skip
+    # A 50 % share passes 20 % after about 0.5 s of samples (first order, 1 s):
+    # -ln(1 - 0.2/0.5) * 1 s = 0.51 s.
+    t_fired = (f.t_us - t_start) * 1e-6
+    assert 0.4 < t_fired < 0.7
+    assert await f.finish() == 3
+    assert handed_back(f)
+    assert not commands_after_hand_back(f)
+
+
+async def test_rare_invalid_samples_do_not_trip_it(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    for i in range(400):  # 1 in 10 invalid, 1.6 s of samples
+        f.imu((math.nan, 0.0, 0.0) if i % 10 == 0 else (0.1, 0.0, 0.0))
+        await settle(2)
+    assert f.companion.engaged
+    assert f.companion.counters["imu_invalid"] == 40
+
+
+# --------------------------------------------------------------- crashed tasks
+
+
+async def test_a_crashed_supervisor_is_a_failsafe_and_ends_the_run(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+
+    def crash() -> None:
+        raise RuntimeError("a bug in a watchdog")
+
+    monkeypatch.setattr(f.companion, "_check_records", crash)
+    assert await f.finish() == 3  # exits even with on_failsafe=wait: nobody would watch
+    assert "failsafe_task_failed" in f.kinds()
+    assert "supervise" in f.details("failsafe_task_failed")[0]
+    assert handed_back(f)
+    assert f.companion.counters["task_failures"] == 1
+
+
+async def test_a_crashed_background_task_while_idle_is_an_event(start: Start) -> None:
+    f = await start(engage="none", output="actuator")
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+
+    async def boom() -> None:
+        raise RuntimeError("telemetry bug")
+
+    f.companion._spawn(boom(), "mqtt")
+    await settle()
+    assert "task_failed" in f.kinds()
+    assert not f.task.done()  # not engaged, not the supervisor: the run goes on
+
+
+# ---------------------------------------------------------------- lost heartbeats
+
+
+async def test_two_lost_heartbeats_are_not_a_lost_link(start: Start) -> None:
+    fs = FailsafeConfig(stale_imu_s=5.0, rc_timeout_s=10.0)  # the default link timeout
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+    f.fake.heartbeat_period_s = 3600.0  # the background heartbeat stops
+    if f.fake._hb_task is not None:
+        f.fake._hb_task.cancel()
+    f.fake.heartbeat()
+    # 1 Hz heartbeats, two lost, the third 30 ms late: a 3.03 s gap.
+    loop = asyncio.get_running_loop()
+    t_end = loop.time() + 3.03
+    while loop.time() < t_end:
+        f.imu()
+        await asyncio.sleep(0.02)
+    f.fake.heartbeat()
+    await fly(f, 5)
+    assert f.companion.engaged
+    assert "failsafe_link_lost" not in f.kinds()
+
+
+# ------------------------------------------------------------ bounded memory
+
+
+async def test_a_long_flight_and_a_statustext_flood_keep_memory_bounded(
+    start: Start, tmp_path: Path
+) -> None:
+    f = await start(engage="auto", output="actuator", log_dir=tmp_path / "r")
+    await engage_px4_auto(f)
+
+    async def burst(n: int) -> None:
+        for i in range(n):
+            f.imu((0.1, -0.1, 0.0))
+            f.fake.statustext(b"flood %d" % i)
+            if i % 50 == 0:
+                f.fake.rc(1000)
+                await settle(3)
+                f.fake.received.clear()  # the fake's own record is not the companion's
+        await settle()
+
+    await burst(2_000)
+    tracemalloc.start()
+    await burst(2_000)
+    base, _ = tracemalloc.get_traced_memory()
+    await burst(10_000)
+    now, _ = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert len(f.companion.events) <= 1000
+    assert f.companion.counters["events"] > 14_000
+    # Five times more samples and events, and no more than ~2 MB of growth (the
+    # records' buffers between flushes, the caches): nothing grows per event.
+    assert now - base < 2_000_000
