@@ -307,8 +307,18 @@ def simulate(
 @click.option(
     "--link-timeout-s",
     type=Finite(min=0.0, min_open=True),
-    default=2.0,
+    default=3.5,
     show_default=True,
+    help="Failsafe when engaged and no autopilot heartbeat for this long (the default "
+    "tolerates two lost 1 Hz heartbeats).",
+)
+@click.option(
+    "--on-record-error",
+    type=click.Choice(["continue", "failsafe"]),
+    default="continue",
+    show_default=True,
+    help="A record file that cannot be written (disk full): log it and fly on, or also "
+    "fail safe.",
 )
 @click.option(
     "--invalid-imu-s",
@@ -385,6 +395,7 @@ def run(
     safe_mode: str,
     stale_imu_s: float,
     link_timeout_s: float,
+    on_record_error: str,
     invalid_imu_s: float,
     rc_timeout_s: float,
     envelope_time_s: float,
@@ -461,6 +472,7 @@ def run(
         failsafe=FailsafeConfig(
             stale_imu_s=stale_imu_s,
             link_timeout_s=link_timeout_s,
+            on_record_error=on_record_error,  # type: ignore[arg-type]
             invalid_imu_s=invalid_imu_s,
             rc_timeout_s=rc_timeout_s,
             envelope_time_s=envelope_time_s,
