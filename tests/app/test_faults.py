@@ -461,3 +461,29 @@ async def test_a_long_flight_and_a_statustext_flood_keep_memory_bounded(
     # Five times more samples and events, and no more than ~2 MB of growth (the
     # records' buffers between flushes, the caches): nothing grows per event.
     assert now - base < 2_000_000
+
+
+# ------------------------------------------------------- conflicting autopilot state
+
+
+async def test_a_mode_that_flips_back_and_forth_ends_in_one_clean_hand_back(start: Start) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    f = await start(engage="rc-switch", output="actuator", failsafe=fs,
+                    custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    f.fake.rc(1000)
+    await settle()
+    f.fake.rc(2000)
+    await f.feed_until(lambda: f.companion.engaged, what="engaged")
+    await fly(f, 5)
+
+    for i in range(20):  # the one true autopilot, undecided: POSCTL, OFFBOARD, POSCTL, ...
+        f.fake.set_state(0x30000 if i % 2 == 0 else PX4_OFFBOARD)
+        f.fake.rc(2000)  # the pilot's switch stays high
+        await fly(f, 2)
+    await f.fake.wait_until(lambda: handed_back(f), 1.0)
+    assert f.kinds().count("failsafe_autopilot_took_over") == 1
+    assert not f.companion.engaged and not f.companion.commanding
+    assert not commands_after_hand_back(f)  # nothing that fights the autopilot
+    assert not [m for m in f.fake.commands(CMD_DO_SET_MODE) if m.param2 == 6.0]
+    assert not f.task.done()  # waiting for the pilot's switch, low then high
