@@ -4,7 +4,8 @@ Data flows one way: MAVLink bytes -> parsed sample -> control law -> command ->
 MAVLink bytes. Each processed IMU sample produces exactly one control update
 and (when commanding) one command, inside the link's receive callback: no
 queue, no task switch on that path. Logs and telemetry hang off the side
-(buffered writers, a bounded MQTT queue) and never wait on I/O.
+(in-memory buffers handed to one writer thread through a bounded queue; a
+bounded MQTT queue) and never wait on I/O.
 
 Start-up
     Wait for the autopilot's heartbeat; refuse a stack that cannot take the
@@ -21,17 +22,25 @@ Engaged means the autopilot's heartbeat shows OFFBOARD and armed; the
 controller is reset on that edge, so ``F`` is learnt only from commands that
 were really applied.
 
-Failsafes (each ends in the same hand-back)
-    stale IMU (no sample for ``stale_imu_s``), invalid IMU (non-finite or beyond
-    the gyro range for ``invalid_imu_s``), lost link (no autopilot heartbeat
-    for ``link_timeout_s``), lost RC (no valid RC for ``rc_timeout_s`` while
-    engaged), envelope (a rate beyond the profile's limit for
-    ``envelope_time_s``, or the tracking error averaged over ``envelope_time_s``
-    beyond ``tracking_error_max_deg_s``), the
-    autopilot leaving OFFBOARD by itself, and SIGINT/SIGTERM. Hand-back: stop
-    commanding, switch the autopilot to ``safe_mode``, log the reason, then
-    exit (``on_failsafe = exit``, exit code 3; 0 for a signal) or wait to be
-    engaged again (``wait``).
+Failsafes (each ends in the same hand-back; the table is docs/failsafes.md)
+    stale IMU (no processed sample for ``stale_imu_s``), invalid IMU
+    (non-finite or beyond the gyro range for ``invalid_imu_s``, or in more than
+    ``invalid_fraction_max`` of the samples), an IMU clock that restarts (an
+    autopilot reboot), a per-sample step that keeps raising, lost link (no
+    autopilot heartbeat for ``link_timeout_s``), lost RC (no valid RC for
+    ``rc_timeout_s`` while engaged; a glitch holds the last valid sticks),
+    envelope (a rate beyond the profile's limit for ``envelope_time_s``, or the
+    tracking error averaged over ``envelope_time_s`` beyond
+    ``tracking_error_max_deg_s``), the autopilot leaving OFFBOARD by itself, a
+    background task that dies, a record file that fails (with
+    ``on_record_error = failsafe``), and SIGINT/SIGTERM. Hand-back: stop
+    commanding at once, switch the autopilot to ``safe_mode``, then record why
+    (best effort: no I/O can stop a hand-back), then exit (``on_failsafe =
+    exit``, exit code 3; 0 for a signal) or wait to be engaged again
+    (``wait``).
+
+Every command passes the last gate (companion.control.gate) on its way out:
+no NaN and nothing out of range reaches the wire.
 """
 
 from __future__ import annotations
