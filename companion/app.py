@@ -135,6 +135,15 @@ class FailsafeConfig:
     rc_timeout_s: float = 0.5
     tracking_error_max_deg_s: float = 300.0
     envelope_time_s: float = 0.5
+    diverging_fraction_max: float = 0.8
+    """Diverging-vehicle failsafe (actuator output): the share of samples with one
+    motor at full and another at idle together, averaged over
+    ``diverging_window_s`` (first order), beyond this while the worst axis's
+    tracking error, averaged the same way, is beyond ``diverging_error_min_deg_s``.
+    Measured through a delayed link (docs/failsafes.md): normal flights reach
+    0.31 (a 2 s mean), a loop oscillating towards the ground 0.97-1.0."""
+    diverging_window_s: float = 2.0
+    diverging_error_min_deg_s: float = 30.0
     sample_errors_max: int = 3
     """A per-sample step (law, send) that raises this many times in a row is a
     failsafe: at 250 Hz, 12 ms, well inside ``stale_imu_s``."""
@@ -255,6 +264,13 @@ class Companion:
         self._envelope_since: float | None = None
         self._err_ema = [0.0, 0.0, 0.0]
         self._inv_envelope_time = 1.0 / opts.failsafe.envelope_time_s
+        # Diverging: the averaged share of samples with motors at both ends, and
+        # the error averaged over the same window.
+        self._pinned_ema = 0.0
+        self._err_ema_long = [0.0, 0.0, 0.0]
+        self._inv_diverging_window = 1.0 / opts.failsafe.diverging_window_s
+        self._diverging_err_min_rad_s = math.radians(opts.failsafe.diverging_error_min_deg_s)
+        self._motor_idle_edge = opts.profile.limits.motor_idle + 0.001
         self._err_max_rad_s = math.radians(opts.failsafe.tracking_error_max_deg_s)
         self._rc: tuple[int, ...] = ()
         self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -488,8 +504,7 @@ class Companion:
         if self.engaged or self.commanding:
             self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
         self.controller.reset()
-        self._err_ema = [0.0, 0.0, 0.0]
-        self._envelope_since = None
+        self._reset_envelope()
         self._invalid_since = None
         self._invalid_frac = 0.0
         self.n_imu_clock_resets += 1
@@ -631,6 +646,12 @@ class Companion:
         if self.n_commands_gated == n:
             self._event("command_gated", f"{n} non-finite field(s) replaced by safe values")
 
+    def _reset_envelope(self) -> None:
+        self._err_ema = [0.0, 0.0, 0.0]
+        self._err_ema_long = [0.0, 0.0, 0.0]
+        self._pinned_ema = 0.0
+        self._envelope_since = None
+
     def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
         """Rates beyond the profile's limits, or a tracking error that stays large.
 
@@ -659,6 +680,8 @@ class Companion:
                 f"{math.degrees(worst):.0f} deg/s (limit {fs.tracking_error_max_deg_s:.0f})",
             )
             return
+        if self._actuator_output and self._check_diverging(dt, e0, e1, e2, out.motors):
+            return
         r0, r1, r2 = self._rate_max_rad_s
         g0, g1, g2 = gyro
         if not (abs(g0) > r0 or abs(g1) > r1 or abs(g2) > r2):
@@ -670,6 +693,42 @@ class Companion:
                 "failsafe_envelope",
                 f"a body rate beyond the profile's limit for {fs.envelope_time_s} s",
             )
+
+    def _check_diverging(
+        self, dt: float, e0: float, e1: float, e2: float, motors: Sequence[float]
+    ) -> bool:
+        """A loop that oscillates towards the ground (e.g. through a link it cannot
+        fly): motors at full and at idle together for most of a window, with a
+        tracking error that does not go away. True if it fired.
+
+        Neither saturation alone (an acro flip saturates for a second) nor the
+        error alone (an oscillating loop keeps it under the envelope's limit)
+        tells this apart; the two motor ends together, most of the time, do.
+        With body-rate output the motors are the autopilot's, not ours: not judged.
+        """
+        b = dt * self._inv_diverging_window
+        b = 1.0 if b > 1.0 else b
+        pinned = 1.0 if max(motors) >= 0.999 and min(motors) <= self._motor_idle_edge else 0.0
+        pe = self._pinned_ema + b * (pinned - self._pinned_ema)
+        self._pinned_ema = pe
+        el = self._err_ema_long
+        if e0 == e0:
+            el[0] += b * (abs(e0) - el[0])
+        if e1 == e1:
+            el[1] += b * (abs(e1) - el[1])
+        if e2 == e2:
+            el[2] += b * (abs(e2) - el[2])
+        fs = self.opts.failsafe
+        if pe > fs.diverging_fraction_max and max(el) > self._diverging_err_min_rad_s:
+            self._failsafe(
+                "failsafe_diverging",
+                f"motors at full and idle together in {pe:.0%} of the samples over "
+                f"{fs.diverging_window_s} s with a tracking error of "
+                f"{math.degrees(max(el)):.0f} deg/s (limits {fs.diverging_fraction_max:.0%}, "
+                f"{fs.diverging_error_min_deg_s:.0f} deg/s)",
+            )
+            return True
+        return False
 
     def _on_rc(self, v: tuple[int, ...]) -> None:
         """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
@@ -713,8 +772,7 @@ class Companion:
             # (After a stop signal nothing engages: the run's hand-back is next.)
             self.controller.reset()  # learn F only from commands that are applied
             self._restart_dt = True  # the next sample primes it, as a replay does
-            self._err_ema = [0.0, 0.0, 0.0]
-            self._envelope_since = None
+            self._reset_envelope()
             self.engaged = True
             self._t_engaged = self._t_prev
             self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")

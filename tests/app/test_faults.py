@@ -487,3 +487,54 @@ async def test_a_mode_that_flips_back_and_forth_ends_in_one_clean_hand_back(star
     assert not commands_after_hand_back(f)  # nothing that fights the autopilot
     assert not [m for m in f.fake.commands(CMD_DO_SET_MODE) if m.param2 == 6.0]
     assert not f.task.done()  # waiting for the pilot's switch, low then high
+
+
+# ------------------------------------------------------------ a diverging loop
+
+
+def pinned_motors(
+    f: Flight, monkeypatch: pytest.MonkeyPatch, every: int, error_deg_s: float = 50.0
+) -> None:
+    """The law's output from now on: motors at full and at idle together on one
+    sample in ``every``, and a steady tracking error."""
+    update = f.companion.controller.update
+    idle = f.companion.opts.profile.limits.motor_idle
+    n = [0]
+    e = math.radians(error_deg_s)
+
+    def oscillating(*args: Any) -> Any:
+        out = update(*args)
+        n[0] += 1
+        motors = (1.0, idle, 1.0, idle) if n[0] % every == 0 else (0.5, 0.5, 0.5, 0.5)
+        return out._replace(motors=motors, error=(e, -e, 0.0))
+
+    monkeypatch.setattr(f.companion.controller, "update", oscillating)
+
+
+async def test_motors_at_both_ends_most_of_the_time_is_a_diverging_failsafe(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    pinned_motors(f, monkeypatch, every=1)
+    t0 = f.t_us
+    await f.feed_until(lambda: f.task.done() or "failsafe_diverging" in f.kinds(),
+                       timeout_s=5.0, what="the diverging failsafe")  # fmt: skip
+    # First order over 2 s from 0 to 0.8: -2 s * ln(0.2) = 3.2 s of samples.
+    assert (f.t_us - t0) * 1e-6 == pytest.approx(3.22, abs=0.05)
+    assert await f.finish() == 3
+    assert handed_back(f)
+    assert "failsafe_envelope" not in f.kinds()  # 50 deg/s: the envelope alone never fires
+
+
+async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    pinned_motors(f, monkeypatch, every=3, error_deg_s=200.0)
+    for _ in range(5):  # 10 s of samples
+        await fly(f, 500)
+        f.fake.rc(1000)
+    assert f.companion.engaged
+    assert f.companion._pinned_ema == pytest.approx(1 / 3, abs=0.05)
