@@ -317,8 +317,7 @@ def simulate(
     type=click.Choice(["continue", "failsafe"]),
     default="continue",
     show_default=True,
-    help="A record file that cannot be written (disk full): log it and fly on, or also "
-    "fail safe.",
+    help="A record file that cannot be written (disk full): log it and fly on, or also fail safe.",
 )
 @click.option(
     "--invalid-imu-s",
