@@ -30,7 +30,16 @@ accepts from the autopilot, i.e. from the right system and, with signing,
 correctly signed). A datagram from anyone else is delivered to the link
 (which ignores and counts what is not from the autopilot) but does not move
 our replies: before, any sender, even of junk, became the peer until the
-autopilot spoke again, and our setpoints and hand-back went to it.
+autopilot spoke again, and our setpoints and hand-back went to it. While it
+delivers a chunk, the transport says whether it came from that confirmed
+address (:attr:`Transport.rx_from_peer`): the link ignores frames that claim
+the autopilot's identity from anywhere else (see
+:class:`~companion.link.mavlink.MavlinkLink`).
+
+What the parser may assume about chunk boundaries is
+:attr:`Transport.datagrams`: a UDP datagram holds whole frames, so what is
+left of a frame at its end is garbage; a serial read is a cut through a byte
+stream, and a frame may continue in the next read.
 """
 
 from __future__ import annotations
@@ -91,10 +100,25 @@ class Transport(abc.ABC):
         Human-readable address, e.g. ``"udpin:0.0.0.0:14540"``.
     counters
         Monotonic counters; see the module docstring for the names.
+    datagrams
+        Each chunk holds whole frames (UDP datagrams): a frame cut at the end of
+        a chunk is garbage, not the start of a frame continued in the next one.
+        False for a byte stream (serial), where a frame may go on in the next
+        chunk.
+    rx_from_peer
+        While ``on_bytes`` runs: False if the chunk came from an address other
+        than the peer the link confirmed (``udpin`` only, once a peer is
+        confirmed); True otherwise, and always on transports without addresses.
+    rx_address
+        While ``on_bytes`` runs: the address the chunk came from, on transports
+        that have addresses (UDP); None elsewhere.
     """
 
     description: str
     counters: dict[str, int]
+    datagrams: bool = False
+    rx_from_peer: bool = True
+    rx_address: tuple[Any, ...] | None = None
 
     @abc.abstractmethod
     async def open(self, on_bytes: OnBytes) -> None:
@@ -134,6 +158,8 @@ class Transport(abc.ABC):
 class _UdpTransport(Transport):
     """Shared machinery of the two UDP transports: a raw non-blocking socket + add_reader."""
 
+    datagrams = True
+
     def __init__(self, kind: str, host: str, port: int) -> None:
         if not host:
             raise ValueError(f"{kind}: empty host")
@@ -148,7 +174,7 @@ class _UdpTransport(Transport):
         self._sock: socket.socket | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._on_bytes: OnBytes | None = None
-        self._rx_addr: tuple[Any, ...] | None = None  # sender of the chunk being delivered
+        self.rx_address: tuple[Any, ...] | None = None
 
     @property
     def is_open(self) -> bool:
@@ -193,13 +219,14 @@ class _UdpTransport(Transport):
             return
         counters["chunks_in"] += 1
         counters["bytes_in"] += len(data)
-        if addr != self.peer:
-            self._on_new_sender(addr)
-        self._rx_addr = addr
+        self.rx_from_peer = addr == self.peer or self._on_new_sender(addr)
+        self.rx_address = addr
         on_bytes(data)
 
-    def _on_new_sender(self, addr: tuple[Any, ...]) -> None:
-        """A datagram came from an address other than ``self.peer``."""
+    def _on_new_sender(self, addr: tuple[Any, ...]) -> bool:
+        """A datagram came from an address other than ``self.peer``: whether to
+        deliver it as from the peer (:attr:`rx_from_peer`)."""
+        return True
 
     def write(self, data: bytes) -> None:
         sock = self._sock
@@ -264,24 +291,27 @@ class UdpInTransport(_UdpTransport):
         self._start(sock, loop, on_bytes)
         logger.info("%s: listening on %s", self.description, self.local_address)
 
-    def _on_new_sender(self, addr: tuple[Any, ...]) -> None:
+    def _on_new_sender(self, addr: tuple[Any, ...]) -> bool:
         self.counters["other_sender_chunks"] += 1
+        return self.peer is None  # before the autopilot is known nobody is singled out
 
     def confirm_peer(self) -> None:
-        addr = self._rx_addr
+        addr = self.rx_address
         if addr is None or addr == self.peer:
             return
         if self.peer is not None:
             self.counters["peer_changes"] += 1
         logger.info("%s: peer is now %s", self.description, addr)
         self.peer = addr
+        self.rx_from_peer = True  # the rest of this chunk is from the peer now
 
 
 class UdpOutTransport(_UdpTransport):
     """Send to ``host:port`` from an ephemeral local port; receive what comes back on it.
 
     Replies are accepted from any address (an autopilot may answer from another
-    interface); the destination stays ``host:port``.
+    interface), so :attr:`rx_from_peer` is always True; the destination stays
+    ``host:port``.
     """
 
     def __init__(self, host: str, port: int) -> None:
@@ -472,19 +502,26 @@ class MemoryTransport(Transport):
     ``write`` on one end schedules ``on_bytes`` of the other end with
     ``loop.call_soon`` (so delivery is asynchronous, as on a real link). Writes
     while the other end is not open are dropped and counted in ``dropped_no_peer``.
+
+    Each write arrives as one chunk. ``datagrams`` says what the link may assume
+    of that (see :attr:`Transport.datagrams`): False by default, a byte stream,
+    where tests may also hand the link frames cut across chunks; True to play a
+    UDP link, where a chunk holds whole frames.
     """
 
-    def __init__(self, name: str = "memory") -> None:
+    def __init__(self, name: str = "memory", *, datagrams: bool = False) -> None:
         self.description = name
+        self.datagrams = datagrams
         self.counters = _new_counters("dropped_no_peer")
         self.peer: MemoryTransport | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._on_bytes: OnBytes | None = None
 
     @staticmethod
-    def pair() -> tuple[MemoryTransport, MemoryTransport]:
+    def pair(*, datagrams: bool = False) -> tuple[MemoryTransport, MemoryTransport]:
         """Two connected ends: what one writes, the other receives."""
-        a, b = MemoryTransport("memory:a"), MemoryTransport("memory:b")
+        a = MemoryTransport("memory:a", datagrams=datagrams)
+        b = MemoryTransport("memory:b", datagrams=datagrams)
         a.peer, b.peer = b, a
         return a, b
 
