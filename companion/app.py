@@ -231,6 +231,7 @@ class Companion:
         self.n_imu_duplicate_or_late = 0
         self.n_imu_invalid = 0
         self.n_imu_time_jumps = 0
+        self.n_imu_gaps = 0
         self.n_imu_time_outliers = 0
         self.n_imu_clock_resets = 0
         self.n_commands = 0
@@ -307,6 +308,7 @@ class Companion:
             "imu_duplicate_or_late": self.n_imu_duplicate_or_late,
             "imu_invalid": self.n_imu_invalid,
             "imu_time_jumps": self.n_imu_time_jumps,
+            "imu_gaps": self.n_imu_gaps,
             "imu_time_outliers": self.n_imu_time_outliers,
             "imu_clock_resets": self.n_imu_clock_resets,
             "commands_sent": self.n_commands,
@@ -446,7 +448,7 @@ class Companion:
         else:
             dt = t_s - t_prev
             if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
-                if not self._on_time_anomaly(t_s, dt):
+                if not self._on_time_anomaly(t_s, dt, t0):
                     return
                 dt = 0.0
             elif self._clock_candidate is not None:
@@ -466,19 +468,27 @@ class Companion:
         # The stale-IMU clock counts samples the law has processed, not samples seen.
         self._last_imu_wall = t0
 
-    def _on_time_anomaly(self, t_s: float, dt: float) -> bool:
-        """A sample whose time is not just after the last one's; True: start a new clock.
+    def _on_time_anomaly(self, t_s: float, dt: float, t_wall: float) -> bool:
+        """A sample whose time is not just after the last one's; True: take it
+        (with no time step: the next one primes ``dt``).
 
         A step back within ``_TIME_JUMP_S`` is a duplicate or a late sample
-        (reordered on the link): dropped. A larger jump either way is a
-        discontinuity (the autopilot rebooted, or one sample is corrupt): the
-        sample is dropped, and only when ``_NEW_CLOCK_SAMPLES`` samples in a row
-        follow on from it is the new clock taken (a reboot); a sample that
-        follows the old clock again makes it an outlier, and nothing changes.
+        (reordered on the link): dropped. A step forward that the wall clock
+        also took (within ``_TIME_JUMP_S``) is a gap in the stream: taken. Any
+        other jump is a discontinuity (the autopilot rebooted, or one sample is
+        corrupt): the sample is dropped, and only when ``_NEW_CLOCK_SAMPLES``
+        samples in a row follow on from it is the new clock taken (a reboot); a
+        sample that follows the old clock again makes it an outlier, and
+        nothing changes.
         """
         if dt != dt or -_TIME_JUMP_S <= dt <= 0.0:
             self.n_imu_duplicate_or_late += 1
             return False
+        last_wall = self._last_imu_wall
+        if dt > 0.0 and last_wall is not None and dt <= t_wall - last_wall + _TIME_JUMP_S:
+            self.n_imu_gaps += 1
+            self._clock_candidate = None
+            return True
         cand = self._clock_candidate
         if cand is not None and 0.0 < t_s - cand[0] <= _TIME_JUMP_S:
             self._clock_candidate = (t_s, cand[1] + 1)
@@ -1076,6 +1086,7 @@ class Companion:
             on_raw=on_raw,
             target_system=opts.autopilot_sysid,
             target_component=opts.autopilot_compid,
+            on_anomaly=self._on_link_anomaly,
         )
         # The IMU sample skips pymavlink's generic parser when its frame allows.
         self.link.add_fast_handler(
@@ -1131,10 +1142,19 @@ class Companion:
                     loop.remove_signal_handler(sig)
         return self._exit_code
 
+    def _on_link_anomaly(self, kind: str, detail: str) -> None:
+        """The link saw something wrong (frames spoofing the autopilot from another
+        address, the autopilot moving address): an event (the link rate-limits it)."""
+        self._event(f"link_{kind}", detail)
+
     async def _start_up(self) -> None:
         """Link up, wait for the autopilot, recognise it, request the streams."""
         opts = self.opts
         await self.link.start()
+        hb_task = self.link.heartbeat_task
+        if hb_task is not None:  # our heartbeat dying is a task failure like any other
+            self._tasks.add(hb_task)
+            hb_task.add_done_callback(self._task_done)
         if opts.mqtt_url:
             from companion.telemetry import MqttTelemetry
 

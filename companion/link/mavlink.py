@@ -447,6 +447,11 @@ class MavlinkLink:
             f", signing key {self.signing.fingerprint}" if self.signing else "",
         )
 
+    @property
+    def heartbeat_task(self) -> asyncio.Task[None] | None:
+        """Our HEARTBEAT task while the link runs (the app watches it)."""
+        return self._heartbeat_task
+
     async def close(self) -> None:
         """Stop the heartbeat, fail pending waits with :class:`LinkError`, close the transport."""
         if self._closed:

@@ -320,6 +320,18 @@ async def test_a_reboot_while_idle_is_logged_and_the_new_clock_taken(start: Star
     assert f.companion._t_prev == pytest.approx(f.t_us * 1e-6)
 
 
+async def test_a_gap_the_wall_clock_also_took_is_a_gap_not_a_new_clock(start: Start) -> None:
+    f = await start(engage="none", output="actuator", failsafe=LOOSE)
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await fly(f, 10)
+    await asyncio.sleep(1.5)  # the stream pauses (a busy link, a loaded autopilot) ...
+    f.t_us += 1_500_000  # ... and its clock ran on meanwhile
+    await fly(f, 10)
+    assert f.companion.counters["imu_gaps"] == 1
+    assert f.companion.counters["imu_clock_resets"] == 0
+    assert f.companion.counters["imu_samples"] == 20
+
+
 async def test_one_sample_stamped_10_s_ahead_is_an_outlier_not_a_new_clock(start: Start) -> None:
     f = await start(engage="auto", output="actuator")
     await engage_px4_auto(f)
