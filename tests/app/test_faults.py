@@ -18,10 +18,13 @@ from typing import Any
 
 import pytest
 
-from companion.app import FailsafeConfig
+from companion.app import Companion, FailsafeConfig, RunOptions
+from companion.link.transport import MemoryTransport
 from tests.app.fakes import CMD_DO_SET_MODE, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import (
+    CONTROLLER,
     LOOSE,
+    PROFILE,
     Flight,
     Start,
     engage_px4_auto,
@@ -550,3 +553,17 @@ async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
         f.fake.rc(1000)
     assert f.companion.engaged
     assert f.companion._pinned_ema == pytest.approx(1 / 3, abs=0.05)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
+async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sent(
+    tmp_path: Path,
+) -> None:
+    log_dir = tmp_path / "r"
+    log_dir.mkdir()
+    os.symlink("/dev/full", log_dir / "control.bin")  # its header cannot be written
+    ours, _theirs = MemoryTransport.pair()
+    opts = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, log_dir=log_dir)
+    assert await asyncio.wait_for(Companion(opts, transport=ours).run(), 2.0) == 1
+    assert not ours.is_open  # the link was never opened: nothing was sent
+    assert ours.counters["chunks_out"] == 0
