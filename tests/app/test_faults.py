@@ -567,3 +567,17 @@ async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sen
     assert await asyncio.wait_for(Companion(opts, transport=ours).run(), 2.0) == 1
     assert not ours.is_open  # the link was never opened: nothing was sent
     assert ours.counters["chunks_out"] == 0
+
+
+async def test_a_heartbeat_that_comes_back_gets_the_streams_asked_for_again(start: Start) -> None:
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=0.3)
+    f = await start(engage="rc-switch", output="actuator", failsafe=fs)
+    await f.fake.wait_until(lambda: f.companion.imu_rate_hz is not None, 2.0)
+    asked = len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL))
+    if f.fake._hb_task is not None:
+        f.fake._hb_task.cancel()  # the autopilot goes quiet (a reboot) ...
+    await f.fake.wait_until(lambda: "link_lost" in f.kinds(), 1.0)
+    f.fake.heartbeat()  # ... and comes back, having forgotten what it was asked
+    await f.fake.wait_until(lambda: "link_restored" in f.kinds(), 1.0)
+    await f.fake.wait_until(lambda: len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL)) > asked, 1.0)
+    assert not f.task.done()  # rc-switch: idle, it waits for the pilot
