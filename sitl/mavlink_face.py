@@ -92,7 +92,29 @@ ID_RC_CHANNELS = mavlink.MAVLINK_MSG_ID_RC_CHANNELS
 ID_LOCAL_POSITION_NED = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 
 _MAX_PEERS = 8
-_RECV_BYTES = 4096
+_MAX_DATAGRAM_BYTES = 4096
+"""A datagram longer than this is garbage (a MAVLink 2 frame is at most 280
+bytes; routers pack a few per datagram): dropped unread."""
+_RECV_BYTES = 2 * _MAX_DATAGRAM_BYTES  # room to see that a datagram is too long
+
+
+def _parse_datagram(mav: Any, data: bytes) -> list[Any]:
+    """The frames of one UDP datagram, parsed from a clean parser state.
+
+    A datagram carries whole frames: a frame cut off at its end is dropped, not
+    joined to the next datagram (which a parser fed datagram after datagram
+    would do, losing the good frame that follows garbage). Garbage before the
+    first start byte is skipped at C speed."""
+    v2, v1 = data.find(b"\xfd"), data.find(b"\xfe")
+    start = min(i for i in (v2, v1, len(data)) if i >= 0)
+    mav.buf = bytearray()
+    mav.buf_index = 0
+    mav.expected_length = mavlink.HEADER_LEN_V1 + 2
+    mav.have_prefix_error = False
+    msgs = mav.parse_buffer(data[start:]) if start < len(data) else None
+    mav.buf = bytearray()  # what is left is a frame cut short
+    mav.buf_index = 0
+    return list(msgs or [])
 
 
 def _as_int(x: float) -> int:
@@ -373,9 +395,12 @@ class MavlinkFace:
             n += 1
             if self.muted:
                 continue  # a dropped link loses what arrives too
+            if len(data) > _MAX_DATAGRAM_BYTES:
+                self.bad_packets += 1
+                continue
             self._add_peer(addr)
             try:
-                msgs = self.mav.parse_buffer(data) or []
+                msgs = _parse_datagram(self.mav, data)
             except mavlink.MAVError as exc:
                 self.bad_packets += 1
                 self._warn_once("parse", "bad MAVLink data from %s: %s", addr, exc)
