@@ -475,11 +475,12 @@ class Companion:
         A step back within ``_TIME_JUMP_S`` is a duplicate or a late sample
         (reordered on the link): dropped. A step forward that the wall clock
         also took (within ``_TIME_JUMP_S``) is a gap in the stream: taken. Any
-        other jump is a discontinuity (the autopilot rebooted, or one sample is
-        corrupt): the sample is dropped, and only when ``_NEW_CLOCK_SAMPLES``
-        samples in a row follow on from it is the new clock taken (a reboot); a
-        sample that follows the old clock again makes it an outlier, and
-        nothing changes.
+        other jump may be one corrupt timestamp: the sample is dropped, and only
+        when ``_NEW_CLOCK_SAMPLES`` samples in a row follow on from it is the
+        jump real: forward, a gap after all (a simulator's clock can outrun the
+        wall's); backward, a new clock (the autopilot rebooted). A sample that
+        follows the old clock again makes the jump an outlier, and nothing
+        changes.
         """
         if dt != dt or -_TIME_JUMP_S <= dt <= 0.0:
             self.n_imu_duplicate_or_late += 1
@@ -495,7 +496,11 @@ class Companion:
             if cand[1] + 1 < _NEW_CLOCK_SAMPLES:
                 return False
             self._clock_candidate = None
-            self._new_clock(t_s)
+            if t_s > self._t_prev:  # type: ignore[operator]
+                self.n_imu_gaps += 1
+                self._event("imu_gap", f"IMU time went on from {self._t_prev:.6f} s to {t_s:.6f} s")
+            else:
+                self._new_clock(t_s)
             return True
         if cand is not None:
             self.n_imu_time_outliers += 1  # the previous candidate led nowhere
@@ -504,7 +509,7 @@ class Companion:
         return False
 
     def _new_clock(self, t_s: float) -> None:
-        """The autopilot's IMU clock restarted (a reboot) or jumped: start over.
+        """The autopilot's IMU clock restarted (a reboot): start over.
 
         Engaged, it is a failsafe first (whatever made the clock jump, the
         vehicle was not ours to fly through it); then the controller forgets

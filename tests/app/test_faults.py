@@ -335,6 +335,18 @@ async def test_a_gap_the_wall_clock_also_took_is_a_gap_not_a_new_clock(start: St
     assert f.companion.counters["imu_samples"] == 20
 
 
+async def test_a_clock_that_jumps_ahead_and_goes_on_is_a_gap_not_a_failsafe(start: Start) -> None:
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    f.t_us += 1_200_000  # a simulator's clock outran the wall's (lockstep)
+    await fly(f, 20)
+    assert f.companion.counters["imu_gaps"] == 1
+    assert f.companion.counters["imu_clock_resets"] == 0
+    assert f.companion.engaged
+    assert "imu_gap" in f.kinds()
+
+
 async def test_one_sample_stamped_10_s_ahead_is_an_outlier_not_a_new_clock(start: Start) -> None:
     f = await start(engage="auto", output="actuator")
     await engage_px4_auto(f)
