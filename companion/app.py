@@ -118,6 +118,17 @@ _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 
 
+def _average_abs(ema: list[float], a: float, e0: float, e1: float, e2: float) -> None:
+    """One first-order step (weight ``a``) of the per-axis averages of ``|e|``; a
+    NaN (a held output) leaves its axis's average as it was."""
+    if e0 == e0:
+        ema[0] += a * (abs(e0) - ema[0])
+    if e1 == e1:
+        ema[1] += a * (abs(e1) - ema[1])
+    if e2 == e2:
+        ema[2] += a * (abs(e2) - ema[2])
+
+
 @dataclass(frozen=True)
 class FailsafeConfig:
     """Thresholds of the failsafes and what follows one."""
@@ -679,13 +690,7 @@ class Companion:
         a = 1.0 if a > 1.0 else a
         ema = self._err_ema
         e0, e1, e2 = out.error
-        # NaN (a held output) leaves the average as it was.
-        if e0 == e0:
-            ema[0] += a * (abs(e0) - ema[0])
-        if e1 == e1:
-            ema[1] += a * (abs(e1) - ema[1])
-        if e2 == e2:
-            ema[2] += a * (abs(e2) - ema[2])
+        _average_abs(ema, a, e0, e1, e2)
         worst = max(ema)
         err_max = self._err_max_rad_s
         if worst > err_max:
@@ -727,12 +732,7 @@ class Companion:
         pe = self._pinned_ema + b * (pinned - self._pinned_ema)
         self._pinned_ema = pe
         el = self._err_ema_long
-        if e0 == e0:
-            el[0] += b * (abs(e0) - el[0])
-        if e1 == e1:
-            el[1] += b * (abs(e1) - el[1])
-        if e2 == e2:
-            el[2] += b * (abs(e2) - el[2])
+        _average_abs(el, b, e0, e1, e2)
         fs = self.opts.failsafe
         if pe > fs.diverging_fraction_max and max(el) > self._diverging_err_min_rad_s:
             self._failsafe(

@@ -103,6 +103,8 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion.fly import free_udp_port
+
 __all__ = [
     "DEFAULT_KINDS",
     "KINDS",
@@ -812,12 +814,6 @@ class Relay(threading.Thread):
 
 
 # --------------------------------------------------------------------------- flights
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @dataclass
