@@ -56,7 +56,9 @@ datagram), ``oversize_dropped`` (datagrams over 4096 bytes, dropped unread),
 ``resync_abandoned`` (chunks whose rest was dropped after 128 start bytes
 examined in vain),
 ``unknown_ignored`` (message ids outside the common dialect),
-``unsigned_rejected``, ``bad_signature_rejected``, ``replay_rejected``,
+``v1_ignored`` (MAVLink 1 frames under the ids of an autopilot whose
+heartbeat came as MAVLink 2), ``unsigned_rejected``,
+``bad_signature_rejected``, ``replay_rejected``,
 ``unsigned_accepted`` (with ``allow_unsigned``), ``sent``,
 ``callback_errors`` (``on_message``, a fast handler or ``on_anomaly`` raised:
 logged once, the link keeps going).
@@ -350,9 +352,12 @@ class MavlinkLink:
                 "oversize_dropped",
                 "resync_abandoned",
                 "spoofed_ignored",
+                "v1_ignored",
             ),
             0,
         )
+        self._target_v2 = False
+        """The autopilot's heartbeat came as MAVLink 2: it does not fall back to 1."""
         # Encoder: what callers use (link.mav.xxx_encode / xxx_send); signs when configured.
         self.mav = mavlink2.MAVLink(
             _Sink(self), srcSystem=source_system, srcComponent=source_component
@@ -862,6 +867,11 @@ class MavlinkLink:
                 counters["spoofed_ignored"],
             )
             return False
+        if self._target_v2 and msg._msgbuf[0] == _MAGIC_V1:
+            # An autopilot speaking MAVLink 2 does not send MAVLink 1 frames in
+            # between: such frames under its ids are someone else's.
+            counters["v1_ignored"] += 1
+            return False
         return True
 
     def _autopilot_moved(self, mtype: str) -> bool:
@@ -944,6 +954,8 @@ class MavlinkLink:
         # The autopilot's own heartbeat (accepted: right sender, right signature):
         # replies go where it came from.
         self.transport.confirm_peer()
+        if hb._msgbuf[0] == _MAGIC_V2:
+            self._target_v2 = True
         self.last_heartbeat = hb
         self.last_heartbeat_monotonic_s = time.monotonic()
         waiters = self._heartbeat_waiters

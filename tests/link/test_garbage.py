@@ -448,3 +448,43 @@ async def test_an_anomaly_callback_that_raises_is_counted() -> None:
         rig.send(ap, _imu(_enc(), 5))
         await _until(lambda: rig.imu == [5])
         assert rig.link.counters["callback_errors"] == 1
+
+
+# ------------------------------------------------------------ MAVLink 1 in between
+
+
+def _v1(msg: Any) -> bytes:
+    """``msg`` as a MAVLink 1 frame from 1/1."""
+    return bytes(msg.pack(_enc(), force_mavlink1=True))
+
+
+def _hb_v1() -> bytes:
+    return _v1(
+        mavlink2.MAVLink_heartbeat_message(
+            mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4, 0, 0, 0, 3
+        )
+    )
+
+
+def _imu_v1(time_usec: int) -> bytes:
+    return _v1(
+        mavlink2.MAVLink_highres_imu_message(
+            time_usec, 0, 0, -9.8, 0.1, 0.2, 0.3, 0, 0, 0, 0, 0, 0, 0, 63
+        )
+    )
+
+
+def test_mavlink1_frames_under_a_mavlink2_autopilots_ids_are_ignored() -> None:
+    v2 = _enc()
+    probe = Probe(UdpOutTransport("127.0.0.1", 9), fast=True)
+    probe.feed(_hb(v2))  # the autopilot, speaking MAVLink 2
+    probe.feed(_imu_v1(1_000), _imu(v2, 2_000), _imu_v1(3_000))
+    assert probe.imu == [2_000]
+    assert probe.link.counters["v1_ignored"] == 2
+
+
+def test_an_autopilot_speaking_mavlink1_is_still_heard() -> None:
+    probe = Probe(UdpOutTransport("127.0.0.1", 9), fast=True)
+    probe.feed(_hb_v1(), _imu_v1(1_000))
+    assert probe.imu == [1_000]
+    assert probe.link.counters["v1_ignored"] == 0
