@@ -527,6 +527,10 @@ class Companion:
         what it learnt, and the streams are asked for again (a rebooted
         autopilot has forgotten them)."""
         detail = f"IMU time jumped from {self._t_prev:.6f} s to {t_s:.6f} s"
+        if self._t_first is not None and self._t_prev is not None:
+            # Shadow mode's --duration counts sample time since the first sample: go on
+            # counting on the new clock.
+            self._t_first = t_s - (self._t_prev - self._t_first)
         if self.engaged or self.commanding:
             self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
         self.controller.reset()

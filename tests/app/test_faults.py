@@ -321,6 +321,9 @@ async def test_a_reboot_while_idle_is_logged_and_the_new_clock_taken(start: Star
     assert "imu_clock_reset" in f.kinds()
     assert not [k for k in f.kinds() if k.startswith("failsafe")]
     assert f.companion._t_prev == pytest.approx(f.t_us * 1e-6)
+    # Shadow mode's duration goes on counting on the new clock: 9 sample periods
+    # before the jump, 7 after the sample that confirmed it; the jump adds nothing.
+    assert f.companion._t_prev - f.companion._t_first == pytest.approx(16 * 0.004)
 
 
 async def test_a_gap_the_wall_clock_also_took_is_a_gap_not_a_new_clock(start: Start) -> None:
