@@ -13,6 +13,7 @@ import math
 import os
 import time
 import tracemalloc
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +44,12 @@ def handed_back(f: Flight) -> bool:
 def commands_after_hand_back(f: Flight) -> list[Any]:
     i = index_of(f.fake, lambda m: is_mode(m, POSCTL))
     return [m for m in f.fake.received[i:] if m.get_type() == "SET_ACTUATOR_CONTROL_TARGET"]
+
+
+def change_output(f: Flight, monkeypatch: pytest.MonkeyPatch, change: Callable[[Any], Any]) -> None:
+    """From now on the law's output passes through ``change`` (a fault in the law)."""
+    update = f.companion.controller.update
+    monkeypatch.setattr(f.companion.controller, "update", lambda *a: change(update(*a)))
 
 
 async def fly(f: Flight, n: int, gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
@@ -227,13 +234,11 @@ async def test_a_non_finite_law_output_never_reaches_the_wire(
 ) -> None:
     f = await start(engage="auto", output="actuator")
     await engage_px4_auto(f)
-    update = f.companion.controller.update
-
-    def poisoned(*args: Any) -> Any:
-        out = update(*args)
-        return out._replace(torque=(math.nan, math.inf, -math.inf), thrust=math.nan)
-
-    monkeypatch.setattr(f.companion.controller, "update", poisoned)
+    change_output(
+        f,
+        monkeypatch,
+        lambda out: out._replace(torque=(math.nan, math.inf, -math.inf), thrust=math.nan),
+    )
     n0 = len(f.fake.setpoints())
     await fly(f, 5)
     sent = f.fake.setpoints()[n0:]
@@ -251,12 +256,7 @@ async def test_rates_output_gates_nan_to_the_pilots_rate(
 ) -> None:
     f = await start(engage="auto", output="rates")
     await engage_px4_auto(f)
-    update = f.companion.controller.update
-
-    def poisoned(*args: Any) -> Any:
-        return update(*args)._replace(torque=(math.nan, 0.0, math.nan))
-
-    monkeypatch.setattr(f.companion.controller, "update", poisoned)
+    change_output(f, monkeypatch, lambda out: out._replace(torque=(math.nan, 0.0, math.nan)))
     f.fake.rc(1000, sticks=(1700, 1500, 1500, 1500))  # some roll rate from the pilot
     await settle()
     n0 = len(f.fake.setpoints())
@@ -527,18 +527,16 @@ def pinned_motors(
 ) -> None:
     """The law's output from now on: motors at full and at idle together on one
     sample in ``every``, and a steady tracking error."""
-    update = f.companion.controller.update
     idle = f.companion.opts.profile.limits.motor_idle
     n = [0]
     e = math.radians(error_deg_s)
 
-    def oscillating(*args: Any) -> Any:
-        out = update(*args)
+    def oscillating(out: Any) -> Any:
         n[0] += 1
         motors = (1.0, idle, 1.0, idle) if n[0] % every == 0 else (0.5, 0.5, 0.5, 0.5)
         return out._replace(motors=motors, error=(e, -e, 0.0))
 
-    monkeypatch.setattr(f.companion.controller, "update", oscillating)
+    change_output(f, monkeypatch, oscillating)
 
 
 async def test_motors_at_both_ends_most_of_the_time_is_a_diverging_failsafe(
