@@ -62,6 +62,7 @@ from companion.config import MfcConfig, PidConfig, build_controller, build_stick
 from companion.control.gate import gate_actuator, gate_rates
 from companion.errors import EngageError, LinkError
 from companion.profile import VehicleProfile
+from companion.records import EventLog
 from companion.reference import ReferenceScript
 from companion.stacks import FlightStack, stack_for
 
@@ -256,9 +257,6 @@ class Companion:
         self._invalid_frac = 0.0
         self._clock_candidate: tuple[float, int] | None = None
         self._last_thrust_sent = 0.0
-        self.events: deque[dict[str, Any]] = deque(maxlen=_EVENTS_KEPT)
-        """The last ``_EVENTS_KEPT`` events (all of them go to the events file)."""
-        self.n_events = 0
         self.autopilot: int | None = None
         self.stack: FlightStack | None = None
         self._imu_source = opts.imu_source
@@ -276,6 +274,7 @@ class Companion:
         self._envelope_since: float | None = None
         self._err_ema = [0.0, 0.0, 0.0]
         self._inv_envelope_time = 1.0 / opts.failsafe.envelope_time_s
+        self._inv_invalid_window = 1.0 / opts.failsafe.invalid_window_s
         # Diverging: the averaged share of samples with motors at both ends, and
         # the error averaged over the same window.
         self._pinned_ema = 0.0
@@ -308,9 +307,16 @@ class Companion:
         self._script = opts.reference
         self._duration_s = opts.duration_s
         self._tlog: Any = None
-        self._events_file: Any = None
+        # The run's events: the last _EVENTS_KEPT in memory; with --log-dir,
+        # _open_records gives it a file (all of them, through the writer thread).
+        self._events_file = EventLog(ring_size=_EVENTS_KEPT)
         self._telemetry: Any = None
         self._writer: Any = None  # companion.records.RecordWriter, with --log-dir
+
+    @property
+    def events(self) -> deque[dict[str, Any]]:
+        """The last ``_EVENTS_KEPT`` events (the events file, with --log-dir, has all)."""
+        return self._events_file.recent
 
     @property
     def counters(self) -> dict[str, int]:
@@ -326,7 +332,7 @@ class Companion:
             "commands_gated": self.n_commands_gated,
             "sample_errors": self.n_sample_errors,
             "rc_invalid": self.n_rc_invalid,
-            "events": self.n_events,
+            "events": self._events_file.count,
             "event_errors": self.n_event_errors,
             "task_failures": self.n_task_failures,
             "record_failures": self.n_record_failures,
@@ -348,13 +354,10 @@ class Companion:
         fails is counted (``event_errors``) and logged once."""
         t = self._t_prev if self._t_prev is not None else 0.0
         ev = {"t_s": round(t, 6), "wall": time.time(), "kind": kind, "detail": detail}
-        self.events.append(ev)
-        self.n_events += 1
         level = logging.WARNING if kind.startswith("failsafe") else logging.INFO
         _log.log(level, "%s: %s", kind, detail)
         try:
-            if self._events_file is not None:
-                self._events_file.append(ev)  # a buffer; the writer thread does the I/O
+            self._events_file.append(ev)  # memory, and a buffer the writer thread empties
             if self._telemetry is not None:
                 self._telemetry.publish_event(kind, detail, t)
                 if kind != "counters":  # bookkeeping: the retained status keeps what matters
@@ -557,7 +560,6 @@ class Companion:
 
     def _step(self, t_s: float, dt: float, gyro: tuple[float, float, float], t0: float) -> None:
         """One accepted sample: the range gate, the law, the command, then the rest."""
-        fs = self.opts.failsafe
         lim = self._gyro_limit_rad_s
         g0, g1, g2 = gyro
         if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
@@ -567,7 +569,8 @@ class Companion:
             # sample time, here: deterministic in lockstep, and a failed sensor is
             # caught on the sample that proves it.
             self.n_imu_invalid += 1
-            a = dt / fs.invalid_window_s
+            fs = self.opts.failsafe
+            a = dt * self._inv_invalid_window
             frac = self._invalid_frac
             frac += (1.0 - frac) * (a if a < 1.0 else 1.0)
             self._invalid_frac = frac
@@ -590,7 +593,7 @@ class Companion:
             self._invalid_since = None
             frac = self._invalid_frac
             if frac:  # decays while the samples are good; free once it is back to 0
-                frac -= frac * dt / fs.invalid_window_s
+                frac -= frac * dt * self._inv_invalid_window
                 self._invalid_frac = frac if frac > 1e-4 else 0.0
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
@@ -964,8 +967,7 @@ class Companion:
             if now >= next_counters:
                 next_counters = now + _COUNTERS_PERIOD_S
                 self._event("counters", self.counters_detail())
-            if self._events_file is not None:
-                self._events_file.flush()  # the tail of a burst goes out within a tick
+            self._events_file.flush()  # the tail of a burst goes out within a tick
             self._check_records()
             hb = self.link.last_heartbeat_monotonic_s
             if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
@@ -1038,7 +1040,7 @@ class Companion:
         """
         from companion import __version__
         from companion.control import COMPILED
-        from companion.records import ColumnarLog, EventLog, RecordWriter, TlogWriter, columns
+        from companion.records import ColumnarLog, RecordWriter, TlogWriter, columns
 
         d = self.opts.log_dir
         if d is None:
