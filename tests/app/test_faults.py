@@ -52,6 +52,21 @@ def change_output(f: Flight, monkeypatch: pytest.MonkeyPatch, change: Callable[[
     monkeypatch.setattr(f.companion.controller, "update", lambda *a: change(update(*a)))
 
 
+async def engaged_by_switch(start: Start) -> Flight:
+    """An armed PX4 in OFFBOARD, ``--engage rc-switch --on-failsafe wait``: the
+    pilot's switch low then high, engaged, five samples flown."""
+    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    f = await start(engage="rc-switch", output="actuator", failsafe=fs,
+                    custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    f.fake.rc(1000)
+    await settle()
+    f.fake.rc(2000)
+    await f.feed_until(lambda: f.companion.engaged, what="engaged")
+    await fly(f, 5)
+    return f
+
+
 async def fly(f: Flight, n: int, gyro: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
     for _ in range(n):
         f.imu(gyro)
@@ -275,15 +290,7 @@ async def test_rates_output_gates_nan_to_the_pilots_rate(
 async def test_an_autopilot_reboot_while_engaged_fails_safe_then_flies_on_its_new_clock(
     start: Start,
 ) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
-    f = await start(engage="rc-switch", output="actuator", failsafe=fs,
-                    custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
-    f.fake.rc(1000)
-    await settle()
-    f.fake.rc(2000)  # engage
-    await f.feed_until(lambda: f.companion.engaged, what="engaged")
-    await fly(f, 5)
+    f = await engaged_by_switch(start)
     streams_before = len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL))
 
     f.t_us = 0  # the autopilot rebooted: its clock starts again
@@ -497,15 +504,7 @@ async def test_a_long_flight_and_a_statustext_flood_keep_memory_bounded(
 
 
 async def test_a_mode_that_flips_back_and_forth_ends_in_one_clean_hand_back(start: Start) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
-    f = await start(engage="rc-switch", output="actuator", failsafe=fs,
-                    custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
-    f.fake.rc(1000)
-    await settle()
-    f.fake.rc(2000)
-    await f.feed_until(lambda: f.companion.engaged, what="engaged")
-    await fly(f, 5)
+    f = await engaged_by_switch(start)
 
     for i in range(20):  # the one true autopilot, undecided: POSCTL, OFFBOARD, POSCTL, ...
         f.fake.set_state(0x30000 if i % 2 == 0 else PX4_OFFBOARD)
