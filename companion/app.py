@@ -61,10 +61,11 @@ from typing import Any, Literal
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.control.gate import gate_actuator, gate_rates
 from companion.errors import EngageError, LinkError
+from companion.handback import Conditions, adoptable, candidates, judge, pick
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
-from companion.stacks import FlightStack, stack_for
+from companion.stacks import FlightStack, SafeMode, stack_for
 
 _COUNTERS_PERIOD_S = 10.0
 """How often the counters (ours, the link's, the transport's) go to the events."""
@@ -101,6 +102,7 @@ EXIT_FAILSAFE = 3
 # MAVLink numbers used here (common.xml).
 _MSG_HEARTBEAT = 0
 _MSG_ATTITUDE = 30
+_MSG_LOCAL_POSITION_NED = 32
 _MSG_RC_CHANNELS = 65
 _MSG_HIGHRES_IMU = 105
 _CMD_DO_SET_MODE = 176
@@ -114,6 +116,11 @@ _MSG_STATUSTEXT = 253
 _MSG_EXTENDED_SYS_STATE = 245
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 _LANDED_STATE_RATE_HZ = 4.0
+_POSITION_RATE_HZ = 4.0
+_POSITION_TIMEOUT_S = 1.0
+"""A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
+ArduPilot only while their estimate is valid) is younger than this."""
+_WATCH_POLL_S = 0.05
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
@@ -164,8 +171,15 @@ class FailsafeConfig:
     and with "failsafe" a failsafe too."""
     on_failsafe: Literal["exit", "wait"] = "exit"
     safe_mode: str = "auto"
-    """A mode of the detected stack (companion.stacks), or "auto": PX4 POSCTL,
-    ArduPilot ALT_HOLD."""
+    """The mode to hand back to (companion.stacks), or "auto": a manual mode
+    while valid RC is seen (not after RC loss), else hold with a position
+    estimate, else land (companion.handback). A named mode whose needs are not
+    met is passed over for the pilot-free modes after it."""
+    hand_back_watch_s: float = 3.0
+    """After a hand-back, how long the autopilot's mode is watched: if it leaves
+    the safe mode (its own failsafe) or never shows it, the next one is tried.
+    PX4 acts on RC loss after COM_RC_LOSS_T (0.5 s), ArduPilot after
+    RC_FS_TIMEOUT (1 s); heartbeats come at 1 Hz."""
 
 
 @dataclass(frozen=True)
@@ -287,6 +301,8 @@ class Companion:
         self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._thrust = 0.0
         self._rc_wall: float | None = None
+        self._pos_wall: float | None = None
+        self._safe_modes: tuple[SafeMode, ...] = ()
         self._ap_mode: int | None = None
         self._ap_armed = False
         self._switch_high = False
@@ -298,7 +314,6 @@ class Companion:
         self._hand_back_accepted = False  # the last hand-back's mode switch was ACKed
         self._hand_back_owed = False  # a hand-back task failed: the run's end tries again
         self._counted_final = False
-        self._safe_mode = opts.failsafe.safe_mode
         self._in_failsafe = False
         self._restart_dt = False
         self._log_rows: Any = None
@@ -428,6 +443,8 @@ class Companion:
             self._event("autopilot_says", self._last_statustext)
         elif mid == _MSG_EXTENDED_SYS_STATE:
             self._on_landed_state(int(msg.landed_state))
+        elif mid == _MSG_LOCAL_POSITION_NED:
+            self._pos_wall = time.perf_counter()
 
     def _on_landed_state(self, state: int) -> None:
         """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
@@ -874,11 +891,14 @@ class Companion:
         self._tasks.add(self._engage_task)
         self._engage_task.add_done_callback(self._tasks.discard)
 
-    async def _hand_back(self, reason: str, *, was_commanding: bool | None = None) -> None:
-        """Stop commanding and switch the autopilot to the safe mode.
+    async def _hand_back(
+        self, reason: str, *, was_commanding: bool | None = None, kind: str = ""
+    ) -> None:
+        """Stop commanding and switch the autopilot to a safe mode it can fly.
 
         ``was_commanding`` comes from :meth:`_release` when the caller already
-        stopped the commands; otherwise the current state decides.
+        stopped the commands; otherwise the current state decides. ``kind`` is
+        the failsafe's, if one: after RC loss no manual mode is chosen.
         """
         if self._handing_back:
             # One is under way (a failsafe's, the pilot's switch): stop any
@@ -903,22 +923,123 @@ class Companion:
                 or self.stack is None
             ):
                 return
-            p2, p3 = self.stack.mode_params(self._safe_mode)
-            try:
-                res = await self.link.command_long(
-                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.3, retries=2
-                )
-                self._hand_back_accepted = res == _RESULT_ACCEPTED
-                self._event(
-                    "handed_back",
-                    f"{reason}; {self._safe_mode.upper()} "
-                    + ("accepted" if res == _RESULT_ACCEPTED else f"refused ({res})"),
-                )
-            except LinkError as exc:
-                self._event("handed_back", f"{reason}; mode switch unanswered ({exc})")
+            await self._switch_to_safe_mode(
+                reason,
+                rc_failsafe=kind == "failsafe_rc_lost",
+                adopt=kind == "failsafe_autopilot_took_over",
+            )
         finally:
             self._handing_back = False
             self._hand_back_idle.set()
+
+    def _conditions(self, *, rc_failsafe: bool) -> Conditions:
+        now = time.perf_counter()
+        rc, pos = self._rc_wall, self._pos_wall
+        return Conditions(
+            rc_valid=rc is not None and now - rc <= self.opts.failsafe.rc_timeout_s,
+            position_valid=pos is not None and now - pos <= _POSITION_TIMEOUT_S,
+            rc_failsafe=rc_failsafe,
+        )
+
+    async def _switch_to_safe_mode(self, reason: str, *, rc_failsafe: bool, adopt: bool) -> None:
+        """Try the safe modes in order (companion.handback) until one holds.
+
+        A mode the autopilot refuses, or leaves or never shows within
+        ``hand_back_watch_s``, is followed by the next one. A switch that goes
+        unanswered ends it here: the run's end tries again. With ``adopt`` (the
+        autopilot's heartbeat showed it leave OFFBOARD by itself), a mode it can
+        fly there is kept: the companion does not override the autopilot's
+        failsafe or the pilot's mode switch."""
+        assert self.stack is not None
+        stack, modes = self.stack, self._safe_modes
+        ap_mode = self._ap_mode
+        cond = self._conditions(rc_failsafe=rc_failsafe)
+        if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):
+            # The autopilot (its failsafe) or the pilot already chose a mode: keep it.
+            self._hand_back_accepted = True
+            self._event(
+                "handed_back",
+                f"{reason}; {cond.describe()} -> {stack.mode_label(ap_mode)} kept "
+                "(the autopilot's mode)",
+            )
+            return
+        start = 0
+        while True:
+            choice = pick(modes, start, cond)
+            mode = choice.mode
+            skipped = f" ({choice.why_skipped()})" if choice.skipped else ""
+            if mode is None:
+                self._event("hand_back_failed", f"{reason}; no safe mode left{skipped}")
+                return
+            name = mode.name.upper()
+            why = f"{reason}; {cond.describe()}{skipped} -> {name}"
+            try:
+                res = await self.link.command_long(
+                    _CMD_DO_SET_MODE,
+                    _MODE_FLAG_CUSTOM,
+                    mode.param2,
+                    mode.param3,
+                    timeout_s=0.3,
+                    retries=2,
+                )
+            except LinkError as exc:
+                self._event("handed_back", f"{why}: mode switch unanswered ({exc})")
+                return
+            if res != _RESULT_ACCEPTED:
+                self._event("handed_back", f"{why} refused ({res})")
+                reason, start = f"{name} refused", choice.index + 1
+                cond = self._conditions(rc_failsafe=rc_failsafe)
+                continue
+            self._hand_back_accepted = True
+            self._event("handed_back", f"{why} accepted")
+            failed = await self._watch_safe_mode(modes, choice.index, rc_failsafe=rc_failsafe)
+            if failed is None:
+                return
+            self._event("safe_mode_lost", failed)
+            reason, start = failed, choice.index + 1
+            cond = self._conditions(rc_failsafe=rc_failsafe)
+
+    async def _watch_safe_mode(
+        self, modes: tuple[SafeMode, ...], index: int, *, rc_failsafe: bool
+    ) -> str | None:
+        """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
+        ``modes[index]``: None if the vehicle stays in a mode it can fly, else why not.
+
+        Until the new mode shows, a heartbeat still showing the engage mode is one
+        sent before the switch; any other mode is judged at once. A new engagement
+        (the pilot's switch) or a disarm ends the watch."""
+        assert self.stack is not None
+        stack = self.stack
+        target = stack.custom_mode(modes[index])
+        watch_s = self.opts.failsafe.hand_back_watch_s
+        t0 = time.perf_counter()
+        seen = False
+        while True:
+            elapsed = time.perf_counter() - t0
+            if self.commanding:
+                return None  # engaged again meanwhile: the pilot's call
+            mode = self._ap_mode
+            if not self._ap_armed and mode is not None and (seen or mode != target):
+                self._event("safe_mode_held", f"disarmed after {elapsed:.1f} s")
+                return None
+            if mode == target:
+                seen = True
+            elif mode is not None and (seen or not stack.is_engage_mode(mode)):
+                failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=rc_failsafe))
+                if failed is not None:
+                    return f"{failed} after {elapsed:.1f} s"
+                label = stack.mode_label(mode)
+                self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
+                return None
+            if elapsed >= watch_s:
+                if not seen:
+                    return (
+                        f"the autopilot accepted {modes[index].name.upper()} but did not show it "
+                        f"within {watch_s:g} s"
+                    )
+                self._event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
+                return None
+            await asyncio.sleep(_WATCH_POLL_S)
 
     def _autopilot_in_engage_mode(self) -> bool:
         """The autopilot's last heartbeat showed the mode we engage in (OFFBOARD, GUIDED_NOGPS)."""
@@ -938,12 +1059,12 @@ class Companion:
             return  # one failsafe at a time: the first reason is the one logged
         self._in_failsafe = True
         was = self._release()
-        self._spawn(self._after_failsafe(detail, was), "failsafe")
+        self._spawn(self._after_failsafe(kind, detail, was), "failsafe")
         self._event(kind, detail)
 
-    async def _after_failsafe(self, detail: str, was_commanding: bool) -> None:
+    async def _after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
         try:
-            await self._hand_back(detail, was_commanding=was_commanding)
+            await self._hand_back(detail, was_commanding=was_commanding, kind=kind)
         finally:
             self._in_failsafe = False
             if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
@@ -1225,10 +1346,8 @@ class Companion:
             raise EngageError(
                 f"{stack.name} accepts no actuator setpoints over MAVLink: use --output rates"
             )
-        name = opts.failsafe.safe_mode
-        self._safe_mode = stack.default_safe_mode if name == "auto" else name
         try:
-            stack.mode_params(self._safe_mode)
+            self._safe_modes = candidates(stack, opts.failsafe.safe_mode)
         except ValueError as exc:
             raise EngageError(str(exc)) from None
         if self._imu_source == "auto":
@@ -1284,4 +1403,15 @@ class Companion:
                 "landed_state_refused",
                 f"EXTENDED_SYS_STATE at {_LANDED_STATE_RATE_HZ:g} Hz refused (MAV_RESULT {res}): "
                 "identification is gated by the collective alone unless the autopilot sends it",
+            )
+        # Whether a position estimate exists decides the hand-back's hold. Best
+        # effort: without it the hand-back lands rather than holds (no RC).
+        res = await self.link.command_long(
+            _CMD_SET_MESSAGE_INTERVAL, _MSG_LOCAL_POSITION_NED, 1e6 / _POSITION_RATE_HZ
+        )
+        if res != _RESULT_ACCEPTED:
+            self._event(
+                "position_refused",
+                f"LOCAL_POSITION_NED at {_POSITION_RATE_HZ:g} Hz refused (MAV_RESULT {res}): "
+                "a hand-back without RC lands unless the autopilot sends it",
             )

@@ -292,16 +292,29 @@ def simulate(
             "altctl",
             "stabilized",
             "manual",
+            "hold",
             "alt_hold",
-            "land",
             "stabilize",
             "loiter",
+            "brake",
+            "land",
         ]
     ),
     default="auto",
     show_default=True,
-    help="Mode handed back to: auto = PX4 POSCTL, ArduPilot ALT_HOLD; PX4 posctl/altctl/"
-    "stabilized/manual; ArduPilot alt_hold/land/stabilize/loiter (checked on connect).",
+    help="Mode handed back to. auto: a manual mode while valid RC is seen (not after RC "
+    "loss), else hold with a position estimate, else land (PX4 posctl/altctl, hold, land; "
+    "ArduPilot alt_hold, loiter, land). Named: PX4 posctl/altctl/stabilized/manual/hold/"
+    "land; ArduPilot alt_hold/stabilize/loiter/brake/land (checked on connect); one whose "
+    "needs are not met gives way to the pilot-free modes after it.",
+)
+@click.option(
+    "--hand-back-watch-s",
+    type=Finite(min=0.0),
+    default=3.0,
+    show_default=True,
+    help="After a hand-back, watch the autopilot's mode this long: if it leaves the safe "
+    "mode (its own failsafe) or never shows it, try the next one.",
 )
 @click.option("--stale-imu-s", type=Finite(min=0.0, min_open=True), default=0.1, show_default=True)
 @click.option(
@@ -392,6 +405,7 @@ def run(
     duration: float | None,
     on_failsafe: str,
     safe_mode: str,
+    hand_back_watch_s: float,
     stale_imu_s: float,
     link_timeout_s: float,
     on_record_error: str,
@@ -478,6 +492,7 @@ def run(
             tracking_error_max_deg_s=envelope_error_deg_s,
             on_failsafe=on_failsafe,  # type: ignore[arg-type]
             safe_mode=safe_mode,
+            hand_back_watch_s=hand_back_watch_s,
         ),
     )
     sys.exit(asyncio.run(Companion(opts).run()))

@@ -12,9 +12,12 @@ setpoints at all.
 engage mode                OFFBOARD (main 6), after     GUIDED_NOGPS (20), then arm
                            setpoints stream, then arm
 engaged when               main mode 6 and armed        custom mode 20 and armed
-safe modes (hand-back)     posctl (3), altctl (2),      alt_hold (2), land (9),
-                           stabilized (7), manual (1)   stabilize (0), loiter (5)
-default safe mode          posctl                       alt_hold
+safe modes needing RC      posctl (3), altctl (2),      alt_hold (2), stabilize (0)
+                           stabilized (7), manual (1)
+... needing a position     hold (AUTO.LOITER: 4, sub 3) loiter (5), brake (17)
+... needing neither        land (AUTO.LAND: 4, sub 6)   land (9)
+auto's choice (in order)   posctl (altctl without a     alt_hold, loiter, land
+                           position), hold, land
 IMU message                HIGHRES_IMU (rad/s)          ATTITUDE (rad/s body rates)
 actuator setpoints         yes (<= 1.13, bundled SITL)  no: body rates only
 thrust (rates output)      normalised collective        climb rate unless GUID_OPTIONS
@@ -25,8 +28,29 @@ thrust (rates output)      normalised collective        climb rate unless GUID_O
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
-__all__ = ["ARDUPILOT", "PX4", "FlightStack", "stack_for"]
+__all__ = ["ARDUPILOT", "PX4", "FlightStack", "SafeMode", "stack_for"]
+
+Needs = Literal["rc", "position", "nothing"]
+
+
+@dataclass(frozen=True)
+class SafeMode:
+    """A mode the companion can hand the vehicle back to.
+
+    ``needs`` is what the autopilot must have to fly it: ``"rc"`` a pilot's
+    valid RC (PX4 refuses or fails safe out of its manual modes without one),
+    ``"position"`` a position estimate (PX4 AUTO.LOITER, ArduPilot LOITER and
+    BRAKE), ``"nothing"`` (land: both stacks descend level without a position).
+    ``position_too`` marks a manual mode that also needs a position (POSCTL).
+    """
+
+    name: str
+    param2: float
+    param3: float
+    needs: Needs
+    position_too: bool = False
 
 
 @dataclass(frozen=True)
@@ -37,8 +61,12 @@ class FlightStack:
     autopilot_id: int
     engage_mode: tuple[float, float]
     """DO_SET_MODE param2, param3 that engage the companion."""
-    safe_modes: dict[str, tuple[float, float]] = field(default_factory=dict)
-    default_safe_mode: str = ""
+    safe_modes: dict[str, SafeMode] = field(default_factory=dict)
+    auto_safe_modes: tuple[str, ...] = ()
+    """``--safe-mode auto``'s candidates, most capable first (companion.handback)."""
+    pilot_modes: frozenset[int] = frozenset()
+    """``custom_mode`` values of every mode flown from the pilot's sticks (safe
+    or not: ACRO too), for judging a mode the autopilot or the pilot chose."""
     imu_message: str = "highres_imu"
     supports_actuator_output: bool = False
     max_imu_rate_hz: float = 1000.0
@@ -49,8 +77,37 @@ class FlightStack:
             return ((custom_mode >> 16) & 0xFF) == int(self.engage_mode[0])
         return custom_mode == int(self.engage_mode[0])
 
-    def mode_params(self, name: str) -> tuple[float, float]:
-        """DO_SET_MODE param2, param3 of a safe mode by name.
+    def custom_mode(self, mode: SafeMode) -> int:
+        """The HEARTBEAT ``custom_mode`` that shows ``mode``."""
+        if self.name == "px4":
+            return (int(mode.param2) << 16) | (int(mode.param3) << 24)
+        return int(mode.param2)
+
+    def safe_mode_shown(self, custom_mode: int) -> SafeMode | None:
+        """The safe mode a HEARTBEAT ``custom_mode`` shows, or None."""
+        for mode in self.safe_modes.values():
+            if self.custom_mode(mode) == custom_mode:
+                return mode
+        return None
+
+    def needs_rc(self, custom_mode: int) -> bool:
+        """Whether the mode a HEARTBEAT shows is flown from the pilot's sticks."""
+        return custom_mode in self.pilot_modes
+
+    def mode_label(self, custom_mode: int) -> str:
+        """A readable name of any ``custom_mode`` (for events)."""
+        shown = self.safe_mode_shown(custom_mode)
+        if shown is not None:
+            return shown.name.upper()
+        if self.is_engage_mode(custom_mode):
+            return "OFFBOARD" if self.name == "px4" else "GUIDED_NOGPS"
+        if self.name == "px4":
+            main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+            return f"main {main} sub {sub}" if sub else f"main {main}"
+        return f"mode {custom_mode}"
+
+    def mode(self, name: str) -> SafeMode:
+        """A safe mode by name.
 
         Raises
         ------
@@ -71,12 +128,19 @@ PX4 = FlightStack(
     autopilot_id=12,
     engage_mode=(6.0, 0.0),
     safe_modes={
-        "posctl": (3.0, 0.0),
-        "altctl": (2.0, 0.0),
-        "stabilized": (7.0, 0.0),
-        "manual": (1.0, 0.0),
+        m.name: m
+        for m in (
+            SafeMode("posctl", 3.0, 0.0, "rc", position_too=True),
+            SafeMode("altctl", 2.0, 0.0, "rc"),
+            SafeMode("stabilized", 7.0, 0.0, "rc"),
+            SafeMode("manual", 1.0, 0.0, "rc"),
+            SafeMode("hold", 4.0, 3.0, "position"),  # AUTO.LOITER
+            SafeMode("land", 4.0, 6.0, "nothing"),  # AUTO.LAND
+        )
     },
-    default_safe_mode="posctl",
+    auto_safe_modes=("posctl", "altctl", "hold", "land"),
+    # MANUAL 1, ALTCTL 2, POSCTL 3, ACRO 5, STABILIZED 7 (main mode, bits 16-23)
+    pilot_modes=frozenset(main << 16 for main in (1, 2, 3, 5, 7)),
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
@@ -87,12 +151,18 @@ ARDUPILOT = FlightStack(
     autopilot_id=3,
     engage_mode=(20.0, 0.0),
     safe_modes={
-        "alt_hold": (2.0, 0.0),
-        "land": (9.0, 0.0),
-        "stabilize": (0.0, 0.0),
-        "loiter": (5.0, 0.0),
+        m.name: m
+        for m in (
+            SafeMode("alt_hold", 2.0, 0.0, "rc"),
+            SafeMode("stabilize", 0.0, 0.0, "rc"),
+            SafeMode("loiter", 5.0, 0.0, "position"),
+            SafeMode("brake", 17.0, 0.0, "position"),
+            SafeMode("land", 9.0, 0.0, "nothing"),
+        )
     },
-    default_safe_mode="alt_hold",
+    auto_safe_modes=("alt_hold", "loiter", "land"),
+    # STABILIZE 0, ACRO 1, ALT_HOLD 2, DRIFT 11, SPORT 13, POSHOLD 16
+    pilot_modes=frozenset((0, 1, 2, 11, 13, 16)),
     imu_message="attitude",
     supports_actuator_output=False,
     # ArduPilot denies intervals shorter than its loop period / 0.8 (~333 Hz at 400 Hz).

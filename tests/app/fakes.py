@@ -8,12 +8,17 @@ It speaks for system 1 / component 1 as PX4 (``autopilot`` 12) or ArduPilot (3):
   (``results``: a MAV_RESULT, or a callable of the message returning one or None
   for "stay silent"); ACCEPTED by default;
 * answers PARAM_REQUEST_READ with PARAM_VALUE from ``params``;
+* with ``position`` (the default), sends LOCAL_POSITION_NED with each
+  background HEARTBEAT, as a vehicle with a position estimate does;
+* with ``follow_modes`` (the default), shows an accepted DO_SET_MODE in a
+  HEARTBEAT at once, as the real stacks do;
 * sends HIGHRES_IMU / ATTITUDE / RC_CHANNELS when the test asks;
 * records every message it receives (``received``), decoded by its own parser.
 
-Mode and armed state change only when the test says so (``set_state``): the
-tests decide when the autopilot "really" switched, so they can check that the
-companion waits for the heartbeat rather than trusting the ACK.
+Armed state (and the mode, with ``follow_modes=False``) change only when the
+test says so (``set_state``): the tests decide when the autopilot "really"
+switched, so they can check that the companion waits for the heartbeat rather
+than trusting the ACK.
 """
 
 from __future__ import annotations
@@ -80,6 +85,8 @@ class FakeAutopilot:
         results: dict[int, Result] | None = None,
         params: dict[str, float] | None = None,
         heartbeat_period_s: float = 0.2,
+        follow_modes: bool = True,
+        position: bool = True,
     ) -> None:
         self.transport = transport
         self.autopilot = autopilot
@@ -88,6 +95,8 @@ class FakeAutopilot:
         self.results: dict[int, Result] = dict(results or {})
         self.params: dict[str, float] = dict(params or {})
         self.heartbeat_period_s = heartbeat_period_s
+        self.follow_modes = follow_modes
+        self.position = position
         self.mav = mavlink2.MAVLink(self, srcSystem=1, srcComponent=1)
         self.parser = mavlink2.MAVLink(None)
         self.parser.robust_parsing = True
@@ -136,6 +145,8 @@ class FakeAutopilot:
         while True:
             await asyncio.sleep(self.heartbeat_period_s)
             self.heartbeat()
+            if self.position:
+                self.local_position()
 
     def _on_bytes(self, chunk: bytes) -> None:
         for msg in self.parser.parse_buffer(chunk) or []:
@@ -157,6 +168,17 @@ class FakeAutopilot:
         self.mav.command_ack_send(
             msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
         )
+        if (
+            self.follow_modes
+            and msg.command == CMD_DO_SET_MODE
+            and result == mavlink2.MAV_RESULT_ACCEPTED
+        ):
+            # As the real stacks do: the accepted mode shows in the next HEARTBEAT.
+            if self.autopilot == mavlink2.MAV_AUTOPILOT_PX4:
+                self.custom_mode = (int(msg.param2) << 16) | (int(msg.param3) << 24)
+            else:
+                self.custom_mode = int(msg.param2)
+            self.heartbeat()
 
     def _answer_param(self, msg: Any) -> None:
         name = msg.param_id
@@ -194,6 +216,10 @@ class FakeAutopilot:
             self.custom_mode,
             mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY,
         )
+
+    def local_position(self) -> None:
+        """LOCAL_POSITION_NED: both stacks send it only while their estimate is valid."""
+        self.mav.local_position_ned_send(0, 0.0, 0.0, -5.0, 0.0, 0.0, 0.0)
 
     def extended_sys_state(self, landed_state: int) -> None:
         self.mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, landed_state)

@@ -45,7 +45,7 @@ ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
 
 # Watchdogs loose enough that a test's own pauses do not trip them; a test about
 # one failsafe tightens that one.
-LOOSE = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
+LOOSE = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, hand_back_watch_s=0.3)
 
 
 @dataclass
@@ -138,8 +138,13 @@ def setpoint_times(msgs: list[Any]) -> list[int]:
 
 
 async def switch_flicked_high(start: Start) -> Flight:
-    """An armed PX4 in MANUAL with ``--engage rc-switch``: streams up, switch low, then high."""
-    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    """An armed PX4 in MANUAL with ``--engage rc-switch``: streams up, switch low, then high.
+
+    The fake shows a mode only when the test says so (``follow_modes=False``)."""
+    f = await start(
+        engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True,
+        follow_modes=False,
+    )  # fmt: skip
     await streams_requested(f)
     f.fake.rc(1000)
     await settle()
@@ -159,6 +164,8 @@ async def flights() -> AsyncIterator[Start]:
         results: dict[int, Any] | None = None,
         params: dict[str, float] | None = None,
         heartbeat: bool = True,
+        position: bool = True,
+        follow_modes: bool = True,
         **opts: Any,
     ) -> Flight:
         ours, theirs = MemoryTransport.pair()
@@ -170,6 +177,8 @@ async def flights() -> AsyncIterator[Start]:
             results=results,
             params=params,
             heartbeat_period_s=0.2 if heartbeat else 3600.0,
+            position=position,
+            follow_modes=follow_modes,
         ).open()
         opts.setdefault("failsafe", LOOSE)
         options = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, **opts)
@@ -180,6 +189,8 @@ async def flights() -> AsyncIterator[Start]:
         await fake.wait_until(lambda: ours.is_open, 1.0)
         if heartbeat:
             fake.heartbeat()
+            if position:
+                fake.local_position()
         return flight
 
     yield _start

@@ -13,6 +13,7 @@ import json
 import math
 import signal
 import socket
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -21,7 +22,6 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from companion.app import FailsafeConfig
 from companion.cli import cli
 from companion.records import read_columnar
 from companion.reference import ReferenceScript
@@ -42,6 +42,7 @@ from tests.app.flight import (
     ACCEPTED,
     ARDUPILOT,
     DENIED,
+    LOOSE,
     MSG_ATTITUDE,
     MSG_EXTENDED_SYS_STATE,
     MSG_HIGHRES_IMU,
@@ -205,7 +206,7 @@ async def test_duplicate_and_late_samples_make_no_command_and_are_counted(start:
 
 
 async def test_nan_gyro_holds_output_then_invalid_imu_failsafe(start: Start) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, invalid_imu_s=0.05)
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, invalid_imu_s=0.05)
     f = await start(engage="auto", output="actuator", failsafe=fs)
     await engage_px4_auto(f)
     fake = f.fake
@@ -268,7 +269,10 @@ async def test_shadow_mode_sends_no_setpoint_mode_or_arm(start: Start) -> None:
 
 
 async def test_rc_switch_engages_hands_back_and_reengages(start: Start) -> None:
-    f = await start(engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True)
+    f = await start(
+        engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True,
+        follow_modes=False,  # the test says when the autopilot really switched
+    )  # fmt: skip
     await streams_requested(f)
     fake = f.fake
 
@@ -468,7 +472,9 @@ async def test_autopilot_leaving_offboard_is_a_failsafe_and_ends_commands(start:
         await asyncio.sleep(0.002)
     assert await f.finish() == 3
     assert len(fake.setpoints()) == n, "commands after the autopilot took over"
-    assert fake.commands(CMD_DO_SET_MODE)[-1].param2 == 3.0
+    # The pilot (valid RC) chose POSCTL: kept, not overridden (no DO_SET_MODE after OFFBOARD).
+    assert fake.commands(CMD_DO_SET_MODE)[-1].param2 == 6.0
+    assert f.details("handed_back")[-1].endswith("POSCTL kept (the autopilot's mode)")
 
 
 async def test_sample_in_the_same_datagram_as_the_takeover_heartbeat_is_not_commanded(

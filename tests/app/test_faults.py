@@ -14,6 +14,7 @@ import os
 import time
 import tracemalloc
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -30,19 +31,26 @@ from tests.app.flight import (
     Start,
     engage_px4_auto,
     index_of,
-    is_mode,
     setpoint_times,
 )
 
-POSCTL = 3.0  # PX4 main mode of the default hand-back
+OFFBOARD = 6.0  # PX4 main mode of the engagement; any other DO_SET_MODE is a hand-back
+
+
+def is_hand_back(m: Any) -> bool:
+    return m.get_type() == "COMMAND_LONG" and m.command == CMD_DO_SET_MODE and m.param2 != OFFBOARD
 
 
 def handed_back(f: Flight) -> bool:
-    return any(is_mode(m, POSCTL) for m in f.fake.commands(CMD_DO_SET_MODE))
+    """A safe mode was accepted, or the autopilot's own mode kept (it left OFFBOARD
+    for a mode the vehicle can fly)."""
+    return any(
+        d.endswith(("accepted", "kept (the autopilot's mode)")) for d in f.details("handed_back")
+    )
 
 
 def commands_after_hand_back(f: Flight) -> list[Any]:
-    i = index_of(f.fake, lambda m: is_mode(m, POSCTL))
+    i = index_of(f.fake, is_hand_back)
     return [m for m in f.fake.received[i:] if m.get_type() == "SET_ACTUATOR_CONTROL_TARGET"]
 
 
@@ -55,7 +63,7 @@ def change_output(f: Flight, monkeypatch: pytest.MonkeyPatch, change: Callable[[
 async def engaged_by_switch(start: Start) -> Flight:
     """An armed PX4 in OFFBOARD, ``--engage rc-switch --on-failsafe wait``: the
     pilot's switch low then high, engaged, five samples flown."""
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
     f = await start(engage="rc-switch", output="actuator", failsafe=fs,
                     custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
     await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
@@ -77,7 +85,7 @@ async def fly(f: Flight, n: int, gyro: tuple[float, float, float] = (0.0, 0.0, 0
 
 
 async def test_an_rc_glitch_holds_the_last_valid_sticks_never_idle_thrust(start: Start) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=1.0, link_timeout_s=5.0)
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=1.0, link_timeout_s=5.0)
     f = await start(engage="auto", output="actuator", failsafe=fs)
     await engage_px4_auto(f)  # sticks centred, throttle at mid stick
     f.fake.rc(1000, sticks=(1500, 1500, 1600, 1500))
@@ -124,7 +132,7 @@ def full_disk(log_dir: Path) -> Path:
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
 async def test_a_full_disk_leaves_the_watchdogs_running(start: Start, tmp_path: Path) -> None:
-    fs = FailsafeConfig(stale_imu_s=0.2, rc_timeout_s=5.0, link_timeout_s=5.0)
+    fs = replace(LOOSE, stale_imu_s=0.2, rc_timeout_s=5.0, link_timeout_s=5.0)
     f = await start(
         engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
     )
@@ -152,7 +160,7 @@ async def test_a_full_disk_leaves_the_watchdogs_running(start: Start, tmp_path: 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
 async def test_a_full_disk_fails_safe_when_asked_to(start: Start, tmp_path: Path) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0,
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0,
                         on_record_error="failsafe")  # fmt: skip
     f = await start(
         engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
@@ -379,7 +387,7 @@ async def test_one_sample_stamped_10_s_ahead_is_an_outlier_not_a_new_clock(start
 async def test_a_gyro_invalid_every_other_sample_trips_the_invalid_imu_failsafe(
     start: Start,
 ) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0)
     f = await start(engage="auto", output="actuator", failsafe=fs)
     await engage_px4_auto(f)
     t_start = f.t_us
@@ -416,7 +424,7 @@ async def test_rare_invalid_samples_do_not_trip_it(start: Start) -> None:
 async def test_a_crashed_supervisor_is_a_failsafe_and_ends_the_run(
     start: Start, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
     f = await start(engage="auto", output="actuator", failsafe=fs)
     await engage_px4_auto(f)
 
@@ -448,7 +456,8 @@ async def test_a_crashed_background_task_while_idle_is_an_event(start: Start) ->
 
 
 async def test_two_lost_heartbeats_are_not_a_lost_link(start: Start) -> None:
-    fs = FailsafeConfig(stale_imu_s=5.0, rc_timeout_s=10.0)  # the default link timeout
+    default_link_timeout_s = FailsafeConfig().link_timeout_s
+    fs = replace(LOOSE, stale_imu_s=5.0, rc_timeout_s=10.0, link_timeout_s=default_link_timeout_s)
     f = await start(engage="auto", output="actuator", failsafe=fs)
     await engage_px4_auto(f)
     f.fake.heartbeat_period_s = 3600.0  # the background heartbeat stops
@@ -513,7 +522,11 @@ async def test_a_mode_that_flips_back_and_forth_ends_in_one_clean_hand_back(star
     await f.fake.wait_until(lambda: handed_back(f), 1.0)
     assert f.kinds().count("failsafe_autopilot_took_over") == 1
     assert not f.companion.engaged and not f.companion.commanding
-    assert not commands_after_hand_back(f)  # nothing that fights the autopilot
+    # The pilot (valid RC) has it in POSCTL: kept, and nothing that fights the autopilot.
+    assert f.details("handed_back")[-1].endswith("POSCTL kept (the autopilot's mode)")
+    n = len(f.fake.setpoints())
+    await fly(f, 20)
+    assert len(f.fake.setpoints()) == n
     assert not [m for m in f.fake.commands(CMD_DO_SET_MODE) if m.param2 == 6.0]
     assert not f.task.done()  # waiting for the pilot's switch, low then high
 
@@ -582,7 +595,7 @@ async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sen
 
 
 async def test_a_heartbeat_that_comes_back_gets_the_streams_asked_for_again(start: Start) -> None:
-    fs = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=0.3)
+    fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=0.3)
     f = await start(engage="rc-switch", output="actuator", failsafe=fs)
     await f.fake.wait_until(lambda: f.companion.imu_rate_hz is not None, 2.0)
     asked = len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL))
