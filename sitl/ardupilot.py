@@ -15,13 +15,28 @@ STABILIZE     0  angles + yaw rate from the sticks, manual throttle
 ACRO          1  body rates from the sticks, manual throttle
 ALT_HOLD      2  angles from the sticks, throttle stick = climb rate
 GUIDED        4  SET_ATTITUDE_TARGET body rates; without them level + hold altitude
+LOITER        5  as ALT_HOLD (no horizontal hold here); needs a position estimate
 LAND          9  level, descend at ``LAND_SPEED``, disarm on touchdown
+BRAKE         17 level, hold altitude and heading, sticks ignored; needs a position
 GUIDED_NOGPS  20 SET_ATTITUDE_TARGET body rates (the companion's way in)
 ============= == ===========================================================
 
-AUTO 3, LOITER 5 and RTL 6 need navigation this SITL does not have: asking for
-them (or any other number) answers ``MAV_RESULT_FAILED``, as ArduPilot's
-``GCS_MAVLINK::_set_mode_common`` does when ``set_mode`` fails.
+AUTO 3 and RTL 6 need navigation this SITL does not have: asking for them (or
+any other number) answers ``MAV_RESULT_FAILED``, as ArduPilot's
+``GCS_MAVLINK::_set_mode_common`` does when ``set_mode`` fails. Armed without a
+position estimate (``--no-position``, fault ``position-lost``), LOITER and
+BRAKE fail the same way ("requires position"); losing it in them is the EKF
+failsafe: LAND.
+
+Radio failsafe (``Copter::read_radio``, ``events.cpp``)
+-------------------------------------------------------
+RC is lost after ``RC_FS_TIMEOUT`` (1 s) without a frame, once RC has been seen
+or the vehicle is armed, with ``FS_THR_ENABLE`` set (default 1). On that edge:
+in GUIDED / GUIDED_NOGPS with ``FS_OPTIONS`` bit 2 (4) it carries on; landed, it
+disarms; otherwise ``FS_THR_ENABLE`` 1 RTL, 3 Land, 4/5 SmartRTL are flown as
+LAND (no navigation here), 7 as BRAKE with a position, else LAND. Without RC the
+pilot's inputs read zero (level, no climb, no yaw rate); STABILIZE and ACRO are
+refused during the failsafe (as ArduCopter 4.7 does).
 
 GUIDED attitude targets (``GCS_MAVLINK_Copter::handle_message_set_attitude_target``)
 ------------------------------------------------------------------------------------
@@ -147,6 +162,7 @@ class CopterMode(IntEnum):
     LOITER = 5
     RTL = 6
     LAND = 9
+    BRAKE = 17
     GUIDED_NOGPS = 20
 
     @property
@@ -159,11 +175,15 @@ _FLYABLE = {
     CopterMode.ACRO,
     CopterMode.ALT_HOLD,
     CopterMode.GUIDED,
+    CopterMode.LOITER,
     CopterMode.LAND,
+    CopterMode.BRAKE,
     CopterMode.GUIDED_NOGPS,
 }
 _GUIDED = {CopterMode.GUIDED, CopterMode.GUIDED_NOGPS}
 _MANUAL_THROTTLE = {CopterMode.STABILIZE, CopterMode.ACRO}
+_NEEDS_POSITION = {CopterMode.LOITER, CopterMode.BRAKE}
+_FS_OPTION_CONTINUE_GUIDED = 4
 
 
 # ------------------------------------------------------------------ parameters
@@ -197,6 +217,8 @@ def _rate_pid_specs(axis: str, p: float, i: float, d: float, flte: float) -> lis
 
 PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("ARMING_CHECK", 1, PARAM_INT32, doc="0: skip the pre-arm checks"),
+    ParamSpec("FS_OPTIONS", 16, PARAM_INT32, 0, 1023, "bit 2 (4): continue guided on RC loss"),
+    ParamSpec("FS_THR_ENABLE", 1, PARAM_INT8, 0, 7, "RC loss: 0 off, 1 RTL, 3 land, 7 brake"),
     ParamSpec("GUID_OPTIONS", 0, PARAM_INT32, 0, 255, "bit 3 (8): thrust is thrust"),
     ParamSpec("GUID_TIMEOUT", 3.0, PARAM_REAL32, 0.1, 5.0, "s without targets before levelling"),
     ParamSpec("INS_GYRO_FILTER", 20, PARAM_INT16, 0, 256, "gyro LPF, Hz"),
@@ -206,6 +228,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MOT_SPIN_MAX", 0.95, PARAM_REAL32, 0.9, 1.0, "top of the output range"),
     ParamSpec("MOT_SPIN_MIN", 0.15, PARAM_REAL32, 0.0, 0.3, "bottom of the output range"),
     ParamSpec("MOT_THST_EXPO", 0.65, PARAM_REAL32, -1.0, 1.0, "thrust curve expo"),
+    ParamSpec("RC_FS_TIMEOUT", 1.0, PARAM_REAL32, 0.1, 10.0, "s without RC before failsafe"),
     ParamSpec("SCHED_LOOP_RATE", 400, PARAM_INT16, 50, 2000, "main loop, Hz (at boot)"),
     ParamSpec("WPNAV_SPEED_DN", 150.0, PARAM_REAL32, 10, 500, "guided max descent, cm/s"),
     ParamSpec("WPNAV_SPEED_UP", 250.0, PARAM_REAL32, 10, 1000, "guided max climb, cm/s"),
@@ -603,6 +626,10 @@ class ArduCopter:
         self.crashed = False
         self.landed = True
         self.failsafe: str | None = None
+        self.failsafe_radio = False
+        """The radio failsafe is on (RC lost); cleared when RC comes back."""
+        self.position_valid = True
+        """A position estimate (the runner clears it for ``--no-position`` and faults)."""
         self.rejected_setpoints = 0
         self.accepted_setpoints = 0
         self.ignored_setpoints = 0
@@ -620,6 +647,8 @@ class ArduCopter:
         self._climb_integral = 0.0
         self._last_imu_t_s: float | None = None
         self._next_loop_s: float | None = None
+        self._rc_t_s: float | None = None
+        self._last_sticks: tuple[int, ...] | None = None
         self._limit = [False, False, False]
 
     # ---------------------------------------------------------------- status
@@ -777,6 +806,13 @@ class ArduCopter:
         if mode not in _FLYABLE:
             self._event(t_s, "mode_denied", mode=mode.name, reason="needs navigation")
             return MavResult.FAILED
+        if self.armed and mode in _NEEDS_POSITION and not self.position_valid:
+            self._text(MAV_SEVERITY_WARNING, f"Flight mode change failed {mode.name}")
+            self._event(t_s, "mode_denied", mode=mode.name, reason="requires position")
+            return MavResult.FAILED
+        if self.armed and mode in _MANUAL_THROTTLE and self.failsafe_radio:
+            self._event(t_s, "mode_denied", mode=mode.name, reason="in RC failsafe")
+            return MavResult.FAILED
         if mode != self.mode:
             self._change_mode(t_s, mode, reason="command")
         return MavResult.ACCEPTED
@@ -874,6 +910,9 @@ class ArduCopter:
         runs the motor outputs are held.
         """
         self.landed = landed
+        if sticks_us is not None:
+            self._rc_t_s = t_s
+            self._last_sticks = tuple(sticks_us)
         if crashed and not self.crashed:
             self.crashed = True
             self._event(t_s, "crashed")
@@ -889,11 +928,56 @@ class ArduCopter:
         nxt = (t_s if self._next_loop_s is None else self._next_loop_s) + self.loop_dt_s
         self._next_loop_s = nxt if nxt > t_s else t_s + self.loop_dt_s
         self._check_guided_timeout(t_s)
+        self._check_radio(t_s)
+        self._check_position(t_s)
         if not self.armed:
             self.rate_pid.reset()
             self.motors = (0.0,) * self.n_motors
             return self.motors
-        return self._run(t_s, self.gyro_filtered_rad_s, euler_rad, climb_rate_m_s, sticks_us)
+        sticks = None if self.failsafe_radio or self._rc_stale(t_s) else self._last_sticks
+        return self._run(t_s, self.gyro_filtered_rad_s, euler_rad, climb_rate_m_s, sticks)
+
+    def _rc_stale(self, t_s: float) -> bool:
+        return self._rc_t_s is None or t_s - self._rc_t_s > self.params["RC_FS_TIMEOUT"]
+
+    def _check_radio(self, t_s: float) -> None:
+        """The radio failsafe: on when RC is lost (``RC_FS_TIMEOUT``), acting once."""
+        stale = self._rc_stale(t_s)
+        if not stale:
+            if self.failsafe_radio:
+                self.failsafe_radio = False
+                self._text(MAV_SEVERITY_WARNING, "Radio Failsafe Cleared")
+                self._event(t_s, "failsafe_cleared", cause="radio")
+            return
+        action = int(self.params["FS_THR_ENABLE"])
+        if self.failsafe_radio or action == 0 or (self._rc_t_s is None and not self.armed):
+            return
+        self.failsafe_radio = True
+        self._text(MAV_SEVERITY_WARNING, "Radio Failsafe")
+        if not self.armed:
+            return
+        fs_options = int(self.params["FS_OPTIONS"])
+        if self.mode in _GUIDED and fs_options & _FS_OPTION_CONTINUE_GUIDED:
+            self._text(MAV_SEVERITY_WARNING, "Radio Failsafe - Continuing Guided Mode")
+            self._event(t_s, "failsafe", cause="radio", action="continue")
+            return
+        if self.landed:
+            self._event(t_s, "failsafe", cause="radio", action="disarm")
+            self.disarm(t_s, reason="radio failsafe")
+            return
+        new = CopterMode.BRAKE if action == 7 and self.position_valid else CopterMode.LAND
+        if new != self.mode:
+            self._change_mode(t_s, new, reason="radio failsafe")
+        self.failsafe = "radio"
+        self._event(t_s, "failsafe", cause="radio", action=new.name)
+
+    def _check_position(self, t_s: float) -> None:
+        """Losing the position in LOITER or BRAKE: the EKF failsafe (FS_EKF_ACTION 1, land)."""
+        if self.position_valid or not self.armed or self.mode not in _NEEDS_POSITION:
+            return
+        self._change_mode(t_s, CopterMode.LAND, reason="position lost")
+        self.failsafe = "ekf"
+        self._event(t_s, "failsafe", cause="ekf", action=CopterMode.LAND.name)
 
     def _check_guided_timeout(self, t_s: float) -> None:
         tgt = self._target
@@ -920,7 +1004,10 @@ class ArduCopter:
         dt = self.loop_dt_s
         mode = self.mode
         if sticks_us is None or len(sticks_us) < 4:
-            rs, ps, thr_stick, ys = 0.0, 0.0, 0.0, 0.0
+            # No RC: the pilot's inputs read zero (Mode::get_pilot_desired_*): level,
+            # no yaw rate, no climb; a manual throttle reads zero.
+            rs, ps, ys = 0.0, 0.0, 0.0
+            thr_stick = 0.5 if mode in (CopterMode.ALT_HOLD, CopterMode.LOITER) else 0.0
         else:
             rs, ps = _stick(sticks_us[0]), _stick(sticks_us[1])
             thr_stick, ys = _throttle(sticks_us[2]), _stick(sticks_us[3])
@@ -931,7 +1018,13 @@ class ArduCopter:
             rm = cfg.acro_rate_max_rad_s
             rates = (rs * rm[0], ps * rm[1], ys * rm[2])
             return self._output(dt, rates, gyro, self._manual_throttle(thr_stick), cos_tilt, False)
-        if mode in (CopterMode.STABILIZE, CopterMode.ALT_HOLD):
+        if mode == CopterMode.BRAKE:
+            rates = self._level_rates(euler, 0.0, 0.0, None)
+            if self.landed:
+                return self._ground_idle()
+            thrust = self._climb_loop(dt, 0.0, climb_rate_m_s, cos_tilt)
+            return self._output(dt, rates, gyro, thrust, cos_tilt, True)
+        if mode in (CopterMode.STABILIZE, CopterMode.ALT_HOLD, CopterMode.LOITER):
             amax = cfg.angle_max_rad
             rates = self._level_rates(euler, rs * amax, ps * amax, ys * cfg.pilot_yaw_rate_rad_s)
             if mode == CopterMode.STABILIZE:

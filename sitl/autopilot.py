@@ -35,6 +35,22 @@ Offboard rules (as PX4)
   bit 128) go through the internal rate loop first (PX4 >= 1.14). Non-finite
   setpoints are ignored and counted (:attr:`Autopilot.rejected_setpoints`).
 
+RC and position (as PX4 >= 1.15, ``commander/failsafe``)
+-------------------------------------------------------
+* RC is the pilot's sticks reaching the autopilot; lost after ``COM_RC_LOSS_T``
+  (0.5 s) without a frame. Armed, with RC lost, the manual modes (MANUAL,
+  ALTCTL, POSCTL, ACRO, STABILIZED) are refused (``TEMPORARILY_REJECTED``), and
+  in any mode but LAND and those ``COM_RCL_EXCEPT`` exempts (bit 1 hold, bit 2
+  offboard; default none) the RC-loss failsafe acts: ``NAV_RCL_ACT`` 1 Hold
+  (Land without a position), 2 Return (PX4's default; flown as Land: this SITL
+  does not fly home), 3 Land. RC already lost when arming (a vehicle flown with
+  no radio) does not trigger it until RC has come back once. The hold before
+  the action (``COM_FAIL_ACT_T``) is not modelled.
+* A position estimate (``--no-position``, fault ``position-lost``): without one,
+  POSCTL and AUTO.LOITER are refused; in POSCTL the autopilot falls back to
+  ALTCTL, in AUTO.LOITER to LAND. AUTO.LAND is always accepted (from 1.15 it
+  is forced through and flown as a descent without a position).
+
 Arming rules
 ------------
 * Arming is ``DENIED`` when the vehicle has crashed.
@@ -213,6 +229,12 @@ class AutopilotConfig:
         Vertical-speed loop gains, normalised thrust per m/s (and per m).
     failsafe_thrust_min
         Lowest thrust of the test-stand hold.
+    rc_loss_timeout_s
+        ``COM_RC_LOSS_T``: RC silence before it counts as lost (0.5 s).
+    rc_loss_action
+        ``NAV_RCL_ACT``: 1 Hold, 2 Return (flown as Land), 3 Land; default 2.
+    rc_loss_exceptions
+        ``COM_RCL_EXCEPT`` bits: 2 (bit 1) hold, 4 (bit 2) offboard; default 0.
     """
 
     offboard_timeout_s: float = 1.0
@@ -232,12 +254,34 @@ class AutopilotConfig:
     climb_p: float = 0.25
     climb_i: float = 0.1
     failsafe_thrust_min: float = 0.1
+    rc_loss_timeout_s: float = 0.5
+    rc_loss_action: int = 2
+    rc_loss_exceptions: int = 0
 
     def __post_init__(self) -> None:
         if not (self.offboard_timeout_s > 0.0 and math.isfinite(self.offboard_timeout_s)):
             raise ValueError(f"offboard_timeout_s must be > 0, got {self.offboard_timeout_s}")
         if not 0.0 < self.hover_thrust < 1.0:
             raise ValueError(f"hover_thrust must be in (0, 1), got {self.hover_thrust}")
+        if not (self.rc_loss_timeout_s > 0.0 and math.isfinite(self.rc_loss_timeout_s)):
+            raise ValueError(f"COM_RC_LOSS_T must be > 0, got {self.rc_loss_timeout_s}")
+        if self.rc_loss_action not in (1, 2, 3):
+            raise ValueError(
+                f"NAV_RCL_ACT {self.rc_loss_action} is not modelled: expected 1, 2 or 3"
+            )
+        if not 0 <= self.rc_loss_exceptions <= 31:
+            raise ValueError(f"COM_RCL_EXCEPT must be in 0..31, got {self.rc_loss_exceptions}")
+
+
+PX4_PARAMS = {
+    "COM_RC_LOSS_T": "rc_loss_timeout_s",
+    "NAV_RCL_ACT": "rc_loss_action",
+    "COM_RCL_EXCEPT": "rc_loss_exceptions",
+}
+"""PX4 parameters ``sitl run --param`` sets at boot, by the config field each sets."""
+
+_RCL_EXCEPT_HOLD = 2
+_RCL_EXCEPT_OFFBOARD = 4
 
 
 @dataclass
@@ -310,10 +354,16 @@ class Autopilot:
         self.crashed = False
         self.landed = True
         self.failsafe: str | None = None
+        self.position_valid = True
+        """A position estimate (the runner clears it for ``--no-position`` and faults)."""
         self.rejected_setpoints = 0
         self.accepted_setpoints = 0
         self.events: list[Event] = []
         self._setpoint: _Setpoint | None = None
+        self._rc_t_s: float | None = None
+        self._last_sticks: tuple[int, ...] | None = None
+        self._rc_lost_at_arming = False
+        self._rc_loss_handled = False
         self._last_rate_t_s: float | None = None
         self._climb_integral = 0.0
         self.motors: tuple[float, ...] = (0.0,) * self.n_motors
@@ -375,6 +425,10 @@ class Autopilot:
         """Seconds since the last accepted offboard setpoint (inf if none)."""
         return math.inf if self._setpoint is None else t_s - self._setpoint.t_s
 
+    def rc_lost(self, t_s: float) -> bool:
+        """No RC frame for ``COM_RC_LOSS_T`` (or none ever)."""
+        return self._rc_t_s is None or t_s - self._rc_t_s > self.config.rc_loss_timeout_s
+
     # ---------------------------------------------------------------- commands
 
     def arm(self, t_s: float, *, force: bool = False) -> MavResult:
@@ -395,6 +449,7 @@ class Autopilot:
         self.failsafe = None
         self.rate_pid.reset()
         self._climb_integral = 0.0
+        self._rc_lost_at_arming = self.rc_lost(t_s)
         self._event(t_s, "armed", mode=self.mode.name)
         return MavResult.ACCEPTED
 
@@ -424,6 +479,16 @@ class Autopilot:
         new = FlightMode(main_mode, sub)
         if new == self.mode:
             return MavResult.ACCEPTED
+        if self.armed and main_mode in _STICK_MODES and self.rc_lost(t_s):
+            self._event(t_s, "mode_denied", mode=new.name, reason="no manual control")
+            return MavResult.TEMPORARILY_REJECTED
+        if (
+            self.armed
+            and (main_mode == MainMode.POSCTL or new == MODE_LOITER)
+            and not self.position_valid
+        ):
+            self._event(t_s, "mode_denied", mode=new.name, reason="no position estimate")
+            return MavResult.TEMPORARILY_REJECTED
         if (
             main_mode == MainMode.OFFBOARD
             and self.setpoint_age_s(t_s) > self.config.offboard_entry_window_s
@@ -536,6 +601,11 @@ class Autopilot:
             Normalised motor commands in [0, 1] (all zero when disarmed).
         """
         self.landed = landed
+        if sticks_us is not None:
+            self._rc_t_s = t_s
+            self._last_sticks = tuple(sticks_us)
+            self._rc_lost_at_arming = False
+            self._rc_loss_handled = False
         if crashed and not self.crashed:
             self.crashed = True
             self._event(t_s, "crashed")
@@ -545,6 +615,8 @@ class Autopilot:
             return self.motors
 
         self._check_offboard_loss(t_s)
+        self._check_rc_loss(t_s)
+        self._check_position(t_s)
         dt_s = 0.004 if self._last_rate_t_s is None else t_s - self._last_rate_t_s
         self._last_rate_t_s = t_s
         dt_s = _clip(dt_s, 0.000125, 0.02)
@@ -564,7 +636,9 @@ class Autopilot:
         elif self.mode in (MODE_LAND, MODE_LOITER):
             torque_thrust = self._auto_loop(t_s, dt_s, gyro_frd_rad_s, euler_rad, climb_rate_m_s)
         else:
-            torque_thrust = self._stick_loop(dt_s, gyro_frd_rad_s, euler_rad, sticks_us)
+            # Until RC counts as lost, the last frame holds (as PX4's manual_control_setpoint).
+            sticks = None if self.rc_lost(t_s) else self._last_sticks
+            torque_thrust = self._stick_loop(dt_s, gyro_frd_rad_s, euler_rad, sticks)
         return self._allocate(torque_thrust)
 
     def _check_offboard_loss(self, t_s: float) -> None:
@@ -576,6 +650,39 @@ class Autopilot:
         self._change_mode(t_s, new, reason="offboard lost")
         self.failsafe = "offboard_loss"
         self._event(t_s, "failsafe", cause="offboard_loss", action=new.name)
+
+    def _check_rc_loss(self, t_s: float) -> None:
+        """PX4's RC-loss failsafe (``NAV_RCL_ACT``), once per loss."""
+        if not self.armed or self._rc_loss_handled or self._rc_lost_at_arming:
+            return
+        if not self.rc_lost(t_s):
+            return
+        exc = self.config.rc_loss_exceptions
+        mode = self.mode
+        if (
+            mode == MODE_LAND
+            or (mode == MODE_LOITER and exc & _RCL_EXCEPT_HOLD)
+            or (mode == MODE_OFFBOARD and exc & _RCL_EXCEPT_OFFBOARD)
+        ):
+            return
+        self._rc_loss_handled = True
+        hold = self.config.rc_loss_action == 1 and self.position_valid
+        new = MODE_LOITER if hold else MODE_LAND
+        if new != mode:
+            self._change_mode(t_s, new, reason="rc lost")
+        self.failsafe = "rc_loss"
+        self._event(t_s, "failsafe", cause="rc_loss", action=new.name)
+
+    def _check_position(self, t_s: float) -> None:
+        """Without a position estimate POSCTL falls back to ALTCTL, AUTO.LOITER to LAND."""
+        if self.position_valid or not self.armed:
+            return
+        if self.mode.main == MainMode.POSCTL:
+            self._change_mode(t_s, FlightMode(MainMode.ALTCTL), reason="position lost")
+        elif self.mode == MODE_LOITER and not self.config.test_stand:
+            self._change_mode(t_s, MODE_LAND, reason="position lost")
+            self.failsafe = "position_loss"
+            self._event(t_s, "failsafe", cause="position_loss", action=MODE_LAND.name)
 
     def _rate_loop(
         self,

@@ -159,7 +159,14 @@ def cli(verbose: int) -> None:
     "ap_params",
     multiple=True,
     metavar="NAME=VALUE",
-    help="ardupilot: set a parameter at boot (repeatable), e.g. SCHED_LOOP_RATE=200.",
+    help="Set a parameter at boot (repeatable): ardupilot, any of its table, e.g. "
+    "SCHED_LOOP_RATE=200; px4, COM_RC_LOSS_T, NAV_RCL_ACT or COM_RCL_EXCEPT.",
+)
+@click.option(
+    "--no-position",
+    is_flag=True,
+    help="The vehicle has no position estimate (no GPS or flow): no LOCAL_POSITION_NED, "
+    "hold modes refused.",
 )
 def run(
     profile_path: Path,
@@ -181,6 +188,7 @@ def run(
     autopilot: str,
     prearm_fail: str | None,
     ap_params: tuple[str, ...],
+    no_position: bool,
     signing_key: Path | None,
 ) -> None:
     """Run one simulated flight."""
@@ -216,8 +224,8 @@ def run(
 
         parsed_faults = tuple(parse_fault(f) for f in faults)
         parsed_params = tuple(_parse_param(p) for p in ap_params)
-        if autopilot != "ardupilot" and (prearm_fail is not None or parsed_params):
-            raise ValueError("--prearm-fail and --param need --autopilot ardupilot")
+        if autopilot != "ardupilot" and prearm_fail is not None:
+            raise ValueError("--prearm-fail needs --autopilot ardupilot")
         key = None
         if signing_key is not None:
             from companion.link.signing import load_signing_key
@@ -241,7 +249,9 @@ def run(
             signing_key=key,
             autopilot=autopilot,  # type: ignore[arg-type]
             prearm_fail=prearm_fail,
-            ardupilot_params=parsed_params,
+            ardupilot_params=parsed_params if autopilot == "ardupilot" else (),
+            px4_params=parsed_params if autopilot == "px4" else (),
+            position=not no_position,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))

@@ -614,8 +614,10 @@ class MavlinkFace:
             chans += [65535] * (18 - n)
             mav.rc_channels_send(round(s.t_s * 1e3), n, *chans, 254 if n else 0)
         elif msg_id == ID_LOCAL_POSITION_NED:
-            x, v = s.pos_ned_m, s.vel_ned_m_s
-            mav.local_position_ned_send(round(s.t_s * 1e3), x[0], x[1], x[2], v[0], v[1], v[2])
+            # PX4 and ArduPilot send it only while their position estimate is valid.
+            if self.autopilot.position_valid:
+                x, v = s.pos_ned_m, s.vel_ned_m_s
+                mav.local_position_ned_send(round(s.t_s * 1e3), x[0], x[1], x[2], v[0], v[1], v[2])
         elif msg_id == ID_SYS_STATUS:
             mav.sys_status_send(SENSORS, SENSORS, SENSORS, 0, 16800, -1, 100, 0, 0, 0, 0, 0, 0)
         elif msg_id == ID_EXTENDED_SYS_STATE:

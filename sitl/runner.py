@@ -78,6 +78,7 @@ import numpy as np
 
 from companion.profile import ImuModel, VehicleProfile
 from sitl.autopilot import (
+    PX4_PARAMS,
     Autopilot,
     AutopilotConfig,
     Event,
@@ -115,6 +116,7 @@ FAULT_KINDS = (
     "heartbeat-stop",
     "imu-range",
     "rc-lost",
+    "position-lost",
 )
 
 IMU_RANGE_GYRO_RAD_S = 40.0
@@ -142,11 +144,13 @@ def parse_fault(text: str) -> Fault:
     message still flows both ways (a lost-link test without a stale IMU);
     ``imu-range``: HIGHRES_IMU ``xgyro`` reads :data:`IMU_RANGE_GYRO_RAD_S`
     (finite, beyond the gyro's range); the other fields and streams are true;
-    ``rc-lost``: RC_CHANNELS goes on, as a receiver without signal reports
-    (chancount 0, every channel UINT16_MAX, RSSI 0); everything else is true.
-    The autopilot's own loop keeps the true samples in every case, and its
-    pilot's sticks (its own RC-loss failsafe is not modelled: PX4's
-    ``COM_RCL_EXCEPT`` can exempt offboard from it).
+    ``rc-lost``: the autopilot's receiver loses its signal: RC_CHANNELS goes on
+    as such a receiver reports (chancount 0, every channel UINT16_MAX, RSSI 0),
+    and the autopilot gets no sticks (its RC-loss failsafe follows, as
+    ``sitl.autopilot`` and ``sitl.ardupilot`` describe);
+    ``position-lost``: the position estimate is lost: no more LOCAL_POSITION_NED,
+    and the autopilot's position modes fail over as the real stacks' do.
+    The autopilot's own loop keeps the true IMU samples in every case.
     """
     kind, _, rest = text.partition("@")
     when, colon, arg = rest.partition(":")
@@ -244,6 +248,12 @@ class RunConfig:
         ArduPilot personality: a pre-arm check that fails with this text.
     ardupilot_params
         ArduPilot personality: parameters set at boot, ``(name, value)`` pairs.
+    px4_params
+        PX4 personality: the parameters of ``sitl.autopilot.PX4_PARAMS`` set at
+        boot, ``(name, value)`` pairs.
+    position
+        The autopilot has a position estimate (GPS, flow...): False for a vehicle
+        without one (no LOCAL_POSITION_NED; hold modes refused).
     signing_key
         MAVLink 2 signing key (32 bytes): sign everything sent, accept only
         validly signed frames.
@@ -279,6 +289,8 @@ class RunConfig:
     autopilot: Literal["px4", "ardupilot"] = "px4"
     prearm_fail: str | None = None
     ardupilot_params: tuple[tuple[str, float], ...] = ()
+    px4_params: tuple[tuple[str, float], ...] = ()
+    position: bool = True
 
 
 @dataclass
@@ -469,18 +481,29 @@ class Runner:
                 main = _MODE_BY_NAME[config.initial_mode.upper()]
             else:
                 main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
+            px4: dict[str, Any] = {}
+            for name, value in config.px4_params:
+                if name not in PX4_PARAMS:
+                    raise ValueError(
+                        f"PX4 parameter {name!r} is not modelled: expected one of "
+                        f"{', '.join(sorted(PX4_PARAMS))}"
+                    )
+                field_name = PX4_PARAMS[name]
+                px4[field_name] = value if field_name.endswith("_s") else int(value)
             self.autopilot = Autopilot(
                 profile,
                 AutopilotConfig(
                     offboard_timeout_s=config.offboard_timeout_s,
                     test_stand=config.test_stand,
                     hover_thrust=min(max(hover, 0.05), 0.95),
+                    **px4,
                 ),
                 initial_mode=FlightMode(main),
             )
             imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
             self.streams = default_streams(imu_rate_hz)
             self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
+        self.autopilot.position_valid = config.position
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
         self._outgoing: _OutgoingFaults | None = None
@@ -598,6 +621,8 @@ class Runner:
             face.muted = True
         elif fault.kind == "rc-lost":
             face.rc_lost = True
+        elif fault.kind == "position-lost":
+            self.autopilot.position_valid = False
         elif fault.kind == "motor-fail":
             self.quad.set_motor_failure(fault.arg, 0.0)
         elif fault.kind in ("heartbeat-stop", "imu-range"):
@@ -716,7 +741,7 @@ class Runner:
                     climb_rate_m_s=-st.vel_ned_m_s[2],
                     landed=st.landed,
                     crashed=st.crashed,
-                    sticks_us=sticks,
+                    sticks_us=None if face.rc_lost else sticks,
                 )
             if ap.events:
                 for ev in ap.drain_events():

@@ -136,14 +136,18 @@ def write_stick_script(path: Path, text: str) -> Path:
 
 
 def fly_one_failsafe(
-    tmp_path: Path, fault: str, kind: str, companion_args: tuple[str, ...]
+    tmp_path: Path,
+    fault: str,
+    kind: str,
+    companion_args: tuple[str, ...],
+    sitl_args: tuple[str, ...] = (),
 ) -> tuple[FlightProcesses, dict[str, Any], float]:
     """paper-acro on the real-time clock with ``fault`` (``KIND@T``), which must end
     the run in exactly one failsafe, ``kind``, after the fault: the flight, that
     failsafe's event and the fault's simulation time."""
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path, duration_s=30.0, timeout_s=60.0,
-        sitl_args=("--fault", fault, "--clock", "realtime"),
+        sitl_args=("--fault", fault, "--clock", "realtime", *sitl_args),
         companion_args=companion_args,
     )  # fmt: skip
     ev = flight.companion_events
@@ -317,16 +321,25 @@ def test_heartbeat_loss_alone_is_failsafe_link_lost(tmp_path: Path) -> None:
     assert_handed_back_to_posctl(flight, fs)
 
 
-def test_rc_signal_loss_alone_is_failsafe_rc_lost(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("rcl_except", "final"), [(4, "LAND"), (6, "LOITER")])
+def test_rc_signal_loss_alone_is_failsafe_rc_lost(
+    tmp_path: Path, rcl_except: int, final: str
+) -> None:
     """The SITL's RC_CHANNELS go on as a receiver without signal reports them
     (chancount 0, every channel UINT16_MAX); IMU and heartbeats keep flowing.
 
     Real-time clock, as for the lost link: ``--rc-timeout-s`` is wall-clock time.
+    PX4 exempts offboard from its own RC-loss failsafe (COM_RCL_EXCEPT bit 2, as
+    an integrator who lets the companion judge RC loss sets it), so the
+    companion's is the one that fires. It hands back to hold, not POSCTL (no
+    pilot without RC); PX4's own RC-loss failsafe then lands unless hold is
+    exempt too (bit 1): LAND is the next safe mode, so the companion keeps it.
     """
     rc_timeout_s = 0.5  # the default, given explicitly
     flight, fs, _ = fly_one_failsafe(
-        tmp_path, "rc-lost@3", "failsafe_rc_lost", ("--rc-timeout-s", str(rc_timeout_s))
-    )
+        tmp_path, "rc-lost@3", "failsafe_rc_lost", ("--rc-timeout-s", str(rc_timeout_s)),
+        sitl_args=("--param", f"COM_RCL_EXCEPT={rcl_except}"),
+    )  # fmt: skip
     # The detail tells RC alone from all traffic stopping: the IMU was fresh.
     imu_age_s = float(fs["detail"].split("last IMU sample ")[1].split(" s ago")[0])
     assert imu_age_s < 0.1, fs
@@ -342,7 +355,15 @@ def test_rc_signal_loss_alone_is_failsafe_rc_lost(tmp_path: Path) -> None:
     # frame (never before), polling every 50 ms, with 1 s of slack as above.
     waited = float(fs["wall"]) - valid[-1]
     assert rc_timeout_s <= waited < rc_timeout_s + 1.0, waited
-    assert_handed_back_to_posctl(flight, fs)
+    ev = flight.companion_events
+    back = first(ev, "handed_back", after=float(fs["wall"]))
+    assert "(the failsafe is RC loss)" in back["detail"]
+    assert back["detail"].endswith("-> HOLD accepted"), back
+    assert modes(flight.sitl_events)[-1] == final
+    held = first(ev, "safe_mode_held", after=float(back["wall"]))
+    assert held["detail"].startswith("LAND kept" if final == "LAND" else "HOLD for"), held
+    sent = times(tlog_of(flight), COMPANION_IDS, ID_SETPOINT)
+    assert sent and max(sent) < float(fs["wall"]) + 1e-3
 
 
 # ------------------------------------------------------------ 2. out-of-range gyro

@@ -163,10 +163,14 @@ def test_prearm_failure_refused_with_statustext(
 def test_guided_nogps_flies_and_roll_step_matches(
     start_sitl: Starter, connect: Connect, udp_port: int
 ) -> None:
-    """Lockstep: take off on climb-rate thrust, hover, +1 rad/s roll step; check the log."""
+    """Lockstep: take off on climb-rate thrust, hover, +1 rad/s roll step; check the log.
+
+    No RC here: FS_OPTIONS bit 2 (4, with the default 16) keeps GUIDED_NOGPS flying
+    through the radio failsafe, as a companion-only ArduPilot vehicle is set up."""
     sitl = start_sitl(
-        udp_port, "--autopilot", "ardupilot", "--clock", "lockstep", "--lockstep-timeout", "2.0"
-    )
+        udp_port, "--autopilot", "ardupilot", "--clock", "lockstep", "--lockstep-timeout", "2.0",
+        "--param", "FS_OPTIONS=20",
+    )  # fmt: skip
     master = connect(udp_port)
 
     def send(roll_rate: float, thrust: float) -> None:

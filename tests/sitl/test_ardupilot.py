@@ -41,7 +41,10 @@ def profile() -> VehicleProfile:
 
 
 def make(profile: VehicleProfile, **cfg: object) -> ArduCopter:
+    """An ArduCopter with no RC: its radio failsafe off (FS_THR_ENABLE 0) unless
+    ``params`` say otherwise, so the tests of other rules are not landed by it."""
     mode = cfg.pop("mode", CopterMode.STABILIZE)
+    cfg["params"] = (("FS_THR_ENABLE", 0.0), *cfg.get("params", ()))  # type: ignore[misc]
     return ArduCopter(profile, ArduCopterConfig(**cfg), initial_mode=mode)  # type: ignore[arg-type]
 
 
@@ -81,9 +84,13 @@ def test_set_mode_flyable_and_failed(profile: VehicleProfile) -> None:
         assert ap.set_mode(0.0, mode) is MavResult.ACCEPTED
         assert ap.mode is mode
     # Navigation modes and unknown numbers: FAILED, as _set_mode_common answers.
-    for number in (3, 5, 6, 7, 99):
+    for number in (3, 6, 7, 99):
         assert ap.set_mode(0.0, number) is MavResult.FAILED
     assert ap.mode is CopterMode.LAND
+    # LOITER and BRAKE fly with a position estimate.
+    for mode in (CopterMode.LOITER, CopterMode.BRAKE):
+        assert ap.set_mode(0.0, mode) is MavResult.ACCEPTED
+        assert ap.mode is mode
 
 
 def test_land_descends_and_disarms(profile: VehicleProfile) -> None:
@@ -323,7 +330,11 @@ def step_response(profile: VehicleProfile, *, test_stand: bool) -> np.ndarray:
     imu = Imu(profile.physics.imu, rng=np.random.default_rng(2), dt_s=0.001)
     ap = ArduCopter(
         profile,
-        ArduCopterConfig(test_stand=test_stand, hover_motor_cmd=hover_motor_command(profile)),
+        ArduCopterConfig(
+            test_stand=test_stand,
+            hover_motor_cmd=hover_motor_command(profile),
+            params=(("FS_THR_ENABLE", 0.0),),  # no RC here: no radio failsafe
+        ),
         initial_mode=CopterMode.GUIDED_NOGPS,
     )
     assert ap.arm(0.0) is MavResult.ACCEPTED
