@@ -305,6 +305,7 @@ class Companion:
         self._safe_modes: tuple[SafeMode, ...] = ()
         self._ap_mode: int | None = None
         self._ap_armed = False
+        self._ap_heartbeats = 0
         self._switch_high = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._engage_task: asyncio.Task[None] | None = None
@@ -807,6 +808,7 @@ class Companion:
         was = self.engaged
         now = offboard and armed and self.commanding
         self._ap_mode, self._ap_armed = mode, armed
+        self._ap_heartbeats += 1
         if now and not was and not self._stop.is_set():
             # (After a stop signal nothing engages: the run's hand-back is next.)
             self.controller.reset()  # learn F only from commands that are applied
@@ -1007,12 +1009,14 @@ class Companion:
 
         Until the new mode shows, a heartbeat still showing the engage mode is one
         sent before the switch; any other mode is judged at once. A new engagement
-        (the pilot's switch) or a disarm ends the watch."""
+        (the pilot's switch) or a disarm ends the watch. With no heartbeat at all
+        meanwhile (a lost link) there is nothing to judge by: the mode stays."""
         assert self.stack is not None
         stack = self.stack
         target = stack.custom_mode(modes[index])
         watch_s = self.opts.failsafe.hand_back_watch_s
         t0 = time.perf_counter()
+        heartbeats0 = self._ap_heartbeats
         seen = False
         while True:
             elapsed = time.perf_counter() - t0
@@ -1032,6 +1036,13 @@ class Companion:
                 self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
                 return None
             if elapsed >= watch_s:
+                if self._ap_heartbeats == heartbeats0:
+                    self._event(
+                        "safe_mode_unconfirmed",
+                        f"no heartbeat for {watch_s:g} s after the switch to "
+                        f"{modes[index].name.upper()}: left as it is",
+                    )
+                    return None
                 if not seen:
                     return (
                         f"the autopilot accepted {modes[index].name.upper()} but did not show it "
