@@ -61,7 +61,7 @@ from typing import Any, Literal
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.control.gate import gate_actuator, gate_rates
 from companion.errors import EngageError, LinkError
-from companion.handback import Conditions, adoptable, candidates, judge, pick
+from companion.handback import Conditions, adoptable, candidates, judge, next_kind, pick
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
@@ -321,6 +321,12 @@ class Companion:
         self._log_append: Any = None  # self._log_rows.append, looked up once
         self._actuator_output = opts.output == "actuator"
         self._script = opts.reference
+        # The law takes something from RC (the sticks, the throttle, the engage
+        # switch) unless a reference file with its own collective flies it.
+        self._rc_needed = (
+            opts.engage == "rc-switch" or opts.reference is None or opts.reference.thrust is None
+        )
+        self._rc_lost_logged = False
         self._duration_s = opts.duration_s
         self._tlog: Any = None
         # The run's events: the last _EVENTS_KEPT in memory; with --log-dir,
@@ -946,9 +952,11 @@ class Companion:
     async def _switch_to_safe_mode(self, reason: str, *, rc_failsafe: bool, adopt: bool) -> None:
         """Try the safe modes in order (companion.handback) until one holds.
 
-        A mode the autopilot refuses, or leaves or never shows within
-        ``hand_back_watch_s``, is followed by the next one. A switch that goes
-        unanswered ends it here: the run's end tries again. With ``adopt`` (the
+        A mode the autopilot refuses is followed by the next one; a mode it
+        leaves (its own failsafe) or never shows within ``hand_back_watch_s``,
+        by the next one of a more conservative kind (manual -> hold -> land). A
+        switch that goes unanswered ends it here: the run's end tries again
+        (``_hand_back_owed``). With ``adopt`` (the
         autopilot's heartbeat showed it leave OFFBOARD by itself), a mode it can
         fly there is kept: the companion does not override the autopilot's
         failsafe or the pilot's mode switch."""
@@ -985,6 +993,8 @@ class Companion:
                     retries=2,
                 )
             except LinkError as exc:
+                self._hand_back_accepted = False
+                self._hand_back_owed = True
                 self._event("handed_back", f"{why}: mode switch unanswered ({exc})")
                 return
             if res != _RESULT_ACCEPTED:
@@ -993,12 +1003,14 @@ class Companion:
                 cond = self._conditions(rc_failsafe=rc_failsafe)
                 continue
             self._hand_back_accepted = True
+            self._hand_back_owed = False
             self._event("handed_back", f"{why} accepted")
             failed = await self._watch_safe_mode(modes, choice.index, rc_failsafe=rc_failsafe)
             if failed is None:
                 return
+            self._hand_back_accepted = False
             self._event("safe_mode_lost", failed)
-            reason, start = failed, choice.index + 1
+            reason, start = failed, next_kind(modes, choice.index)
             cond = self._conditions(rc_failsafe=rc_failsafe)
 
     async def _watch_safe_mode(
@@ -1007,8 +1019,9 @@ class Companion:
         """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
         ``modes[index]``: None if the vehicle stays in a mode it can fly, else why not.
 
-        Until the new mode shows, a heartbeat still showing the engage mode is one
-        sent before the switch; any other mode is judged at once. A new engagement
+        Until the new mode shows, a heartbeat still showing the mode from before
+        the switch (or the engage mode) may have been sent before it: only
+        another mode is judged at once. A new engagement
         (the pilot's switch) or a disarm ends the watch. With no heartbeat at all
         meanwhile (a lost link) there is nothing to judge by: the mode stays."""
         assert self.stack is not None
@@ -1017,6 +1030,7 @@ class Companion:
         watch_s = self.opts.failsafe.hand_back_watch_s
         t0 = time.perf_counter()
         heartbeats0 = self._ap_heartbeats
+        before = self._ap_mode
         seen = False
         while True:
             elapsed = time.perf_counter() - t0
@@ -1028,7 +1042,7 @@ class Companion:
                 return None
             if mode == target:
                 seen = True
-            elif mode is not None and (seen or not stack.is_engage_mode(mode)):
+            elif mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
                 failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=rc_failsafe))
                 if failed is not None:
                     return f"{failed} after {elapsed:.1f} s"
@@ -1132,10 +1146,16 @@ class Companion:
                     if self._last_imu_wall is None
                     else f"{now - self._last_imu_wall:.2f} s ago"
                 )
-                self._failsafe(
-                    "failsafe_rc_lost",
-                    f"no valid RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})",
-                )
+                detail = f"no valid RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})"
+                if self._rc_needed:
+                    self._failsafe("failsafe_rc_lost", detail)
+                elif not self._rc_lost_logged:
+                    # A reference file with its own collective flies without RC: the
+                    # loss only decides the hand-back's mode (no manual one).
+                    self._rc_lost_logged = True
+                    self._event("rc_lost", detail + ": the reference flies on")
+            else:
+                self._rc_lost_logged = False
 
     def _check_records(self) -> None:
         """A record file that stopped being written: an event, a counter, and with

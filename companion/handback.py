@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from companion.stacks import FlightStack, SafeMode
 
-__all__ = ["Conditions", "Pick", "adoptable", "candidates", "judge", "pick", "unmet"]
+__all__ = ["Conditions", "Pick", "adoptable", "candidates", "judge", "next_kind", "pick", "unmet"]
 
 _TIER = {"rc": 0, "position": 1, "nothing": 2}
 
@@ -102,6 +102,17 @@ def pick(modes: tuple[SafeMode, ...], start: int, cond: Conditions) -> Pick:
     return Pick(None, len(modes), tuple(skipped))
 
 
+def next_kind(modes: tuple[SafeMode, ...], index: int) -> int:
+    """Where to go on after the autopilot left ``modes[index]`` (its own failsafe):
+    the first candidate of a more conservative kind. Another manual mode would
+    meet the same failsafe; hold or land might not."""
+    tier = _TIER[modes[index].needs]
+    for i in range(index + 1, len(modes)):
+        if _TIER[modes[i].needs] > tier:
+            return i
+    return len(modes)
+
+
 def judge(
     stack: FlightStack,
     modes: tuple[SafeMode, ...],
@@ -114,9 +125,10 @@ def judge(
 
     Kept: our mode; a later candidate (the autopilot's failsafe chose what we
     would have tried next, e.g. land); a mode flown from the sticks while valid
-    RC is seen (the pilot took the vehicle, or the autopilot fell back between
-    its manual modes). Anything else is the autopilot's own failsafe or a mode
-    the vehicle cannot hold: the caller tries the next candidate.
+    RC is seen, even after an RC-loss failsafe (the pilot, with the radio back,
+    took the vehicle; or the autopilot fell back between its manual modes).
+    Anything else is the autopilot's own failsafe or a mode the vehicle cannot
+    hold: the caller goes on with :func:`next_kind`.
     """
     ours = modes[index]
     if custom_mode == stack.custom_mode(ours):
@@ -124,8 +136,8 @@ def judge(
     shown = stack.safe_mode_shown(custom_mode)
     if shown is not None and shown in modes[index + 1 :]:
         return None
-    if stack.needs_rc(custom_mode) and cond.rc_valid and not cond.rc_failsafe:
-        return None
+    if stack.needs_rc(custom_mode) and cond.rc_valid:
+        return None  # with valid RC now, only the pilot puts it in a manual mode
     return f"the autopilot left {ours.name.upper()} for {stack.mode_label(custom_mode)}"
 
 
