@@ -169,6 +169,9 @@ def fly_mavlink(
         # Wall-clock watchdog: a lockstep SITL on a loaded machine can stall
         # longer than a real IMU ever would; 0.5 s still catches a stopped stream.
         "--stale-imu-s", "0.5",
+        # The SITL ends a moment after the flight: watching the hand-back longer
+        # than its 1 Hz heartbeat and 0.5-1 s failsafes need only delays the report.
+        "--hand-back-watch-s", "1.5",
         *(["--controller", str(controller_path)] if controller_path else []),
         *companion_args,
     ]  # fmt: skip

@@ -163,6 +163,12 @@ def cli(verbose: int) -> None:
     "SCHED_LOOP_RATE=200; px4, COM_RC_LOSS_T, NAV_RCL_ACT or COM_RCL_EXCEPT.",
 )
 @click.option(
+    "--no-rc",
+    is_flag=True,
+    help="The vehicle has no radio: the pilot's sticks never reach the autopilot "
+    "(RC_CHANNELS without channels), as for a vehicle flown by a script.",
+)
+@click.option(
     "--no-position",
     is_flag=True,
     help="The vehicle has no position estimate (no GPS or flow): no LOCAL_POSITION_NED, "
@@ -189,6 +195,7 @@ def run(
     prearm_fail: str | None,
     ap_params: tuple[str, ...],
     no_position: bool,
+    no_rc: bool,
     signing_key: Path | None,
 ) -> None:
     """Run one simulated flight."""
@@ -252,6 +259,7 @@ def run(
             ardupilot_params=parsed_params if autopilot == "ardupilot" else (),
             px4_params=parsed_params if autopilot == "px4" else (),
             position=not no_position,
+            rc=not no_rc,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))

@@ -254,6 +254,10 @@ class RunConfig:
     position
         The autopilot has a position estimate (GPS, flow...): False for a vehicle
         without one (no LOCAL_POSITION_NED; hold modes refused).
+    rc
+        The autopilot has a radio: False for a vehicle flown without one (the
+        pilot's timeline still runs, but no sticks reach the autopilot and
+        RC_CHANNELS carries no channels, as after ``rc-lost``).
     signing_key
         MAVLink 2 signing key (32 bytes): sign everything sent, accept only
         validly signed frames.
@@ -291,6 +295,7 @@ class RunConfig:
     ardupilot_params: tuple[tuple[str, float], ...] = ()
     px4_params: tuple[tuple[str, float], ...] = ()
     position: bool = True
+    rc: bool = True
 
 
 @dataclass
@@ -504,6 +509,7 @@ class Runner:
             self.streams = default_streams(imu_rate_hz)
             self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
         self.autopilot.position_valid = config.position
+        self.face.rc_lost = not config.rc
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
         self._outgoing: _OutgoingFaults | None = None
