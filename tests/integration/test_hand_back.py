@@ -1,0 +1,181 @@
+"""The hand-back leaves the vehicle in a mode it can fly, against both SITL personalities.
+
+Each flight is the SITL and the companion as separate processes over real UDP.
+A vehicle with no radio (``sitl run --no-rc``) is flown from a reference file
+with its own collective (``companion run --reference``), as a scripted flight
+or a mission is. The SITL personalities fail safe out of manual modes without
+RC and refuse hold without a position, as PX4 and ArduPilot do
+(tests/sitl/test_rc_and_position.py), so the outcome is the SITL's final mode.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from companion.fly import FlightProcesses, fly_mavlink
+from companion.profile import load_profile
+from sitl.ardupilot import ArduCopter, ArduCopterConfig
+from sitl.physics import hover_motor_command
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
+F450 = ROOT / "vehicle_profiles" / "f450.yaml"
+EXIT_FAILSAFE = 3
+WATCH_S = 1.5  # companion fly's --hand-back-watch-s
+
+
+def kinds(events: list[dict[str, Any]]) -> list[str]:
+    return [str(e["kind"]) for e in events]
+
+
+def only(events: list[dict[str, Any]], kind: str) -> dict[str, Any]:
+    found = [e for e in events if e["kind"] == kind]
+    assert len(found) == 1, (kind, kinds(events))
+    return found[0]
+
+
+def sitl_modes(flight: FlightProcesses) -> list[str]:
+    return [str(e["new"]) for e in flight.sitl_events if e.get("kind") == "mode"]
+
+
+def hover_reference(tmp_path: Path, thrust: float) -> Path:
+    """Level, a gentle climb off the ground, then the hover collective."""
+    path = tmp_path / "hover.csv"
+    path.write_text(
+        "t_s,roll_deg_s,pitch_deg_s,yaw_deg_s,thrust\n"
+        f"0,0,0,0,{1.15 * thrust:.4f}\n1.5,0,0,0,{1.15 * thrust:.4f}\n"
+        f"1.6,0,0,0,{thrust:.4f}\n",
+        encoding="utf-8",
+    )
+    return path
+
+
+def fly_without_radio(
+    tmp_path: Path,
+    *,
+    autopilot: str = "px4",
+    sitl_args: tuple[str, ...] = (),
+    companion_args: tuple[str, ...] = (),
+    duration_s: float = 4.0,
+) -> FlightProcesses:
+    profile = load_profile(F450, simulated=True)
+    if autopilot == "px4":
+        thrust = hover_motor_command(profile)
+        sitl = ("--no-rc", *sitl_args)
+    else:
+        cmd = hover_motor_command(profile)
+        thrust = ArduCopter(profile, ArduCopterConfig(hover_motor_cmd=cmd)).hover_throttle
+        # A companion-only ArduPilot vehicle keeps GUIDED_NOGPS through the radio
+        # failsafe (FS_OPTIONS bit 2, with the default 16).
+        sitl = ("--no-rc", "--param", "FS_OPTIONS=20", *sitl_args)
+    return fly_mavlink(
+        F450, "hover-gusts", tmp_path / "flight", duration_s=duration_s, autopilot=autopilot,
+        sitl_args=sitl,
+        companion_args=("--reference", str(hover_reference(tmp_path, thrust)), *companion_args),
+    )  # fmt: skip
+
+
+def assert_timely(flight: FlightProcesses, start: dict[str, Any], mode: str) -> dict[str, Any]:
+    """``start`` (a failsafe, or the run's end) is followed by one hand-back to
+    ``mode``, acknowledged within 1 s, then held for the watch; returns it."""
+    ev = flight.companion_events
+    back = only(ev, "handed_back")
+    assert back["detail"].endswith(f"-> {mode} accepted"), back
+    assert 0.0 <= back["wall"] - start["wall"] < 1.0, (start, back)
+    held = only(ev, "safe_mode_held")
+    assert held["wall"] - back["wall"] >= WATCH_S * 0.9 or "disarmed" in held["detail"], held
+    assert "safe_mode_lost" not in kinds(ev)
+    return back
+
+
+# ------------------------------------------------------------------------------- PX4
+
+
+def test_px4_without_radio_hands_back_to_hold(tmp_path: Path) -> None:
+    """The case of the report: a scripted flight's end on PX4 must not ask for
+    POSCTL (PX4 would refuse or fail safe out of it with no manual control)."""
+    flight = fly_without_radio(tmp_path)
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    ev = flight.companion_events
+    ended = ev[kinds(ev).index("handed_back") - 1]
+    back = assert_timely(flight, ended, "HOLD")
+    assert "no valid RC, a position estimate" in back["detail"]
+    assert sitl_modes(flight)[-1] == "LOITER"
+    assert "POSCTL" not in sitl_modes(flight)
+
+
+def test_px4_without_radio_or_position_lands_after_a_failsafe(tmp_path: Path) -> None:
+    """The IMU stream stops (stale IMU) on a vehicle with neither: land. Real-time
+    clock: in lockstep the SITL runs on without samples and its own offboard-loss
+    failsafe (1 s of its time) would come before the companion's (0.5 s wall)."""
+    flight = fly_without_radio(
+        tmp_path, sitl_args=("--no-position", "--fault", "imu-stop@3", "--clock", "realtime")
+    )
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    ev = flight.companion_events
+    fs = only(ev, "failsafe_stale_imu")
+    back = assert_timely(flight, fs, "LAND")
+    assert "no valid RC, no position estimate" in back["detail"]
+    assert sitl_modes(flight)[-1] == "LAND"
+
+
+def test_px4_a_named_manual_safe_mode_gives_way_without_radio(tmp_path: Path) -> None:
+    flight = fly_without_radio(tmp_path, companion_args=("--safe-mode", "posctl"))
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    back = only(flight.companion_events, "handed_back")
+    assert "(posctl needs RC (none valid)) -> HOLD accepted" in back["detail"], back
+    assert sitl_modes(flight)[-1] == "LOITER"
+
+
+# ------------------------------------------------------------------------- ArduPilot
+
+
+def test_ardupilot_without_radio_hands_back_to_loiter(tmp_path: Path) -> None:
+    flight = fly_without_radio(tmp_path, autopilot="ardupilot")
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    ev = flight.companion_events
+    ended = ev[kinds(ev).index("handed_back") - 1]
+    assert_timely(flight, ended, "LOITER")
+    assert sitl_modes(flight)[-1] == "LOITER"
+
+
+def test_ardupilot_without_radio_or_position_lands(tmp_path: Path) -> None:
+    flight = fly_without_radio(tmp_path, autopilot="ardupilot", sitl_args=("--no-position",))
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    ev = flight.companion_events
+    ended = ev[kinds(ev).index("handed_back") - 1]
+    assert_timely(flight, ended, "LAND")
+    assert sitl_modes(flight)[-1] == "LAND"
+
+
+def test_ardupilot_rc_loss_hands_back_to_loiter_then_its_radio_failsafe_lands(
+    tmp_path: Path,
+) -> None:
+    """With a pilot: the radio is lost mid-flight. The companion's RC-lost failsafe
+    (0.5 s) hands back to LOITER, not ALT_HOLD; ArduPilot's own radio failsafe
+    (RC_FS_TIMEOUT 1 s, FS_THR_ENABLE 1: Land here) then lands, which the watch
+    keeps: land is the next safe mode."""
+    flight = fly_mavlink(
+        F450, "paper-acro", tmp_path / "flight", duration_s=20.0, autopilot="ardupilot",
+        sitl_args=("--fault", "rc-lost@3", "--clock", "realtime"),
+        companion_args=("--hand-back-watch-s", "3"),
+    )  # fmt: skip
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    ev = flight.companion_events
+    fs = only(ev, "failsafe_rc_lost")
+    back = only(ev, "handed_back")
+    assert back["detail"].endswith("-> LOITER accepted"), back
+    assert "(the failsafe is RC loss)" in back["detail"]
+    assert 0.0 <= back["wall"] - fs["wall"] < 1.0
+    held = only(ev, "safe_mode_held")
+    assert held["detail"].startswith("LAND kept after"), held
+    # The radio failsafe comes RC_FS_TIMEOUT after the last frame, about 0.5 s
+    # after the companion's: seen within a heartbeat or two.
+    assert 0.2 < held["wall"] - back["wall"] < 3.0, (back, held)
+    assert sitl_modes(flight)[-2:] == ["LOITER", "LAND"]
+    causes = [e.get("cause") for e in flight.sitl_events if e.get("kind") == "failsafe"]
+    assert causes == ["radio"]
