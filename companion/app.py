@@ -1425,24 +1425,21 @@ class Companion:
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
             )
         # The landed state stops identification on the ground (MfcController.on_ground).
-        # Best effort: without it the collective is the only gate, as before.
-        res = await self.link.command_long(
-            _CMD_SET_MESSAGE_INTERVAL, _MSG_EXTENDED_SYS_STATE, 1e6 / _LANDED_STATE_RATE_HZ
-        )
+        await self._request_best_effort(
+            "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
+            _LANDED_STATE_RATE_HZ,
+            "identification is gated by the collective alone unless the autopilot sends it",
+        )  # fmt: skip
+        # Whether a position estimate exists decides the hand-back's hold.
+        await self._request_best_effort(
+            "position_refused", "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, _POSITION_RATE_HZ,
+            "a hand-back without RC lands unless the autopilot sends it",
+        )  # fmt: skip
+
+    async def _request_best_effort(
+        self, kind: str, name: str, msg_id: int, hz: float, without: str
+    ) -> None:
+        """Ask for a stream the run can do without: a refusal is an event saying so."""
+        res = await self.link.command_long(_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
         if res != _RESULT_ACCEPTED:
-            self._event(
-                "landed_state_refused",
-                f"EXTENDED_SYS_STATE at {_LANDED_STATE_RATE_HZ:g} Hz refused (MAV_RESULT {res}): "
-                "identification is gated by the collective alone unless the autopilot sends it",
-            )
-        # Whether a position estimate exists decides the hand-back's hold. Best
-        # effort: without it the hand-back lands rather than holds (no RC).
-        res = await self.link.command_long(
-            _CMD_SET_MESSAGE_INTERVAL, _MSG_LOCAL_POSITION_NED, 1e6 / _POSITION_RATE_HZ
-        )
-        if res != _RESULT_ACCEPTED:
-            self._event(
-                "position_refused",
-                f"LOCAL_POSITION_NED at {_POSITION_RATE_HZ:g} Hz refused (MAV_RESULT {res}): "
-                "a hand-back without RC lands unless the autopilot sends it",
-            )
+            self._event(kind, f"{name} at {hz:g} Hz refused (MAV_RESULT {res}): {without}")
