@@ -11,7 +11,6 @@ simulation times.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import shutil
@@ -191,10 +190,9 @@ def fly_mavlink(
                 time.sleep(0.2)
             comp_rc = comp.wait()
         finally:
-            # The SITL ends by itself a moment after the pilot's timeline; let it,
-            # and only then ask it to stop.
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                sitl.wait(timeout=5.0)
+            # The companion is done (its hand-back watched): what the SITL would fly
+            # of the pilot's timeline after that is nobody's flight. Stop it now; it
+            # writes its log whole whenever the signal lands.
             if sitl.poll() is None:
                 sitl.send_signal(signal.SIGINT)
                 try:
