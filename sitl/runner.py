@@ -569,8 +569,23 @@ class Runner:
             test_stand=cfg.test_stand,
         )
         wall0 = time.monotonic()
+        # The handler stays until the log is written: a signal that lands while it
+        # is written (a driver stopping the run) must not leave it half done.
+        with _stop_on_signals(self.stop):
+            self._run(log, summary, wall0)
+        logger.info(
+            "run %s: %.2f s simulated in %.2f s wall (%.1fx), %d steps",
+            summary.status,
+            summary.sim_time_s,
+            summary.wall_time_s,
+            summary.realtime_factor,
+            summary.steps,
+        )
+        return summary
+
+    def _run(self, log: _Log, summary: RunSummary, wall0: float) -> None:
         try:
-            with self.face, _stop_on_signals(self.stop):
+            with self.face:
                 summary.status = self._loop(log, summary, wall0)
         finally:
             wall = time.monotonic() - wall0
@@ -588,15 +603,6 @@ class Runner:
             for ev in ap.drain_events():
                 log.event(ev)
             log.close(summary)
-        logger.info(
-            "run %s: %.2f s simulated in %.2f s wall (%.1fx), %d steps",
-            summary.status,
-            summary.sim_time_s,
-            summary.wall_time_s,
-            summary.realtime_factor,
-            summary.steps,
-        )
-        return summary
 
     def _make_streams(self) -> None:
         """Wind, IMU and pilot, each from its own stream of the scenario's seed.
