@@ -1028,6 +1028,8 @@ class Companion:
         stack = self.stack
         target = stack.custom_mode(modes[index])
         watch_s = self.opts.failsafe.hand_back_watch_s
+        if watch_s <= 0.0:
+            return None  # not watched: the ACK is all there is
         t0 = time.perf_counter()
         heartbeats0 = self._ap_heartbeats
         before = self._ap_mode

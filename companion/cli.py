@@ -314,7 +314,7 @@ def simulate(
     default=3.0,
     show_default=True,
     help="After a hand-back, watch the autopilot's mode this long: if it leaves the safe "
-    "mode (its own failsafe) or never shows it, try the next one.",
+    "mode (its own failsafe) or never shows it, try the next one. 0: not watched.",
 )
 @click.option("--stale-imu-s", type=Finite(min=0.0, min_open=True), default=0.1, show_default=True)
 @click.option(

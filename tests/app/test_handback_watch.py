@@ -453,3 +453,14 @@ async def test_an_unanswered_failsafe_hand_back_is_tried_again_at_the_runs_end(
     assert "mode switch unanswered" in details[0]
     assert details[1].startswith("run ended;") and details[1].endswith("accepted")
     assert f.fake.custom_mode != PX4_OFFBOARD
+
+
+async def test_a_watch_of_zero_takes_the_ack_alone(start: Start) -> None:
+    """``--hand-back-watch-s 0``: no watch, so no mode is called unshown at once."""
+    f = await start(engage="auto", output="actuator", follow_modes=False,
+                    failsafe=replace(LOOSE, hand_back_watch_s=0.0))  # fmt: skip
+    await engage_px4_auto(f)
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    assert asked(f) == [OFFBOARD, POSCTL]
+    assert "safe_mode_lost" not in f.kinds() and "hand_back_failed" not in f.kinds()
