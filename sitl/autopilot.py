@@ -853,6 +853,15 @@ class MessageStreams:
         st.next_due_s = t_s
         return MavResult.ACCEPTED
 
+    def rephase(self, t_s: float) -> None:
+        """Start every stream's schedule again at ``t_s`` (the rates are kept).
+
+        A stream is scheduled from when it was asked for, which in a simulation
+        depends on how long the client took: rephased at arming, the messages
+        fall on the same steps of the flight whenever that was."""
+        for st in self._streams.values():
+            st.next_due_s = t_s
+
     def lockstep_stream(self, candidates: tuple[int, ...]) -> int | None:
         """Of the enabled ``candidates``, the one streamed fastest (ties: the first).
 

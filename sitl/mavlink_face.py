@@ -96,6 +96,11 @@ _MAX_DATAGRAM_BYTES = 4096
 """A datagram longer than this is garbage (a MAVLink 2 frame is at most 280
 bytes; routers pack a few per datagram): dropped unread."""
 _RECV_BYTES = 2 * _MAX_DATAGRAM_BYTES  # room to see that a datagram is too long
+_DEFERRED_TYPES = frozenset(
+    ("COMMAND_LONG", "COMMAND_INT", "SET_MODE", "PARAM_SET", "PARAM_REQUEST_READ",
+     "PARAM_REQUEST_LIST")
+)  # fmt: skip
+"""What ``poll(defer_commands=True)`` keeps for the start of the next step."""
 
 
 def _parse_datagram(mav: Any, data: bytes) -> list[Any]:
@@ -309,6 +314,7 @@ class MavlinkFace:
         self.bad_packets = 0
         self.send_errors = 0
         self._pending: set[int] = set()
+        self._deferred: list[Any] = []
         self._last_heartbeat_wall_s = -math.inf
         self._warned: set[str] = set()
 
@@ -372,17 +378,26 @@ class MavlinkFace:
         r, _, _ = select.select([self.sock], [], [], max(0.0, timeout_s))
         return bool(r)
 
-    def poll(self, t_s: float) -> int:
+    def poll(self, t_s: float, *, defer_commands: bool = False) -> int:
         """Read and handle every waiting datagram; return how many were read.
 
         Parameters
         ----------
         t_s
             Current simulation time, stamped on setpoints and commands.
+        defer_commands
+            Keep commands (arm, mode, parameters) for the next poll without it
+            (the lockstep clock's wait for a setpoint uses it): a command then
+            takes effect at the start of a step, whichever moment of the wait it
+            arrived in, so a lockstep flight does not depend on wall-clock timing.
         """
         sock = self.sock
         if sock is None:
             return 0
+        if not defer_commands and self._deferred:
+            deferred, self._deferred = self._deferred, []
+            for msg in deferred:
+                self._handle(msg, t_s)
         n = 0
         while True:
             try:
@@ -406,7 +421,10 @@ class MavlinkFace:
                 self._warn_once("parse", "bad MAVLink data from %s: %s", addr, exc)
                 continue
             for msg in msgs:
-                self._handle(msg, t_s)
+                if defer_commands and msg.get_type() in _DEFERRED_TYPES:
+                    self._deferred.append(msg)
+                else:
+                    self._handle(msg, t_s)
 
     def _add_peer(self, addr: tuple[str, int]) -> None:
         if addr in self.peers:

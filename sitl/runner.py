@@ -681,12 +681,7 @@ class Runner:
             # Fault times count from the pilot's start (arming, with --pilot-from-arm).
             while faults and t_pilot0 is not None and t - t_pilot0 >= faults[0].t_s - 1e-9:
                 self._inject(faults.pop(0), t, log)
-            if t_pilot0 is None and ap.armed:
-                t_pilot0 = t
-                self._make_streams()
-                imu, pilot = self.imu, self.pilot
-                next_rc_s = t
-                log.event(Event(t, "pilot_start", {"t_s": t}))
+
             if (
                 cfg.pilot_from_arm
                 and self.config.duration_s is None
@@ -695,6 +690,16 @@ class Runner:
             ):
                 return "completed"
             face.poll(t)
+            # Armed at the start of this step (commands take effect only here in
+            # lockstep): the flight's timeline starts now, whenever that was.
+            if t_pilot0 is None and ap.armed:
+                t_pilot0 = t
+                self._make_streams()
+                # The messages too: their schedules began when the client asked.
+                self.streams.rephase(t)
+                imu, pilot = self.imu, self.pilot
+                next_rc_s = t
+                log.event(Event(t, "pilot_start", {"t_s": t}))
             st = quad.state
             euler = quat_to_euler_rad(st.q_wxyz)
             if pilot is not None and t >= next_rc_s - 1e-9:
@@ -743,7 +748,7 @@ class Runner:
                         )
                         break
                     if face.wait_readable(left):
-                        face.poll(t)
+                        face.poll(t, defer_commands=True)
 
             if sample is not None:
                 motors = ap.update(
