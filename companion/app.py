@@ -485,6 +485,14 @@ class Companion:
             dt = 0.0
         else:
             dt = t_s - t_prev
+            if 0.0 < dt <= _TIME_JUMP_S:
+                # The stamps are whole microseconds (HIGHRES_IMU) or milliseconds
+                # (ATTITUDE): rounded to the microsecond, the step does not carry the
+                # rounding of two large floats, so a flight does not depend on when
+                # (in the autopilot's clock) it began.
+                us = round(dt * 1e6)
+                if us > 0:
+                    dt = us * 1e-6
             if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
                 if not self._on_time_anomaly(t_s, dt, t0):
                     return
@@ -639,6 +647,10 @@ class Companion:
             # Engaged time; in shadow mode (never engaged) time since the first sample.
             since = self._t_engaged if self.opts.engage != "none" else self._t_first
             if since is not None and t_s - since >= self._duration_s:
+                # Stop commanding in this callback: a sample that arrives before the
+                # run's task wakes gets no command (how many did was a race).
+                if self._release():
+                    self._hand_back_owed = True  # the run's end hands back
                 self._event("duration", f"{self._duration_s} s")
                 self._stop.set()
         append = self._log_append
