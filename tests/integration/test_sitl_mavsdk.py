@@ -13,20 +13,21 @@ from typing import Any
 
 import pytest
 
-from sitl.runner import read_log
-
-from .conftest import SitlProcess
-
-mavsdk = pytest.importorskip("mavsdk.asyncio")
-from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
-from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
-from mavsdk.asyncio.plugins.offboard import (  # noqa: E402
+# A test dependency (pyproject's test extra): missing, this module fails to
+# collect, so CI fails rather than skipping the real client.
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+from mavsdk.asyncio.plugins.action import ActionAsync
+from mavsdk.asyncio.plugins.offboard import (
     ActuatorControl,
     ActuatorControlGroup,
     AttitudeRate,
     OffboardAsync,
 )
-from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
+from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync
+
+from sitl.runner import read_log
+
+from .conftest import SitlProcess
 
 pytestmark = pytest.mark.integration
 
