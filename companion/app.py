@@ -968,10 +968,10 @@ class Companion:
         leaves (its own failsafe) or never shows within ``hand_back_watch_s``,
         by the next one of a more conservative kind (manual -> hold -> land). A
         switch that goes unanswered ends it here: the run's end tries again
-        (``_hand_back_owed``). With ``adopt`` (the
-        autopilot's heartbeat showed it leave OFFBOARD by itself), a mode it can
-        fly there is kept: the companion does not override the autopilot's
-        failsafe or the pilot's mode switch."""
+        (``_hand_back_owed``). With ``adopt`` (the autopilot's heartbeat showed
+        it leave OFFBOARD by itself), a mode it can fly there is kept: the
+        companion does not override the autopilot's failsafe or the pilot's
+        mode switch."""
         assert self.stack is not None
         stack, modes = self.stack, self._safe_modes
         ap_mode = self._ap_mode
@@ -1017,7 +1017,7 @@ class Companion:
             self._hand_back_accepted = True
             self._hand_back_owed = False
             self._event("handed_back", f"{why} accepted")
-            failed = await self._watch_safe_mode(modes, choice.index, rc_failsafe=rc_failsafe)
+            failed = await self._watch_safe_mode(modes, choice.index)
             if failed is None:
                 return
             self._hand_back_accepted = False
@@ -1025,17 +1025,15 @@ class Companion:
             reason, start = failed, next_kind(modes, choice.index)
             cond = self._conditions(rc_failsafe=rc_failsafe)
 
-    async def _watch_safe_mode(
-        self, modes: tuple[SafeMode, ...], index: int, *, rc_failsafe: bool
-    ) -> str | None:
+    async def _watch_safe_mode(self, modes: tuple[SafeMode, ...], index: int) -> str | None:
         """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
         ``modes[index]``: None if the vehicle stays in a mode it can fly, else why not.
 
         Until the new mode shows, a heartbeat still showing the mode from before
         the switch (or the engage mode) may have been sent before it: only
-        another mode is judged at once. A new engagement
-        (the pilot's switch) or a disarm ends the watch. With no heartbeat at all
-        meanwhile (a lost link) there is nothing to judge by: the mode stays."""
+        another mode is judged at once. A new engagement (the pilot's switch) or
+        a disarm ends the watch. With no heartbeat at all meanwhile (a lost
+        link) there is nothing to judge by: the mode stays."""
         assert self.stack is not None
         stack = self.stack
         target = stack.custom_mode(modes[index])
@@ -1057,7 +1055,8 @@ class Companion:
             if mode == target:
                 seen = True
             elif mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
-                failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=rc_failsafe))
+                # Judged on RC as it is now: a pilot with the radio back may take it.
+                failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=False))
                 if failed is not None:
                     return f"{failed} after {elapsed:.1f} s"
                 label = stack.mode_label(mode)
