@@ -9,9 +9,10 @@ Their hold modes need a position estimate. Land needs neither.
 stack's list (a manual mode, a hold, land); with a named mode, that mode and
 then the pilot-free modes after it. :func:`pick` takes the first whose needs
 the vehicle meets now, saying why the ones before it were passed over. After a
-switch the app watches the autopilot's mode (:func:`judge`): a mode the
-autopilot leaves or never shows counts as failed, and the next candidate is
-tried. No I/O and no clock here: the app feeds in what it saw.
+switch the app watches the autopilot's mode (:func:`judge`): a mode refused
+is followed by the next candidate; one the autopilot leaves or never shows, by
+the next of a more conservative kind (:func:`next_kind`). No I/O and no clock
+here: the app feeds in what it saw.
 """
 
 from __future__ import annotations
@@ -39,9 +40,7 @@ class Conditions:
     frames come back meanwhile."""
 
     def describe(self) -> str:
-        rc = "no valid RC" if not self.rc_valid else "valid RC"
-        if self.rc_failsafe:
-            rc = "RC lost"
+        rc = "RC lost" if self.rc_failsafe else "valid RC" if self.rc_valid else "no valid RC"
         pos = "a position estimate" if self.position_valid else "no position estimate"
         return f"{rc}, {pos}"
 
