@@ -328,6 +328,9 @@ class Companion:
         )
         self._rc_lost_logged = False
         self._duration_s = opts.duration_s
+        # Counted in the autopilot's whole microseconds: a float difference of two
+        # large stamps would end the run one sample early or late by its rounding.
+        self._duration_us = None if opts.duration_s is None else round(opts.duration_s * 1e6)
         self._tlog: Any = None
         # The run's events: the last _EVENTS_KEPT in memory; with --log-dir,
         # _open_records gives it a file (all of them, through the writer thread).
@@ -627,6 +630,18 @@ class Companion:
             if frac:  # decays while the samples are good; free once it is back to 0
                 frac -= frac * dt * self._inv_invalid_window
                 self._invalid_frac = frac if frac > 1e-4 else 0.0
+        if self.engaged and self._t_engaged is None:
+            self._t_engaged = t_s  # engaged time counts from the first sample flown
+        if self._duration_us is not None and not self._stop.is_set():
+            # Engaged time; in shadow mode (never engaged) time since the first sample.
+            since = self._t_engaged if self.opts.engage != "none" else self._t_first
+            if since is not None and round((t_s - since) * 1e6) >= self._duration_us:
+                # Stop commanding in this callback, before this sample's command: the
+                # run flies [start, start + duration), whenever the run's task wakes.
+                if self._release():
+                    self._hand_back_owed = True  # the run's end hands back
+                self._event("duration", f"{self._duration_s} s")
+                self._stop.set()
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
         script = self._script
@@ -636,6 +651,7 @@ class Companion:
                 thrust = scripted_thrust
         out = self.controller.update(dt, gyro, ref, thrust)
         sent: Sequence[float] = _NO_RATES
+        engaged = self.engaged  # as the command left (recorded so, whatever follows)
         if self.commanding:
             sent = self._send_output(t_s, out, ref, thrust)
         t_sent = time.perf_counter()
@@ -643,16 +659,6 @@ class Companion:
         self.controller.learn()
         if self.engaged:
             self._check_envelope(t_s, dt, gyro, out)
-        if self._duration_s is not None and not self._stop.is_set():
-            # Engaged time; in shadow mode (never engaged) time since the first sample.
-            since = self._t_engaged if self.opts.engage != "none" else self._t_first
-            if since is not None and t_s - since >= self._duration_s:
-                # Stop commanding in this callback: a sample that arrives before the
-                # run's task wakes gets no command (how many did was a race).
-                if self._release():
-                    self._hand_back_owed = True  # the run's end hands back
-                self._event("duration", f"{self._duration_s} s")
-                self._stop.set()
         append = self._log_append
         if append is not None:
             tq = out.torque
@@ -664,7 +670,7 @@ class Companion:
             # The layout of companion.records.columns.
             append(
                 [
-                    t_s, t0, (t_sent - t0) * 1e6, float(self.engaged), float(out.held),
+                    t_s, t0, (t_sent - t0) * 1e6, float(engaged), float(out.held),
                     ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
                     ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
@@ -833,7 +839,7 @@ class Companion:
             self._restart_dt = True  # the next sample primes it, as a replay does
             self._reset_envelope()
             self.engaged = True
-            self._t_engaged = self._t_prev
+            self._t_engaged = None  # set by the first sample flown
             self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")
         elif was and not now and not self._handing_back:
             self.engaged = False
