@@ -1,5 +1,10 @@
 """The ``companion`` command line.
 
+The product's commands (``run``, ``check-config``, ``replay``) live here. The
+lab's (``fly``, ``simulate``, ``campaign``, ``envelope``) live in
+:mod:`sitl.lab.cli` and are imported only when one of them is asked for, so a
+companion computer's install needs neither the simulator nor its plotting.
+
 Exit codes: 0 success, 1 a run that failed (e.g. crashed when asked to fail
 on it), 2 bad input (a configuration error names the file and the field;
 nothing is started).
@@ -7,55 +12,72 @@ nothing is started).
 
 from __future__ import annotations
 
-import contextlib
+import importlib
 import json
 import logging
-import math
 import sys
-from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import click
-from click.core import ParameterSource
 
 from companion import __version__
-from companion._options import SEED, Finite, usable_out_dir, usable_out_file
 from companion.errors import ConfigError, MfcError
+from companion.options import (
+    EXIT_BAD_INPUT,
+    Finite,
+    controller_opt,
+    fail_config,
+    load_inputs,
+    profile_opt,
+    usable_out_dir,
+    usable_out_file,
+)
 
 __all__ = ["main"]
 
 _log = logging.getLogger("companion")
 
-EXIT_BAD_INPUT = 2
+_LAB_MODULE = "sitl.lab.cli"
+_LAB_COMMANDS = ("campaign", "envelope", "fly", "simulate")
+"""The lab's commands, by name: each is an attribute of :data:`_LAB_MODULE`."""
 
 
-@contextlib.contextmanager
-def _percent_bar(desc: str, enabled: bool) -> Iterator[Callable[[float], None]]:
-    """A tqdm bar in percent; yields the ``progress(fraction)`` callback flights take."""
-    from tqdm import tqdm
+class _Commands(click.Group):
+    """The product's commands, and the lab's imported when one is asked for."""
 
-    bar = tqdm(total=100, desc=desc, unit="%", disable=not enabled)
-    done = [0]
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted({*super().list_commands(ctx), *_LAB_COMMANDS})
 
-    def tick(frac: float) -> None:
-        n = int(frac * 100)
-        if n > done[0]:
-            bar.update(n - done[0])
-            done[0] = n
-
-    try:
-        yield tick
-    finally:
-        bar.close()
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        cmd = super().get_command(ctx, cmd_name)
+        if cmd is not None or cmd_name not in _LAB_COMMANDS:
+            return cmd
+        try:
+            lab = importlib.import_module(_LAB_MODULE)
+        except ImportError as exc:
+            return _missing_lab(cmd_name, exc)
+        command: click.Command = getattr(lab, cmd_name)
+        return command
 
 
-def _fail_config(exc: ConfigError) -> None:
-    click.echo(f"error: {exc}", err=True)
-    sys.exit(EXIT_BAD_INPUT)
+def _missing_lab(name: str, exc: ImportError) -> click.Command:
+    """A stand-in for a lab command this install cannot import: it says why."""
+
+    def fail() -> None:
+        raise click.ClickException(
+            f"'companion {name}' is a lab command and this install has no lab ({exc}); "
+            "install the project with its simulator: pip install 'mfc-companion[lab]'"
+        )
+
+    return click.Command(
+        name,
+        callback=fail,
+        help="(lab command: not installed here)",
+        context_settings={"ignore_unknown_options": True, "allow_extra_args": True},
+    )
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="companion")
 @click.option("-v", "--verbose", count=True, help="More logging (-vv for debug).")
 def cli(verbose: int) -> None:
@@ -64,65 +86,14 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
-def _find_profile(_ctx: click.Context, _param: click.Parameter, path: Path) -> Path:
-    """A relative profile path missing here is looked up in the checkout's folder too,
-    so the defaults work from any directory."""
-    if path.is_absolute() or path.exists():
-        return path
-    bundled = Path(__file__).resolve().parents[1] / path
-    if not bundled.exists():
-        return path  # the loader will say it is missing
-    click.echo(f"note: {path} is not in {Path.cwd()}; using {bundled}", err=True)
-    return bundled
-
-
-_profile_opt = click.option(
-    "--profile",
-    "profile_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("vehicle_profiles/f450.yaml"),
-    show_default=True,
-    callback=_find_profile,
-    help="Vehicle profile YAML (a relative path not found here is also looked up in "
-    "the checkout, so vehicle_profiles/NAME.yaml works from any directory).",
-)
-_controller_opt = click.option(
-    "--controller",
-    "controller_path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Controller config YAML (default: companion/data/mfc_default.yaml, or "
-    "mfc_rates.yaml with --output rates; for every vehicle).",
-)
-
-
-def _load_inputs(
-    profile_path: Path,
-    controller_path: Path | None,
-    output: str = "actuator",
-    *,
-    simulated: bool = False,
-) -> tuple[Any, Any, Path]:
-    from companion.config import default_controller, load_controller
-    from companion.profile import load_profile
-
-    ctrl_path = controller_path or default_controller(output)
-    try:
-        profile = load_profile(profile_path, simulated=simulated)
-        cfg = load_controller(ctrl_path)
-    except ConfigError as exc:
-        _fail_config(exc)
-    return profile, cfg, ctrl_path
-
-
 @cli.command("check-config")
-@_profile_opt
-@_controller_opt
+@profile_opt
+@controller_opt
 def check_config(profile_path: Path, controller_path: Path | None) -> None:
     """Validate a profile and a controller config; print the effective values."""
     from companion.config import build_mixer
 
-    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path)
+    profile, cfg, ctrl_path = load_inputs(profile_path, controller_path)
     mixer = build_mixer(profile)
     roll_f, pitch_f, yaw_f = mixer.factors()
     doc = {
@@ -133,67 +104,6 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     click.echo(json.dumps(doc, indent=2))
 
 
-@cli.command("simulate")
-@_profile_opt
-@_controller_opt
-@click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
-@click.option(
-    "--controller-profile",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Give the controller this profile's geometry instead of the flown vehicle's.",
-)
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False),
-    callback=usable_out_dir,
-    default=Path("runs/latest"),
-    show_default=True,
-    help="Folder for metrics.json, plots, flight.npz and report.md.",
-)
-@click.option("--progress/--no-progress", default=True, show_default=True)
-def simulate(
-    profile_path: Path,
-    controller_path: Path | None,
-    scenario: str,
-    seed: int | None,
-    controller_profile: Path | None,
-    out_dir: Path,
-    progress: bool,
-) -> None:
-    """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
-    from companion.profile import load_profile
-    from companion.report import write_report
-    from companion.simulate import simulate_flight
-    from sitl.scenario import load_scenario
-
-    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path, simulated=True)
-    try:
-        sc = load_scenario(scenario)
-        ctrl_prof = load_profile(controller_profile) if controller_profile else None
-    except ConfigError as exc:
-        _fail_config(exc)
-    with _percent_bar(f"{sc.name} on {profile.name}", progress) as tick:
-        record = simulate_flight(
-            profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
-        )
-    metrics = write_report(
-        record,
-        out_dir,
-        controller_path=str(ctrl_path),
-        profile_path=str(profile_path),
-        scenario_desc=sc.description.strip(),
-    )
-    mae = metrics["mae_deg_s"]
-    click.echo(
-        f"{'CRASHED' if metrics['crashed'] else 'flew'} {metrics['sim_time_s']:.1f} s in "
-        f"{metrics['wall_time_s']:.1f} s; MAE roll {mae['roll']} pitch {mae['pitch']} "
-        f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
-    )
-
-
 @cli.command("run")
 @click.option(
     "--connect",
@@ -201,8 +111,8 @@ def simulate(
     show_default=True,
     help="udpin:HOST:PORT, udpout:HOST:PORT or serial:DEVICE:BAUD.",
 )
-@_profile_opt
-@_controller_opt
+@profile_opt
+@controller_opt
 @click.option(
     "--output",
     type=click.Choice(["actuator", "rates"]),
@@ -425,7 +335,7 @@ def run(
     from companion.link.signing import load_signing_key
     from companion.link.transport import open_transport
 
-    profile, cfg, ctrl_path = _load_inputs(profile_path, controller_path, output)
+    profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, output)
     # Check everything a run needs before anything is opened or sent.
     reference = None
     try:
@@ -437,8 +347,12 @@ def run(
             reference = load_reference(reference_path)
         open_transport(connect)
         if mqtt_url:
-            from companion.telemetry import MqttTelemetry
-
+            try:
+                from companion.telemetry import MqttTelemetry
+            except ImportError as exc:
+                raise ValueError(
+                    f"--mqtt needs aiomqtt ({exc}): pip install 'mfc-companion[mqtt]'"
+                ) from exc
             MqttTelemetry(mqtt_url)
         if signing_key:
             load_signing_key(signing_key)
@@ -496,140 +410,6 @@ def run(
         ),
     )
     sys.exit(asyncio.run(Companion(opts).run()))
-
-
-@cli.command("fly")
-@_profile_opt
-@_controller_opt
-@click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
-@click.option(
-    "--output", type=click.Choice(["actuator", "rates"]), default="actuator", show_default=True
-)
-@click.option(
-    "--duration",
-    type=Finite(min=0.0, min_open=True),
-    default=None,
-    help="Engaged flight time, s [default: the scenario's].",
-)
-@click.option(
-    "--controller-profile",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Give the companion this profile instead of the flown one.",
-)
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False),
-    callback=usable_out_dir,
-    default=Path("runs/fly"),
-    show_default=True,
-)
-@click.option(
-    "--autopilot",
-    type=click.Choice(["px4", "ardupilot"]),
-    default="px4",
-    show_default=True,
-    help="The SITL's personality; ardupilot implies --output rates.",
-)
-@click.option(
-    "--compare-passthrough",
-    is_flag=True,
-    help="Rates output: fly the same scenario again sending the pilot's rates straight "
-    "through (into OUT/passthrough) and report both.",
-)
-@click.option("--progress/--no-progress", default=True, show_default=True)
-def fly(
-    profile_path: Path,
-    controller_path: Path | None,
-    scenario: str,
-    seed: int | None,
-    output: str,
-    duration: float | None,
-    controller_profile: Path | None,
-    out_dir: Path,
-    autopilot: str,
-    compare_passthrough: bool,
-    progress: bool,
-) -> None:
-    """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
-
-    Writes metrics.json, plots, report.md, and both processes' logs into OUT.
-    """
-    from companion.fly import FlightProcesses, fly_mavlink, merge_logs
-    from companion.profile import load_profile
-    from companion.report import write_report
-    from companion.simulate import FlightRecord
-    from sitl.scenario import load_scenario
-
-    source = click.get_current_context().get_parameter_source("output")
-    if autopilot == "ardupilot" and output == "actuator" and source == ParameterSource.COMMANDLINE:
-        click.echo("error: --output actuator: ArduPilot accepts body rates only (--output rates)",
-                   err=True)  # fmt: skip
-        sys.exit(EXIT_BAD_INPUT)
-    flown_output = "rates" if autopilot == "ardupilot" else output
-    if compare_passthrough and flown_output != "rates":
-        click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
-                   err=True)  # fmt: skip
-        sys.exit(EXIT_BAD_INPUT)
-    profile, _cfg, ctrl_path = _load_inputs(
-        profile_path, controller_path, flown_output, simulated=True
-    )
-    try:
-        sc = load_scenario(scenario)
-        if controller_profile:
-            load_profile(controller_profile)
-    except ConfigError as exc:
-        _fail_config(exc)
-    meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
-            "controller_profile": str(controller_profile or profile_path)}  # fmt: skip
-
-    def fly_once(
-        label: str, out: Path, companion_args: tuple[str, ...] = ()
-    ) -> tuple[FlightProcesses, FlightRecord]:
-        """One MAVLink flight of the scenario into ``out``, merged into a record."""
-        with _percent_bar(f"{sc.name} on {profile.name}{label}", progress) as tick:
-            fl = fly_mavlink(
-                profile_path, scenario, out, controller_path=ctrl_path, output=output,
-                duration_s=duration, seed=seed, controller_profile_path=controller_profile,
-                autopilot=autopilot, companion_args=companion_args, progress=tick,
-            )  # fmt: skip
-        if not fl.control_log.exists():
-            click.echo(
-                f"error: the companion wrote no control log (exit {fl.companion_rc}); "
-                f"see {out / 'companion.stderr'}",
-                err=True,
-            )
-            sys.exit(1)
-        return fl, merge_logs(fl, meta=meta)
-
-    flight, record = fly_once(" (MAVLink)", out_dir)
-    baseline = None
-    if compare_passthrough:
-        _, baseline = fly_once(", pass-through", out_dir / "passthrough", ("--rates-passthrough",))
-    metrics = write_report(
-        record,
-        out_dir,
-        controller_path=str(ctrl_path),
-        profile_path=str(profile_path),
-        scenario_desc=sc.description.strip(),
-        passthrough=baseline,
-    )
-    mae = metrics["mae_deg_s"]
-    click.echo(
-        f"{'CRASHED' if metrics['crashed'] else 'flew'} {metrics['sim_time_s']:.1f} s in "
-        f"{flight.wall_time_s:.1f} s wall; MAE roll {mae['roll']} pitch {mae['pitch']} "
-        f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
-    )
-    if baseline is not None:
-        ptm = metrics["passthrough"]["mae_deg_s"]
-        click.echo(
-            f"pass-through: MAE roll {ptm['roll']} pitch {ptm['pitch']} yaw {ptm['yaw']} deg/s"
-            f"{' (ended by a failsafe)' if metrics['passthrough']['failsafe_events'] else ''}"
-        )
-    if flight.companion_rc != 0:
-        sys.exit(1)
 
 
 REPLAY_TOLERANCE = 1e-6
@@ -691,7 +471,7 @@ def replay_cmd(
         cfg = load_controller(ctrl)
         profile = load_profile(prof)
     except ConfigError as exc:
-        _fail_config(exc)
+        fail_config(exc)
     out = replay(cols, cfg, profile)
     diffs = compare(cols, out)
     engaged = int((cols["engaged"] > 0.5).sum())
@@ -728,334 +508,6 @@ def replay_cmd(
             err=True,
         )
         sys.exit(1)
-
-
-def _split_list(values: tuple[str, ...]) -> list[str]:
-    return [v.strip() for item in values for v in item.split(",") if v.strip()]
-
-
-@cli.command("campaign")
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False),
-    callback=usable_out_dir,
-    default=Path("runs/campaign"),
-    show_default=True,
-    help="Folder for campaign.json, summary.md and mae.png.",
-)
-@click.option(
-    "--profiles",
-    multiple=True,
-    help="Profile names (vehicle_profiles/<name>.yaml) or files; repeat or comma-separate "
-    "[default: every profile in vehicle_profiles/].",
-)
-@click.option(
-    "--controllers",
-    multiple=True,
-    help="Controller files; repeat or comma-separate [default: the shipped MFC set and "
-    "companion/data/pid_tarot_tuned.yaml].",
-)
-@click.option(
-    "--damage",
-    default="1.0,0.8,0.6",
-    show_default=True,
-    help="Motor 1 thrust/torque efficiency factors (comma-separated).",
-)
-@click.option(
-    "--gusts", default="0,2", show_default=True, help="Wind gust sigmas, m/s (comma-separated)."
-)
-@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True)
-@click.option(
-    "--seed-base",
-    type=click.IntRange(min=0),
-    default=1000,
-    show_default=True,
-    help="Seeds are seed-base .. seed-base + seeds - 1 (no tuning used these).",
-)
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Parallel flights [default: os.cpu_count()].",
-)
-@click.option(
-    "--duration",
-    type=Finite(min=0.0, min_open=True),
-    default=20.0,
-    show_default=True,
-    help="Fly only the first S seconds of the scenario.",
-)
-@click.option(
-    "--scenario",
-    default="train-acro",
-    show_default=True,
-    help="Scenario name or file. train-acro's pilot is seeded random acro, so each seed is "
-    "a new flight of the kind both controllers were tuned for; paper-acro is the fixed test "
-    "programme (reproduced by scripts/reproduce_paper.py).",
-)
-@click.option("--progress/--no-progress", default=True, show_default=True)
-def campaign(
-    out_dir: Path,
-    profiles: tuple[str, ...],
-    controllers: tuple[str, ...],
-    damage: str,
-    gusts: str,
-    seeds: int,
-    seed_base: int,
-    workers: int | None,
-    duration: float,
-    scenario: str,
-    progress: bool,
-) -> None:
-    """Fly a grid (profiles x damage x gusts x seeds x controllers) in parallel, in process.
-
-    Default: 4 profiles x 3 damage x 2 gusts x 3 seeds x 2 controllers = 144 flights of
-    20 s. For 200+ flights, e.g. --seeds 5 (240 flights) or --seeds 10 --duration 35
-    (480 full train-acro flights).
-    """
-    import os
-    import time
-    from importlib.resources import files
-
-    from companion.campaign import build_grid, run_campaign, write_outputs
-    from companion.config import DEFAULT_CONTROLLER, load_controller
-    from companion.profile import load_profile
-    from sitl.scenario import load_scenario
-
-    root = Path(__file__).resolve().parents[1]
-
-    def profile_file(name: str) -> Path:
-        p = Path(name)
-        if p.suffix in (".yaml", ".yml") or p.exists():
-            return p
-        for base in (Path("vehicle_profiles"), root / "vehicle_profiles"):
-            if (base / f"{name}.yaml").exists():
-                return base / f"{name}.yaml"
-        return Path("vehicle_profiles") / f"{name}.yaml"
-
-    try:
-        damages = [float(x) for x in _split_list((damage,))]
-        gust_list = [float(x) for x in _split_list((gusts,))]
-    except ValueError as exc:
-        raise click.BadParameter(f"expected comma-separated numbers: {exc}") from exc
-    if not damages or not gust_list:
-        raise click.BadParameter("--damage and --gusts need at least one value each")
-    if not all(0.0 < d <= 1.0 for d in damages):
-        raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
-    if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
-        raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
-    prof_names, ctrl_names = _split_list(profiles), _split_list(controllers)
-    for flag, given, names in (
-        ("--profiles", profiles, prof_names),
-        ("--controllers", controllers, ctrl_names),
-    ):
-        if given and not names:
-            raise click.BadParameter(f"{flag}: expected names or files, got {list(given)!r}")
-    if not prof_names:
-        local = Path("vehicle_profiles")
-        prof_dir = local if local.is_dir() else root / "vehicle_profiles"
-        prof_names = [str(p) for p in sorted(prof_dir.glob("*.yaml"))]
-    ctrl_files = ctrl_names or [
-        str(DEFAULT_CONTROLLER),
-        str(files("companion") / "data" / "pid_tarot_tuned.yaml"),
-    ]
-    try:
-        prof = {Path(n).stem: load_profile(profile_file(n), simulated=True) for n in prof_names}
-        ctrl = {Path(c).stem: load_controller(c) for c in ctrl_files}
-        sc = load_scenario(scenario)
-    except ConfigError as exc:
-        _fail_config(exc)
-    if len(ctrl) != len(ctrl_files) or len(prof) != len(prof_names):
-        raise click.BadParameter("two profiles or two controllers share a file name")
-    seed_list = list(range(seed_base, seed_base + seeds))
-    try:
-        specs = build_grid(
-            prof, ctrl, sc, damages=damages, gusts_m_s=gust_list, seeds=seed_list,
-            duration_s=duration,
-        )  # fmt: skip
-    except ValueError as exc:
-        raise click.BadParameter(str(exc)) from exc
-    n_workers = workers or os.cpu_count() or 1
-    _log.info("campaign: %d flights on %d workers", len(specs), n_workers)
-    t0 = time.perf_counter()
-    records = run_campaign(specs, workers=n_workers, progress=progress)
-    meta = {
-        "scenario": sc.name,
-        "duration_s": duration,
-        "profiles": list(prof),
-        "controllers": {k: str(c) for k, c in zip(ctrl, ctrl_files, strict=True)},
-        "damages": damages,
-        "gusts_m_s": gust_list,
-        "seeds": seed_list,
-        "workers": n_workers,
-        "flights": len(records),
-        "wall_time_s": round(time.perf_counter() - t0, 1),
-    }
-    paths = write_outputs(records, out_dir, meta)
-    crashes = sum(r["crashed"] for r in records)
-    click.echo(
-        f"{len(records)} flights ({crashes} crashed) in {meta['wall_time_s']:.0f} s; "
-        f"summary: {paths['summary']}"
-    )
-
-
-@cli.command("envelope")
-@click.option(
-    "--out",
-    "out_dir",
-    type=click.Path(file_okay=False),
-    callback=usable_out_dir,
-    required=True,
-    help="Folder for envelope.json, summary.md, ratio.png and worst-*.png.",
-)
-@click.option(
-    "--n",
-    type=click.IntRange(min=0),
-    default=30,
-    show_default=True,
-    help="Latin-hypercube vehicles, on top of the named corners.",
-)
-@click.option(
-    "--seed",
-    type=SEED,
-    default=1,
-    show_default=True,
-    help="Seeds the vehicle sample and every PID tuning search.",
-)
-@click.option("--corners-only", is_flag=True, help="Only the named corner vehicles.")
-@click.option(
-    "--damage/--no-damage",
-    default=True,
-    show_default=True,
-    help="Add the motor60, imbalance and cg10 variants (the PID retuned on each).",
-)
-@click.option(
-    "--damage-on",
-    type=click.IntRange(min=0),
-    default=8,
-    show_default=True,
-    help="How many vehicles get the damage variants: the first K, corners first.",
-)
-@click.option(
-    "--tune-budget",
-    type=click.IntRange(min=1),
-    default=40,
-    show_default=True,
-    help="PID tuning flights per vehicle and case.",
-)
-@click.option(
-    "--train-scenario",
-    default="train-acro",
-    show_default=True,
-    help="Scenario the PID is tuned on (name or file).",
-)
-@click.option(
-    "--test-scenario",
-    default="envelope-test",
-    show_default=True,
-    help="Scenario every controller is scored on (name or file); never tuned on.",
-)
-@_controller_opt
-@click.option(
-    "--controller-profile",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("vehicle_profiles/f450.yaml"),
-    show_default=True,
-    callback=_find_profile,
-    help="The profile MFC is given, whatever vehicle it flies.",
-)
-@click.option(
-    "--worst",
-    "worst_k",
-    type=click.IntRange(min=0),
-    default=3,
-    show_default=True,
-    help="How many worst cases to re-fly and plot.",
-)
-@click.option(
-    "--workers",
-    type=click.IntRange(min=1),
-    default=None,
-    help="Parallel cases [default: os.cpu_count()].",
-)
-@click.option("--progress/--no-progress", default=True, show_default=True)
-def envelope(
-    out_dir: Path,
-    n: int,
-    seed: int,
-    corners_only: bool,
-    damage: bool,
-    damage_on: int,
-    tune_budget: int,
-    train_scenario: str,
-    test_scenario: str,
-    controller_path: Path | None,
-    controller_profile: Path,
-    worst_k: int,
-    workers: int | None,
-    progress: bool,
-) -> None:
-    """MFC (one file, never retuned) against a PID retuned for each envelope vehicle.
-
-    Per vehicle and case: tunes the PID on the training scenario, then flies MFC (given
-    the F450's profile), the tuned PID and PX4's default PID on the test scenario. Writes
-    the ratio table, the envelope plot and the worst cases. Method: docs/envelope.md.
-    """
-    import os
-    import time
-
-    from companion.config import DEFAULT_CONTROLLER
-    from companion.envelope import (
-        envelope_cases,
-        envelope_meta,
-        load_setup,
-        run_envelope,
-        verdicts,
-        write_envelope_outputs,
-    )
-
-    try:
-        setup = load_setup(
-            controller=controller_path,
-            controller_profile=controller_profile,
-            train_scenario=train_scenario,
-            test_scenario=test_scenario,
-            tune_budget=tune_budget,
-            seed=seed,
-        )
-        cases = envelope_cases(
-            n, seed, corners_only=corners_only, damage=damage, damage_on=damage_on
-        )
-    except ConfigError as exc:
-        _fail_config(exc)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc)) from exc
-    n_workers = workers or os.cpu_count() or 1
-    _log.info("envelope: %d cases on %d workers", len(cases), n_workers)
-    t0 = time.perf_counter()
-    records = run_envelope(cases, setup, workers=n_workers, progress=progress)
-    meta = envelope_meta(
-        cases,
-        setup,
-        seed=seed,
-        n=n,
-        corners_only=corners_only,
-        mfc_controller=str(controller_path or DEFAULT_CONTROLLER),
-        controller_profile=str(controller_profile),
-        workers=n_workers,
-        wall_time_s=round(time.perf_counter() - t0, 1),
-    )
-    paths = write_envelope_outputs(
-        records, out_dir, meta, setup=setup, cases=cases, worst_k=worst_k
-    )
-    v = verdicts(records)["all"]
-    click.echo(
-        f"{len(records)} cases in {meta['wall_time_s']:.0f} s: MFC crashed in "
-        f"{v['mfc_crashes']}; ratio target {'met' if v['ratio_within_target'] else 'not met'}; "
-        f"better than PX4 default {'met' if v['better_than_default'] else 'not met'}; "
-        f"summary: {paths['summary']}"
-    )
 
 
 def main() -> None:

@@ -14,7 +14,6 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from companion._schema import StrictModel, load_yaml_model
 from companion.control import (
     AlphaAdaptation,
     AxisRates,
@@ -28,6 +27,7 @@ from companion.control import (
     StickMap,
 )
 from companion.profile import VehicleProfile
+from companion.schema import StrictModel, load_yaml_model
 
 __all__ = [
     "DEFAULT_CONTROLLER",
@@ -221,7 +221,7 @@ def load_controller(path: str | Path = DEFAULT_CONTROLLER) -> MfcConfig | PidCon
     companion.errors.ConfigError
         Naming the file and the key path of every problem.
     """
-    from companion._schema import read_yaml
+    from companion.schema import read_yaml
     from companion.errors import ConfigError
 
     p = Path(path)

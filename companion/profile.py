@@ -25,8 +25,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from companion._schema import StrictModel, load_yaml_model
 from companion.errors import ConfigError
+from companion.schema import StrictModel, load_yaml_model
 
 __all__ = [
     "Damage",

@@ -23,8 +23,8 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion._schema import read_text
 from companion.errors import ConfigError
+from companion.schema import read_text
 
 __all__ = ["ReferenceScript", "load_reference"]
 

@@ -10,7 +10,7 @@ another configuration shows what it would have commanded on the same
 measurements (open loop: the vehicle's response to the new commands is not
 simulated).
 
-Conventions, matching the live loop and :func:`companion.simulate.simulate_flight`:
+Conventions, matching the live loop and :func:`sitl.lab.simulate.simulate_flight`:
 
 * ``dt`` is the difference of consecutive ``t_s``; the first row, and the first
   engaged row after disengaged ones, get ``dt = 0`` (the controller clamps it

@@ -27,7 +27,7 @@
     no missed samples. Also ``late``/``floor_late`` (commands back, but more
     than 20 ms after their sample: the machine stalled), ``floor_missed``,
     ``skipped``/``floor_skipped`` (IMU slots the harness skipped because it was
-    itself descheduled past them; see ``companion._loopbench``) and
+    itself descheduled past them; see ``sitl.lab.loopbench``) and
     ``ended_early``/``floor_ended_early`` (a server that exited before the end,
     e.g. on a failsafe, misses everything after).
 ``sitl``
@@ -73,7 +73,7 @@ def _recorded_stream() -> list[tuple[Any, ...]]:
     """
     from companion.config import load_controller
     from companion.profile import load_profile
-    from companion.simulate import simulate_flight
+    from sitl.lab.simulate import simulate_flight
     from sitl.scenario import load_scenario
 
     root = Path(__file__).resolve().parents[1]
@@ -145,7 +145,7 @@ def bench_sitl() -> dict[str, Any]:
 
 
 def bench_loop(quick: bool) -> dict[str, Any]:
-    from companion._loopbench import run_loop_bench
+    from sitl.lab.loopbench import run_loop_bench
 
     # This checkout's profile: the one beside the imported package is missing when
     # the package is installed from a wheel (e.g. a compiled build).

@@ -7,14 +7,14 @@ Usage::
     python scripts/reproduce_paper.py --out /tmp/paper --quick  # 15 s slices (smoke test)
 
 Every flight is ``paper-acro`` (the frozen test flight), flown in process
-(:func:`companion.simulate.simulate_flight`, no MAVLink). The controllers are the
+(:func:`sitl.lab.simulate.simulate_flight`, no MAVLink). The controllers are the
 shipped files, loaded as they are; nothing is tuned here:
 
 * MFC: ``companion/data/mfc_default.yaml`` (one gain set, never retuned), on the
   F450 (IV-A), the F450 with cut propellers (IV-B) and the Tarot 650 with the
   stuck landing gear (IV-C);
 * the Tarot-tuned PID: ``companion/data/pid_tarot_tuned.yaml``, made by
-  ``companion/pidtune.py`` on ``train-acro`` (never on ``paper-acro``), flown on
+  ``sitl/lab/pidtune.py`` on ``train-acro`` (never on ``paper-acro``), flown on
   the Tarot and then, unchanged, on the F450 (IV-D);
 * as context: PX4's default PID on each vehicle, and the tuned PID on the
   cut-prop F450.
@@ -372,8 +372,8 @@ def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
     """Fly one flight, write its report folder, return its metrics (runs in a worker)."""
     from companion.config import load_controller
     from companion.profile import load_profile
-    from companion.report import write_report
-    from companion.simulate import simulate_flight
+    from sitl.lab.report import write_report
+    from sitl.lab.simulate import simulate_flight
     from sitl.scenario import load_scenario
 
     flight, duration_s, out = job
@@ -752,7 +752,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.workers < 1:
         ap.error(f"--workers: expected 1 or more, got {args.workers}")
-    from companion._options import out_dir_problem
+    from companion.options import out_dir_problem
 
     problem = out_dir_problem(args.out)
     if problem is not None:
@@ -820,7 +820,7 @@ def main(argv: list[str] | None = None) -> int:
         p = DATA_DIR / fname
         shown = p.relative_to(ROOT) if p.is_relative_to(ROOT) else p
         ctrl[k] = {"path": str(shown), "sha256": _sha256(p)}
-    from companion.report import versions
+    from sitl.lab.report import versions
 
     result: dict[str, Any] = {
         "scenario": SCENARIO,

@@ -21,8 +21,8 @@ from typing import Any
 
 import click
 
-from companion._options import SEED, Finite, usable_out_dir, usable_out_file
 from companion.errors import ConfigError, SigningError
+from companion.options import SEED, Finite, usable_out_dir, usable_out_file
 from companion.profile import load_profile
 
 __all__ = ["cli", "main"]

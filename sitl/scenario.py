@@ -12,8 +12,8 @@ from pathlib import Path
 
 from pydantic import Field
 
-from companion._schema import StrictModel, load_yaml_model
 from companion.profile import ImuModel, VehicleProfile
+from companion.schema import StrictModel, load_yaml_model
 from sitl.wind import WindConfig
 
 __all__ = [

@@ -105,7 +105,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.fly import free_udp_port
+from sitl.lab.fly import free_udp_port
 
 __all__ = [
     "DEFAULT_KINDS",
@@ -1020,12 +1020,12 @@ def _percentile(x: np.ndarray, q: float) -> float | None:
 
 
 def _flight_metrics(out: Path, flight: Any) -> dict[str, Any]:
-    """MAE (companion.report's definition, on the samples the law really measured)
+    """MAE (sitl.lab.report's definition, on the samples the law really measured)
     and the loop's real-time budget, from control.bin and the SITL's log."""
-    from companion.fly import merge_logs
     from companion.records import read_columnar
-    from companion.report import compute_metrics
-    from companion.simulate import FlightRecord
+    from sitl.lab.fly import merge_logs
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import FlightRecord
 
     res: dict[str, Any] = {}
     try:
@@ -1069,9 +1069,9 @@ def _flight_metrics(out: Path, flight: Any) -> dict[str, Any]:
 
 
 def _mae_within(record: Any, span_s: float) -> dict[str, Any]:
-    """companion.report's MAE over the first ``span_s`` of engaged flight."""
-    from companion.report import compute_metrics
-    from companion.simulate import FlightRecord
+    """sitl.lab.report's MAE over the first ``span_s`` of engaged flight."""
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import FlightRecord
 
     t = record.columns["t_s"]
     keep = t - t[0] <= span_s + 1e-9 if len(t) else np.zeros(0, dtype=bool)
@@ -1096,7 +1096,7 @@ def _judge(
     hung: set[str],
     wall_s: float,
 ) -> dict[str, Any]:
-    from companion.fly import FlightProcesses
+    from sitl.lab.fly import FlightProcesses
 
     comp_events = _read_jsonl(out / "companion" / "events.jsonl")
     sitl_events = _read_jsonl(out / "sitl.events.jsonl")

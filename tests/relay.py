@@ -23,7 +23,7 @@ Use from async code::
     async with UdpRelay(("127.0.0.1", 0), ("127.0.0.1", port), delay_s=0.01) as relay:
         ...  # point the SITL at relay.listen_port
 
-from blocking code (e.g. around :func:`companion.fly.fly_mavlink`)::
+from blocking code (e.g. around :func:`sitl.lab.fly.fly_mavlink`)::
 
     with UdpRelay(("127.0.0.1", 0), ("127.0.0.1", port), delay_s=0.01).in_thread() as relay:
         ...

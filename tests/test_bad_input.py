@@ -15,9 +15,9 @@ import click
 import pytest
 from click.testing import CliRunner, Result
 
-from companion._options import out_dir_problem, usable_out_dir
 from companion.cli import cli as companion_cli
 from companion.errors import ConfigError
+from companion.options import out_dir_problem, usable_out_dir
 from sitl.cli import cli as sitl_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -170,7 +170,7 @@ def test_an_out_dir_check_leaves_nothing_behind(tmp_path: Path) -> None:
 
 
 def test_yaml_merge_keys_and_anchors_still_load(tmp_path: Path) -> None:
-    from companion._schema import read_yaml
+    from companion.schema import read_yaml
 
     p = tmp_path / "merge.yaml"
     p.write_text("rp: &rp {kp: 1, kd: 2}\npitch: {<<: *rp, kd: 30}\n", encoding="utf-8")

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from companion.campaign import damaged_profile
 from companion.cli import cli
 from companion.profile import load_profile
+from sitl.lab.campaign import damaged_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 AXES = ("roll", "pitch", "yaw")

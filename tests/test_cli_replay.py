@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.fly import fly_mavlink
 from companion.records import read_columnar
 from companion.replay import output_columns
+from sitl.lab.fly import fly_mavlink
 
 pytestmark = pytest.mark.integration
 

@@ -1,4 +1,4 @@
-"""The envelope campaign (companion/envelope.py) at the corners of the envelope.
+"""The envelope campaign (sitl/lab/envelope.py) at the corners of the envelope.
 
 The campaign's targets, checked where they are hardest to meet: at the named
 corner vehicles (:func:`sitl.envelope.corners`), intact, on the real test flight
@@ -20,7 +20,8 @@ from click.testing import CliRunner
 
 from companion.cli import cli
 from companion.config import DEFAULT_CONTROLLER
-from companion.envelope import (
+from sitl.envelope import corners
+from sitl.lab.envelope import (
     CASES,
     CONTROLLERS,
     RATIO_TARGET,
@@ -33,7 +34,6 @@ from companion.envelope import (
     verdicts,
     write_envelope_outputs,
 )
-from sitl.envelope import corners
 
 AXES = ("roll", "pitch", "yaw")
 TRAIN_SLICE_S = 15.0

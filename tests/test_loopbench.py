@@ -7,12 +7,12 @@ import subprocess
 import sys
 import time
 
-from companion._loopbench import _free_port, run_harness
+from sitl.lab.loopbench import _free_port, run_harness
 
 
 def test_harness_times_the_echo_server_and_accounts_for_every_sample() -> None:
     port = _free_port()
-    cmd = f"from companion._loopbench import echo_server; echo_server({port})"
+    cmd = f"from sitl.lab.loopbench import echo_server; echo_server({port})"
     server = subprocess.Popen([sys.executable, "-c", cmd])
     try:
         time.sleep(1.0)  # imports and socket set-up

@@ -13,7 +13,7 @@ import math
 
 import pytest
 
-from companion._loopbench import run_loop_bench
+from sitl.lab.loopbench import run_loop_bench
 
 pytestmark = pytest.mark.integration
 

@@ -1,4 +1,4 @@
-"""The PID auto-tuner (companion/pidtune.py): improves its start, deterministic, fair.
+"""The PID auto-tuner (sitl/lab/pidtune.py): improves its start, deterministic, fair.
 
 A tiny budget on a short slice of the training flight: enough to see the search
 move, quick enough for every run of the suite.
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from companion.config import PID_DEFAULT_CONTROLLER, PidConfig, load_controller
-from companion.pidtune import BOUNDS, PARAMS, params_of, tune_pid, write_pid_yaml
 from companion.profile import load_profile
+from sitl.lab.pidtune import BOUNDS, PARAMS, params_of, tune_pid, write_pid_yaml
 from sitl.scenario import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +83,7 @@ def test_shipped_tarot_pid_records_how_it_was_made() -> None:
     cfg = load_controller(path)
     assert isinstance(cfg, PidConfig)
     text = path.read_text(encoding="utf-8")
-    for needle in ("python -m companion.pidtune", "--scenario train-acro", "budget:", "seed:"):
+    for needle in ("python -m sitl.lab.pidtune", "--scenario train-acro", "budget:", "seed:"):
         assert needle in text
     assert "paper-acro (the test flight) was never flown" in text
     # Roll and pitch share their gains; yaw is a PI, as the tuner searches them.

@@ -33,8 +33,8 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from companion._schema import StrictModel, read_yaml
 from companion.errors import ConfigError
+from companion.schema import StrictModel, read_yaml
 from sitl.pilot.rc import DEFAULT_RATE_FULL_SCALE_DEG_S, RC_MAX_US, RC_MIN_US
 from sitl.pilot.scripted import Chirp, ScriptedPilot, Segment
 from sitl.pilot.virtual import PilotParams

@@ -98,7 +98,7 @@ from pathlib import Path
 import companion.control as control
 from companion.config import load_controller
 from companion.profile import load_profile
-from companion.simulate import simulate_flight
+from sitl.lab.simulate import simulate_flight
 from sitl.scenario import load_scenario
 
 sc = load_scenario("paper-acro").model_copy(update={"duration_s": 8.0})

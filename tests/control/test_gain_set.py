@@ -16,8 +16,8 @@ import pytest
 
 from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller
 from companion.profile import load_profile
-from companion.report import compute_metrics
-from companion.simulate import simulate_flight
+from sitl.lab.report import compute_metrics
+from sitl.lab.simulate import simulate_flight
 from sitl.scenario import WindSpec, load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -17,7 +17,7 @@ import pytest
 
 from companion.config import MfcConfig, load_controller
 from companion.profile import load_profile
-from companion.simulate import simulate_flight
+from sitl.lab.simulate import simulate_flight
 from sitl.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.fly import FlightProcesses, fly_mavlink, merge_logs
-from companion.report import compute_metrics
+from sitl.lab.fly import FlightProcesses, fly_mavlink, merge_logs
+from sitl.lab.report import compute_metrics
 
 pytestmark = pytest.mark.integration
 

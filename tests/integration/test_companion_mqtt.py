@@ -12,7 +12,7 @@ from typing import Any
 import aiomqtt
 import pytest
 
-from companion.fly import fly_mavlink
+from sitl.lab.fly import fly_mavlink
 from tests.records.test_mqtt import Broker
 
 pytestmark = pytest.mark.integration

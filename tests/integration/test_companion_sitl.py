@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.fly import FlightProcesses, fly_mavlink, merge_logs
-from companion.report import compute_metrics
+from sitl.lab.fly import FlightProcesses, fly_mavlink, merge_logs
+from sitl.lab.report import compute_metrics
 
 pytestmark = pytest.mark.integration
 

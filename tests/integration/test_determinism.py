@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.fly import fly_mavlink, merge_logs
 from companion.records import read_columnar
-from companion.report import compute_metrics
+from sitl.lab.fly import fly_mavlink, merge_logs
+from sitl.lab.report import compute_metrics
 from sitl.runner import read_log
 
 pytestmark = pytest.mark.integration

@@ -39,8 +39,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.fly import FlightProcesses, fly_mavlink
 from companion.records import read_columnar
+from sitl.lab.fly import FlightProcesses, fly_mavlink
 from sitl.runner import IMU_RANGE_GYRO_RAD_S, read_log
 from tests.integration.conftest import SitlProcess, free_udp_port
 

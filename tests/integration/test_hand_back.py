@@ -15,9 +15,9 @@ from typing import Any
 
 import pytest
 
-from companion.fly import FlightProcesses, fly_mavlink
 from companion.profile import load_profile
 from sitl.ardupilot import ArduCopter, ArduCopterConfig
+from sitl.lab.fly import FlightProcesses, fly_mavlink
 from sitl.physics import hover_motor_command
 
 pytestmark = pytest.mark.integration

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from companion.config import load_controller
-from companion.fly import fly_mavlink, merge_logs
 from companion.profile import load_profile
-from companion.report import compute_metrics
-from companion.simulate import simulate_flight
+from sitl.lab.fly import fly_mavlink, merge_logs
+from sitl.lab.report import compute_metrics
+from sitl.lab.simulate import simulate_flight
 from sitl.scenario import load_scenario
 
 pytestmark = pytest.mark.integration

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.fly import fly_mavlink, merge_logs
+from sitl.lab.fly import fly_mavlink, merge_logs
 from tests.integration.conftest import free_udp_port
 from tests.relay import UdpRelay
 

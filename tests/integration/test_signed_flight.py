@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from companion.fly import fly_mavlink
+from sitl.lab.fly import fly_mavlink
 
 pytestmark = pytest.mark.integration
 

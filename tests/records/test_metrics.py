@@ -10,9 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion.fly import FlightProcesses, merge_logs
 from companion.records import ColumnarLog, columns
-from companion.report import AXES, compute_metrics, write_report
+from sitl.lab.fly import FlightProcesses, merge_logs
+from sitl.lab.report import AXES, compute_metrics, write_report
 
 N = 100
 MEAS_RAD_S = (0.1, 0.2, -0.3)

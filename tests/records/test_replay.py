@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-import companion.simulate as simulate_mod
+import sitl.lab.simulate as simulate_mod
 from companion.config import (
     DEFAULT_CONTROLLER,
     PID_DEFAULT_CONTROLLER,
@@ -45,7 +45,7 @@ def fly(
     monkeypatch: pytest.MonkeyPatch, cfg: Any, profile: VehicleProfile, duration_s: float
 ) -> tuple[dict[str, np.ndarray], list[ControlOutput]]:
     outputs: list[ControlOutput] = []
-    real = build_controller  # what companion.simulate imported
+    real = build_controller  # what sitl.lab.simulate imported
     monkeypatch.setattr(
         simulate_mod, "build_controller", lambda c, p: _Recording(real(c, p), outputs)
     )

@@ -13,7 +13,6 @@ from click.testing import CliRunner
 
 from companion.config import PID_DEFAULT_CONTROLLER, load_controller
 from companion.profile import VehicleProfile, load_profile
-from companion.simulate import simulate_flight
 from sitl.cli import cli
 from sitl.envelope import (
     ENVELOPE_BOUNDS,
@@ -27,6 +26,7 @@ from sitl.envelope import (
     sample_envelope,
     write_profile_yaml,
 )
+from sitl.lab.simulate import simulate_flight
 from sitl.physics import GRAVITY_M_S2, VehicleParams, hover_motor_command
 from sitl.scenario import load_scenario
 

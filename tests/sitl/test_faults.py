@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from companion.fly import free_udp_port
 from companion.profile import load_profile
+from sitl.lab.fly import free_udp_port
 from sitl.mavlink_face import parse_endpoint
 from sitl.runner import FAULT_KINDS, Fault, RunConfig, Runner, parse_fault, read_log
 

@@ -16,9 +16,9 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.fly import free_udp_port
 from companion.profile import load_profile
 from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.lab.fly import free_udp_port
 from sitl.mavlink_face import MavlinkFace, default_streams, parse_endpoint
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -18,7 +18,7 @@ CHILD = """
 import os, signal, sys
 import numpy as np
 import sitl.runner as runner
-from companion.fly import free_udp_port
+from sitl.lab.fly import free_udp_port
 from companion.profile import load_profile
 from sitl.mavlink_face import parse_endpoint
 

@@ -14,7 +14,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from companion.errors import ConfigError
-from companion.simulate import scenario_streams
+from sitl.lab.simulate import scenario_streams
 from sitl.pilot import (
     DEFAULT_RATE_FULL_SCALE_DEG_S,
     MANEUVERS,

@@ -15,10 +15,10 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.fly import free_udp_port
 from companion.link.signing import signing_timestamp_now
 from companion.profile import load_profile
 from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.lab.fly import free_udp_port
 from sitl.mavlink_face import MavlinkFace, default_streams, enable_signing, parse_endpoint
 
 ROOT = Path(__file__).resolve().parents[2]

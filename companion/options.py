@@ -1,4 +1,4 @@
-"""Command-line value types shared by ``companion`` and ``sitl``.
+"""Command-line options and value types shared by ``companion``, its lab commands and ``sitl``.
 
 click's ``FloatRange`` lets ``nan`` through every bound (it compares false with
 anything) and ``inf`` past an open end; a watchdog given ``--stale-imu-s nan``
@@ -12,13 +12,27 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import sys
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
-__all__ = ["SEED", "Finite", "out_dir_problem", "usable_out_dir", "usable_out_file"]
+from companion.errors import ConfigError
+
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "SEED",
+    "Finite",
+    "controller_opt",
+    "fail_config",
+    "load_inputs",
+    "out_dir_problem",
+    "profile_opt",
+    "usable_out_dir",
+    "usable_out_file",
+]
 
 SEED = click.IntRange(min=0)
 """A seed: numpy's generators take a non-negative integer."""
@@ -96,3 +110,66 @@ def usable_out_file(
         raise click.BadParameter(f"{value} is a folder; expected a file path", ctx, param)
     usable_out_dir(ctx, param, path.parent)
     return path
+
+
+EXIT_BAD_INPUT = 2
+"""The exit code of bad input: a configuration error names the file and the field."""
+
+
+def fail_config(exc: ConfigError) -> NoReturn:
+    """Say what is wrong with the input and exit with :data:`EXIT_BAD_INPUT`."""
+    click.echo(f"error: {exc}", err=True)
+    sys.exit(EXIT_BAD_INPUT)
+
+
+def find_profile(_ctx: click.Context, _param: click.Parameter, path: Path) -> Path:
+    """A relative profile path missing here is looked up in the checkout's folder too,
+    so the defaults work from any directory."""
+    if path.is_absolute() or path.exists():
+        return path
+    bundled = Path(__file__).resolve().parents[1] / path
+    if not bundled.exists():
+        return path  # the loader will say it is missing
+    click.echo(f"note: {path} is not in {Path.cwd()}; using {bundled}", err=True)
+    return bundled
+
+
+profile_opt = click.option(
+    "--profile",
+    "profile_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("vehicle_profiles/f450.yaml"),
+    show_default=True,
+    callback=find_profile,
+    help="Vehicle profile YAML (a relative path not found here is also looked up in "
+    "the checkout, so vehicle_profiles/NAME.yaml works from any directory).",
+)
+controller_opt = click.option(
+    "--controller",
+    "controller_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Controller config YAML (default: companion/data/mfc_default.yaml, or "
+    "mfc_rates.yaml with --output rates; for every vehicle).",
+)
+
+
+def load_inputs(
+    profile_path: Path,
+    controller_path: Path | None,
+    output: str = "actuator",
+    *,
+    simulated: bool = False,
+) -> tuple[Any, Any, Path]:
+    """The profile and the controller config (the shipped one when none is given);
+    bad input exits with :data:`EXIT_BAD_INPUT`."""
+    from companion.config import default_controller, load_controller
+    from companion.profile import load_profile
+
+    ctrl_path = controller_path or default_controller(output)
+    try:
+        profile = load_profile(profile_path, simulated=simulated)
+        cfg = load_controller(ctrl_path)
+    except ConfigError as exc:
+        fail_config(exc)
+    return profile, cfg, ctrl_path

@@ -11,7 +11,7 @@ optionally with damage variants (``motor60``, ``imbalance``, ``cg10``).
 Per vehicle and case (one ``multiprocessing.Pool`` job each)
 ------------------------------------------------------------
 1. **Tune** the PID on the *training* scenario (default ``train-acro``) with
-   the vehicle's own profile: :func:`companion.pidtune.tune_pid` from PX4's
+   the vehicle's own profile: :func:`sitl.lab.pidtune.tune_pid` from PX4's
    defaults, ``tune_budget`` flights, the campaign's ``seed``. Damaged vehicles
    are retuned on the damaged plant, as a PID user would.
 2. **Fly the test scenario** (default ``envelope-test``, never used for
@@ -64,9 +64,9 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
-from companion.pidtune import TEST_SCENARIOS, apply_params, tune_pid
 from companion.profile import VehicleProfile
-from companion.report import AXES
+from sitl.lab.pidtune import TEST_SCENARIOS, apply_params, tune_pid
+from sitl.lab.report import AXES
 from sitl.scenario import Scenario
 
 __all__ = [
@@ -92,7 +92,7 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-_ROOT = Path(__file__).resolve().parents[1]
+_ROOT = Path(__file__).resolve().parents[2]
 """The checkout (or install) this module belongs to: bundled profiles are found from it."""
 
 CASES: tuple[str, ...] = ("intact", "motor60", "imbalance", "cg10")
@@ -282,8 +282,8 @@ def _test_flight(
     scenario: Scenario,
     controller_profile: VehicleProfile | None,
 ) -> dict[str, Any]:
-    from companion.report import compute_metrics
-    from companion.simulate import simulate_flight
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
 
     m = compute_metrics(
         simulate_flight(plant, cfg, scenario, controller_profile=controller_profile)
@@ -365,7 +365,7 @@ def run_envelope(
         controller of :data:`CONTROLLERS`: ``mae_deg_s`` per axis, ``crashed``,
         ``crashed_at_s``, ``sim_time_s``), ``ratio_mfc_tuned`` and
         ``ratio_mfc_default`` per axis (None when undefined), ``tuned_gains``
-        (:data:`companion.pidtune.PARAMS`) and ``tune`` (flights, training
+        (:data:`sitl.lab.pidtune.PARAMS`) and ``tune`` (flights, training
         objective before and after, deg/s).
     """
     from tqdm import tqdm
@@ -822,8 +822,8 @@ def plot_worst(rec: dict[str, Any], case: EnvelopeCase, setup: EnvelopeSetup, pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from companion.report import compute_metrics
-    from companion.simulate import simulate_flight
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
 
     flights = {
         "mfc": simulate_flight(

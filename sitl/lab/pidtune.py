@@ -9,11 +9,11 @@ gain search had:
 
 * **One vehicle, one training flight.** Every candidate flies ``scenario`` (by
   default ``train-acro``: seeded random acro, the MFC search's training flight)
-  on ``profile``, in process (:func:`companion.simulate.simulate_flight`). The
+  on ``profile``, in process (:func:`sitl.lab.simulate.simulate_flight`). The
   test flight ``paper-acro`` is refused, so tuning never sees it.
 * **Objective** (deg/s, lower is better): the mean (``"mean"``, default) or the
   worst (``"worst"``) of the per-axis rate MAE (pilot command against measured
-  rate, while airborne; :func:`companion.report.compute_metrics`). A crash costs
+  rate, while airborne; :func:`sitl.lab.report.compute_metrics`). A crash costs
   :data:`CRASH_PENALTY_DEG_S` plus the MAE flown until then, so every crash is
   worse than every flight that lands.
 * **Parameters** (five, in log10 space, within :data:`BOUNDS`): roll and pitch
@@ -37,7 +37,7 @@ gain search had:
 
 Run it (this is how ``companion/data/pid_tarot_tuned.yaml`` was made)::
 
-    python -m companion.pidtune --profile vehicle_profiles/tarot650.yaml \\
+    python -m sitl.lab.pidtune --profile vehicle_profiles/tarot650.yaml \\
         --scenario train-acro --budget 120 --seed 1 --workers 2 \\
         --out companion/data/pid_tarot_tuned.yaml
 """
@@ -162,8 +162,8 @@ def _objective(mae: dict[str, float], crashed: bool, kind: Objective) -> float:
 
 def _fly(job: tuple[VehicleProfile, PidConfig, Scenario, Objective]) -> dict[str, Any]:
     """Fly one candidate and score it (a top-level function, so a Pool can run it)."""
-    from companion.report import compute_metrics
-    from companion.simulate import simulate_flight
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
 
     profile, cfg, scenario, kind = job
     m = compute_metrics(simulate_flight(profile, cfg, scenario))
@@ -396,7 +396,7 @@ def write_pid_yaml(
 
 
 def _main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m companion.pidtune", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m sitl.lab.pidtune", description=__doc__)
     ap.add_argument("--profile", type=Path, required=True, help="vehicle profile YAML")
     ap.add_argument("--scenario", default="train-acro", help="training scenario name or file")
     ap.add_argument("--budget", type=int, default=120, help="flights, the start point's included")
@@ -438,9 +438,9 @@ def _main(argv: Sequence[str] | None = None) -> int:
         res.config,
         args.out,
         comments=[
-            f"Rate PID tuned on {profile.name} by companion/pidtune.py (a seeded pattern",
+            f"Rate PID tuned on {profile.name} by sitl/lab/pidtune.py (a seeded pattern",
             "search; procedure in that module's docstring and docs/paper.md). Produced by:",
-            f"  python -m companion.pidtune --profile {args.profile} --scenario {args.scenario} \\",
+            f"  python -m sitl.lab.pidtune --profile {args.profile} --scenario {args.scenario} \\",
             f"      --budget {args.budget} --seed {args.seed} --workers {args.workers} "
             f"--objective {args.objective} --out {args.out}",
             "Trained on the scenario below only; paper-acro (the test flight) was never flown.",

@@ -1,7 +1,7 @@
 """Campaigns: many in-process flights over a grid, in parallel, summarised.
 
 The grid is profiles x damage severity x wind gust sigma x seeds x controllers.
-Every flight runs :func:`companion.simulate.simulate_flight` (no MAVLink) in a
+Every flight runs :func:`sitl.lab.simulate.simulate_flight` (no MAVLink) in a
 ``multiprocessing.Pool``; each is deterministic, so the records do not depend
 on the number of workers or on the order flights finish in.
 
@@ -165,8 +165,8 @@ def build_grid(
 
 def fly_one(spec: FlightSpec) -> dict[str, Any]:
     """Fly one spec and return its record (a top-level function, for the Pool)."""
-    from companion.report import compute_metrics
-    from companion.simulate import simulate_flight
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
 
     m = compute_metrics(
         simulate_flight(spec.profile, spec.controller, spec.scenario, seed=spec.seed)

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.simulate import FlightRecord
+from sitl.lab.simulate import FlightRecord
 
 __all__ = ["AXES", "compute_metrics", "plot_flight", "versions", "write_report"]
 

@@ -86,7 +86,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 __all__ = ["echo_server", "run_harness", "run_loop_bench"]
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 # Linux's SO_TIMESTAMPNS (asm-generic value; the socket module does not name it):
 # each datagram carries the CLOCK_REALTIME time the kernel received it.
@@ -347,7 +347,7 @@ def run_loop_bench(
     fport, cport = _free_ports(2)
     with tempfile.TemporaryDirectory() as logs:
         cmds = [
-            [py, "-c", f"from companion._loopbench import echo_server; echo_server({fport})"],
+            [py, "-c", f"from sitl.lab.loopbench import echo_server; echo_server({fport})"],
             [py, "-m", "companion", "run", "--connect", f"udpin:127.0.0.1:{cport}",
              "--profile", str(profile), "--engage", "auto",
              "--rate-hz", str(rate_hz), "--log-dir", logs,

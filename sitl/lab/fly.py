@@ -3,7 +3,7 @@
 :func:`fly_mavlink` starts ``sitl run`` (lockstep clock, the scenario's pilot,
 seed, wind and IMU, the pilot's clock starting at arming) and ``companion run
 --engage auto``, waits for the companion to finish its flight, stops the
-SITL, and merges the two logs into a :class:`~companion.simulate.FlightRecord`:
+SITL, and merges the two logs into a :class:`~sitl.lab.simulate.FlightRecord`:
 the controller's view per sample from the companion's ``control.bin``, the
 truth (rates, altitude, on the ground or not) from the SITL's log at the same
 simulation times.
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.simulate import FlightRecord
+from sitl.lab.simulate import FlightRecord
 
 __all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "merge_logs"]
 
