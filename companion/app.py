@@ -59,19 +59,16 @@ from pathlib import Path
 from typing import Any, Literal
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
-from companion.control.gate import gate_actuator, gate_rates
 from companion.errors import EngageError, LinkError
 from companion.handback import Conditions, adoptable, candidates, judge, next_kind, pick
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
 from companion.stacks import FlightStack, SafeMode, stack_for
+from companion.step import LANDED_STATE_RATE_HZ, NO_RATES, SampleStep, whole_us
 
 _COUNTERS_PERIOD_S = 10.0
 """How often the counters (ours, the link's, the transport's) go to the events."""
-
-_NO_RATES = (math.nan, math.nan, math.nan)
-"""The ``sent_*`` log columns of a sample for which no body rates were sent."""
 
 _TIME_JUMP_S = 1.0
 """An IMU time step beyond this, either way, is a discontinuity, not a late
@@ -115,7 +112,6 @@ _BASE_MODE_ARMED = 128
 _MSG_STATUSTEXT = 253
 _MSG_EXTENDED_SYS_STATE = 245
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
-_LANDED_STATE_RATE_HZ = 4.0
 _POSITION_RATE_HZ = 4.0
 _POSITION_TIMEOUT_S = 1.0
 """A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
@@ -243,13 +239,15 @@ class Companion:
         self._transport = transport
         self.controller = build_controller(opts.controller, opts.profile)
         self.sticks = build_stick_map(opts.controller)
-        r0, r1, r2 = (math.radians(r) for r in opts.profile.limits.rate_max_deg_s)
-        self._rate_max_rad_s = (r0, r1, r2)
-        fs = opts.rates_full_scale_deg_s
-        self._rate_fs_rad_s = self._rate_max_rad_s if fs is None else (math.radians(fs),) * 3
-        # Beyond the gyro's full scale (5 % over, for its own overshoot) a sample
-        # is not a measurement: an invalid-IMU failsafe input.
-        self._gyro_limit_rad_s = math.radians(opts.profile.physics.imu.gyro_range_deg_s) * 1.05
+        # The range gate, the law and the command gate: the lab's flights use the same.
+        self.step = SampleStep(
+            self.controller,
+            opts.profile,
+            output=opts.output,
+            rates_full_scale_deg_s=opts.rates_full_scale_deg_s,
+            rates_lead_s=opts.rates_lead_s,
+            rates_passthrough=opts.rates_passthrough,
+        )
         self.link: Any = None
         # Per-sample counters are plain attributes (a dict lookup per sample
         # adds up at 1 kHz); ``counters`` gathers them.
@@ -270,7 +268,6 @@ class Companion:
         self._errors_in_row = 0
         self._invalid_frac = 0.0
         self._clock_candidate: tuple[float, int] | None = None
-        self._last_thrust_sent = 0.0
         self.autopilot: int | None = None
         self.stack: FlightStack | None = None
         self._imu_source = opts.imu_source
@@ -489,13 +486,7 @@ class Companion:
         else:
             dt = t_s - t_prev
             if 0.0 < dt <= _TIME_JUMP_S:
-                # The stamps are whole microseconds (HIGHRES_IMU) or milliseconds
-                # (ATTITUDE): rounded to the microsecond, the step does not carry the
-                # rounding of two large floats, so a flight does not depend on when
-                # (in the autopilot's clock) it began.
-                us = round(dt * 1e6)
-                if us > 0:
-                    dt = us * 1e-6
+                dt = whole_us(dt)  # HIGHRES_IMU's stamps are whole us, ATTITUDE's ms
             if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
                 if not self._on_time_anomaly(t_s, dt, t0):
                     return
@@ -594,42 +585,8 @@ class Companion:
             )
 
     def _step(self, t_s: float, dt: float, gyro: tuple[float, float, float], t0: float) -> None:
-        """One accepted sample: the range gate, the law, the command, then the rest."""
-        lim = self._gyro_limit_rad_s
-        g0, g1, g2 = gyro
-        if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
-            # Non-finite or beyond the sensor's range: the law holds its last
-            # output (it sees NaN), and the failsafe fires if this persists, in an
-            # unbroken run or as a share of the samples. Persistence is judged in
-            # sample time, here: deterministic in lockstep, and a failed sensor is
-            # caught on the sample that proves it.
-            self.n_imu_invalid += 1
-            fs = self.opts.failsafe
-            a = dt * self._inv_invalid_window
-            frac = self._invalid_frac
-            frac += (1.0 - frac) * (a if a < 1.0 else 1.0)
-            self._invalid_frac = frac
-            if self._invalid_since is None:
-                self._invalid_since = t_s
-            if self.engaged:
-                if t_s - self._invalid_since > fs.invalid_imu_s:
-                    self._failsafe(
-                        "failsafe_invalid_imu",
-                        f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s of samples",
-                    )
-                elif frac > fs.invalid_fraction_max:
-                    self._failsafe(
-                        "failsafe_invalid_imu",
-                        f"non-finite or out-of-range gyro in {frac:.0%} of the samples "
-                        f"(limit {fs.invalid_fraction_max:.0%} over {fs.invalid_window_s} s)",
-                    )
-            gyro = (math.nan, math.nan, math.nan)
-        else:
-            self._invalid_since = None
-            frac = self._invalid_frac
-            if frac:  # decays while the samples are good; free once it is back to 0
-                frac -= frac * dt * self._inv_invalid_window
-                self._invalid_frac = frac if frac > 1e-4 else 0.0
+        """One accepted sample: the shared step (range gate, law, command gate), the
+        command, then the rest."""
         if self.engaged and self._t_engaged is None:
             self._t_engaged = t_s  # engaged time counts from the first sample flown
         if self._duration_us is not None and not self._stop.is_set():
@@ -649,14 +606,24 @@ class Companion:
             ref, scripted_thrust = script.at(t_s - self._t_engaged)
             if scripted_thrust is not None:
                 thrust = scripted_thrust
-        out = self.controller.update(dt, gyro, ref, thrust)
-        sent: Sequence[float] = _NO_RATES
+        step = self.step
+        out = step.sample(dt, gyro, ref, thrust)
+        if step.gyro_valid:
+            self._invalid_since = None
+            frac = self._invalid_frac
+            if frac:  # decays while the samples are good; free once it is back to 0
+                frac -= frac * dt * self._inv_invalid_window
+                self._invalid_frac = frac if frac > 1e-4 else 0.0
+        else:
+            self._on_invalid_gyro(t_s, dt)
+        sent: Sequence[float] = NO_RATES
         engaged = self.engaged  # as the command left (recorded so, whatever follows)
         if self.commanding:
             sent = self._send_output(t_s, out, ref, thrust)
         t_sent = time.perf_counter()
         # ---- the command has left: what follows is off the latency path
-        self.controller.learn()
+        step.learn()
+        gyro = step.gyro
         if self.engaged:
             self._check_envelope(t_s, dt, gyro, out)
         append = self._log_append
@@ -680,37 +647,49 @@ class Companion:
         if self._telemetry is not None:
             self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
 
+    def _on_invalid_gyro(self, t_s: float, dt: float) -> None:
+        """A sample beyond the sensor's range or not finite (the law held its output).
+
+        The failsafe fires if this persists, in an unbroken run or as a share of
+        the samples. Persistence is judged in sample time: deterministic in
+        lockstep, and a failed sensor is caught on the sample that proves it."""
+        self.n_imu_invalid += 1
+        fs = self.opts.failsafe
+        a = dt * self._inv_invalid_window
+        frac = self._invalid_frac
+        frac += (1.0 - frac) * (a if a < 1.0 else 1.0)
+        self._invalid_frac = frac
+        if self._invalid_since is None:
+            self._invalid_since = t_s
+        if self.engaged:
+            if t_s - self._invalid_since > fs.invalid_imu_s:
+                self._failsafe(
+                    "failsafe_invalid_imu",
+                    f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s of samples",
+                )
+            elif frac > fs.invalid_fraction_max:
+                self._failsafe(
+                    "failsafe_invalid_imu",
+                    f"non-finite or out-of-range gyro in {frac:.0%} of the samples "
+                    f"(limit {fs.invalid_fraction_max:.0%} over {fs.invalid_window_s} s)",
+                )
+
     def _send_output(
         self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
     ) -> Sequence[float]:
         """Send this sample's command through the last gate; returns the body rates
         sent (NaN: none)."""
         if self._actuator_output:
-            controls, replaced = gate_actuator(out.torque, out.thrust, thrust)
+            controls, replaced = self.step.actuator_command(out, thrust)
             if replaced:
                 self._gated(replaced)
             r, p, y, t = controls
             self.link.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
             self.n_commands += 1
-            return _NO_RATES
-        # The law wraps the autopilot's rate loop: the pilot's rate plus the law's
-        # correction, within the profile's rate limits (the gate clamps).
-        if self.opts.rates_passthrough:
-            want: tuple[float, float, float] | list[float] = ref
-        else:
-            fs = self._rate_fs_rad_s
-            lead = self.opts.rates_lead_s
-            rd = self.controller.reference_rate_dot
-            tq = out.torque
-            want = [ref[i] + lead * rd[i] + tq[i] * fs[i] for i in range(3)]
-        # The pilot's (or the script's) collective: the autopilot mixes it with its
-        # own rate loop; our mixer's air-mode shift belongs to torques we do not send.
-        sp, thrust_out, replaced = gate_rates(
-            want, thrust, ref, self._rate_max_rad_s, self._last_thrust_sent
-        )
+            return NO_RATES
+        sp, thrust_out, replaced = self.step.rates_command(out, ref, thrust)
         if replaced:
             self._gated(replaced)
-        self._last_thrust_sent = thrust_out
         self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
         self.n_commands += 1
         return sp
@@ -751,7 +730,7 @@ class Companion:
             return
         if self._actuator_output and self._check_diverging(dt, e0, e1, e2, out.motors):
             return
-        r0, r1, r2 = self._rate_max_rad_s
+        r0, r1, r2 = self.step.rate_max_rad_s
         g0, g1, g2 = gyro
         if not (abs(g0) > r0 or abs(g1) > r1 or abs(g2) > r2):
             self._envelope_since = None
@@ -1446,7 +1425,7 @@ class Companion:
         # The landed state stops identification on the ground (MfcController.on_ground).
         await self._request_best_effort(
             "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
-            _LANDED_STATE_RATE_HZ,
+            LANDED_STATE_RATE_HZ,
             "identification is gated by the collective alone unless the autopilot sends it",
         )  # fmt: skip
         # Whether a position estimate exists decides the hand-back's hold.

@@ -1,10 +1,12 @@
 """Fly a rate controller against the bundled plant in one process, without MAVLink.
 
-The loop is the companion's, minus the link: every IMU sample produces one
-control update (``dt`` from sample timestamps), pilot sticks arrive as RC
-frames at the scenario's RC rate, and motor commands are held until the next
-sample. It is what campaigns run many times in parallel, and what the
-MAVLink path is checked against for the same seed.
+The loop is the companion's, minus the link: every IMU sample goes through the
+same step as ``companion run`` (:class:`companion.step.SampleStep`: the gyro
+range gate, the law, the command gate; ``dt`` from the sample stamps, which
+here are exact), pilot sticks arrive as RC frames at the scenario's RC rate, and
+the gated actuator controls, mixed, are held until the next sample. It is what
+campaigns run many times in parallel, and what the MAVLink path is checked
+against for the same seed.
 
 Seeding: one :class:`numpy.random.SeedSequence` from the scenario's seed is
 split into independent streams for the plant, the IMU, the wind and the pilot,
@@ -22,6 +24,7 @@ import numpy as np
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.profile import VehicleProfile
+from companion.step import SampleStep
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
 from sitl.physics import Quadrotor, hover_motor_command
@@ -97,6 +100,7 @@ def simulate_flight(
     pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
     duration = scenario.duration_s or pilot.duration_s
     controller = build_controller(controller_cfg, controller_profile or plant)
+    step = SampleStep(controller, controller_profile or plant, output="actuator")
     sticks_map = build_stick_map(controller_cfg)
     hover = hover_motor_command(plant)
     n_motors = plant.n_motors
@@ -142,9 +146,16 @@ def simulate_flight(
             # dt = 0 to its minimum and primes its filters.
             sample_dt = sample.time_s - prev_sample_t if prev_sample_t is not None else 0.0
             prev_sample_t = sample.time_s
-            out = controller.update(sample_dt, sample.gyro_frd_rad_s, cmd.rate_rad_s, cmd.thrust)
-            controller.learn()
-            motors = out.motors
+            out = step.sample(sample_dt, sample.gyro_frd_rad_s, cmd.rate_rad_s, cmd.thrust)
+            (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, cmd.thrust)
+            # The autopilot mixes the controls it is sent; ungated, they are the law's
+            # own mix.
+            motors = (
+                controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
+                if replaced
+                else out.motors
+            )
+            step.learn()
             st = quad.state
             cols["t_s"].append(sample.time_s)
             cols["ref_rad_s"].append(cmd.rate_rad_s)

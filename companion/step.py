@@ -1,0 +1,166 @@
+"""One IMU sample in, one command out: the step ``companion run`` and the lab's flights share.
+
+Per sample, in this order:
+
+1. the gyro range gate: a sample beyond the sensor's full scale (5 % over, for
+   its own overshoot), or not finite, is not a measurement; the law is given
+   NaN and holds its last output;
+2. the law (the controller's ``update``);
+3. the last gate on the command: actuator controls, or body rates composed
+   from the pilot's rate and the law's correction within the profile's limits.
+
+No I/O and no clock. The caller sends the command, then calls :meth:`learn`
+off the latency path; what the failsafes make of an invalid sample is the
+caller's (:attr:`SampleStep.gyro_valid` says which it was).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from companion.control.gate import gate_actuator, gate_rates
+from companion.profile import VehicleProfile
+
+__all__ = ["LANDED_STATE_RATE_HZ", "NO_RATES", "SampleStep", "whole_us"]
+
+NO_RATES = (math.nan, math.nan, math.nan)
+"""The body rates of a sample that sent none (actuator output, or not commanding)."""
+
+LANDED_STATE_RATE_HZ = 4.0
+"""The rate the companion asks for the autopilot's landed state (no identification
+on the ground: the law's ``on_ground``)."""
+
+GYRO_RANGE_MARGIN = 1.05
+"""How far past its full scale a gyro may read and still be a measurement."""
+
+
+def whole_us(dt: float) -> float:
+    """A positive time step rounded to whole microseconds.
+
+    The stamps are whole microseconds (or milliseconds): rounded, the step does
+    not carry the rounding of two large floats, so a flight does not depend on
+    when (in the autopilot's clock) it began. A step that rounds to nothing is
+    left as it is."""
+    us = round(dt * 1e6)
+    return us * 1e-6 if us > 0 else dt
+
+
+class SampleStep:
+    """The gyro range gate, the law and the command gate, for one controller.
+
+    Parameters
+    ----------
+    controller
+        The law (``update``, ``learn``, ``reset``; ``reference_rate_dot`` for
+        rates output).
+    profile
+        The vehicle: its gyro range and its rate limits.
+    output
+        ``"actuator"`` (normalised torques and collective) or ``"rates"``
+        (body rates and collective, for the autopilot's own rate loop).
+    rates_full_scale_deg_s
+        Rates output: the rate a full-scale law output stands for (default:
+        the profile's rate limits).
+    rates_lead_s
+        Rates output: how far ahead of the pilot's rate the setpoint leads
+        (the reference's derivative times this).
+    rates_passthrough
+        Rates output: send the pilot's rate alone (the law still runs).
+    """
+
+    __slots__ = (
+        "actuator",
+        "controller",
+        "gyro",
+        "gyro_limit_rad_s",
+        "gyro_valid",
+        "last_thrust_sent",
+        "passthrough",
+        "rate_fs_rad_s",
+        "rate_max_rad_s",
+        "rates_lead_s",
+    )
+
+    def __init__(
+        self,
+        controller: Any,
+        profile: VehicleProfile,
+        *,
+        output: str = "actuator",
+        rates_full_scale_deg_s: float | None = None,
+        rates_lead_s: float = 0.0,
+        rates_passthrough: bool = False,
+    ) -> None:
+        if output not in ("actuator", "rates"):
+            raise ValueError(f"output: expected 'actuator' or 'rates', got {output!r}")
+        self.controller = controller
+        self.actuator = output == "actuator"
+        r0, r1, r2 = (math.radians(r) for r in profile.limits.rate_max_deg_s)
+        self.rate_max_rad_s = (r0, r1, r2)
+        fs = rates_full_scale_deg_s
+        self.rate_fs_rad_s = self.rate_max_rad_s if fs is None else (math.radians(fs),) * 3
+        self.rates_lead_s = rates_lead_s
+        self.passthrough = rates_passthrough
+        self.gyro_limit_rad_s = (
+            math.radians(profile.physics.imu.gyro_range_deg_s) * GYRO_RANGE_MARGIN
+        )
+        self.gyro: tuple[float, float, float] = NO_RATES
+        self.gyro_valid = True
+        self.last_thrust_sent = 0.0
+
+    def sample(
+        self,
+        dt: float,
+        gyro: tuple[float, float, float],
+        ref: tuple[float, float, float],
+        thrust: float,
+    ) -> Any:
+        """The range gate and the law on one sample; returns the law's output.
+
+        :attr:`gyro` is the sample as the law saw it (NaN when out of range),
+        :attr:`gyro_valid` whether it was in range."""
+        lim = self.gyro_limit_rad_s
+        g0, g1, g2 = gyro
+        if -lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim:
+            self.gyro_valid = True
+        else:
+            self.gyro_valid = False
+            gyro = NO_RATES
+        self.gyro = gyro
+        return self.controller.update(dt, gyro, ref, thrust)
+
+    def actuator_command(
+        self, out: Any, thrust: float
+    ) -> tuple[tuple[float, float, float, float], int]:
+        """Actuator controls (roll, pitch, yaw torque, collective) through the last
+        gate, and how many fields it replaced."""
+        return gate_actuator(out.torque, out.thrust, thrust)
+
+    def rates_command(
+        self, out: Any, ref: tuple[float, float, float], thrust: float
+    ) -> tuple[tuple[float, float, float], float, int]:
+        """Body rates and collective through the last gate, and how many fields it
+        replaced.
+
+        The law wraps the autopilot's rate loop: the pilot's rate plus the law's
+        correction, within the profile's rate limits (the gate clamps). The
+        collective is the pilot's (or the script's): the autopilot mixes it with
+        its own rate loop; the law's air-mode shift belongs to torques not sent."""
+        if self.passthrough:
+            want: tuple[float, float, float] | list[float] = ref
+        else:
+            fs = self.rate_fs_rad_s
+            lead = self.rates_lead_s
+            rd = self.controller.reference_rate_dot
+            tq = out.torque
+            want = [ref[i] + lead * rd[i] + tq[i] * fs[i] for i in range(3)]
+        sp, thrust_out, replaced = gate_rates(
+            want, thrust, ref, self.rate_max_rad_s, self.last_thrust_sent
+        )
+        self.last_thrust_sent = thrust_out
+        return sp, thrust_out, replaced
+
+    def learn(self) -> None:
+        """What the law learns from this sample: after the command has left."""
+        self.controller.learn()
