@@ -24,7 +24,7 @@ import numpy as np
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.profile import VehicleProfile
-from companion.step import SampleStep
+from companion.step import LANDED_STATE_RATE_HZ, SampleStep
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
 from sitl.physics import Quadrotor, hover_motor_command
@@ -106,6 +106,11 @@ def simulate_flight(
     n_motors = plant.n_motors
 
     n_steps = round(duration / dt)
+    # The landed state, as the autopilot streams it at the rate the companion asks:
+    # one message at each period (the first at the start), taken from the next sample.
+    landed_period = 1.0 / LANDED_STATE_RATE_HZ
+    next_landed = 0.0
+    controller.on_ground = quad.state.landed
     rc_period = 1.0 / scenario.rc_rate_hz
     next_rc = 0.0
     channels: tuple[int, ...] = (1500, 1500, 1000, 1500)
@@ -157,6 +162,9 @@ def simulate_flight(
             )
             step.learn()
             st = quad.state
+            if sample.time_s >= next_landed - 1e-12:
+                controller.on_ground = st.landed
+                next_landed += landed_period
             cols["t_s"].append(sample.time_s)
             cols["ref_rad_s"].append(cmd.rate_rad_s)
             cols["meas_rad_s"].append(sample.gyro_frd_rad_s)
