@@ -49,7 +49,6 @@ import asyncio
 import contextlib
 import gc
 import logging
-import math
 import signal
 import time
 from collections import deque
@@ -60,6 +59,7 @@ from typing import Any, Literal
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
 from companion.errors import EngageError, LinkError
+from companion.failsafe import FailsafeConfig, SampleWatch
 from companion.handback import Conditions, adoptable, candidates, judge, next_kind, pick
 from companion.profile import VehicleProfile
 from companion.records import EventLog
@@ -85,7 +85,6 @@ __all__ = [
     "EXIT_FAILSAFE",
     "EXIT_OK",
     "Companion",
-    "FailsafeConfig",
     "RunOptions",
 ]
 
@@ -120,62 +119,6 @@ _WATCH_POLL_S = 0.05
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
-
-
-def _average_abs(ema: list[float], a: float, e0: float, e1: float, e2: float) -> None:
-    """One first-order step (weight ``a``) of the per-axis averages of ``|e|``; a
-    NaN (a held output) leaves its axis's average as it was."""
-    if e0 == e0:
-        ema[0] += a * (abs(e0) - ema[0])
-    if e1 == e1:
-        ema[1] += a * (abs(e1) - ema[1])
-    if e2 == e2:
-        ema[2] += a * (abs(e2) - ema[2])
-
-
-@dataclass(frozen=True)
-class FailsafeConfig:
-    """Thresholds of the failsafes and what follows one."""
-
-    stale_imu_s: float = 0.1
-    invalid_imu_s: float = 0.05
-    invalid_fraction_max: float = 0.2
-    """Invalid-IMU failsafe also when this share of the samples, averaged over
-    ``invalid_window_s`` (first order, in sample time), is invalid: a gyro that
-    fails every other sample never makes a run of ``invalid_imu_s``."""
-    invalid_window_s: float = 1.0
-    link_timeout_s: float = 3.5
-    """Three heartbeat periods at 1 Hz plus jitter: two lost heartbeats in a row
-    are not a lost link."""
-    rc_timeout_s: float = 0.5
-    tracking_error_max_deg_s: float = 300.0
-    envelope_time_s: float = 0.5
-    diverging_fraction_max: float = 0.8
-    """Diverging-vehicle failsafe (actuator output): the share of samples with one
-    motor at full and another at idle together, averaged over
-    ``diverging_window_s`` (first order), beyond this while the worst axis's
-    tracking error, averaged the same way, is beyond ``diverging_error_min_deg_s``.
-    Measured through a delayed link (docs/failsafes.md): normal flights reach
-    0.31 (a 2 s mean), a loop oscillating towards the ground 0.97-1.0."""
-    diverging_window_s: float = 2.0
-    diverging_error_min_deg_s: float = 30.0
-    sample_errors_max: int = 3
-    """A per-sample step (law, send) that raises this many times in a row is a
-    failsafe: at 250 Hz, 12 ms, well inside ``stale_imu_s``."""
-    on_record_error: Literal["continue", "failsafe"] = "continue"
-    """A record file that cannot be written (disk full): an event and a counter,
-    and with "failsafe" a failsafe too."""
-    on_failsafe: Literal["exit", "wait"] = "exit"
-    safe_mode: str = "auto"
-    """The mode to hand back to (companion.stacks), or "auto": a manual mode
-    while valid RC is seen (not after RC loss), else hold with a position
-    estimate, else land (companion.handback). A named mode whose needs are not
-    met is passed over for the pilot-free modes after it."""
-    hand_back_watch_s: float = 3.0
-    """After a hand-back, how long the autopilot's mode is watched: if it leaves
-    the safe mode (its own failsafe) or never shows it, the next one is tried.
-    PX4 acts on RC loss after COM_RC_LOSS_T (0.5 s), ArduPilot after
-    RC_FS_TIMEOUT (1 s); heartbeats come at 1 Hz."""
 
 
 @dataclass(frozen=True)
@@ -266,7 +209,6 @@ class Companion:
         self.n_task_failures = 0
         self.n_record_failures = 0
         self._errors_in_row = 0
-        self._invalid_frac = 0.0
         self._clock_candidate: tuple[float, int] | None = None
         self.autopilot: int | None = None
         self.stack: FlightStack | None = None
@@ -281,19 +223,13 @@ class Companion:
         self._t_engaged: float | None = None
         self._t_first: float | None = None
         self._last_imu_wall: float | None = None
-        self._invalid_since: float | None = None
-        self._envelope_since: float | None = None
-        self._err_ema = [0.0, 0.0, 0.0]
-        self._inv_envelope_time = 1.0 / opts.failsafe.envelope_time_s
-        self._inv_invalid_window = 1.0 / opts.failsafe.invalid_window_s
-        # Diverging: the averaged share of samples with motors at both ends, and
-        # the error averaged over the same window.
-        self._pinned_ema = 0.0
-        self._err_ema_long = [0.0, 0.0, 0.0]
-        self._inv_diverging_window = 1.0 / opts.failsafe.diverging_window_s
-        self._diverging_err_min_rad_s = math.radians(opts.failsafe.diverging_error_min_deg_s)
-        self._motor_idle_edge = opts.profile.limits.motor_idle + 0.001
-        self._err_max_rad_s = math.radians(opts.failsafe.tracking_error_max_deg_s)
+        # The failsafes judged on each sample (in sample time).
+        self.watch = SampleWatch(
+            opts.failsafe,
+            self.step.rate_max_rad_s,
+            opts.profile.limits.motor_idle,
+            actuator=opts.output == "actuator",
+        )
         self._rc: tuple[int, ...] = ()
         self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._thrust = 0.0
@@ -563,9 +499,8 @@ class Companion:
         if self.engaged or self.commanding:
             self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
         self.controller.reset()
-        self._reset_envelope()
-        self._invalid_since = None
-        self._invalid_frac = 0.0
+        self.watch.reset()
+        self.watch.reset_invalid()
         self.n_imu_clock_resets += 1
         self._event("imu_clock_reset", detail)
         if self.stack is not None and not self._stop.is_set():
@@ -609,13 +544,12 @@ class Companion:
         step = self.step
         out = step.sample(dt, gyro, ref, thrust)
         if step.gyro_valid:
-            self._invalid_since = None
-            frac = self._invalid_frac
-            if frac:  # decays while the samples are good; free once it is back to 0
-                frac -= frac * dt * self._inv_invalid_window
-                self._invalid_frac = frac if frac > 1e-4 else 0.0
+            self.watch.valid_sample(dt)
         else:
-            self._on_invalid_gyro(t_s, dt)
+            self.n_imu_invalid += 1
+            verdict = self.watch.invalid_sample(t_s, dt, engaged=self.engaged)
+            if verdict is not None:
+                self._failsafe(*verdict)
         sent: Sequence[float] = NO_RATES
         engaged = self.engaged  # as the command left (recorded so, whatever follows)
         if self.commanding:
@@ -625,7 +559,9 @@ class Companion:
         step.learn()
         gyro = step.gyro
         if self.engaged:
-            self._check_envelope(t_s, dt, gyro, out)
+            verdict = self.watch.envelope(t_s, dt, gyro, out)
+            if verdict is not None:
+                self._failsafe(*verdict)
         append = self._log_append
         if append is not None:
             tq = out.torque
@@ -646,33 +582,6 @@ class Companion:
             )  # fmt: skip
         if self._telemetry is not None:
             self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
-
-    def _on_invalid_gyro(self, t_s: float, dt: float) -> None:
-        """A sample beyond the sensor's range or not finite (the law held its output).
-
-        The failsafe fires if this persists, in an unbroken run or as a share of
-        the samples. Persistence is judged in sample time: deterministic in
-        lockstep, and a failed sensor is caught on the sample that proves it."""
-        self.n_imu_invalid += 1
-        fs = self.opts.failsafe
-        a = dt * self._inv_invalid_window
-        frac = self._invalid_frac
-        frac += (1.0 - frac) * (a if a < 1.0 else 1.0)
-        self._invalid_frac = frac
-        if self._invalid_since is None:
-            self._invalid_since = t_s
-        if self.engaged:
-            if t_s - self._invalid_since > fs.invalid_imu_s:
-                self._failsafe(
-                    "failsafe_invalid_imu",
-                    f"non-finite or out-of-range gyro for {fs.invalid_imu_s} s of samples",
-                )
-            elif frac > fs.invalid_fraction_max:
-                self._failsafe(
-                    "failsafe_invalid_imu",
-                    f"non-finite or out-of-range gyro in {frac:.0%} of the samples "
-                    f"(limit {fs.invalid_fraction_max:.0%} over {fs.invalid_window_s} s)",
-                )
 
     def _send_output(
         self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
@@ -699,79 +608,6 @@ class Companion:
         self.n_commands_gated += n
         if self.n_commands_gated == n:
             self._event("command_gated", f"{n} non-finite field(s) replaced by safe values")
-
-    def _reset_envelope(self) -> None:
-        self._err_ema = [0.0, 0.0, 0.0]
-        self._err_ema_long = [0.0, 0.0, 0.0]
-        self._pinned_ema = 0.0
-        self._envelope_since = None
-
-    def _check_envelope(self, t_s: float, dt: float, gyro: tuple[float, ...], out: Any) -> None:
-        """Rates beyond the profile's limits, or a tracking error that stays large.
-
-        The tracking error is averaged (first-order, time constant
-        ``envelope_time_s``) so that an acro flip's short error peaks pass
-        and a vehicle that has stopped following (a failed motor) does not.
-        """
-        fs = self.opts.failsafe
-        a = dt * self._inv_envelope_time if dt > 0.0 else 0.0
-        a = 1.0 if a > 1.0 else a
-        ema = self._err_ema
-        e0, e1, e2 = out.error
-        _average_abs(ema, a, e0, e1, e2)
-        worst = max(ema)
-        err_max = self._err_max_rad_s
-        if worst > err_max:
-            self._failsafe(
-                "failsafe_envelope",
-                f"tracking error averaged over {fs.envelope_time_s} s reached "
-                f"{math.degrees(worst):.0f} deg/s (limit {fs.tracking_error_max_deg_s:.0f})",
-            )
-            return
-        if self._actuator_output and self._check_diverging(dt, e0, e1, e2, out.motors):
-            return
-        r0, r1, r2 = self.step.rate_max_rad_s
-        g0, g1, g2 = gyro
-        if not (abs(g0) > r0 or abs(g1) > r1 or abs(g2) > r2):
-            self._envelope_since = None
-        elif self._envelope_since is None:
-            self._envelope_since = t_s
-        elif t_s - self._envelope_since >= fs.envelope_time_s:
-            self._failsafe(
-                "failsafe_envelope",
-                f"a body rate beyond the profile's limit for {fs.envelope_time_s} s",
-            )
-
-    def _check_diverging(
-        self, dt: float, e0: float, e1: float, e2: float, motors: Sequence[float]
-    ) -> bool:
-        """A loop that oscillates towards the ground (e.g. through a link it cannot
-        fly): motors at full and at idle together for most of a window, with a
-        tracking error that does not go away. True if it fired.
-
-        Neither saturation alone (an acro flip saturates for a second) nor the
-        error alone (an oscillating loop keeps it under the envelope's limit)
-        tells this apart; the two motor ends together, most of the time, do.
-        With body-rate output the motors are the autopilot's, not ours: not judged.
-        """
-        b = dt * self._inv_diverging_window
-        b = 1.0 if b > 1.0 else b
-        pinned = 1.0 if max(motors) >= 0.999 and min(motors) <= self._motor_idle_edge else 0.0
-        pe = self._pinned_ema + b * (pinned - self._pinned_ema)
-        self._pinned_ema = pe
-        el = self._err_ema_long
-        _average_abs(el, b, e0, e1, e2)
-        fs = self.opts.failsafe
-        if pe > fs.diverging_fraction_max and max(el) > self._diverging_err_min_rad_s:
-            self._failsafe(
-                "failsafe_diverging",
-                f"motors at full and idle together in {pe:.0%} of the samples over "
-                f"{fs.diverging_window_s} s with a tracking error of "
-                f"{math.degrees(max(el)):.0f} deg/s (limits {fs.diverging_fraction_max:.0%}, "
-                f"{fs.diverging_error_min_deg_s:.0f} deg/s)",
-            )
-            return True
-        return False
 
     def _on_rc(self, v: tuple[int, ...]) -> None:
         """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
@@ -816,7 +652,7 @@ class Companion:
             # (After a stop signal nothing engages: the run's hand-back is next.)
             self.controller.reset()  # learn F only from commands that are applied
             self._restart_dt = True  # the next sample primes it, as a replay does
-            self._reset_envelope()
+            self.watch.reset()
             self.engaged = True
             self._t_engaged = None  # set by the first sample flown
             self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")

@@ -22,6 +22,7 @@ import click
 
 from companion import __version__
 from companion.errors import ConfigError, MfcError
+from companion.failsafe import FailsafeConfig
 from companion.options import (
     EXIT_BAD_INPUT,
     Finite,
@@ -36,6 +37,9 @@ from companion.options import (
 __all__ = ["main"]
 
 _log = logging.getLogger("companion")
+
+_FAILSAFE = FailsafeConfig()
+"""The failsafes' defaults: the options below show and use these."""
 
 _LAB_MODULE = "sitl.lab.cli"
 _LAB_COMMANDS = ("campaign", "envelope", "fly", "simulate")
@@ -188,7 +192,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @click.option(
     "--on-failsafe",
     type=click.Choice(["exit", "wait"]),
-    default="exit",
+    default=_FAILSAFE.on_failsafe,
     show_default=True,
     help="After the hand-back: exit (code 3), or wait for the pilot's switch to engage "
     "again (--engage rc-switch only).",
@@ -210,7 +214,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
             "land",
         ]
     ),
-    default="auto",
+    default=_FAILSAFE.safe_mode,
     show_default=True,
     help="Mode handed back to. auto: a manual mode while valid RC is seen (not after RC "
     "loss), else hold with a position estimate, else land (PX4 posctl/altctl, hold, land; "
@@ -221,16 +225,22 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @click.option(
     "--hand-back-watch-s",
     type=Finite(min=0.0),
-    default=3.0,
+    default=_FAILSAFE.hand_back_watch_s,
     show_default=True,
     help="After a hand-back, watch the autopilot's mode this long: if it leaves the safe "
     "mode (its own failsafe) or never shows it, try the next one. 0: not watched.",
 )
-@click.option("--stale-imu-s", type=Finite(min=0.0, min_open=True), default=0.1, show_default=True)
+@click.option(
+    "--stale-imu-s",
+    type=Finite(min=0.0, min_open=True),
+    default=_FAILSAFE.stale_imu_s,
+    show_default=True,
+    help="Failsafe when engaged and no IMU sample processed for this long.",
+)
 @click.option(
     "--link-timeout-s",
     type=Finite(min=0.0, min_open=True),
-    default=3.5,
+    default=_FAILSAFE.link_timeout_s,
     show_default=True,
     help="Failsafe when engaged and no autopilot heartbeat for this long (the default "
     "tolerates two lost 1 Hz heartbeats).",
@@ -238,28 +248,28 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @click.option(
     "--on-record-error",
     type=click.Choice(["continue", "failsafe"]),
-    default="continue",
+    default=_FAILSAFE.on_record_error,
     show_default=True,
     help="A record file that cannot be written (disk full): log it and fly on, or also fail safe.",
 )
 @click.option(
     "--invalid-imu-s",
     type=Finite(min=0.0, min_open=True),
-    default=0.05,
+    default=_FAILSAFE.invalid_imu_s,
     show_default=True,
     help="Failsafe after this long of non-finite or out-of-range gyro samples.",
 )
 @click.option(
     "--rc-timeout-s",
     type=Finite(min=0.0, min_open=True),
-    default=0.5,
+    default=_FAILSAFE.rc_timeout_s,
     show_default=True,
     help="Failsafe when engaged and no valid RC for this long.",
 )
 @click.option(
     "--envelope-time-s",
     type=Finite(min=0.0, min_open=True),
-    default=0.5,
+    default=_FAILSAFE.envelope_time_s,
     show_default=True,
     help="How long a rate beyond the profile's limit, or the averaging time of the "
     "tracking error, before the envelope failsafe.",
@@ -293,7 +303,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 @click.option(
     "--envelope-error-deg-s",
     type=Finite(min=0.0, min_open=True),
-    default=300.0,
+    default=_FAILSAFE.tracking_error_max_deg_s,
     show_default=True,
     help="Failsafe when the tracking error averaged over 0.5 s exceeds this.",
 )
@@ -331,7 +341,7 @@ def run(
     """Fly the vehicle's rates with the controller over MAVLink."""
     import asyncio
 
-    from companion.app import Companion, FailsafeConfig, RunOptions
+    from companion.app import Companion, RunOptions
     from companion.link.signing import load_signing_key
     from companion.link.transport import open_transport
 

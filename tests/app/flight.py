@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from companion.app import Companion, FailsafeConfig, RunOptions
+from companion.app import Companion, RunOptions
 from companion.config import DEFAULT_CONTROLLER, load_controller
+from companion.failsafe import FailsafeConfig
 from companion.link.transport import MemoryTransport
 from companion.profile import load_profile
 from tests.app.fakes import (

@@ -20,7 +20,8 @@ from typing import Any
 
 import pytest
 
-from companion.app import Companion, FailsafeConfig, RunOptions
+from companion.app import Companion, RunOptions
+from companion.failsafe import FailsafeConfig
 from companion.link.transport import MemoryTransport
 from tests.app.fakes import CMD_DO_SET_MODE, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import (
@@ -577,7 +578,7 @@ async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
         await fly(f, 500)
         f.fake.rc(1000)
     assert f.companion.engaged
-    assert f.companion._pinned_ema == pytest.approx(1 / 3, abs=0.05)
+    assert f.companion.watch.pinned_fraction == pytest.approx(1 / 3, abs=0.05)
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
