@@ -58,9 +58,17 @@ from pathlib import Path
 from typing import Any, Literal
 
 from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
-from companion.errors import EngageError, LinkError
+from companion.engagement import Engagement
+from companion.errors import (
+    EXIT_BAD_INPUT,
+    EXIT_ERROR,
+    EXIT_FAILSAFE,
+    EXIT_OK,
+    EngageError,
+    LinkError,
+)
 from companion.failsafe import FailsafeConfig, SampleWatch
-from companion.handback import Conditions, adoptable, candidates, judge, next_kind, pick
+from companion.handback import candidates
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
@@ -90,10 +98,6 @@ __all__ = [
 
 _log = logging.getLogger("companion.app")
 
-EXIT_OK = 0
-EXIT_ERROR = 1
-EXIT_BAD_INPUT = 2
-EXIT_FAILSAFE = 3
 
 # MAVLink numbers used here (common.xml).
 _MSG_HEARTBEAT = 0
@@ -101,21 +105,14 @@ _MSG_ATTITUDE = 30
 _MSG_LOCAL_POSITION_NED = 32
 _MSG_RC_CHANNELS = 65
 _MSG_HIGHRES_IMU = 105
-_CMD_DO_SET_MODE = 176
-_CMD_ARM_DISARM = 400
 _CMD_SET_MESSAGE_INTERVAL = 511
 _RESULT_ACCEPTED = 0
 _RESULT_DENIED = 2
-_MODE_FLAG_CUSTOM = 1
 _BASE_MODE_ARMED = 128
 _MSG_STATUSTEXT = 253
 _MSG_EXTENDED_SYS_STATE = 245
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 _POSITION_RATE_HZ = 4.0
-_POSITION_TIMEOUT_S = 1.0
-"""A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
-ArduPilot only while their estimate is valid) is younger than this."""
-_WATCH_POLL_S = 0.05
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
@@ -166,7 +163,7 @@ class RunOptions:
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
 
 
-class Companion:
+class Companion(Engagement):
     """One run of the companion against one autopilot.
 
     Parameters
@@ -662,275 +659,6 @@ class Companion:
                 "failsafe_autopilot_took_over",
                 f"autopilot left OFFBOARD (mode {mode:#x}, armed={armed})",
             )
-
-    # ------------------------------------------------------------ engagement
-    async def _engage_offboard(self, *, arm: bool) -> None:
-        """Stream setpoints, switch to the stack's engage mode, arm if asked.
-
-        PX4 refuses OFFBOARD unless setpoints already stream, so they start
-        first; ArduPilot ignores them until GUIDED_NOGPS. Each step is
-        ACK-checked and retried; a refusal carries the autopilot's own words
-        (its last STATUSTEXT, e.g. "PreArm: ...").
-        """
-        assert self.stack is not None
-        stack = self.stack
-        self.commanding = True
-        self.controller.reset()
-        await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
-        try:
-            p2, p3 = stack.engage_mode
-            for attempt in range(10):
-                if not self.commanding:
-                    return  # released meanwhile (switch back low, failsafe): stop here
-                res = await self.link.command_long(
-                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.5
-                )
-                if res == _RESULT_ACCEPTED:
-                    break
-                _log.info("engage mode refused (result %d), attempt %d", res, attempt + 1)
-                await asyncio.sleep(0.2)
-            else:
-                raise EngageError(f"{stack.name} refused its engage mode ten times")
-            if arm:
-                if not self.commanding:
-                    return
-                self._last_statustext = ""
-                res = await self.link.command_long(_CMD_ARM_DISARM, 1, timeout_s=0.5)
-                if res != _RESULT_ACCEPTED:
-                    await asyncio.sleep(0.2)  # a STATUSTEXT with the reason may follow the ACK
-                    said = f": {self._last_statustext}" if self._last_statustext else ""
-                    raise EngageError(f"{stack.name} refused to arm (MAV_RESULT {res}){said}")
-        except (EngageError, LinkError) as exc:
-            self.commanding = False
-            self._event("engage_failed", str(exc))
-            if self.opts.engage == "auto":
-                self._exit_code = EXIT_ERROR
-                self._stop.set()
-
-    def _release(self) -> bool:
-        """Stop commanding now, in the caller's callback; return whether we were.
-
-        Called the moment a failsafe or the pilot's switch says so, so no later
-        sample (even one in the same datagram) gets a command, and an engagement
-        still in flight is abandoned rather than switching the autopilot back.
-        """
-        was = self.commanding
-        self.commanding = False
-        self.engaged = False
-        task = self._engage_task
-        if task is not None and not task.done():
-            task.cancel()
-        return was
-
-    def _start_engage(self, *, arm: bool) -> None:
-        old = self._engage_task
-        if old is not None and not old.done():
-            old.cancel()
-        self._engage_task = asyncio.get_running_loop().create_task(
-            self._engage_offboard(arm=arm), name="engage"
-        )
-        self._tasks.add(self._engage_task)
-        self._engage_task.add_done_callback(self._tasks.discard)
-
-    async def _hand_back(
-        self, reason: str, *, was_commanding: bool | None = None, kind: str = ""
-    ) -> None:
-        """Stop commanding and switch the autopilot to a safe mode it can fly.
-
-        ``was_commanding`` comes from :meth:`_release` when the caller already
-        stopped the commands; otherwise the current state decides. ``kind`` is
-        the failsafe's, if one: after RC loss no manual mode is chosen.
-        """
-        if self._handing_back:
-            # One is under way (a failsafe's, the pilot's switch): stop any
-            # engagement that waits behind it, and let it finish rather than be
-            # cancelled with the run's tasks (its commands time out within ~1 s).
-            self._release()
-            await self._hand_back_idle.wait()
-            if self._hand_back_accepted or not self._autopilot_in_engage_mode():
-                return
-            # It ended unanswered with the autopilot still in OFFBOARD: try again.
-            was_commanding = True
-        self._handing_back = True
-        self._hand_back_accepted = False
-        self._hand_back_idle.clear()
-        try:
-            released = self._release()
-            was_commanding = released if was_commanding is None else was_commanding
-            if (
-                not was_commanding
-                or self.link is None
-                or self.link.target is None
-                or self.stack is None
-            ):
-                return
-            await self._switch_to_safe_mode(
-                reason,
-                rc_failsafe=kind == "failsafe_rc_lost",
-                adopt=kind == "failsafe_autopilot_took_over",
-            )
-        finally:
-            self._handing_back = False
-            self._hand_back_idle.set()
-
-    def _conditions(self, *, rc_failsafe: bool) -> Conditions:
-        now = time.perf_counter()
-        rc, pos = self._rc_wall, self._pos_wall
-        return Conditions(
-            rc_valid=rc is not None and now - rc <= self.opts.failsafe.rc_timeout_s,
-            position_valid=pos is not None and now - pos <= _POSITION_TIMEOUT_S,
-            rc_failsafe=rc_failsafe,
-        )
-
-    async def _switch_to_safe_mode(self, reason: str, *, rc_failsafe: bool, adopt: bool) -> None:
-        """Try the safe modes in order (companion.handback) until one holds.
-
-        A mode the autopilot refuses is followed by the next one; a mode it
-        leaves (its own failsafe) or never shows within ``hand_back_watch_s``,
-        by the next one of a more conservative kind (manual -> hold -> land). A
-        switch that goes unanswered ends it here: the run's end tries again
-        (``_hand_back_owed``). With ``adopt`` (the autopilot's heartbeat showed
-        it leave OFFBOARD by itself), a mode it can fly there is kept: the
-        companion does not override the autopilot's failsafe or the pilot's
-        mode switch."""
-        assert self.stack is not None
-        stack, modes = self.stack, self._safe_modes
-        ap_mode = self._ap_mode
-        cond = self._conditions(rc_failsafe=rc_failsafe)
-        if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):
-            # The autopilot (its failsafe) or the pilot already chose a mode: keep it.
-            self._hand_back_accepted = True
-            self._event(
-                "handed_back",
-                f"{reason}; {cond.describe()} -> {stack.mode_label(ap_mode)} kept "
-                "(the autopilot's mode)",
-            )
-            return
-        start = 0
-        while True:
-            choice = pick(modes, start, cond)
-            mode = choice.mode
-            skipped = f" ({choice.why_skipped()})" if choice.skipped else ""
-            if mode is None:
-                self._event("hand_back_failed", f"{reason}; no safe mode left{skipped}")
-                return
-            name = mode.name.upper()
-            why = f"{reason}; {cond.describe()}{skipped} -> {name}"
-            try:
-                res = await self.link.command_long(
-                    _CMD_DO_SET_MODE,
-                    _MODE_FLAG_CUSTOM,
-                    mode.param2,
-                    mode.param3,
-                    timeout_s=0.3,
-                    retries=2,
-                )
-            except LinkError as exc:
-                self._hand_back_accepted = False
-                self._hand_back_owed = True
-                self._event("handed_back", f"{why}: mode switch unanswered ({exc})")
-                return
-            if res != _RESULT_ACCEPTED:
-                self._event("handed_back", f"{why} refused ({res})")
-                reason, start = f"{name} refused", choice.index + 1
-                cond = self._conditions(rc_failsafe=rc_failsafe)
-                continue
-            self._hand_back_accepted = True
-            self._hand_back_owed = False
-            self._event("handed_back", f"{why} accepted")
-            failed = await self._watch_safe_mode(modes, choice.index)
-            if failed is None:
-                return
-            self._hand_back_accepted = False
-            self._event("safe_mode_lost", failed)
-            reason, start = failed, next_kind(modes, choice.index)
-            cond = self._conditions(rc_failsafe=rc_failsafe)
-
-    async def _watch_safe_mode(self, modes: tuple[SafeMode, ...], index: int) -> str | None:
-        """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
-        ``modes[index]``: None if the vehicle stays in a mode it can fly, else why not.
-
-        Until the new mode shows, a heartbeat still showing the mode from before
-        the switch (or the engage mode) may have been sent before it: only
-        another mode is judged at once. A new engagement (the pilot's switch) or
-        a disarm ends the watch. With no heartbeat at all meanwhile (a lost
-        link) there is nothing to judge by: the mode stays."""
-        assert self.stack is not None
-        stack = self.stack
-        target = stack.custom_mode(modes[index])
-        watch_s = self.opts.failsafe.hand_back_watch_s
-        if watch_s <= 0.0:
-            return None  # not watched: the ACK is all there is
-        t0 = time.perf_counter()
-        heartbeats0 = self._ap_heartbeats
-        before = self._ap_mode
-        seen = False
-        while True:
-            elapsed = time.perf_counter() - t0
-            if self.commanding:
-                return None  # engaged again meanwhile: the pilot's call
-            mode = self._ap_mode
-            if not self._ap_armed and mode is not None and (seen or mode != target):
-                self._event("safe_mode_held", f"disarmed after {elapsed:.1f} s")
-                return None
-            if mode == target:
-                seen = True
-            elif mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
-                # Judged on RC as it is now: a pilot with the radio back may take it.
-                failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=False))
-                if failed is not None:
-                    return f"{failed} after {elapsed:.1f} s"
-                label = stack.mode_label(mode)
-                self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
-                return None
-            if elapsed >= watch_s:
-                if self._ap_heartbeats == heartbeats0:
-                    self._event(
-                        "safe_mode_unconfirmed",
-                        f"no heartbeat for {watch_s:g} s after the switch to "
-                        f"{modes[index].name.upper()}: left as it is",
-                    )
-                    return None
-                if not seen:
-                    return (
-                        f"the autopilot accepted {modes[index].name.upper()} but did not show it "
-                        f"within {watch_s:g} s"
-                    )
-                self._event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
-                return None
-            await asyncio.sleep(_WATCH_POLL_S)
-
-    def _autopilot_in_engage_mode(self) -> bool:
-        """The autopilot's last heartbeat showed the mode we engage in (OFFBOARD, GUIDED_NOGPS)."""
-        return (
-            self.stack is not None
-            and self._ap_mode is not None
-            and self.stack.is_engage_mode(self._ap_mode)
-        )
-
-    def _failsafe(self, kind: str, detail: str) -> None:
-        """Stop commanding now and hand back; record it afterwards, best effort.
-
-        Nothing here waits on or can be stopped by I/O: the commands stop in
-        this call, the hand-back task is started before the event is recorded,
-        and recording never raises (:meth:`_event`)."""
-        if self._stop.is_set() or self._in_failsafe:
-            return  # one failsafe at a time: the first reason is the one logged
-        self._in_failsafe = True
-        was = self._release()
-        self._spawn(self._after_failsafe(kind, detail, was), "failsafe")
-        self._event(kind, detail)
-
-    async def _after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
-        try:
-            await self._hand_back(detail, was_commanding=was_commanding, kind=kind)
-        finally:
-            self._in_failsafe = False
-            if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
-                self._exit_code = EXIT_FAILSAFE
-                self._stop.set()
-        # "wait": an rc-switch run re-engages on the next low-to-high edge; a
-        # switch still high stays "high" until the pilot moves it low first.
 
     async def _supervise(self) -> None:
         """Wall-clock watchdogs: stale IMU, lost link, lost RC, failed records

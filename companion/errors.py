@@ -9,11 +9,30 @@
     └── EngageError                    the autopilot refused engagement (ACK denied, timeout)
 
 A simulated flight's outcome (landed, crashed, failsafe) is a value, not an exception.
+
+The exit codes of the ``companion`` commands are here too: 0 success, 1 an
+error (a run that could not start or engage), 2 bad input (nothing started),
+3 a failsafe ended the run.
 """
 
 from __future__ import annotations
 
-__all__ = ["ConfigError", "EngageError", "LinkError", "MfcError", "SigningError"]
+__all__ = [
+    "EXIT_BAD_INPUT",
+    "EXIT_ERROR",
+    "EXIT_FAILSAFE",
+    "EXIT_OK",
+    "ConfigError",
+    "EngageError",
+    "LinkError",
+    "MfcError",
+    "SigningError",
+]
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_BAD_INPUT = 2
+EXIT_FAILSAFE = 3
 
 
 class MfcError(Exception):

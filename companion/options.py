@@ -19,7 +19,7 @@ from typing import Any, NoReturn
 
 import click
 
-from companion.errors import ConfigError
+from companion.errors import EXIT_BAD_INPUT, ConfigError
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -110,10 +110,6 @@ def usable_out_file(
         raise click.BadParameter(f"{value} is a folder; expected a file path", ctx, param)
     usable_out_dir(ctx, param, path.parent)
     return path
-
-
-EXIT_BAD_INPUT = 2
-"""The exit code of bad input: a configuration error names the file and the field."""
 
 
 def fail_config(exc: ConfigError) -> NoReturn:
