@@ -16,7 +16,9 @@ import importlib
 import json
 import logging
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -29,7 +31,9 @@ from companion.options import (
     controller_opt,
     fail_config,
     load_inputs,
+    output_opt,
     profile_opt,
+    signing_key_opt,
     usable_out_dir,
     usable_out_file,
 )
@@ -40,6 +44,18 @@ _log = logging.getLogger("companion")
 
 _FAILSAFE = FailsafeConfig()
 """The failsafes' defaults: the options below show and use these."""
+
+
+def _failsafe_opt(name: str, field: str, help_: str) -> Callable[[Callable[..., Any]], Any]:
+    """A failsafe's threshold (a positive, finite number), defaulting to FailsafeConfig's."""
+    return click.option(
+        name,
+        type=Finite(min=0.0, min_open=True),
+        default=getattr(_FAILSAFE, field),
+        show_default=True,
+        help=help_,
+    )
+
 
 _LAB_MODULE = "sitl.lab.cli"
 _LAB_COMMANDS = ("campaign", "envelope", "fly", "simulate")
@@ -117,14 +133,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
 )
 @profile_opt
 @controller_opt
-@click.option(
-    "--output",
-    type=click.Choice(["actuator", "rates"]),
-    default="actuator",
-    show_default=True,
-    help="actuator: SET_ACTUATOR_CONTROL_TARGET (PX4 <= 1.13, bundled SITL); "
-    "rates: SET_ATTITUDE_TARGET body rates (PX4 >= 1.14, ArduPilot).",
-)
+@output_opt
 @click.option(
     "--engage",
     type=click.Choice(["auto", "rc-switch", "none"]),
@@ -176,12 +185,7 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     help="Write flight.tlog, control.bin and events.jsonl here.",
 )
 @click.option("--mqtt", "mqtt_url", default=None, help="mqtt://HOST[:PORT]/PREFIX telemetry.")
-@click.option(
-    "--signing-key",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="MAVLink 2 signing key file (see docs/signing.md).",
-)
+@signing_key_opt("MAVLink 2 signing key file (see docs/signing.md).")
 @click.option(
     "--duration",
     type=Finite(min=0.0, min_open=True),
@@ -230,19 +234,15 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     help="After a hand-back, watch the autopilot's mode this long: if it leaves the safe "
     "mode (its own failsafe) or never shows it, try the next one. 0: not watched.",
 )
-@click.option(
+@_failsafe_opt(
     "--stale-imu-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.stale_imu_s,
-    show_default=True,
-    help="Failsafe when engaged and no IMU sample processed for this long.",
+    "stale_imu_s",
+    "Failsafe when engaged and no IMU sample processed for this long.",
 )
-@click.option(
+@_failsafe_opt(
     "--link-timeout-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.link_timeout_s,
-    show_default=True,
-    help="Failsafe when engaged and no autopilot heartbeat for this long (the default "
+    "link_timeout_s",
+    "Failsafe when engaged and no autopilot heartbeat for this long (the default "
     "tolerates two lost 1 Hz heartbeats).",
 )
 @click.option(
@@ -252,26 +252,20 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     show_default=True,
     help="A record file that cannot be written (disk full): log it and fly on, or also fail safe.",
 )
-@click.option(
+@_failsafe_opt(
     "--invalid-imu-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.invalid_imu_s,
-    show_default=True,
-    help="Failsafe after this long of non-finite or out-of-range gyro samples.",
+    "invalid_imu_s",
+    "Failsafe after this long of non-finite or out-of-range gyro samples.",
 )
-@click.option(
+@_failsafe_opt(
     "--rc-timeout-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.rc_timeout_s,
-    show_default=True,
-    help="Failsafe when engaged and no valid RC for this long.",
+    "rc_timeout_s",
+    "Failsafe when engaged and no valid RC for this long.",
 )
-@click.option(
+@_failsafe_opt(
     "--envelope-time-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.envelope_time_s,
-    show_default=True,
-    help="How long a rate beyond the profile's limit, or the averaging time of the "
+    "envelope_time_s",
+    "How long a rate beyond the profile's limit, or the averaging time of the "
     "tracking error, before the envelope failsafe.",
 )
 @click.option(
@@ -300,12 +294,10 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     show_default=True,
     help="How long to wait for the autopilot's first heartbeat (exit 1 after).",
 )
-@click.option(
+@_failsafe_opt(
     "--envelope-error-deg-s",
-    type=Finite(min=0.0, min_open=True),
-    default=_FAILSAFE.tracking_error_max_deg_s,
-    show_default=True,
-    help="Failsafe when the tracking error averaged over 0.5 s exceeds this.",
+    "tracking_error_max_deg_s",
+    "Failsafe when the tracking error averaged over 0.5 s exceeds this.",
 )
 def run(
     connect: str,

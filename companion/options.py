@@ -14,6 +14,7 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -29,7 +30,9 @@ __all__ = [
     "fail_config",
     "load_inputs",
     "out_dir_problem",
+    "output_opt",
     "profile_opt",
+    "signing_key_opt",
     "usable_out_dir",
     "usable_out_file",
 ]
@@ -169,3 +172,23 @@ def load_inputs(
     except ConfigError as exc:
         fail_config(exc)
     return profile, cfg, ctrl_path
+
+
+output_opt = click.option(
+    "--output",
+    type=click.Choice(["actuator", "rates"]),
+    default="actuator",
+    show_default=True,
+    help="actuator: SET_ACTUATOR_CONTROL_TARGET (PX4 <= 1.13, bundled SITL); "
+    "rates: SET_ATTITUDE_TARGET body rates (PX4 >= 1.14, ArduPilot).",
+)
+
+
+def signing_key_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--signing-key FILE``: a MAVLink 2 signing key (docs/signing.md)."""
+    return click.option(
+        "--signing-key",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        help=help_,
+    )

@@ -22,7 +22,7 @@ from typing import Any
 import click
 
 from companion.errors import ConfigError, SigningError
-from companion.options import SEED, Finite, usable_out_dir, usable_out_file
+from companion.options import SEED, Finite, signing_key_opt, usable_out_dir, usable_out_file
 from companion.profile import load_profile
 
 __all__ = ["cli", "main"]
@@ -147,12 +147,8 @@ def cli(verbose: int) -> None:
     metavar="TEXT",
     help="ardupilot: a pre-arm check fails with TEXT (arming FAILED + 'PreArm: TEXT').",
 )
-@click.option(
-    "--signing-key",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="MAVLink 2 signing key file (as companion run --signing-key): sign all, "
-    "accept only signed.",
+@signing_key_opt(
+    "MAVLink 2 signing key file (as companion run --signing-key): sign all, accept only signed."
 )
 @click.option(
     "--param",

@@ -18,6 +18,7 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import click
 from click.core import ParameterSource
@@ -31,6 +32,7 @@ from companion.options import (
     fail_config,
     find_profile,
     load_inputs,
+    output_opt,
     profile_opt,
     usable_out_dir,
 )
@@ -71,6 +73,22 @@ def _percent_bar(desc: str, enabled: bool) -> Iterator[Callable[[float], None]]:
         bar.close()
 
 
+_scenario_opt = click.option(
+    "--scenario", default="paper-acro", show_default=True, help="Scenario name or file."
+)
+_seed_opt = click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
+_progress_opt = click.option("--progress/--no-progress", default=True, show_default=True)
+
+
+def _controller_profile_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    return click.option(
+        "--controller-profile",
+        type=click.Path(dir_okay=False, path_type=Path),
+        default=None,
+        help=help_,
+    )
+
+
 def _split_list(values: tuple[str, ...]) -> list[str]:
     return [v.strip() for item in values for v in item.split(",") if v.strip()]
 
@@ -78,13 +96,10 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
 @click.command("simulate")
 @profile_opt
 @controller_opt
-@click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
-@click.option(
-    "--controller-profile",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Give the controller this profile's geometry instead of the flown vehicle's.",
+@_scenario_opt
+@_seed_opt
+@_controller_profile_opt(
+    "Give the controller this profile's geometry instead of the flown vehicle's."
 )
 @click.option(
     "--out",
@@ -95,7 +110,7 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
     show_default=True,
     help="Folder for metrics.json, plots, flight.npz and report.md.",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@_progress_opt
 def simulate(
     profile_path: Path,
     controller_path: Path | None,
@@ -140,23 +155,16 @@ def simulate(
 @click.command("fly")
 @profile_opt
 @controller_opt
-@click.option("--scenario", default="paper-acro", show_default=True, help="Scenario name or file.")
-@click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
-@click.option(
-    "--output", type=click.Choice(["actuator", "rates"]), default="actuator", show_default=True
-)
+@_scenario_opt
+@_seed_opt
+@output_opt
 @click.option(
     "--duration",
     type=Finite(min=0.0, min_open=True),
     default=None,
     help="Engaged flight time, s [default: the scenario's].",
 )
-@click.option(
-    "--controller-profile",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=None,
-    help="Give the companion this profile instead of the flown one.",
-)
+@_controller_profile_opt("Give the companion this profile instead of the flown one.")
 @click.option(
     "--out",
     "out_dir",
@@ -178,7 +186,7 @@ def simulate(
     help="Rates output: fly the same scenario again sending the pilot's rates straight "
     "through (into OUT/passthrough) and report both.",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@_progress_opt
 def fly(
     profile_path: Path,
     controller_path: Path | None,
@@ -332,7 +340,7 @@ def fly(
     "a new flight of the kind both controllers were tuned for; paper-acro is the fixed test "
     "programme (reproduced by scripts/reproduce_paper.py).",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@_progress_opt
 def campaign(
     out_dir: Path,
     profiles: tuple[str, ...],
@@ -516,7 +524,7 @@ def campaign(
     default=None,
     help="Parallel cases [default: os.cpu_count()].",
 )
-@click.option("--progress/--no-progress", default=True, show_default=True)
+@_progress_opt
 def envelope(
     out_dir: Path,
     n: int,
