@@ -41,6 +41,12 @@ Failsafes (each ends in the same hand-back; the table is docs/failsafes.md)
 
 Every command passes the last gate (companion.control.gate) on its way out:
 no NaN and nothing out of range reaches the wire.
+
+This module is the run's life: start-up, the watchdogs, the records, the end.
+Its parts: the sample path (:mod:`companion.samples`), engaging and handing back
+(:mod:`companion.engagement`), the failsafes judged per sample
+(:mod:`companion.failsafe`), the per-sample step shared with the lab
+(:mod:`companion.step`).
 """
 
 from __future__ import annotations
@@ -52,13 +58,12 @@ import logging
 import signal
 import time
 from collections import deque
-from collections.abc import Coroutine, Sequence
+from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
-from companion.engagement import Engagement
+from companion.config import MfcConfig, PidConfig, build_controller
 from companion.errors import (
     EXIT_BAD_INPUT,
     EXIT_ERROR,
@@ -67,23 +72,18 @@ from companion.errors import (
     EngageError,
     LinkError,
 )
-from companion.failsafe import FailsafeConfig, SampleWatch
+from companion.failsafe import FailsafeConfig
 from companion.handback import candidates
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
+from companion.samples import SamplePath
 from companion.stacks import FlightStack, SafeMode, stack_for
-from companion.step import LANDED_STATE_RATE_HZ, NO_RATES, SampleStep, whole_us
+from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
 """How often the counters (ours, the link's, the transport's) go to the events."""
 
-_TIME_JUMP_S = 1.0
-"""An IMU time step beyond this, either way, is a discontinuity, not a late
-sample or a gap (stale IMU fires after ``stale_imu_s``, far less)."""
-_NEW_CLOCK_SAMPLES = 3
-"""Samples in a row that must follow on from a jump before it is a new clock
-(an autopilot reboot) rather than one corrupt timestamp: 12 ms at 250 Hz."""
 _EVENTS_KEPT = 1000
 """Events kept in memory (``Companion.events``); the events file has them all."""
 
@@ -100,7 +100,6 @@ _log = logging.getLogger("companion.app")
 
 
 # MAVLink numbers used here (common.xml).
-_MSG_HEARTBEAT = 0
 _MSG_ATTITUDE = 30
 _MSG_LOCAL_POSITION_NED = 32
 _MSG_RC_CHANNELS = 65
@@ -108,13 +107,9 @@ _MSG_HIGHRES_IMU = 105
 _CMD_SET_MESSAGE_INTERVAL = 511
 _RESULT_ACCEPTED = 0
 _RESULT_DENIED = 2
-_BASE_MODE_ARMED = 128
-_MSG_STATUSTEXT = 253
 _MSG_EXTENDED_SYS_STATE = 245
-_LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 _POSITION_RATE_HZ = 4.0
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
-_ATT_TYPE_MASK_IGNORE_ATTITUDE = 128
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 
 
@@ -163,7 +158,7 @@ class RunOptions:
     failsafe: FailsafeConfig = field(default_factory=FailsafeConfig)
 
 
-class Companion(Engagement):
+class Companion(SamplePath):
     """One run of the companion against one autopilot.
 
     Parameters
@@ -178,65 +173,27 @@ class Companion(Engagement):
         self.opts = opts
         self._transport = transport
         self.controller = build_controller(opts.controller, opts.profile)
-        self.sticks = build_stick_map(opts.controller)
-        # The range gate, the law and the command gate: the lab's flights use the same.
-        self.step = SampleStep(
-            self.controller,
-            opts.profile,
-            output=opts.output,
-            rates_full_scale_deg_s=opts.rates_full_scale_deg_s,
-            rates_lead_s=opts.rates_lead_s,
-            rates_passthrough=opts.rates_passthrough,
-        )
+        self._init_sample_path(opts)
         self.link: Any = None
         # Per-sample counters are plain attributes (a dict lookup per sample
         # adds up at 1 kHz); ``counters`` gathers them.
-        self.n_imu = 0
-        self.n_imu_duplicate_or_late = 0
-        self.n_imu_invalid = 0
-        self.n_imu_time_jumps = 0
-        self.n_imu_gaps = 0
-        self.n_imu_time_outliers = 0
-        self.n_imu_clock_resets = 0
-        self.n_commands = 0
-        self.n_commands_gated = 0
-        self.n_sample_errors = 0
-        self.n_rc_invalid = 0
         self.n_event_errors = 0
         self.n_task_failures = 0
         self.n_record_failures = 0
-        self._errors_in_row = 0
-        self._clock_candidate: tuple[float, int] | None = None
         self.autopilot: int | None = None
         self.stack: FlightStack | None = None
-        self._imu_source = opts.imu_source
         self.imu_rate_hz: float | None = None
         self._last_statustext = ""
         self.engaged = False
         self.commanding = False  # setpoints are being sent
         self._stop = asyncio.Event()
         self._exit_code = EXIT_OK
-        self._t_prev: float | None = None
-        self._t_engaged: float | None = None
-        self._t_first: float | None = None
-        self._last_imu_wall: float | None = None
-        # The failsafes judged on each sample (in sample time).
-        self.watch = SampleWatch(
-            opts.failsafe,
-            self.step.rate_max_rad_s,
-            opts.profile.limits.motor_idle,
-            actuator=opts.output == "actuator",
-        )
-        self._rc: tuple[int, ...] = ()
-        self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
-        self._thrust = 0.0
         self._rc_wall: float | None = None
         self._pos_wall: float | None = None
         self._safe_modes: tuple[SafeMode, ...] = ()
         self._ap_mode: int | None = None
         self._ap_armed = False
         self._ap_heartbeats = 0
-        self._switch_high = False
         self._tasks: set[asyncio.Task[Any]] = set()
         self._engage_task: asyncio.Task[None] | None = None
         self._handing_back = False
@@ -246,21 +203,14 @@ class Companion(Engagement):
         self._hand_back_owed = False  # a hand-back task failed: the run's end tries again
         self._counted_final = False
         self._in_failsafe = False
-        self._restart_dt = False
         self._log_rows: Any = None
         self._log_append: Any = None  # self._log_rows.append, looked up once
-        self._actuator_output = opts.output == "actuator"
-        self._script = opts.reference
         # The law takes something from RC (the sticks, the throttle, the engage
         # switch) unless a reference file with its own collective flies it.
         self._rc_needed = (
             opts.engage == "rc-switch" or opts.reference is None or opts.reference.thrust is None
         )
         self._rc_lost_logged = False
-        self._duration_s = opts.duration_s
-        # Counted in the autopilot's whole microseconds: a float difference of two
-        # large stamps would end the run one sample early or late by its rounding.
-        self._duration_us = None if opts.duration_s is None else round(opts.duration_s * 1e6)
         self._tlog: Any = None
         # The run's events: the last _EVENTS_KEPT in memory; with --log-dir,
         # _open_records gives it a file (all of them, through the writer thread).
@@ -369,296 +319,6 @@ class Companion(Engagement):
             self._in_failsafe = False
             self._exit_code = EXIT_FAILSAFE
             self._stop.set()
-
-    # -------------------------------------------------------------- hot path
-    def _on_message(self, msg: Any) -> None:
-        # HIGHRES_IMU, ATTITUDE and RC_CHANNELS never come here: run() registers
-        # them with the link's fast handlers, which take them on either road.
-        mid = msg.get_msgId()
-        if mid == _MSG_HEARTBEAT:
-            self._on_heartbeat(msg)
-        elif mid == _MSG_STATUSTEXT:
-            text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text
-            self._last_statustext = text.rstrip("\x00")
-            self._event("autopilot_says", self._last_statustext)
-        elif mid == _MSG_EXTENDED_SYS_STATE:
-            self._on_landed_state(int(msg.landed_state))
-        elif mid == _MSG_LOCAL_POSITION_NED:
-            self._pos_wall = time.perf_counter()
-
-    def _on_landed_state(self, state: int) -> None:
-        """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
-
-        An autopilot that never sends it (or sends UNDEFINED) leaves the
-        collective as the only gate, as before."""
-        on_ground = state == _LANDED_STATE_ON_GROUND
-        if on_ground != self.controller.on_ground:
-            self.controller.on_ground = on_ground
-            self._event("landed_state", "on the ground" if on_ground else f"in the air ({state})")
-
-    def _on_highres_imu(self, v: tuple[Any, ...]) -> None:
-        """HIGHRES_IMU ``(time_usec, xgyro, ygyro, zgyro)``, from the link's fast road."""
-        if self._imu_source == "highres_imu":
-            t_usec, g0, g1, g2 = v
-            self._on_imu(t_usec * 1e-6, (g0, g1, g2))
-
-    def _on_attitude(self, v: tuple[Any, ...]) -> None:
-        """ATTITUDE ``(time_boot_ms, rollspeed, pitchspeed, yawspeed)``."""
-        if self._imu_source == "attitude":
-            t_ms, g0, g1, g2 = v
-            self._on_imu(t_ms * 1e-3, (g0, g1, g2))
-
-    def _on_imu(self, t_s: float, gyro: tuple[float, float, float]) -> None:
-        # Everything before the command is what the sample needs: the timestamp and
-        # range checks, the law, the send. Recording and the slower checks follow it.
-        t0 = self.link.rx_perf_s  # the datagram's arrival
-        t_prev = self._t_prev
-        if t_prev is None:
-            self._t_first = t_s
-            dt = 0.0
-        else:
-            dt = t_s - t_prev
-            if 0.0 < dt <= _TIME_JUMP_S:
-                dt = whole_us(dt)  # HIGHRES_IMU's stamps are whole us, ATTITUDE's ms
-            if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
-                if not self._on_time_anomaly(t_s, dt, t0):
-                    return
-                dt = 0.0
-            elif self._clock_candidate is not None:
-                self._clock_candidate = None  # the old clock goes on: it was one outlier
-                self.n_imu_time_outliers += 1
-            if self._restart_dt:
-                dt = 0.0
-        self._restart_dt = False
-        self._t_prev = t_s
-        self.n_imu += 1
-        try:
-            self._step(t_s, dt, gyro, t0)
-        except Exception:
-            self._on_step_error()
-            return
-        self._errors_in_row = 0
-        # The stale-IMU clock counts samples the law has processed, not samples seen.
-        self._last_imu_wall = t0
-
-    def _on_time_anomaly(self, t_s: float, dt: float, t_wall: float) -> bool:
-        """A sample whose time is not just after the last one's; True: take it
-        (with no time step: the next one primes ``dt``).
-
-        A step back within ``_TIME_JUMP_S`` is a duplicate or a late sample
-        (reordered on the link): dropped. A step forward that the wall clock
-        also took (within ``_TIME_JUMP_S``) is a gap in the stream: taken. Any
-        other jump may be one corrupt timestamp: the sample is dropped, and only
-        when ``_NEW_CLOCK_SAMPLES`` samples in a row follow on from it is the
-        jump real: forward, a gap after all (a simulator's clock can outrun the
-        wall's); backward, a new clock (the autopilot rebooted). A sample that
-        follows the old clock again makes the jump an outlier, and nothing
-        changes.
-        """
-        if dt != dt or -_TIME_JUMP_S <= dt <= 0.0:
-            self.n_imu_duplicate_or_late += 1
-            return False
-        last_wall = self._last_imu_wall
-        if dt > 0.0 and last_wall is not None and dt <= t_wall - last_wall + _TIME_JUMP_S:
-            self.n_imu_gaps += 1
-            self._clock_candidate = None
-            return True
-        cand = self._clock_candidate
-        if cand is not None and 0.0 < t_s - cand[0] <= _TIME_JUMP_S:
-            self._clock_candidate = (t_s, cand[1] + 1)
-            if cand[1] + 1 < _NEW_CLOCK_SAMPLES:
-                return False
-            self._clock_candidate = None
-            if t_s > self._t_prev:  # type: ignore[operator]
-                self.n_imu_gaps += 1
-                self._event("imu_gap", f"IMU time went on from {self._t_prev:.6f} s to {t_s:.6f} s")
-            else:
-                self._new_clock(t_s)
-            return True
-        if cand is not None:
-            self.n_imu_time_outliers += 1  # the previous candidate led nowhere
-        self._clock_candidate = (t_s, 1)
-        self.n_imu_time_jumps += 1
-        return False
-
-    def _new_clock(self, t_s: float) -> None:
-        """The autopilot's IMU clock restarted (a reboot): start over.
-
-        Engaged, it is a failsafe first (whatever made the clock jump, the
-        vehicle was not ours to fly through it); then the controller forgets
-        what it learnt, and the streams are asked for again (a rebooted
-        autopilot has forgotten them)."""
-        detail = f"IMU time jumped from {self._t_prev:.6f} s to {t_s:.6f} s"
-        if self._t_first is not None and self._t_prev is not None:
-            # Shadow mode's --duration counts sample time since the first sample: go on
-            # counting on the new clock.
-            self._t_first = t_s - (self._t_prev - self._t_first)
-        if self.engaged or self.commanding:
-            self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
-        self.controller.reset()
-        self.watch.reset()
-        self.watch.reset_invalid()
-        self.n_imu_clock_resets += 1
-        self._event("imu_clock_reset", detail)
-        if self.stack is not None and not self._stop.is_set():
-            self._spawn(self._rerequest_streams("IMU clock reset"), "streams")
-
-    def _on_step_error(self) -> None:
-        """The law, the send or the records raised on this sample: count it; a few
-        in a row is a failsafe (nothing was sent for those samples)."""
-        self.n_sample_errors += 1
-        self._errors_in_row += 1
-        if self.n_sample_errors == 1:
-            _log.exception("the per-sample step raised (logged once, counted after)")
-        limit = self.opts.failsafe.sample_errors_max
-        if self._errors_in_row >= limit and (self.engaged or self.commanding):
-            self._failsafe(
-                "failsafe_sample_errors", f"the per-sample step raised {limit} times in a row"
-            )
-
-    def _step(self, t_s: float, dt: float, gyro: tuple[float, float, float], t0: float) -> None:
-        """One accepted sample: the shared step (range gate, law, command gate), the
-        command, then the rest."""
-        if self.engaged and self._t_engaged is None:
-            self._t_engaged = t_s  # engaged time counts from the first sample flown
-        if self._duration_us is not None and not self._stop.is_set():
-            # Engaged time; in shadow mode (never engaged) time since the first sample.
-            since = self._t_engaged if self.opts.engage != "none" else self._t_first
-            if since is not None and round((t_s - since) * 1e6) >= self._duration_us:
-                # Stop commanding in this callback, before this sample's command: the
-                # run flies [start, start + duration), whenever the run's task wakes.
-                if self._release():
-                    self._hand_back_owed = True  # the run's end hands back
-                self._event("duration", f"{self._duration_s} s")
-                self._stop.set()
-        ref = self._ref  # mapped once per RC frame, in _on_rc
-        thrust = self._thrust
-        script = self._script
-        if script is not None and self.engaged and self._t_engaged is not None:
-            ref, scripted_thrust = script.at(t_s - self._t_engaged)
-            if scripted_thrust is not None:
-                thrust = scripted_thrust
-        step = self.step
-        out = step.sample(dt, gyro, ref, thrust)
-        if step.gyro_valid:
-            self.watch.valid_sample(dt)
-        else:
-            self.n_imu_invalid += 1
-            verdict = self.watch.invalid_sample(t_s, dt, engaged=self.engaged)
-            if verdict is not None:
-                self._failsafe(*verdict)
-        sent: Sequence[float] = NO_RATES
-        engaged = self.engaged  # as the command left (recorded so, whatever follows)
-        if self.commanding:
-            sent = self._send_output(t_s, out, ref, thrust)
-        t_sent = time.perf_counter()
-        # ---- the command has left: what follows is off the latency path
-        step.learn()
-        gyro = step.gyro
-        if self.engaged:
-            verdict = self.watch.envelope(t_s, dt, gyro, out)
-            if verdict is not None:
-                self._failsafe(*verdict)
-        append = self._log_append
-        if append is not None:
-            tq = out.torque
-            err = out.error
-            f_hat = out.f_hat
-            u = out.u
-            sat = out.saturated_axes
-            g0, g1, g2 = gyro
-            # The layout of companion.records.columns.
-            append(
-                [
-                    t_s, t0, (t_sent - t0) * 1e6, float(engaged), float(out.held),
-                    ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
-                    ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
-                    ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
-                    thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
-                ]
-            )  # fmt: skip
-        if self._telemetry is not None:
-            self._telemetry.publish_sample(t_s, out.error, out.f_hat, out.u)
-
-    def _send_output(
-        self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
-    ) -> Sequence[float]:
-        """Send this sample's command through the last gate; returns the body rates
-        sent (NaN: none)."""
-        if self._actuator_output:
-            controls, replaced = self.step.actuator_command(out, thrust)
-            if replaced:
-                self._gated(replaced)
-            r, p, y, t = controls
-            self.link.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
-            self.n_commands += 1
-            return NO_RATES
-        sp, thrust_out, replaced = self.step.rates_command(out, ref, thrust)
-        if replaced:
-            self._gated(replaced)
-        self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
-        self.n_commands += 1
-        return sp
-
-    def _gated(self, n: int) -> None:
-        """The last gate replaced ``n`` non-finite fields of a command."""
-        self.n_commands_gated += n
-        if self.n_commands_gated == n:
-            self._event("command_gated", f"{n} non-finite field(s) replaced by safe values")
-
-    def _on_rc(self, v: tuple[int, ...]) -> None:
-        """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
-        count = v[18]
-        chans = v[: min(count, 18)] if count else v[:18]
-        cmd = self.sticks.map(chans)
-        if not cmd.valid:
-            # A glitch (a channel missing or out of range) changes nothing: the last
-            # valid sticks and switch hold, as PX4 and ArduPilot hold theirs, until
-            # the RC-lost failsafe (which watches _rc_wall) says otherwise.
-            self.n_rc_invalid += 1
-            return
-        self._rc = chans
-        self._ref, self._thrust = cmd.rate_rad_s, cmd.thrust
-        self._rc_wall = time.perf_counter()
-        if self.opts.engage != "rc-switch":
-            return
-        ch = self.opts.engage_channel
-        value = chans[ch - 1] if ch <= len(chans) else 0
-        if not self._switch_high and 1700 <= value <= 2200:
-            self._switch_high = True
-            self._event("rc_switch", f"ch{ch} high ({value} us): engaging")
-            self._start_engage(arm=False)
-        elif self._switch_high and (value < 1300 or value > 2200):
-            self._switch_high = False
-            if self.engaged or self.commanding:
-                was = self._release()
-                self._event("rc_switch", f"ch{ch} low ({value} us): handing back")
-                self._spawn(self._hand_back("pilot switched back", was_commanding=was), "hand-back")
-
-    def _on_heartbeat(self, msg: Any) -> None:
-        if self.stack is None:
-            return  # not yet recognised (start-up)
-        mode = int(msg.custom_mode)
-        armed = bool(msg.base_mode & _BASE_MODE_ARMED)
-        offboard = self.stack.is_engage_mode(mode)
-        was = self.engaged
-        now = offboard and armed and self.commanding
-        self._ap_mode, self._ap_armed = mode, armed
-        self._ap_heartbeats += 1
-        if now and not was and not self._stop.is_set():
-            # (After a stop signal nothing engages: the run's hand-back is next.)
-            self.controller.reset()  # learn F only from commands that are applied
-            self._restart_dt = True  # the next sample primes it, as a replay does
-            self.watch.reset()
-            self.engaged = True
-            self._t_engaged = None  # set by the first sample flown
-            self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")
-        elif was and not now and not self._handing_back:
-            self.engaged = False
-            self._failsafe(
-                "failsafe_autopilot_took_over",
-                f"autopilot left OFFBOARD (mode {mode:#x}, armed={armed})",
-            )
 
     async def _supervise(self) -> None:
         """Wall-clock watchdogs: stale IMU, lost link, lost RC, failed records
