@@ -1,8 +1,9 @@
 """Optional compiled control core.
 
 ``pip install .`` installs pure Python. With ``MFC_COMPILE=1`` in the
-environment, the control laws (``companion/control``: estimator, MFC, mixer,
-PID, sticks) are also compiled to C extensions with mypyc, from the same typed
+environment, the control laws (``companion/control``: estimator, identifier,
+the intelligent controllers, the MFC assembly, mixer, PID, prefilter, sticks)
+are also compiled to C extensions with mypyc, from the same typed
 source; nothing else changes. Beside them goes ``_compiled.json``, the SHA-256
 of each source compiled, so that ``companion.control`` refuses to import an
 extension whose source has changed since (README, "A compiled control core").
@@ -20,7 +21,8 @@ from pathlib import Path
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
 
-CONTROL = ("estimator", "mfc", "mixer", "pid", "sticks")  # = companion.control._compiled.MODULES
+# = companion.control._compiled.MODULES
+CONTROL = ("estimator", "identifier", "intelligent", "mfc", "mixer", "pid", "prefilter", "sticks")
 # (not imported: that package checks its extensions on import; a module missing
 # here makes the check refuse the build, and tests/control/test_compiled.py fail)
 HERE = Path(__file__).resolve().parent
@@ -45,7 +47,7 @@ if os.environ.get("MFC_COMPILE") == "1" and mypycify is None and "egg_info" not 
     # (egg_info: the backend asking what the build needs, before mypy is there)
     sys.exit("MFC_COMPILE=1: the compiled control core needs mypy (mypyc): pip install mypy")
 if os.environ.get("MFC_COMPILE") == "1" and mypycify is not None:
-    # One shared library for the five modules, named after the package.
+    # One shared library for the control modules, named after the package.
     # No config file: the project's (pyproject.toml) loads the pydantic plugin,
     # which the build environment lacks; the control modules need neither.
     extensions = mypycify(

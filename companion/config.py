@@ -79,7 +79,7 @@ class SticksConfig(StrictModel):
 
 
 class AlphaAdaptConfig(StrictModel):
-    """Online alpha scaling (companion.control.mfc.AlphaAdaptation)."""
+    """Online alpha scaling (companion.control.identifier.AlphaAdaptation)."""
 
     alpha_min: float = Field(gt=0.0, le=1e6)
     alpha_max: float = Field(gt=0.0, le=1e6)
@@ -154,9 +154,26 @@ class MfcAxisConfig(StrictModel):
     def _adapt_requirements(self) -> MfcAxisConfig:
         if self.alpha_adapt is not None and self.estimator != "window":
             raise ValueError("alpha_adapt needs estimator: window")
+        if self.actuator_tau_s > 0.0 and self.estimator != "window":
+            raise ValueError("actuator_tau_s needs estimator: window")
         adapt = self.alpha_adapt
         if adapt is not None and adapt.margin_min > 0.0 and self.actuator_tau_s <= 0.0:
             raise ValueError("alpha_adapt.margin_min needs actuator_tau_s > 0")
+        # Settings that would reach nothing are refused rather than ignored.
+        if self.lag_scaled_gains and (adapt is None or self.actuator_tau_s <= 0.0):
+            raise ValueError("lag_scaled_gains needs alpha_adapt and actuator_tau_s > 0")
+        if not self.lag_scaled_gains and (
+            self.lag_scaling_max is not None or self.lag_scaling_min is not None
+        ):
+            raise ValueError("lag_scaling_max and lag_scaling_min need lag_scaled_gains")
+        if (
+            self.lag_scaling_authority_ref > 0.0
+            and not self.lag_scaled_gains
+            and (adapt is None or adapt.margin_min <= 0.0)
+        ):
+            raise ValueError(
+                "lag_scaling_authority_ref needs lag_scaled_gains or alpha_adapt.margin_min > 0"
+            )
         return self
 
     @field_validator("alpha")
@@ -221,8 +238,8 @@ def load_controller(path: str | Path = DEFAULT_CONTROLLER) -> MfcConfig | PidCon
     companion.errors.ConfigError
         Naming the file and the key path of every problem.
     """
-    from companion.schema import read_yaml
     from companion.errors import ConfigError
+    from companion.schema import read_yaml
 
     p = Path(path)
     # Validate through the wrapper but report paths as the user wrote them.

@@ -14,18 +14,12 @@ flying yesterday's control law while reading today's is not an option.
 # imported directly imports this package first).
 from companion.control._compiled import COMPILED
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
-from companion.control.mfc import (
-    AlphaAdaptation,
-    ControlOutput,
-    IntelligentController,
-    MfcAxisGains,
-    MfcController,
-    MfcGains,
-    PidController,
-    ReferencePrefilter,
-)
+from companion.control.identifier import AlphaAdaptation
+from companion.control.intelligent import IntelligentController, MfcAxisGains
+from companion.control.mfc import ControlOutput, MfcController, MfcGains, PidController
 from companion.control.mixer import Mixer, MixResult
 from companion.control.pid import PX4_DEFAULT_GAINS, PidAxisGains, PidGains, RatePid
+from companion.control.prefilter import ReferencePrefilter
 from companion.control.sticks import AxisRates, PilotCommand, StickMap
 
 __all__ = [

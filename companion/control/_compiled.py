@@ -14,7 +14,7 @@ import json
 from importlib.machinery import EXTENSION_SUFFIXES
 from pathlib import Path
 
-MODULES = ("estimator", "mfc", "mixer", "pid", "sticks")
+MODULES = ("estimator", "identifier", "intelligent", "mfc", "mixer", "pid", "prefilter", "sticks")
 MANIFEST = "_compiled.json"
 
 

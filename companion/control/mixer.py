@@ -25,10 +25,10 @@ only the headroom left. The result reports what was achieved and what
 saturated, so a caller can keep an estimator from learning a command that was
 never applied.
 
-``yaw_thrust_down`` / ``yaw_thrust_up`` let yaw move the collective too, by at
-most that much and never so far that roll and pitch stop fitting. Both are 0
-by default, which is the air mode above exactly. Measured in November 2026
-(MFC given the F450 profile) and not shipped:
+Yaw never moves the collective. Letting it (by at most an allowance down and
+one up, never so far that roll and pitch stop fitting) was measured in
+November 2026 (MFC given the F450 profile) and not shipped, and the allowance
+is gone from the mixer:
 
 * Down (PX4's default, ``MC_REDUCE_THRUST``) trades altitude for yaw. On a
   vehicle with a weak motor the yaw demand never ends and the vehicle sinks:
@@ -114,10 +114,7 @@ class Mixer:
         Lowest command a running motor receives, in [0, 1).
     """
 
-    __slots__ = (
-        "_no_sat", "_pf", "_quad", "_rf", "_rp", "_yf", "idle", "mix_fn", "n_motors",
-        "yaw_thrust_down", "yaw_thrust_up",
-    )  # fmt: skip
+    __slots__ = ("_no_sat", "_pf", "_quad", "_rf", "_rp", "_yf", "idle", "mix_fn", "n_motors")
 
     def __init__(
         self,
@@ -126,19 +123,12 @@ class Mixer:
         yaw_factors: Sequence[float],
         *,
         idle: float = 0.0,
-        yaw_thrust_down: float = 0.0,
-        yaw_thrust_up: float = 0.0,
     ) -> None:
         n = len(roll_factors)
         if not (len(pitch_factors) == n == len(yaw_factors)) or n < 3:
             raise ValueError("expected equally long factor lists for at least 3 motors")
         if not 0.0 <= idle < 0.5:
             raise ValueError(f"idle must be in [0, 0.5), got {idle!r}")
-        for name, v in (("yaw_thrust_down", yaw_thrust_down), ("yaw_thrust_up", yaw_thrust_up)):
-            if not 0.0 <= v <= 0.5:
-                raise ValueError(f"{name} must be in [0, 0.5], got {v!r}")
-        self.yaw_thrust_down = float(yaw_thrust_down)
-        self.yaw_thrust_up = float(yaw_thrust_up)
         factors = [*roll_factors, *pitch_factors, *yaw_factors]
         if not all(math.isfinite(f) for f in factors):
             raise ValueError("mixer factors must be finite")
@@ -162,8 +152,6 @@ class Mixer:
         spins: Sequence[str],
         *,
         idle: float = 0.0,
-        yaw_thrust_down: float = 0.0,
-        yaw_thrust_up: float = 0.0,
     ) -> Mixer:
         """Derive the factors from motor positions and spin directions.
 
@@ -187,14 +175,7 @@ class Mixer:
             if s not in ("cw", "ccw"):
                 raise ValueError(f"spin must be 'cw' or 'ccw', got {s!r}")
             yaw.append(1.0 if s == "ccw" else -1.0)
-        return cls(
-            [-y / y_max for y in ys],
-            [x / x_max for x in xs],
-            yaw,
-            idle=idle,
-            yaw_thrust_down=yaw_thrust_down,
-            yaw_thrust_up=yaw_thrust_up,
-        )
+        return cls([-y / y_max for y in ys], [x / x_max for x in xs], yaw, idle=idle)
 
     @classmethod
     def paper(cls, *, idle: float = 0.0) -> Mixer:
@@ -236,61 +217,6 @@ class Mixer:
             return self._mix_quad(thrust, roll, pitch, yaw)
         return self._mix_generic(thrust, roll, pitch, yaw)
 
-    def _yaw_room(self, t: float, d: Sequence[float], y: float) -> float:
-        """Largest fraction of the yaw request ``y`` every motor can take at collective ``t``."""
-        idle = self.idle
-        scale = 1.0
-        for di, k in zip(d, self._yf, strict=True):
-            q = k * y
-            if q > 0.0:
-                room = (1.0 - t - di) / q
-            elif q < 0.0:
-                room = (idle - t - di) / q
-            else:
-                continue
-            if room < scale:
-                scale = room
-        return scale if scale > 0.0 else 0.0
-
-    def _yaw_collective(
-        self, t_eff: float, y_scale: float, d: Sequence[float], y: float
-    ) -> tuple[float, float]:
-        """Move the collective (within the yaw allowance) to give yaw more room.
-
-        ``d`` are the motors' roll/pitch parts, which fit at ``t_eff``. Returns
-        the collective and the yaw fraction to use: the least shift that gives
-        the whole request, else the shift that gives the most. Roll and pitch
-        keep fitting (the collective stays in their range).
-        """
-        if self.yaw_thrust_down == 0.0 and self.yaw_thrust_up == 0.0:
-            return t_eff, y_scale  # the shipped default: plain air mode, no shift to find
-        idle = self.idle
-        lo = max(t_eff - self.yaw_thrust_down, idle - min(d))
-        hi = min(t_eff + self.yaw_thrust_up, 1.0 - max(d))
-        if hi <= lo:
-            return t_eff, y_scale
-        # Motors the yaw request raises (P) and lowers (N); with equal |factors|
-        # (every geometry here) the yaw room is min((1 - t - max d_P) / q,
-        # (t + min d_N - idle) / q), largest where the two meet.
-        up = [di for di, k in zip(d, self._yf, strict=True) if k * y > 0.0]
-        down = [di for di, k in zip(d, self._yf, strict=True) if k * y < 0.0]
-        if not up or not down:
-            return t_eff, y_scale
-        q = max(abs(k * y) for k in self._yf)
-        full_lo = idle - min(down) + q  # lowest collective with room for the whole request
-        full_hi = 1.0 - max(up) - q
-        if full_lo <= full_hi:
-            target = min(max(t_eff, full_lo), full_hi)  # the least shift
-        else:
-            target = 0.5 * (1.0 + idle - max(up) - min(down))
-        t = min(max(target, lo), hi)
-        scale = self._yaw_room(t, d, y)  # exact, whatever the factors
-        if scale > 1.0 - 1e-9:
-            scale = 1.0  # the whole request, up to rounding (motors are clamped anyway)
-        if scale > y_scale:
-            return t, scale
-        return t_eff, y_scale
-
     def _mix_generic(self, thrust: float, roll: float, pitch: float, yaw: float) -> MixResult:
         idle = self.idle
         t = _clamp_or_zero(thrust, 0.0, 1.0)
@@ -330,8 +256,6 @@ class Mixer:
                 room = (hi - di) / k if k > 0.0 else (lo - di) / k
                 if room < y_scale:
                     y_scale = room if room > 0.0 else 0.0
-            if y_scale < 1.0:
-                t_eff, y_scale = self._yaw_collective(t_eff, y_scale, d, y)
         ye = y * y_scale
         motors = [t_eff + di + k * ye for di, k in zip(d, self._yf)]
         lo_ok = idle + 1e-9
@@ -425,8 +349,6 @@ class Mixer:
                 (hi - d3) / q3 if q3 > 0.0 else (lo - d3) / q3,
             )
             y_scale = y_scale if y_scale > 0.0 else 0.0
-            if y_scale < 1.0:
-                t_eff, y_scale = self._yaw_collective(t_eff, y_scale, (d0, d1, d2, d3), y)
         ye = y * y_scale
         m0 = t_eff + d0 + k0 * ye
         m1 = t_eff + d1 + k1 * ye

@@ -160,6 +160,64 @@ def test_bad_controller_file_names_file_and_key(
     assert isinstance(info.value, ValueError)
 
 
+def _then(*steps: Callable[[dict[str, Any]], None]) -> Callable[[dict[str, Any]], None]:
+    def f(raw: dict[str, Any]) -> None:
+        for step in steps:
+            step(raw)
+
+    return f
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        pytest.param(
+            _delete("axes.yaw.alpha_adapt"),
+            "lag_scaled_gains needs alpha_adapt",
+            id="lag-scaling-without-identification",
+        ),
+        pytest.param(
+            _set("axes.yaw.actuator_tau_s", 0.0),
+            "lag_scaled_gains needs alpha_adapt and actuator_tau_s > 0",
+            id="lag-scaling-without-lag",
+        ),
+        pytest.param(
+            _set("axes.roll.lag_scaled_gains", False),
+            "lag_scaling_max and lag_scaling_min need lag_scaled_gains",
+            id="lag-bounds-without-lag-scaling",
+        ),
+        pytest.param(
+            _then(
+                _set("axes.yaw.lag_scaled_gains", False),
+                _set("axes.yaw.lag_scaling_authority_ref", 150.0),
+            ),
+            "lag_scaling_authority_ref needs lag_scaled_gains or alpha_adapt.margin_min",
+            id="authority-reference-reaching-nothing",
+        ),
+        pytest.param(
+            _then(
+                _set("axes.yaw.lag_scaled_gains", False),
+                _delete("axes.yaw.alpha_adapt"),
+                _set("axes.yaw.estimator", "algebraic"),
+            ),
+            "actuator_tau_s needs estimator: window",
+            id="lag-model-without-window-means",
+        ),
+    ],
+)
+def test_settings_that_would_reach_nothing_are_refused(
+    tmp_path: Path, mutate: Callable[[dict[str, Any]], None], message: str
+) -> None:
+    """Refused rather than ignored (or, for the lag model on the algebraic
+    estimator, rather than failing at the first sample)."""
+    raw = copy.deepcopy(_default_raw())
+    mutate(raw)
+    path = tmp_path / "unreached.yaml"
+    path.write_text(yaml.safe_dump(raw), encoding="utf-8")
+    with pytest.raises(ConfigError, match=message):
+        load_controller(path)
+
+
 @pytest.mark.parametrize(
     "text", ["kind: mfc\naxes: [1, 2\n", "- just\n- a list\n", ""], ids=["yaml", "list", "empty"]
 )

@@ -19,7 +19,7 @@ from companion.config import (
     mfc_gains,
 )
 from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains, MfcController
-from companion.control.mfc import PlantIdentifier
+from companion.control.identifier import PlantIdentifier
 from companion.profile import load_profile
 
 F450 = load_profile(Path(__file__).resolve().parents[2] / "vehicle_profiles" / "f450.yaml")
@@ -200,6 +200,35 @@ def test_bad_adaptation_settings_are_rejected() -> None:
     for floor in (-0.1, 1.5, math.nan):
         with pytest.raises(ValueError, match="lag_scaling_min"):
             MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_min=floor)
+
+
+def test_settings_that_would_reach_nothing_are_refused() -> None:
+    """Lag scaling needs an identified lag and the lag its gains are given for; its
+    bounds need lag scaling; the authority reference needs lag scaling or a falling
+    margin; the lag model needs the window estimator (the algebraic one has no
+    window means to lag)."""
+    axis = {"order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 0.0, "kd": 15.0}
+    slow = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=0.4, margin_min=0.3)
+    refused = [
+        ("lag_scaled_gains needs adapt", {"actuator_tau_s": 0.03, "lag_scaled_gains": True}),
+        ("lag_scaled_gains needs adapt", {"lag_scaled_gains": True, "adapt": ADAPT}),
+        ("need lag_scaled_gains", {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_max": 1.0}),
+        ("need lag_scaled_gains", {"lag_scaling_min": 0.5}),
+        (
+            "lag_scaling_authority_ref needs",
+            {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_authority_ref": 150.0},
+        ),
+        ("margin_min needs actuator_tau_s", {"adapt": slow}),
+        ("actuator_tau_s needs the window", {"estimator": "algebraic", "actuator_tau_s": 0.03}),
+    ]
+    for message, settings_ in refused:
+        with pytest.raises(ValueError, match=message):
+            MfcAxisGains(**axis, **settings_)
+    # Reached: the authority reference also eases a falling margin.
+    ident = IntelligentController(
+        MfcAxisGains(**axis, actuator_tau_s=0.03, adapt=slow, lag_scaling_authority_ref=150.0)
+    )
+    assert ident._ident is not None and ident._ident._authority_ref == 150.0
 
 
 def _closed_loop_mae(gains: MfcAxisGains, b: float, tau: float) -> float:

@@ -121,14 +121,14 @@ def test_unsaturated_allocation_round_trips() -> None:
 
 
 def test_yaw_gives_way_to_roll() -> None:
-    """Large yaw with roll at mid throttle, F450 (idle 0.05), without the yaw allowance.
+    """Large yaw with roll at mid throttle, F450 (idle 0.05).
 
     roll 0.8 -> d = 0.5*0.8*R = (-0.4, 0.4, 0.4, -0.4), fits, thrust stays 0.5.
     Yaw room per motor (yaw factor 0.5*Y = +-0.5, request 0.8):
     m2 (d=+0.4, up): (1-0.5-0.4)/0.4 = 0.25; m4 (d=-0.4, down): (0.05-0.5+0.4)/-0.4 = 0.125.
     So yaw is scaled by 0.125: 0.1 realised. Motors 0.15, 0.95, 0.85, 0.05.
     """
-    m = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_down=0.0, yaw_thrust_up=0.0)
+    m = f450_mixer()
     res = m.mix(0.5, 0.8, 0.0, 0.8)
     np.testing.assert_allclose(res.achieved, [0.8, 0.0, 0.1], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.15, 0.95, 0.85, 0.05], rtol=1e-12)
@@ -139,43 +139,21 @@ def test_yaw_gives_way_to_roll() -> None:
     np.testing.assert_allclose(torques_from_motors(m, res.motors)[1:], res.achieved, atol=1e-12)
 
 
-def test_yaw_moves_the_collective_within_its_allowance() -> None:
-    """The same request with an allowance of 0.2 up (not shipped: the default is 0), by hand.
+def test_yaw_never_moves_the_collective() -> None:
+    """Yaw gets the headroom the collective leaves; the collective stays (F450, idle 0.05).
 
-    The yaw-raised motors are m1, m2 (d = -0.4, 0.4), the lowered m3, m4 (0.4, -0.4);
-    q = 0.4. Room for yaw at collective t: min((1 - t - 0.4)/0.4, (t - 0.4 - 0.05)/0.4),
-    largest at t = (1 + 0.05 - 0.4 + 0.4)/2 = 0.525 (inside [0.5, 0.7] and inside
-    roll's range [0.45, 0.6]): 0.1875 of the request, yaw 0.15 instead of 0.1.
-    Motors 0.525 + d + 0.5*Y*0.15: 0.2, 1.0, 0.85, 0.05.
+    At 0.9 a yaw request of 0.4 (0.2 per motor) has room for (1 - 0.9) / 0.2 = 0.5
+    of it; at 0.1 a request of 1 (0.5 per motor) has (0.1 - 0.05) / 0.5 = 0.1 of it.
     """
-    m = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_up=0.2)
-    res = m.mix(0.5, 0.8, 0.0, 0.8)
-    np.testing.assert_allclose(res.achieved, [0.8, 0.0, 0.15], rtol=1e-12)
-    np.testing.assert_allclose(res.motors, [0.2, 1.0, 0.85, 0.05], rtol=1e-12)
-    assert res.thrust == pytest.approx(0.525)
-    assert res.saturated_axes == (False, False, True)
-    np.testing.assert_allclose(torques_from_motors(m, res.motors)[1:], res.achieved, atol=1e-12)
-    # Never down: at 0.9, yaw 0.4 alone (q = 0.2) would need t <= 0.8; it gets
-    # (1 - 0.9) / 0.2 = 0.5 of the request at 0.9.
+    m = f450_mixer()
     res = m.mix(0.9, 0.0, 0.0, 0.4)
     assert res.thrust == 0.9
     assert res.achieved[2] == pytest.approx(0.2)
-    # Up at low collective, 0.2 at most: at 0.1 the lowered motors need
-    # t >= 0.05 + 0.5 for the whole request; 0.3 gives (0.3 - 0.05) / 0.5 = 0.5 of it.
+    assert res.saturated_axes == (False, False, True)
     res = m.mix(0.1, 0.0, 0.0, 1.0)
-    assert res.thrust == pytest.approx(0.3)
-    assert res.achieved[2] == pytest.approx(0.5)
-    # The least rise that gives the whole request: yaw 0.4 at 0.1 needs t >= 0.25.
-    res = m.mix(0.1, 0.0, 0.0, 0.4)
-    assert res.achieved == (0.0, 0.0, 0.4)
-    assert res.thrust == pytest.approx(0.25) and res.saturated_axes == (False, False, False)
-    # Down, when allowed: at 0.9 the whole yaw 0.4 needs t <= 0.8, within 0.15.
-    down = Mixer(*f450_mixer().factors(), idle=0.05, yaw_thrust_down=0.15)
-    res = down.mix(0.9, 0.0, 0.0, 0.4)
-    assert res.achieved == (0.0, 0.0, 0.4)
-    assert res.thrust == pytest.approx(0.8)
-    # The shipped mixer has no allowance: the air mode of the test above.
-    assert (f450_mixer().yaw_thrust_down, f450_mixer().yaw_thrust_up) == (0.0, 0.0)
+    assert res.thrust == 0.1
+    assert res.achieved[2] == pytest.approx(0.1)
+    assert res.saturated_axes == (False, False, True)
 
 
 def test_roll_and_pitch_scaled_together_when_they_exceed_the_range() -> None:
@@ -239,7 +217,7 @@ def test_zero_yaw_factor_mixer_does_not_divide_by_zero() -> None:
     np.testing.assert_allclose(res.achieved, [0.1, 0.1, 0.9], rtol=1e-12)
     np.testing.assert_allclose(res.motors, [0.95, 0.5, 0.15, 0.4], rtol=1e-12)
     # Saturating yaw on the remaining motors: (1 - 0.9)/0.5 = 0.2 of it at 0.9
-    # (the collective may rise for yaw, never fall).
+    # (the collective does not move for yaw).
     res = m.mix(0.9, 0.0, 0.0, 1.0)
     np.testing.assert_allclose(res.achieved, [0.0, 0.0, 0.2], rtol=1e-12)
     assert res.thrust == 0.9
@@ -269,18 +247,11 @@ finite_or_not = st.one_of(
     pitch=finite_or_not,
     yaw=finite_or_not,
     idle=st.sampled_from([0.0, 0.05, 0.2]),
-    allowance=st.sampled_from([(0.0, 0.0), (0.15, 0.2)]),
 )
 def test_quad_path_equals_generic_path(
-    thrust: float,
-    roll: float,
-    pitch: float,
-    yaw: float,
-    idle: float,
-    allowance: tuple[float, float],
+    thrust: float, roll: float, pitch: float, yaw: float, idle: float
 ) -> None:
-    down, up = allowance
-    m = Mixer(*quad_x_mixer().factors(), idle=idle, yaw_thrust_down=down, yaw_thrust_up=up)
+    m = quad_x_mixer(idle=idle)
     assert m._quad  # the fast path is the one used
     quad = m._mix_quad(thrust, roll, pitch, yaw)
     generic = m._mix_generic(thrust, roll, pitch, yaw)
@@ -299,19 +270,12 @@ def test_quad_path_equals_generic_path(
     yaw=st.floats(-1.0, 1.0),
     idle=st.sampled_from([0.0, 0.05, 0.2]),
 )
-def test_the_yaw_allowance_never_costs_roll_or_pitch(
+def test_yaw_never_costs_roll_pitch_or_the_collective(
     thrust: float, roll: float, pitch: float, yaw: float, idle: float
 ) -> None:
-    """Against the same mixer without it: roll/pitch as before, yaw at least as much,
-    the collective within the allowance, and the motors deliver what is reported."""
-    plain = quad_x_mixer(idle=idle)
-    m = Mixer(*plain.factors(), idle=idle, yaw_thrust_down=0.15, yaw_thrust_up=0.2)
-    got, ref = m.mix(thrust, roll, pitch, yaw), plain.mix(thrust, roll, pitch, yaw)
+    """Against the same request without yaw: roll, pitch and the collective as before."""
+    m = quad_x_mixer(idle=idle)
+    got, ref = m.mix(thrust, roll, pitch, yaw), m.mix(thrust, roll, pitch, 0.0)
     assert got.achieved[:2] == ref.achieved[:2]
-    assert abs(got.achieved[2]) >= abs(ref.achieved[2]) - 1e-12
-    assert -0.15 - 1e-12 <= got.thrust - ref.thrust <= 0.2 + 1e-12
+    assert got.thrust == ref.thrust
     assert all(idle <= x <= 1.0 for x in got.motors)
-    # A motor within 1e-9 of a limit is snapped to it (and reported saturated), so
-    # the torques the motors give may differ from those reported by a few 1e-9
-    # (hypothesis found roll = pitch = 1e-9 at zero thrust: yaw off by 1.0000000000000003e-9).
-    np.testing.assert_allclose(torques_from_motors(m, got.motors)[1:], got.achieved, atol=1e-8)

@@ -1,0 +1,254 @@
+r"""Online identification of one axis's input gain and actuator lag.
+
+Not in the paper, which takes :math:`\alpha` as a constant ("it is
+meaningless to try to estimate alpha precisely", Section II-A). The shipped
+controller identifies it, with the lag of the motors, because one gain set has
+to fly every vehicle (``docs/gains.md``, points 1-2): :class:`PlantIdentifier`
+fits the window means of :math:`y^{(m)} = F + b\,u_a` (:math:`u_a` the command
+after a first-order lag) and gives :math:`\alpha = \text{margin} \cdot \hat b`
+and the lag :math:`\tau` that the law (:mod:`companion.control.intelligent`)
+then uses in its estimate of ``F`` and, with ``lag_scaled_gains``, in its gains.
+
+It runs off the path from sample to command: the law notes each sample's
+window means (:meth:`PlantIdentifier.observe`), and the identification itself
+(:meth:`PlantIdentifier.learn`) runs once the command has left, at most every
+:data:`LEARN_PERIOD_S`; what it learns moves the next commands.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+__all__ = ["DT_REL_TOL", "LEARN_PERIOD_S", "AlphaAdaptation", "PlantIdentifier"]
+
+LEARN_PERIOD_S = 0.004
+"""The identifier runs at most this often (s): every sample at 250 Hz, every 4th at 1 kHz."""
+
+DT_REL_TOL = 1e-3
+"""Discrete filter coefficients computed for one dt serve every dt within this
+relative distance of it: intervals from timestamps jitter in their last bits
+(and by a microsecond or so), and recomputing exponentials for that costs more
+than the rest of a sample's arithmetic while changing the result by < 0.1 %."""
+
+
+@dataclass(frozen=True)
+class AlphaAdaptation:
+    r"""Online identification of :math:`\alpha` (and the actuator lag) per axis.
+
+    Settings of :class:`PlantIdentifier`, which explains the method.
+
+    Attributes
+    ----------
+    alpha_min, alpha_max
+        Bounds of :math:`\alpha`, same units as ``alpha``.
+    margin
+        :math:`\alpha / \hat b`; the loop is stable for :math:`b/\alpha` in
+        (0, 2) with a matched actuator model, so > 1 errs on the safe side.
+    memory_s
+        Forgetting time of the slope, s.
+    highpass_s
+        Time constant separating fast ``u`` changes from slow ``F``, s.
+    min_excitation
+        Smallest :math:`|x|` (command units) that updates the slope.
+    min_samples_weight
+        :math:`\sum x^2` (command units squared) needed before the slope is used.
+    tau_candidates_s
+        Actuator lags to choose from, s; empty: only the axis's ``actuator_tau_s``.
+    min_response
+        Smallest :math:`|z|` (rad/s^m) that updates the slope: a vehicle that
+        does not move (on the ground) teaches nothing, rather than "b = 0".
+    margin_min
+        0: the margin is constant. Otherwise the lowest margin a slow lag
+        brings it to (:meth:`PlantIdentifier.margin_for`).
+    """
+
+    alpha_min: float
+    alpha_max: float
+    margin: float = 1.0
+    memory_s: float = 2.0
+    highpass_s: float = 0.05
+    min_excitation: float = 10.0
+    min_samples_weight: float = 2.0e4
+    tau_candidates_s: tuple[float, ...] = ()
+    min_response: float = 2.0
+    margin_min: float = 0.0
+
+    def __post_init__(self) -> None:
+        vals = (self.alpha_min, self.alpha_max, self.margin, self.memory_s, self.highpass_s)
+        if not all(math.isfinite(v) and v > 0.0 for v in vals):
+            raise ValueError("alpha adaptation bounds, margin and times must be finite and > 0")
+        if self.alpha_min > self.alpha_max:
+            raise ValueError("alpha_min must not exceed alpha_max")
+        if self.min_excitation < 0.0 or self.min_samples_weight < 0.0:
+            raise ValueError("min_excitation and min_samples_weight must be >= 0")
+        if not all(math.isfinite(t) and t >= 0.0 for t in self.tau_candidates_s):
+            raise ValueError("tau_candidates_s must be finite and >= 0")
+        if not 0.0 <= self.margin_min <= self.margin:
+            raise ValueError("margin_min must be in [0, margin]")
+
+
+class PlantIdentifier:
+    r"""Online estimate of one axis's input gain ``b`` and actuator lag.
+
+    The window estimator forms, every sample, the window means
+    :math:`\bar y^{(m)}` and :math:`\bar u` of :math:`y^{(m)} = F + b\,u_a`,
+    where :math:`u_a` is the command after the actuators' (unknown) lag. Their
+    fast parts, each minus its exponential average over ``highpass_s``
+    (:math:`\tilde u`, :math:`z = \tilde y^{(m)}`), satisfy
+    :math:`z \approx b\, L_\tau \tilde u` while ``F`` changes slowly next to the
+    command, with :math:`L_\tau` a first-order lag. For every candidate lag
+    :math:`\tau_i` a least-squares slope with exponential forgetting over
+    ``memory_s`` is kept, :math:`\hat b_i = \sum z x_i / \sum x_i^2` with
+    :math:`x_i = L_{\tau_i} \tilde u`; the candidate with the smallest residual
+    :math:`\sum z^2 - (\sum z x_i)^2 / \sum x_i^2` gives the lag, its slope
+    gives :math:`\alpha = \mathrm{clip}(\text{margin}\,\hat b_i,
+    \alpha_{min}, \alpha_{max})`. Sums are updated only while the command moves
+    (:math:`|\tilde u| \ge` ``min_excitation``), the vehicle answers
+    (:math:`|z| \ge` ``min_response``) and the caller says the pilot flies
+    (collective), so hover, the ground and noise teach it nothing; until
+    ``min_samples_weight`` of excitation is gathered the configured
+    ``alpha`` and ``actuator_tau_s`` stay.
+
+    :attr:`margin` is alpha over the slope in use: the configured one unless
+    ``margin_min`` lowers it for a slow lag (:meth:`margin_for`), which is
+    where ``authority_ref`` and ``full_scale`` (the axis's
+    ``lag_scaling_authority_ref`` and full-scale command) serve.
+    """
+
+    __slots__ = (
+        "_authority_ref", "_cfg", "_dt", "_full_scale", "_hp", "_ks", "_lam", "_pending",
+        "_pending_dt", "_sxx", "_sxz", "_szz", "_taus", "_u_lp", "_x", "_y_lp", "alpha", "alpha0",
+        "margin", "tau", "tau0",
+    )  # fmt: skip
+
+    def __init__(
+        self,
+        cfg: AlphaAdaptation,
+        alpha: float,
+        tau_s: float,
+        *,
+        authority_ref: float = 0.0,
+        full_scale: float = 500.0,
+    ) -> None:
+        self._cfg = cfg
+        self._taus = cfg.tau_candidates_s or (tau_s,)
+        self.alpha0 = alpha
+        self.tau0 = tau_s
+        self._authority_ref = authority_ref
+        self._full_scale = full_scale
+        self._dt = -1.0
+        self._hp = self._lam = 0.0
+        self._ks = [0.0] * len(self._taus)
+        self.reset()
+
+    def reset(self) -> None:
+        n = len(self._taus)
+        self._x = [0.0] * n
+        self._sxx = [0.0] * n
+        self._sxz = [0.0] * n
+        self._szz = 0.0
+        self._u_lp = self._y_lp = 0.0
+        self._pending: tuple[float, float] | None = None
+        self._pending_dt = 0.0
+        self.alpha = self.alpha0
+        self.tau = self.tau0
+        self.margin = self._cfg.margin
+
+    def observe(self, dt_s: float, u_mean: float, y_m: float) -> None:
+        """Note one sample's window means for the next :meth:`learn` (on the
+        command path: nothing more than that)."""
+        self._pending_dt += dt_s
+        self._pending = (u_mean, y_m)
+
+    def learn(self, learning: bool) -> bool:
+        """Feed :meth:`update` the latest window means, every :data:`LEARN_PERIOD_S`.
+
+        The window means are 20 ms averages, so sampling them every 4 ms loses
+        nothing the identifier uses, and at 1 kHz it costs a quarter as much.
+        ``learning`` is the caller's say whether the pilot flies (see
+        :meth:`update`). Returns whether :meth:`update` ran.
+        """
+        p = self._pending
+        # 0.9: sample intervals from timestamps jitter around 4 ms at 250 Hz.
+        if p is None or not self._pending_dt >= 0.9 * LEARN_PERIOD_S:
+            return False
+        dt = self._pending_dt
+        self._pending = None
+        self._pending_dt = 0.0
+        self.update(dt, p[0], p[1], learning)
+        return True
+
+    def margin_for(self, b: float, tau: float) -> float:
+        r"""The margin for an identified slope ``b`` and lag ``tau``.
+
+        With ``margin_min`` > 0 and ``tau`` slower than the axis's
+        ``actuator_tau_s`` :math:`\tau_0`, the margin falls to
+        :math:`\max(m_{min},\, m \max(\sqrt{\tau_0/\tau},\,
+        \min(1, \sqrt{A_{ref}/A})))`, :math:`A = b` times the full-scale command
+        (with ``authority_ref`` 0, the lag term alone). A lower margin is a larger
+        loop gain: slow motors need it to stop a reversal's overshoot, and a
+        vehicle with much authority can give it without saturating, while a
+        weak one keeps the whole margin (docs/gains.md, point 7).
+        """
+        cfg = self._cfg
+        tau0 = self.tau0
+        if cfg.margin_min <= 0.0 or tau <= tau0 or tau0 <= 0.0:
+            return cfg.margin
+        h = math.sqrt(tau0 / tau)
+        if self._authority_ref > 0.0:
+            authority = b * self._full_scale
+            if authority <= self._authority_ref:
+                return cfg.margin
+            h = max(h, math.sqrt(self._authority_ref / authority))
+        m = cfg.margin * h
+        return m if m > cfg.margin_min else cfg.margin_min
+
+    def _set_dt(self, dt_s: float) -> None:
+        cfg = self._cfg
+        self._dt = dt_s
+        self._hp = -math.expm1(-dt_s / cfg.highpass_s)
+        self._lam = math.exp(-dt_s / cfg.memory_s)
+        self._ks = [-math.expm1(-dt_s / t) if t > 0.0 else 1.0 for t in self._taus]
+
+    def update(self, dt_s: float, u_mean: float, y_m: float, learn: bool) -> None:
+        """Feed one sample's window means; updates :attr:`alpha` and :attr:`tau`."""
+        cfg = self._cfg
+        if abs(dt_s - self._dt) > DT_REL_TOL * dt_s:
+            self._set_dt(dt_s)
+        hp = self._hp
+        self._u_lp = u_lp = self._u_lp + (u_mean - self._u_lp) * hp
+        self._y_lp = y_lp = self._y_lp + (y_m - self._y_lp) * hp
+        ut = u_mean - u_lp
+        x = self._x
+        ks = self._ks
+        for i in range(len(x)):
+            xi = x[i]
+            x[i] = xi + (ut - xi) * ks[i]
+        if not learn or abs(ut) < cfg.min_excitation:
+            return
+        z = y_m - y_lp
+        if abs(z) < cfg.min_response:
+            return
+        lam = self._lam
+        self._szz = szz = lam * self._szz + z * z
+        sxx = self._sxx
+        sxz = self._sxz
+        best = -1
+        best_res = math.inf
+        for i in range(len(x)):
+            xi = x[i]
+            sxx[i] = a = lam * sxx[i] + xi * xi
+            sxz[i] = c = lam * sxz[i] + xi * z
+            if a >= cfg.min_samples_weight and c > 0.0:
+                res = szz - c * c / a
+                if res < best_res:
+                    best_res = res
+                    best = i
+        if best < 0:
+            return
+        b = sxz[best] / sxx[best]
+        self.tau = tau = self._taus[best]
+        self.margin = m = self.margin_for(b, tau)
+        a = m * b
+        self.alpha = cfg.alpha_max if a > cfg.alpha_max else max(a, cfg.alpha_min)
