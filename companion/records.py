@@ -54,8 +54,9 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from companion.control import AXES
+
 __all__ = [
-    "AXES",
     "FORMAT",
     "RECORD_FILES",
     "ColumnarLog",
@@ -71,7 +72,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-AXES = ("roll", "pitch", "yaw")
 
 FORMAT = "companion-columnar 2 (binary float64 rows)"
 _MARKER = b"# float64 rows follow\n"

@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from companion.records import AXES, read_columnar
+from companion.control import AXES
+from companion.records import read_columnar
 
 __all__ = ["OUTPUT_PREFIXES", "compare", "output_columns", "replay"]
 

@@ -25,6 +25,8 @@ from urllib.parse import urlsplit
 
 import aiomqtt
 
+from companion.control import AXES as _AXES
+
 __all__ = ["MqttTelemetry", "parse_mqtt_url"]
 
 log = logging.getLogger(__name__)
@@ -36,7 +38,6 @@ _STATUS = 1
 _EVENT = 2
 _KIND_NAMES = ("sample", "status", "event")
 _DEG = 180.0 / math.pi
-_AXES = ("roll", "pitch", "yaw")
 
 
 def parse_mqtt_url(url: str) -> tuple[str, int, str]:

@@ -41,12 +41,13 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
+from companion.control import AXES
+
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE_DIR = ROOT / "vehicle_profiles"
 DATA_DIR = Path(str(files("companion") / "data"))
 SCENARIO = "paper-acro"
 QUICK_S = 15.0
-AXES = ("roll", "pitch", "yaw")
 
 _log = logging.getLogger("reproduce_paper")
 

@@ -9,11 +9,11 @@ import pytest
 from click.testing import CliRunner
 
 from companion.cli import cli
+from companion.control import AXES
 from companion.profile import load_profile
 from sitl.lab.campaign import damaged_profile
 
 ROOT = Path(__file__).resolve().parents[1]
-AXES = ("roll", "pitch", "yaw")
 
 
 def _run(out: Path) -> dict:  # type: ignore[type-arg]

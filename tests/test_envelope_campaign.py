@@ -20,6 +20,7 @@ from click.testing import CliRunner
 
 from companion.cli import cli
 from companion.config import DEFAULT_CONTROLLER
+from companion.control import AXES
 from sitl.envelope import corners
 from sitl.lab.envelope import (
     CASES,
@@ -35,7 +36,6 @@ from sitl.lab.envelope import (
     write_envelope_outputs,
 )
 
-AXES = ("roll", "pitch", "yaw")
 TRAIN_SLICE_S = 15.0
 BUDGET = 25
 Records = list[dict[str, Any]]

@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from companion.control import AXES
+
 ROOT = Path(__file__).resolve().parents[1]
-AXES = ("roll", "pitch", "yaw")
 PAPER_FLIGHTS = {
     "f450_mfc",
     "f450_cut_props_mfc",

@@ -23,6 +23,7 @@ from companion.control.prefilter import ReferencePrefilter
 from companion.control.sticks import AxisRates, PilotCommand, StickMap
 
 __all__ = [
+    "AXES",
     "COMPILED",
     "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",
@@ -45,3 +46,6 @@ __all__ = [
     "WindowEstimator",
     "make_estimator",
 ]
+
+AXES = ("roll", "pitch", "yaw")
+"""The order of every per-axis triple (body frame FRD: x, y, z)."""

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
+from companion.control import AXES
 from companion.profile import MotorDamage, VehicleProfile
 from sitl.scenario import Scenario
 
@@ -59,8 +60,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-
-AXES = ("roll", "pitch", "yaw")
 
 
 @dataclass(frozen=True)

@@ -64,9 +64,9 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
+from companion.control import AXES
 from companion.profile import VehicleProfile
 from sitl.lab.pidtune import TEST_SCENARIOS, apply_params, tune_pid
-from sitl.lab.report import AXES
 from sitl.scenario import Scenario
 
 __all__ = [

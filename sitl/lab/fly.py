@@ -26,11 +26,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.control import AXES
 from sitl.lab.simulate import FlightRecord
 
 __all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "merge_logs"]
-
-AXES = ("roll", "pitch", "yaw")
 
 
 def free_udp_port() -> int:

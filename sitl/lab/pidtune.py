@@ -56,6 +56,7 @@ from typing import Any, Literal
 import numpy as np
 
 from companion.config import PID_DEFAULT_CONTROLLER, PidAxes, PidConfig, load_controller
+from companion.control import AXES
 from companion.profile import VehicleProfile, load_profile
 from sitl.scenario import Scenario, load_scenario
 
@@ -73,7 +74,6 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-AXES = ("roll", "pitch", "yaw")
 
 PARAMS: tuple[str, ...] = ("rp_kp", "rp_ki", "rp_kd", "yaw_kp", "yaw_ki")
 """Searched parameters: roll+pitch (shared) kp, ki, kd; yaw kp, ki."""

@@ -31,11 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.control import AXES
 from sitl.lab.simulate import FlightRecord
 
 __all__ = ["AXES", "compute_metrics", "plot_flight", "versions", "write_report"]
-
-AXES = ("roll", "pitch", "yaw")
 
 
 def _per_axis(values: np.ndarray) -> dict[str, float]:

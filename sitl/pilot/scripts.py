@@ -33,6 +33,7 @@ from typing import Literal
 
 from pydantic import Field, ValidationError, model_validator
 
+from companion.control import AXES
 from companion.errors import ConfigError
 from companion.schema import StrictModel, read_yaml
 from sitl.pilot.rc import DEFAULT_RATE_FULL_SCALE_DEG_S, RC_MAX_US, RC_MIN_US
@@ -40,8 +41,6 @@ from sitl.pilot.scripted import Chirp, ScriptedPilot, Segment
 from sitl.pilot.virtual import PilotParams
 
 __all__ = ["load_stick_script"]
-
-AXES = ("roll", "pitch", "yaw")
 
 
 class _ChirpModel(StrictModel):

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller
+from companion.control import AXES
 from companion.profile import load_profile
 from sitl.lab.report import compute_metrics
 from sitl.lab.simulate import simulate_flight
@@ -23,7 +24,6 @@ from sitl.scenario import WindSpec, load_scenario
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_FILE = ROOT / "companion" / "data" / "mfc_default.yaml"
 TABLE1_FILE = ROOT / "companion" / "data" / "mfc_table1.yaml"
-AXES = ("roll", "pitch", "yaw")
 
 # What docs/gains.md states: (order, alpha, window_s, kp, kd, output_limit_us, error_limit_rad);
 # alpha is the value before identification, kp/kd are for a 30 ms lag (scaled with it).

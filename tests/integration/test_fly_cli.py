@@ -10,10 +10,11 @@ from typing import Any
 
 import pytest
 
+from companion.control import AXES
+
 pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parents[2]
-AXES = ("roll", "pitch", "yaw")
 
 
 def companion_fly(out: Path, *args: str) -> subprocess.CompletedProcess[str]:

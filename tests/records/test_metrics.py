@@ -10,9 +10,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from companion.control import AXES
 from companion.records import ColumnarLog, columns
 from sitl.lab.fly import FlightProcesses, merge_logs
-from sitl.lab.report import AXES, compute_metrics, write_report
+from sitl.lab.report import compute_metrics, write_report
 
 N = 100
 MEAS_RAD_S = (0.1, 0.2, -0.3)
