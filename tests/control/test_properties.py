@@ -1,8 +1,10 @@
 """Property tests: whatever comes in, what goes to the motors is finite and in range.
 
-Inputs are sequences of samples (the controllers are stateful), each sample
-with arbitrary dt (0, negative, huge, non-finite), rates, references and
-thrust. Two input spaces:
+The MFC is the shipped one (companion/data/mfc_default.yaml on the F450: alpha
+and the lag identified in flight, so what it learns from garbage is exercised
+too); each sample is followed by ``learn()``, as in flight. Inputs are sequences
+of samples (the controllers are stateful), each sample with arbitrary dt (0,
+negative, huge, non-finite), rates, references and thrust. Two input spaces:
 
 * ``plausible``: magnitudes up to 1e6 plus nan/+-inf, no subnormals; every
   field of every output must be finite;
@@ -18,15 +20,15 @@ from collections.abc import Callable
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from companion.config import DEFAULT_CONTROLLER, build_controller, load_controller
 from companion.control import (
     PX4_DEFAULT_GAINS,
     ControlOutput,
     MfcController,
-    MfcGains,
     MixResult,
     PidController,
 )
-from tests.control.plants import f450_mixer
+from tests.control.plants import f450_mixer, f450_profile
 
 SPECIALS = [math.nan, math.inf, -math.inf, 0.0, -0.0]
 
@@ -72,8 +74,14 @@ def check_all_finite(out: ControlOutput) -> None:
         assert all(math.isfinite(v) for v in field), out
 
 
+SHIPPED = load_controller(DEFAULT_CONTROLLER)
+
+
 def make_mfc() -> MfcController:
-    return MfcController(MfcGains(), f450_mixer())
+    ctrl = build_controller(SHIPPED, f450_profile())
+    assert isinstance(ctrl, MfcController)
+    assert all(a.alpha_adapt is not None for a in (SHIPPED.axes.roll, SHIPPED.axes.yaw))
+    return ctrl
 
 
 def make_pid() -> PidController:
@@ -88,10 +96,12 @@ def run(
     ctrl = factory()
     for dt, w, r, thrust in seq:
         check(ctrl.update(dt, w, r, thrust))
+        ctrl.learn()
     # Held outputs are counted, and a reset controller is as safe as a new one.
     ctrl.reset()
     for dt, w, r, thrust in seq[:5]:
         check(ctrl.update(dt, w, r, thrust))
+        ctrl.learn()
 
 
 @settings(max_examples=300, deadline=None)
@@ -146,3 +156,4 @@ def test_long_run_of_random_samples_stays_finite() -> None:
             dt = abs(v[0]) * 1e-3
             out = ctrl.update(dt, (v[1], v[2], v[3]), (v[4], v[5], v[6]), abs(v[7]) / 10)
             check_motor_facing(out)
+            ctrl.learn()

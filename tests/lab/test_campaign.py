@@ -13,7 +13,7 @@ from companion.control import AXES
 from companion.profile import load_profile
 from sitl.lab.campaign import damaged_profile
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(out: Path) -> dict:  # type: ignore[type-arg]

@@ -15,7 +15,7 @@ from companion.profile import load_profile
 from sitl.lab.pidtune import BOUNDS, PARAMS, params_of, tune_pid, write_pid_yaml
 from sitl.scenario import Scenario, load_scenario
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SLICE_S = 4.0
 BUDGET = 14  # the start, one full round of 12, and one flight of the next round
 

@@ -12,7 +12,7 @@ import pytest
 
 from companion.control import AXES
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER_FLIGHTS = {
     "f450_mfc",
     "f450_cut_props_mfc",

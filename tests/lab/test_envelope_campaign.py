@@ -100,16 +100,28 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
 # on pitch; before point 8 tiny-fast was 0.97/1.12/0.98; before point 9 tiny-fast
 # was 0.89/1.06/0.98 and the median 0.89; before point 10 the median was 0.90.
 # docs/envelope.md has the full campaign.
-MEASURED_MEDIAN_RATIO = 0.87
 
 
 @pytest.mark.slow
 def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) -> None:
     ratios = [r["ratio_mfc_tuned"][a] for r in corner_records for a in AXES]
     assert None not in ratios
+    assert max(ratios) <= RATIO_TARGET, "MAE M/T/D: " + _table(corner_records)
+
+
+# A regression check (today's output): the median of the 15 corner ratios above, as
+# measured by this module's corner_records fixture (the corners, no damage, the PID
+# tuned with 25 flights on 15 s of train-acro, seed 1):
+#   pytest tests/lab/test_envelope_campaign.py -k median
+MEASURED_MEDIAN_RATIO = 0.87
+
+
+@pytest.mark.slow
+@pytest.mark.regression
+def test_median_ratio_to_the_tuned_pid_at_the_corners(corner_records: Records) -> None:
+    ratios = sorted(r["ratio_mfc_tuned"][a] for r in corner_records for a in AXES)
     detail = "MAE M/T/D: " + _table(corner_records)
-    assert max(ratios) <= RATIO_TARGET, detail
-    assert sorted(ratios)[len(ratios) // 2] <= max(1.15 * MEASURED_MEDIAN_RATIO, 1.0), detail
+    assert ratios[len(ratios) // 2] <= max(1.15 * MEASURED_MEDIAN_RATIO, 1.0), detail
 
 
 @pytest.mark.slow

@@ -1,0 +1,39 @@
+"""The tiers: each test gets one marker from where it lives (``pytest -m TIER``).
+
+- ``unit``: pure and fast (control laws, link parsing, records, the plant's parts,
+  the command line's input checks);
+- ``app``: the companion app on the in-memory transport;
+- ``lab``: in-process flights, campaigns, the envelope, tuning, the scripts;
+- ``integration``: separate processes over real UDP (the SITL, mosquitto, MAVSDK);
+  also any test elsewhere marked so;
+- ``regression``: pinned flight figures (tests/regression, and tests marked so).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+_BY_FOLDER = {
+    "control": "unit",
+    "link": "unit",
+    "records": "unit",
+    "sitl": "unit",
+    "app": "app",
+    "lab": "lab",
+    "integration": "integration",
+    "regression": "regression",
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        parts = Path(str(item.path)).resolve().relative_to(HERE).parts
+        tier = _BY_FOLDER.get(parts[0], "unit") if len(parts) > 1 else "unit"
+        if item.get_closest_marker("integration") is not None:
+            tier = "integration"
+        elif item.get_closest_marker("regression") is not None:
+            tier = "regression"
+        item.add_marker(tier)
