@@ -2,11 +2,13 @@
 
 No sockets and no clock live here: :class:`Autopilot` is driven by the simulation
 loop (``sitl.runner``) with simulation time, and the MAVLink face
-(``sitl.mavlink_face``) turns messages into calls on it. That keeps every rule
-testable without a network.
+(``sitl.px4_face``) turns messages into calls on it. That keeps every rule
+testable without a network. What it shares with the ArduPilot personality
+(arming, disarming, mode bookkeeping, events, RC presence) is
+:class:`sitl.personality.Personality`.
 
-Modes (PX4 ``custom_mode``: main mode in bits 16-23, sub mode in bits 24-31)
------------------------------------------------------------------------------
+Modes (PX4 ``custom_mode``: main mode in bits 16-23, sub mode in bits 24-31, ``sitl.px4_modes``)
+--------------------------------------------------------------------------------------------------
 ========== ==== =====================================================================
 mode       main what this autopilot does
 ========== ==== =====================================================================
@@ -64,129 +66,33 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from enum import IntEnum
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
-from companion.control.mixer import Mixer
 from companion.control.pid import PX4_DEFAULT_GAINS, RatePid
 from companion.profile import VehicleProfile
+from sitl.personality import (
+    PILOT_ACRO_RATE_MAX_RAD_S,
+    MavResult,
+    Personality,
+    clip,
+    stick_unit,
+    throttle_unit,
+)
+from sitl.px4_modes import (
+    AUTO_SUB_LAND,
+    AUTO_SUB_LOITER,
+    MODE_LAND,
+    MODE_LOITER,
+    MODE_OFFBOARD,
+    FlightMode,
+    MainMode,
+)
 
-__all__ = [
-    "AUTO_SUB_LAND",
-    "AUTO_SUB_LOITER",
-    "FORCE_DISARM_MAGIC",
-    "MODE_LAND",
-    "MODE_LOITER",
-    "MODE_OFFBOARD",
-    "Autopilot",
-    "AutopilotConfig",
-    "Event",
-    "FlightMode",
-    "MainMode",
-    "MavResult",
-    "MessageStreams",
-    "StreamSpec",
-    "mode_name",
-    "pack_custom_mode",
-    "unpack_custom_mode",
-]
+__all__ = ["PX4_PARAMS", "Autopilot", "AutopilotConfig"]
 
 logger = logging.getLogger(__name__)
 
-FORCE_DISARM_MAGIC = 21196
-"""``MAV_CMD_COMPONENT_ARM_DISARM`` param2 that forces a disarm in the air (PX4)."""
-
-
-class MainMode(IntEnum):
-    """PX4 main modes (``px4_custom_mode.h``)."""
-
-    MANUAL = 1
-    ALTCTL = 2
-    POSCTL = 3
-    AUTO = 4
-    ACRO = 5
-    OFFBOARD = 6
-    STABILIZED = 7
-
-
-AUTO_SUB_LOITER = 3
-"""PX4 AUTO sub mode LOITER (shown as HOLD by MAVSDK/QGC)."""
-AUTO_SUB_LAND = 6
-"""PX4 AUTO sub mode LAND."""
-
-_AUTO_SUB_NAMES = {
-    2: "TAKEOFF",
-    3: "LOITER",
-    4: "MISSION",
-    5: "RTL",
-    6: "LAND",
-    7: "RTGS",
-    8: "FOLLOWME",
-}
-
-
-class MavResult(IntEnum):
-    """``MAV_RESULT`` values used in ``COMMAND_ACK``."""
-
-    ACCEPTED = 0
-    TEMPORARILY_REJECTED = 1
-    DENIED = 2
-    UNSUPPORTED = 3
-    FAILED = 4
-
-
-def pack_custom_mode(main: int, sub: int = 0) -> int:
-    """PX4 ``custom_mode``: ``main << 16 | sub << 24``.
-
-    Raises
-    ------
-    ValueError
-        If ``main`` or ``sub`` does not fit in a byte.
-    """
-    if not (0 <= main <= 255 and 0 <= sub <= 255):
-        raise ValueError(f"expected main and sub modes in 0..255, got {main}, {sub}")
-    return (main << 16) | (sub << 24)
-
-
-def unpack_custom_mode(custom_mode: int) -> tuple[int, int]:
-    """Split a PX4 ``custom_mode`` into ``(main, sub)``."""
-    return (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-
-
-def mode_name(main: int, sub: int = 0) -> str:
-    """Mode name as pymavlink's ``mode_string_v10`` spells PX4 modes.
-
-    ``"OFFBOARD"``, ``"MANUAL"``...; AUTO sub modes by their own name (``"LAND"``,
-    ``"LOITER"``); anything else ``"UNKNOWN"``.
-    """
-    if main == MainMode.AUTO:
-        return _AUTO_SUB_NAMES.get(sub, "UNKNOWN")
-    try:
-        return MainMode(main).name
-    except ValueError:
-        return "UNKNOWN"
-
-
-@dataclass(frozen=True)
-class FlightMode:
-    """A PX4 mode as a (main, sub) pair."""
-
-    main: int
-    sub: int = 0
-
-    @property
-    def custom_mode(self) -> int:
-        return pack_custom_mode(self.main, self.sub)
-
-    @property
-    def name(self) -> str:
-        return mode_name(self.main, self.sub)
-
-
-MODE_OFFBOARD = FlightMode(MainMode.OFFBOARD)
-MODE_LAND = FlightMode(MainMode.AUTO, AUTO_SUB_LAND)
-MODE_LOITER = FlightMode(MainMode.AUTO, AUTO_SUB_LOITER)
 
 _STICK_MODES = {
     MainMode.MANUAL,
@@ -241,11 +147,7 @@ class AutopilotConfig:
     offboard_entry_window_s: float = 0.5
     test_stand: bool = False
     hover_thrust: float = 0.5
-    acro_rate_max_rad_s: tuple[float, float, float] = (
-        math.radians(720.0),
-        math.radians(720.0),
-        math.radians(360.0),
-    )
+    acro_rate_max_rad_s: tuple[float, float, float] = PILOT_ACRO_RATE_MAX_RAD_S
     tilt_max_rad: float = math.radians(35.0)
     yaw_rate_max_rad_s: float = math.radians(150.0)
     attitude_p: tuple[float, float] = (6.5, 6.5)
@@ -291,30 +193,7 @@ class _Setpoint:
     values: tuple[float, float, float, float]  # (roll, pitch, yaw, thrust)
 
 
-@dataclass(frozen=True)
-class Event:
-    """Something that happened, for the log (mode change, arm, failsafe...)."""
-
-    t_s: float
-    kind: str
-    detail: dict[str, Any] = field(default_factory=dict)
-
-
-def _clip(x: float, lo: float, hi: float) -> float:
-    return lo if x < lo else hi if x > hi else x
-
-
-def _stick(us: float) -> float:
-    """Centred stick in µs (1000..2000) -> [-1, 1]."""
-    return _clip((us - 1500.0) / 500.0, -1.0, 1.0)
-
-
-def _throttle(us: float) -> float:
-    """Throttle stick in µs (1000..2000) -> [0, 1]."""
-    return _clip((us - 1000.0) / 1000.0, 0.0, 1.0)
-
-
-class Autopilot:
+class Autopilot(Personality[FlightMode]):
     """A PX4-like multicopter autopilot: commander + rate loop + allocation.
 
     Parameters
@@ -328,6 +207,11 @@ class Autopilot:
         Mode at boot (PX4 SITL boots disarmed in a manual mode).
     """
 
+    refusal = MavResult.DENIED
+    land_mode = MODE_LAND
+    log = logger
+    rate_pid: RatePid
+
     def __init__(
         self,
         profile: VehicleProfile,
@@ -335,47 +219,22 @@ class Autopilot:
         *,
         initial_mode: FlightMode | None = None,
     ) -> None:
-        self.profile = profile
-        self.config = config or AutopilotConfig()
-        self.n_motors = profile.n_motors
         self.motor_idle = profile.limits.motor_idle
-        if profile.physics.mixer == "paper":
-            self.mixer = Mixer.paper(idle=self.motor_idle)
-        else:
-            self.mixer = Mixer.from_geometry(
-                [m.position_frd_m for m in profile.frame.motors],
-                [m.spin for m in profile.frame.motors],
-                idle=self.motor_idle,
-            )
+        super().__init__(
+            profile,
+            initial_mode=initial_mode or FlightMode(MainMode.MANUAL),
+            motor_idle=self.motor_idle,
+        )
+        self.config = config or AutopilotConfig()
         self.rate_pid = RatePid(PX4_DEFAULT_GAINS)
-        self.rate_max_rad_s = tuple(math.radians(x) for x in profile.limits.rate_max_deg_s)
-        self.mode = initial_mode or FlightMode(MainMode.MANUAL)
-        self.armed = False
-        self.crashed = False
-        self.landed = True
-        self.failsafe: str | None = None
-        self.position_valid = True
-        """A position estimate (the runner clears it for ``--no-position`` and faults)."""
-        self.rejected_setpoints = 0
-        self.accepted_setpoints = 0
-        self.events: list[Event] = []
         self._setpoint: _Setpoint | None = None
-        self._rc_t_s: float | None = None
-        self._last_sticks: tuple[int, ...] | None = None
         self._rc_lost_at_arming = False
         self._rc_loss_handled = False
         self._last_rate_t_s: float | None = None
-        self._climb_integral = 0.0
-        self.motors: tuple[float, ...] = (0.0,) * self.n_motors
-        self.last_torque_thrust: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
         self._sat_pos = (False, False, False)
         self._sat_neg = (False, False, False)
 
     # ------------------------------------------------------------------ status
-
-    @property
-    def custom_mode(self) -> int:
-        return self.mode.custom_mode
 
     @property
     def base_mode(self) -> int:
@@ -404,66 +263,28 @@ class Autopilot:
         return 4 if self.armed else 3
 
     @property
-    def landed_state(self) -> int:
-        """``MAV_LANDED_STATE``: ON_GROUND (1), IN_AIR (2), LANDING (4)."""
-        if self.landed:
-            return 1
-        if self.armed and self.mode == MODE_LAND:
-            return 4
-        return 2
-
-    def drain_events(self) -> list[Event]:
-        """Return the events since the last call and forget them."""
-        out, self.events = self.events, []
-        return out
-
-    def _event(self, t_s: float, kind: str, **detail: Any) -> None:
-        self.events.append(Event(t_s, kind, detail))
-        logger.info("t=%.3f s %s %s", t_s, kind, detail or "")
+    def rc_timeout_s(self) -> float:
+        """``COM_RC_LOSS_T``."""
+        return self.config.rc_loss_timeout_s
 
     def setpoint_age_s(self, t_s: float) -> float:
         """Seconds since the last accepted offboard setpoint (inf if none)."""
         return math.inf if self._setpoint is None else t_s - self._setpoint.t_s
 
-    def rc_lost(self, t_s: float) -> bool:
-        """No RC frame for ``COM_RC_LOSS_T`` (or none ever)."""
-        return self._rc_t_s is None or t_s - self._rc_t_s > self.config.rc_loss_timeout_s
-
     # ---------------------------------------------------------------- commands
 
-    def arm(self, t_s: float, *, force: bool = False) -> MavResult:
-        """Arm (``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1)."""
-        if self.armed:
-            return MavResult.ACCEPTED
+    def _arming_checks(self, t_s: float, *, force: bool) -> MavResult | None:
         if self.crashed:
-            self._event(t_s, "arm_denied", reason="crashed")
-            return MavResult.DENIED
+            return self._arm_denied(t_s, "crashed")
         if self.mode == MODE_OFFBOARD:
             if self.setpoint_age_s(t_s) > self.config.offboard_entry_window_s:
-                self._event(t_s, "arm_denied", reason="no offboard setpoints")
-                return MavResult.DENIED
+                return self._arm_denied(t_s, "no offboard setpoints")
         elif not self.landed and not force:
-            self._event(t_s, "arm_denied", reason="not landed")
-            return MavResult.DENIED
-        self.armed = True
-        self.failsafe = None
-        self.rate_pid.reset()
-        self._climb_integral = 0.0
-        self._rc_lost_at_arming = self.rc_lost(t_s)
-        self._event(t_s, "armed", mode=self.mode.name)
-        return MavResult.ACCEPTED
+            return self._arm_denied(t_s, "not landed")
+        return None
 
-    def disarm(self, t_s: float, *, force: bool = False, reason: str = "command") -> MavResult:
-        """Disarm (param1 = 0); in the air only when forced (param2 = 21196)."""
-        if not self.armed:
-            return MavResult.ACCEPTED
-        if not self.landed and not force and not self.crashed:
-            self._event(t_s, "disarm_denied", reason="in air")
-            return MavResult.DENIED
-        self.armed = False
-        self.motors = (0.0,) * self.n_motors
-        self._event(t_s, "disarmed", reason=reason)
-        return MavResult.ACCEPTED
+    def _on_armed(self, t_s: float) -> None:
+        self._rc_lost_at_arming = self.rc_lost(t_s)
 
     def set_mode(self, t_s: float, main: int, sub: int = 0) -> MavResult:
         """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub)."""
@@ -498,13 +319,9 @@ class Autopilot:
         self._change_mode(t_s, new, reason="command")
         return MavResult.ACCEPTED
 
-    def _change_mode(self, t_s: float, new: FlightMode, *, reason: str) -> None:
-        old = self.mode
-        self.mode = new
-        self._climb_integral = 0.0
+    def _on_mode_change(self, new: FlightMode) -> None:
         if new != MODE_LAND and new != MODE_LOITER:
             self.failsafe = None
-        self._event(t_s, "mode", old=old.name, new=new.name, reason=reason)
 
     # --------------------------------------------------------------- setpoints
 
@@ -523,10 +340,10 @@ class Autopilot:
             "actuator",
             t_s,
             (
-                _clip(controls[0], -1.0, 1.0),
-                _clip(controls[1], -1.0, 1.0),
-                _clip(controls[2], -1.0, 1.0),
-                _clip(controls[3], 0.0, 1.0),
+                clip(controls[0], -1.0, 1.0),
+                clip(controls[1], -1.0, 1.0),
+                clip(controls[2], -1.0, 1.0),
+                clip(controls[3], 0.0, 1.0),
             ),
         )
         self.accepted_setpoints += 1
@@ -551,80 +368,42 @@ class Autopilot:
             "rates",
             t_s,
             (
-                _clip(vals[0], -rm[0], rm[0]),
-                _clip(vals[1], -rm[1], rm[1]),
-                _clip(vals[2], -rm[2], rm[2]),
-                _clip(thrust, 0.0, 1.0),
+                clip(vals[0], -rm[0], rm[0]),
+                clip(vals[1], -rm[1], rm[1]),
+                clip(vals[2], -rm[2], rm[2]),
+                clip(thrust, 0.0, 1.0),
             ),
         )
         self.accepted_setpoints += 1
         return True
 
-    def reject_setpoint(self) -> None:
-        """Count a setpoint the face could not use (e.g. attitude not ignored)."""
-        self.rejected_setpoints += 1
-
     # -------------------------------------------------------------------- loop
 
-    def update(
+    def _on_rc_frame(self) -> None:
+        self._rc_lost_at_arming = False
+        self._rc_loss_handled = False
+
+    def _step(
         self,
         t_s: float,
         gyro_frd_rad_s: Sequence[float],
         euler_rad: Sequence[float],
-        *,
-        climb_rate_m_s: float = 0.0,
-        landed: bool = False,
-        crashed: bool = False,
-        sticks_us: Sequence[int] | None = None,
+        climb_rate_m_s: float,
     ) -> tuple[float, ...]:
-        """Run the commander checks and one rate-loop iteration on an IMU sample.
+        """The commander checks and one rate-loop iteration.
 
-        Parameters
-        ----------
-        t_s
-            Sample time (simulation), s. The rate loop's dt comes from consecutive
-            calls, clamped to 0.125..20 ms as PX4 does.
-        gyro_frd_rad_s
-            Measured body rates (FRD), rad/s.
-        euler_rad
-            Attitude (roll, pitch, yaw), rad, from the estimator (here: truth).
-        climb_rate_m_s
-            Vertical speed, positive up, m/s (for LAND/LOITER).
-        landed, crashed
-            Land detector / crash flag.
-        sticks_us
-            RC channels AETR in µs, or None without RC.
-
-        Returns
-        -------
-        tuple of float
-            Normalised motor commands in [0, 1] (all zero when disarmed).
+        The rate loop's dt comes from consecutive samples, clamped to 0.125..20 ms
+        as PX4 does.
         """
-        self.landed = landed
-        if sticks_us is not None:
-            self._rc_t_s = t_s
-            self._last_sticks = tuple(sticks_us)
-            self._rc_lost_at_arming = False
-            self._rc_loss_handled = False
-        if crashed and not self.crashed:
-            self.crashed = True
-            self._event(t_s, "crashed")
-        if self.crashed:
-            if self.armed:
-                self.disarm(t_s, force=True, reason="crash")
-            return self.motors
-
         self._check_offboard_loss(t_s)
         self._check_rc_loss(t_s)
         self._check_position(t_s)
         dt_s = 0.004 if self._last_rate_t_s is None else t_s - self._last_rate_t_s
         self._last_rate_t_s = t_s
-        dt_s = _clip(dt_s, 0.000125, 0.02)
+        dt_s = clip(dt_s, 0.000125, 0.02)
 
         if not self.armed:
-            self.rate_pid.reset()
-            self.motors = (0.0,) * self.n_motors
-            return self.motors
+            return self._disarmed()
 
         main = self.mode.main
         sp = self._setpoint
@@ -647,9 +426,7 @@ class Autopilot:
         if self.setpoint_age_s(t_s) <= self.config.offboard_timeout_s:
             return
         new = MODE_LOITER if self.config.test_stand else MODE_LAND
-        self._change_mode(t_s, new, reason="offboard lost")
-        self.failsafe = "offboard_loss"
-        self._event(t_s, "failsafe", cause="offboard_loss", action=new.name)
+        self._enter_failsafe(t_s, "offboard_loss", new, reason="offboard lost")
 
     def _check_rc_loss(self, t_s: float) -> None:
         """PX4's RC-loss failsafe (``NAV_RCL_ACT``), once per loss."""
@@ -668,10 +445,7 @@ class Autopilot:
         self._rc_loss_handled = True
         hold = self.config.rc_loss_action == 1 and self.position_valid
         new = MODE_LOITER if hold else MODE_LAND
-        if new != mode:
-            self._change_mode(t_s, new, reason="rc lost")
-        self.failsafe = "rc_loss"
-        self._event(t_s, "failsafe", cause="rc_loss", action=new.name)
+        self._enter_failsafe(t_s, "rc_loss", new, reason="rc lost")
 
     def _check_position(self, t_s: float) -> None:
         """Without a position estimate POSCTL falls back to ALTCTL, AUTO.LOITER to LAND."""
@@ -680,9 +454,7 @@ class Autopilot:
         if self.mode.main == MainMode.POSCTL:
             self._change_mode(t_s, FlightMode(MainMode.ALTCTL), reason="position lost")
         elif self.mode == MODE_LOITER and not self.config.test_stand:
-            self._change_mode(t_s, MODE_LAND, reason="position lost")
-            self.failsafe = "position_loss"
-            self._event(t_s, "failsafe", cause="position_loss", action=MODE_LAND.name)
+            self._enter_failsafe(t_s, "position_loss", MODE_LAND, reason="position lost")
 
     def _rate_loop(
         self,
@@ -704,8 +476,8 @@ class Autopilot:
     ) -> tuple[float, float]:
         cfg = self.config
         lim = cfg.attitude_rate_max_rad_s
-        p = _clip(cfg.attitude_p[0] * (roll_sp - euler_rad[0]), -lim, lim)
-        q = _clip(cfg.attitude_p[1] * (pitch_sp - euler_rad[1]), -lim, lim)
+        p = clip(cfg.attitude_p[0] * (roll_sp - euler_rad[0]), -lim, lim)
+        q = clip(cfg.attitude_p[1] * (pitch_sp - euler_rad[1]), -lim, lim)
         return p, q
 
     def _stick_loop(
@@ -718,8 +490,8 @@ class Autopilot:
         if sticks_us is None or len(sticks_us) < 4:
             roll_s, pitch_s, thr, yaw_s = 0.0, 0.0, 0.0, 0.0
         else:
-            roll_s, pitch_s = _stick(sticks_us[0]), _stick(sticks_us[1])
-            thr, yaw_s = _throttle(sticks_us[2]), _stick(sticks_us[3])
+            roll_s, pitch_s = stick_unit(sticks_us[0]), stick_unit(sticks_us[1])
+            thr, yaw_s = throttle_unit(sticks_us[2]), stick_unit(sticks_us[3])
         cfg = self.config
         if self.mode.main == MainMode.ACRO:
             rm = cfg.acro_rate_max_rad_s
@@ -745,17 +517,17 @@ class Autopilot:
         hover = cfg.hover_thrust
         if cfg.test_stand:
             last = self.last_torque_thrust[3]
-            thrust = _clip(last, cfg.failsafe_thrust_min, hover)
+            thrust = clip(last, cfg.failsafe_thrust_min, hover)
         else:
             if self.mode == MODE_LAND and self.landed:
                 self.disarm(t_s, reason="landed")
                 return (0.0, 0.0, 0.0, 0.0)
             climb_sp = -cfg.land_speed_m_s if self.mode == MODE_LAND else 0.0
             err = climb_sp - climb_rate_m_s
-            self._climb_integral = _clip(self._climb_integral + err * dt_s, -2.0, 2.0)
+            self._climb_integral = clip(self._climb_integral + err * dt_s, -2.0, 2.0)
             tilt = max(math.cos(euler_rad[0]) * math.cos(euler_rad[1]), 0.5)
             thrust = (hover + cfg.climb_p * err + cfg.climb_i * self._climb_integral) / tilt
-            thrust = _clip(thrust, 0.05, 0.95)
+            thrust = clip(thrust, 0.05, 0.95)
         return self._rate_loop(dt_s, (p, q, 0.0), gyro_frd_rad_s, thrust)
 
     def _allocate(self, torque_thrust: Sequence[float]) -> tuple[float, ...]:
@@ -775,117 +547,3 @@ class Autopilot:
         # Armed motors spin at least at idle (PX4 behaviour), whatever the thrust.
         self.motors = tuple(m if m > idle else idle for m in res.motors)
         return self.motors
-
-
-# ------------------------------------------------------------------- streams
-
-
-@dataclass(frozen=True)
-class StreamSpec:
-    """A message the SITL can stream."""
-
-    msg_id: int
-    name: str
-    default_interval_s: float
-    imu_based: bool = False
-
-
-@dataclass
-class _StreamState:
-    spec: StreamSpec
-    interval_s: float  # <= 0: disabled
-    next_due_s: float = 0.0
-
-
-class MessageStreams:
-    """Per-message stream intervals in simulation time (``MAV_CMD_SET_MESSAGE_INTERVAL``).
-
-    Parameters
-    ----------
-    specs
-        The streamable messages and their default intervals.
-    imu_rate_hz
-        IMU sample rate: an IMU-based stream cannot be faster (faster is DENIED).
-    max_rate_hz
-        Fastest any stream may go (the physics rate, 1 kHz).
-    """
-
-    def __init__(
-        self, specs: Sequence[StreamSpec], *, imu_rate_hz: float, max_rate_hz: float = 1000.0
-    ) -> None:
-        self.imu_rate_hz = imu_rate_hz
-        self.max_rate_hz = max_rate_hz
-        self._streams = {s.msg_id: _StreamState(s, s.default_interval_s) for s in specs}
-
-    def __contains__(self, msg_id: int) -> bool:
-        return msg_id in self._streams
-
-    def interval_s(self, msg_id: int) -> float:
-        """Current interval, s (<= 0 when disabled)."""
-        return self._streams[msg_id].interval_s
-
-    def set_interval(self, msg_id: int, interval_us: float, *, t_s: float = 0.0) -> MavResult:
-        """Apply ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param2: µs, -1 off, 0 default).
-
-        Returns
-        -------
-        MavResult
-            ACCEPTED, or DENIED for an unknown message, a non-finite or too short
-            interval (faster than ``max_rate_hz``, or than the IMU for IMU streams).
-        """
-        st = self._streams.get(msg_id)
-        if st is None or not math.isfinite(interval_us):
-            return MavResult.DENIED
-        if interval_us == -1:
-            st.interval_s = 0.0
-            return MavResult.ACCEPTED
-        if interval_us == 0:
-            st.interval_s = st.spec.default_interval_s
-            st.next_due_s = t_s
-            return MavResult.ACCEPTED
-        if interval_us < 0:
-            return MavResult.DENIED
-        interval_s = interval_us * 1e-6
-        max_hz = min(self.max_rate_hz, self.imu_rate_hz) if st.spec.imu_based else self.max_rate_hz
-        if interval_s < (1.0 / max_hz) * (1.0 - 1e-9):
-            return MavResult.DENIED
-        st.interval_s = interval_s
-        st.next_due_s = t_s
-        return MavResult.ACCEPTED
-
-    def rephase(self, t_s: float) -> None:
-        """Start every stream's schedule again at ``t_s`` (the rates are kept).
-
-        A stream is scheduled from when it was asked for, which in a simulation
-        depends on how long the client took: rephased at arming, the messages
-        fall on the same steps of the flight whenever that was."""
-        for st in self._streams.values():
-            st.next_due_s = t_s
-
-    def lockstep_stream(self, candidates: tuple[int, ...]) -> int | None:
-        """Of the enabled ``candidates``, the one streamed fastest (ties: the first).
-
-        The lockstep clock waits after this one: it is the stream a client
-        that asked for a fast rate is running its loop on.
-        """
-        best: int | None = None
-        best_s = math.inf
-        for msg_id in candidates:
-            st = self._streams.get(msg_id)
-            if st is not None and 0.0 < st.interval_s < best_s * (1.0 - 1e-9):
-                best, best_s = msg_id, st.interval_s
-        return best
-
-    def due(self, msg_id: int, t_s: float) -> bool:
-        """True (and schedules the next one) when ``msg_id`` is due at ``t_s``.
-
-        The schedule advances by whole intervals from the previous due time, so
-        the mean rate is exact; after a long stall it restarts from ``t_s``.
-        """
-        st = self._streams[msg_id]
-        if st.interval_s <= 0.0 or t_s + 1e-9 < st.next_due_s:
-            return False
-        st.next_due_s += st.interval_s
-        if st.next_due_s <= t_s:
-            st.next_due_s = t_s + st.interval_s
-        return True

@@ -195,7 +195,7 @@ def run(
     signing_key: Path | None,
 ) -> None:
     """Run one simulated flight."""
-    from sitl.mavlink_face import parse_endpoint
+    from sitl.mavlink_link import parse_endpoint
     from sitl.runner import RunConfig, Runner
 
     try:
@@ -223,7 +223,7 @@ def run(
                 "rc_period_s": 1.0 / sc.rc_rate_hz,
                 "dt_s": sc.physics_dt_s,
             }
-        from sitl.runner import parse_fault
+        from sitl.faults import parse_fault
 
         parsed_faults = tuple(parse_fault(f) for f in faults)
         parsed_params = tuple(_parse_param(p) for p in ap_params)

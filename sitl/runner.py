@@ -8,7 +8,7 @@ One step of the loop (physics ``dt_s`` = 1 ms)::
     send what is due at t                     face.publish (HIGHRES_IMU, ATTITUDE, ...)
     lockstep: wait for the client's setpoint  face.wait_readable + poll
     autopilot on the IMU sample               autopilot.update -> motor commands
-    log the true state at t                   _Log.append
+    log the true state at t                   LogWriter.append
     advance the physics to t + dt             quad.step
 
 Clocks
@@ -26,45 +26,23 @@ Clocks
     runs as fast as the CPU allows. With ``autopilot="ardupilot"`` the same holds
     in GUIDED / GUIDED_NOGPS after each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
-Log format
-----------
-``--log FILE`` (e.g. ``flight.npz``) writes, at the end of the run, a NumPy
-``.npz`` with one row per physics step:
-
-==================== ============ ===============================================
-key                  shape        meaning
-==================== ============ ===============================================
-``t_s``              (N,)         simulation time, s
-``rate_frd_rad_s``   (N, 3)       true body rates
-``q_wxyz``           (N, 4)       true attitude (body FRD -> world NED)
-``pos_ned_m``        (N, 3)       position, m
-``vel_ned_m_s``      (N, 3)       velocity, m/s
-``motor_w_rad_s``    (N, n)       rotor speeds
-``motor_cmd``        (N, n)       normalised motor commands applied over the step
-``custom_mode``      (N,)         PX4 custom_mode (main << 16 | sub << 24)
-``armed``            (N,)         bool
-``summary``          ()           JSON string: status, seed, clock, counters, timing
-==================== ============ ===============================================
-
-and, while running, ``FILE`` with the suffix replaced by ``.events.jsonl``: one
-JSON object per line (``{"t_s": ..., "kind": "mode", ...}``), flushed as each
-event happens; an injected fault is ``{"t_s": ..., "kind": "fault", "fault":
-"imu-stop", "arg": 0}`` (``arg``: the motor of ``motor-fail``, else 0); the last
-line is ``{"kind": "summary", ...}``. Read both back with :func:`read_log`.
-
 Outcome
 -------
 A run ends with ``status`` ``"completed"`` (duration reached), ``"stopped"``
 (SIGINT/SIGTERM) or ``"crashed"`` (the physics reported a crash; the flight ends
 there). All three are normal outcomes (exit code 0); the status is in the summary.
+
+Log
+---
+``--log FILE`` (e.g. ``flight.npz``) writes the true state per physics step and
+the events (``sitl.flight_log`` describes the format); read both back with
+:func:`sitl.flight_log.read_log`. Faults to inject: ``sitl.faults``.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import os
 import signal
 import threading
 import time
@@ -72,126 +50,31 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 
 from companion.profile import ImuModel, VehicleProfile
-from sitl.autopilot import (
-    PX4_PARAMS,
-    Autopilot,
-    AutopilotConfig,
-    Event,
-    FlightMode,
-    MainMode,
-)
+from sitl.autopilot import PX4_PARAMS, Autopilot, AutopilotConfig
+from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
+from sitl.flight_log import LogWriter
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.mavlink_face import (
-    ID_HEARTBEAT,
-    ID_HIGHRES_IMU,
-    Endpoint,
-    MavlinkFace,
-    default_streams,
-    enable_signing,
-)
+from sitl.mavlink_face import MavlinkFace
+from sitl.mavlink_link import Endpoint, enable_signing
+from sitl.personality import Event, Personality
 from sitl.physics import Quadrotor, hover_motor_command
 from sitl.pilot import Pilot, PilotView, make_pilot
+from sitl.px4_face import Px4Face, px4_streams
+from sitl.px4_modes import FlightMode, MainMode
+from sitl.streams import MessageStreams
 from sitl.wind import Wind, WindConfig
 
-if TYPE_CHECKING:
-    from sitl.ardupilot import ArduCopter
-
-__all__ = ["FlightLog", "RunConfig", "RunSummary", "Runner", "events_path", "read_log"]
+__all__ = ["RunConfig", "RunSummary", "Runner"]
 
 logger = logging.getLogger(__name__)
 
 Status = Literal["completed", "stopped", "crashed"]
-
-FAULT_KINDS = (
-    "imu-stop",
-    "imu-nan",
-    "link-drop",
-    "motor-fail",
-    "heartbeat-stop",
-    "imu-range",
-    "rc-lost",
-    "position-lost",
-)
-
-IMU_RANGE_GYRO_RAD_S = 40.0
-"""The HIGHRES_IMU ``xgyro`` an ``imu-range`` fault reports: finite, but beyond
-every bundled profile's gyro range (2000 deg/s = 34.9 rad/s)."""
-
-
-@dataclass(frozen=True)
-class Fault:
-    """A fault injected at simulation time ``t_s`` (see :func:`parse_fault`)."""
-
-    kind: str
-    t_s: float
-    arg: int = 0
-
-
-def parse_fault(text: str) -> Fault:
-    """Parse ``KIND@T`` or ``motor-fail@T:INDEX`` (T in simulated seconds).
-
-    ``imu-stop``: no more IMU streams (HIGHRES_IMU, ATTITUDE...);
-    ``imu-nan``: HIGHRES_IMU gyro fields become NaN;
-    ``link-drop``: nothing is sent or read any more;
-    ``motor-fail``: motor INDEX (0-based) stops;
-    ``heartbeat-stop``: no more HEARTBEAT (requested or periodic); every other
-    message still flows both ways (a lost-link test without a stale IMU);
-    ``imu-range``: HIGHRES_IMU ``xgyro`` reads :data:`IMU_RANGE_GYRO_RAD_S`
-    (finite, beyond the gyro's range); the other fields and streams are true;
-    ``rc-lost``: the autopilot's receiver loses its signal: RC_CHANNELS goes on
-    as such a receiver reports (chancount 0, every channel UINT16_MAX, RSSI 0),
-    and the autopilot gets no sticks (its RC-loss failsafe follows, as
-    ``sitl.autopilot`` and ``sitl.ardupilot`` describe);
-    ``position-lost``: the position estimate is lost: no more LOCAL_POSITION_NED,
-    and the autopilot's position modes fail over as the real stacks' do.
-    The autopilot's own loop keeps the true IMU samples in every case.
-    """
-    kind, _, rest = text.partition("@")
-    when, colon, arg = rest.partition(":")
-    try:
-        t_s = float(when)
-        index = int(arg) if colon else 0  # "motor-fail@6:" has no motor: an error
-    except ValueError:
-        raise ValueError(f"fault {text!r}: expected KIND@SECONDS[:MOTOR]") from None
-    if kind not in FAULT_KINDS or not (t_s >= 0.0 and math.isfinite(t_s)):
-        raise ValueError(f"fault {text!r}: KIND is one of {', '.join(FAULT_KINDS)}, SECONDS >= 0")
-    if (kind == "motor-fail") != bool(colon):
-        raise ValueError(
-            f"fault {text!r}: expected motor-fail@SECONDS:MOTOR (0-based), other kinds KIND@SECONDS"
-        )
-    return Fault(kind, t_s, index)
-
-
-class _OutgoingFaults:
-    """Faults applied to messages as the face encodes them.
-
-    Wraps the face's pymavlink ``send`` (every message it sends goes through it,
-    HEARTBEAT included, before signing and packing); installed only when such a
-    fault is injected, so a run without one sends exactly what it always did.
-    """
-
-    def __init__(self, mav: Any) -> None:
-        self._send = mav.send
-        self.drop_heartbeat = False
-        self.gyro_x_rad_s: float | None = None
-        self.dropped_heartbeats = 0
-        mav.send = self.send
-
-    def send(self, msg: Any, force_mavlink1: bool = False) -> None:
-        mid = msg.get_msgId()
-        if mid == ID_HEARTBEAT and self.drop_heartbeat:
-            self.dropped_heartbeats += 1
-            return
-        if mid == ID_HIGHRES_IMU and self.gyro_x_rad_s is not None:
-            msg.xgyro = self.gyro_x_rad_s
-        self._send(msg, force_mavlink1=force_mavlink1)
-
 
 _MODE_BY_NAME = {m.name: m for m in MainMode}
 RC_PERIOD_S = 0.01
@@ -262,7 +145,7 @@ class RunConfig:
         MAVLink 2 signing key (32 bytes): sign everything sent, accept only
         validly signed frames.
     faults
-        Faults to inject (:func:`parse_fault`), each once at its time, counted
+        Faults to inject (:func:`sitl.faults.parse_fault`), each once at its time, counted
         from the pilot's start (so from arming with ``pilot_from_arm``).
     pilot_from_arm
         Run the pilot's timeline from the moment the vehicle is armed (a
@@ -325,108 +208,6 @@ class RunSummary:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def events_path(log_path: Path) -> Path:
-    """The events file next to a log: ``flight.npz`` -> ``flight.events.jsonl``."""
-    return log_path.with_suffix(".events.jsonl")
-
-
-class _Log:
-    """Per-step true-state rows in growing numpy blocks; events to JSON lines."""
-
-    _BLOCK = 16384
-
-    def __init__(self, n_motors: int, path: Path | None) -> None:
-        self.n = n_motors
-        # t, rate3, q4, pos3, vel3, w n, cmd n, custom_mode, armed
-        self.width = 1 + 3 + 4 + 3 + 3 + 2 * n_motors + 2
-        self._blocks: list[np.ndarray] = []
-        self._buf = np.empty((self._BLOCK, self.width))
-        self._i = 0
-        self.path = path
-        self._events = None
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self._events = events_path(path).open("w", encoding="utf-8")
-
-    def append(self, row: list[float]) -> None:
-        if self._i == self._BLOCK:
-            self._blocks.append(self._buf)
-            self._buf = np.empty((self._BLOCK, self.width))
-            self._i = 0
-        self._buf[self._i] = row
-        self._i += 1
-
-    def event(self, ev: Event) -> None:
-        if self._events is not None:
-            # The event's own time and kind win over any same-named detail key.
-            record = {"t_s": ev.t_s, "kind": ev.kind, **ev.detail}
-            record["t_s"], record["kind"] = ev.t_s, ev.kind
-            self._events.write(json.dumps(record) + "\n")
-            self._events.flush()
-
-    def close(self, summary: RunSummary) -> None:
-        if self.path is None:
-            return
-        if self._events is not None:
-            self._events.write(json.dumps({"kind": "summary", **asdict(summary)}) + "\n")
-            self._events.close()
-            self._events = None
-        data = np.concatenate([*self._blocks, self._buf[: self._i]], axis=0)
-        n = self.n
-        c = 14
-        # Write beside the target and rename: a reader never sees half a log, and
-        # a signal during the write leaves the previous state, not a corrupt file.
-        tmp = self.path.with_name(self.path.name + ".part.npz")
-        np.savez_compressed(
-            tmp,
-            t_s=data[:, 0],
-            rate_frd_rad_s=data[:, 1:4],
-            q_wxyz=data[:, 4:8],
-            pos_ned_m=data[:, 8:11],
-            vel_ned_m_s=data[:, 11:14],
-            motor_w_rad_s=data[:, c : c + n],
-            motor_cmd=data[:, c + n : c + 2 * n],
-            custom_mode=data[:, c + 2 * n].astype(np.uint32),
-            armed=data[:, c + 2 * n + 1].astype(bool),
-            summary=np.array(json.dumps(asdict(summary))),
-        )
-        os.replace(tmp, self.path)
-        logger.info("log written to %s (%d rows)", self.path, data.shape[0])
-
-
-@dataclass
-class FlightLog:
-    """A log read back by :func:`read_log`: arrays by key, events, summary."""
-
-    arrays: dict[str, np.ndarray]
-    events: list[dict[str, Any]]
-    summary: dict[str, Any]
-
-    def __getitem__(self, key: str) -> np.ndarray:
-        return self.arrays[key]
-
-
-def read_log(path: str | Path) -> FlightLog:
-    """Read a SITL log (``.npz``) and its ``.events.jsonl`` back.
-
-    Raises
-    ------
-    FileNotFoundError
-        If the ``.npz`` file does not exist.
-    """
-    p = Path(path)
-    with np.load(p) as z:
-        arrays = {k: z[k] for k in z.files if k != "summary"}
-        summary = json.loads(str(z["summary"])) if "summary" in z.files else {}
-    events: list[dict[str, Any]] = []
-    ep = events_path(p)
-    if ep.exists():
-        for line in ep.read_text(encoding="utf-8").splitlines():
-            if line.strip():
-                events.append(json.loads(line))
-    return FlightLog(arrays, [e for e in events if e.get("kind") != "summary"], summary)
-
-
 @contextmanager
 def _stop_on_signals(stop: threading.Event) -> Iterator[None]:
     """SIGINT/SIGTERM set ``stop`` instead of killing the loop (main thread only)."""
@@ -474,59 +255,61 @@ class Runner:
         self.imu: Imu
         self.pilot: Pilot | None = None
         self._make_streams()
-        imu_model = self.imu.model
-        self.autopilot: Autopilot | ArduCopter
-        self.face: MavlinkFace
+        self.autopilot: Personality[Any]
+        self.face: MavlinkFace[Any]
+        self.streams: MessageStreams
         if config.autopilot == "ardupilot":
             self._make_ardupilot(hover)
         else:
-            if config.initial_mode is not None:
-                if config.initial_mode.upper() not in _MODE_BY_NAME:
-                    raise ValueError(f"PX4 has no mode {config.initial_mode!r}")
-                main = _MODE_BY_NAME[config.initial_mode.upper()]
-            else:
-                main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
-            px4: dict[str, Any] = {}
-            for name, value in config.px4_params:
-                if name not in PX4_PARAMS:
-                    raise ValueError(
-                        f"PX4 parameter {name!r} is not modelled: expected one of "
-                        f"{', '.join(sorted(PX4_PARAMS))}"
-                    )
-                field_name = PX4_PARAMS[name]
-                px4[field_name] = value if field_name.endswith("_s") else int(value)
-            self.autopilot = Autopilot(
-                profile,
-                AutopilotConfig(
-                    offboard_timeout_s=config.offboard_timeout_s,
-                    test_stand=config.test_stand,
-                    hover_thrust=min(max(hover, 0.05), 0.95),
-                    **px4,
-                ),
-                initial_mode=FlightMode(main),
-            )
-            imu_rate_hz = min(imu_model.rate_hz, 1.0 / config.dt_s)
-            self.streams = default_streams(imu_rate_hz)
-            self.face = MavlinkFace(config.mavlink, self.autopilot, self.streams)
+            self._make_px4(hover)
         self.autopilot.position_valid = config.position
         self.face.rc_lost = not config.rc
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
-        self._outgoing: _OutgoingFaults | None = None
+        self._outgoing: OutgoingFaults | None = None
         self.stop = threading.Event()
         self.duration_s = config.duration_s
         if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
             self.duration_s = self.pilot.duration_s
 
+    def _make_px4(self, hover_thrust: float) -> None:
+        """The PX4 personality (the default)."""
+        cfg = self.config
+        if cfg.initial_mode is not None:
+            if cfg.initial_mode.upper() not in _MODE_BY_NAME:
+                raise ValueError(f"PX4 has no mode {cfg.initial_mode!r}")
+            main = _MODE_BY_NAME[cfg.initial_mode.upper()]
+        else:
+            main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
+        px4: dict[str, Any] = {}
+        for name, value in cfg.px4_params:
+            if name not in PX4_PARAMS:
+                raise ValueError(
+                    f"PX4 parameter {name!r} is not modelled: expected one of "
+                    f"{', '.join(sorted(PX4_PARAMS))}"
+                )
+            field_name = PX4_PARAMS[name]
+            px4[field_name] = value if field_name.endswith("_s") else int(value)
+        ap = Autopilot(
+            self.profile,
+            AutopilotConfig(
+                offboard_timeout_s=cfg.offboard_timeout_s,
+                test_stand=cfg.test_stand,
+                hover_thrust=min(max(hover_thrust, 0.05), 0.95),
+                **px4,
+            ),
+            initial_mode=FlightMode(main),
+        )
+        imu_rate_hz = min(self.imu.model.rate_hz, 1.0 / cfg.dt_s)
+        self.autopilot = ap
+        self.streams = px4_streams(imu_rate_hz)
+        self.face = Px4Face(cfg.mavlink, ap, self.streams)
+
     def _make_ardupilot(self, hover_motor_cmd: float) -> None:
         """The ArduCopter personality (``--autopilot ardupilot``)."""
-        from sitl.ardupilot import (
-            ArduCopter,
-            ArduCopterConfig,
-            ArduPilotFace,
-            CopterMode,
-            ardupilot_streams,
-        )
+        from sitl.ardupilot import ArduCopter, ArduCopterConfig
+        from sitl.ardupilot_face import ArduPilotFace, ardupilot_streams
+        from sitl.ardupilot_modes import CopterMode
 
         cfg = self.config
         if cfg.initial_mode is not None:
@@ -560,7 +343,7 @@ class Runner:
             If the MAVLink socket cannot be opened.
         """
         cfg = self.config
-        log = _Log(self.profile.n_motors, cfg.log_path)
+        log = LogWriter(self.profile.n_motors, cfg.log_path)
         summary = RunSummary(
             seed=cfg.seed,
             clock=cfg.clock,
@@ -583,7 +366,7 @@ class Runner:
         )
         return summary
 
-    def _run(self, log: _Log, summary: RunSummary, wall0: float) -> None:
+    def _run(self, log: LogWriter, summary: RunSummary, wall0: float) -> None:
         try:
             with self.face:
                 summary.status = self._loop(log, summary, wall0)
@@ -602,7 +385,7 @@ class Runner:
             summary.armed_at_end = ap.armed
             for ev in ap.drain_events():
                 log.event(ev)
-            log.close(summary)
+            log.close(asdict(summary))
 
     def _make_streams(self) -> None:
         """Wind, IMU and pilot, each from its own stream of the scenario's seed.
@@ -623,7 +406,7 @@ class Runner:
         if cfg.pilot:
             self.pilot = make_pilot(cfg.pilot, rng=rng_pilot, free_flight=not cfg.test_stand)
 
-    def _inject(self, fault: Fault, t: float, log: _Log) -> None:
+    def _inject(self, fault: Fault, t: float, log: LogWriter) -> None:
         face = self.face
         if fault.kind == "imu-stop":
             face.imu_stopped = True
@@ -639,7 +422,7 @@ class Runner:
             self.quad.set_motor_failure(fault.arg, 0.0)
         elif fault.kind in ("heartbeat-stop", "imu-range"):
             if self._outgoing is None:
-                self._outgoing = _OutgoingFaults(face.mav)
+                self._outgoing = OutgoingFaults(face.mav)
             if fault.kind == "heartbeat-stop":
                 self._outgoing.drop_heartbeat = True
             else:
@@ -647,7 +430,7 @@ class Runner:
         logger.warning("fault injected at t=%.3f s: %s", t, fault)
         log.event(Event(t, "fault", {"fault": fault.kind, "arg": fault.arg}))
 
-    def _loop(self, log: _Log, summary: RunSummary, wall0: float) -> Status:
+    def _loop(self, log: LogWriter, summary: RunSummary, wall0: float) -> Status:
         cfg = self.config
         quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
         snap = face.snapshot

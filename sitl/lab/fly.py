@@ -240,7 +240,7 @@ def merge_logs(flight: FlightProcesses, *, meta: dict[str, Any] | None = None) -
     the physics step of each sample's timestamp.
     """
     from companion.records import read_columnar
-    from sitl.runner import read_log
+    from sitl.flight_log import read_log
 
     cols, cmeta = read_columnar(flight.control_log)
     eng = cols["engaged"] > 0.5

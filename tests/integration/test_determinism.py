@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from companion.records import read_columnar
+from sitl.flight_log import read_log
 from sitl.lab.fly import fly_mavlink, merge_logs
 from sitl.lab.report import compute_metrics
-from sitl.runner import read_log
 
 pytestmark = pytest.mark.integration
 

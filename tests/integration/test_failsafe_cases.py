@@ -40,8 +40,9 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.records import read_columnar
+from sitl.faults import IMU_RANGE_GYRO_RAD_S
+from sitl.flight_log import read_log
 from sitl.lab.fly import FlightProcesses, fly_mavlink
-from sitl.runner import IMU_RANGE_GYRO_RAD_S, read_log
 from tests.integration.conftest import SitlProcess, free_udp_port
 
 pytestmark = pytest.mark.integration

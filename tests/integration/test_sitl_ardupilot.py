@@ -16,7 +16,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.runner import read_log
+from sitl.flight_log import read_log
 
 from .conftest import SitlProcess
 

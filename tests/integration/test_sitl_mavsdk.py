@@ -25,7 +25,7 @@ from mavsdk.asyncio.plugins.offboard import (
 )
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync
 
-from sitl.runner import read_log
+from sitl.flight_log import read_log
 
 from .conftest import SitlProcess
 

@@ -10,24 +10,21 @@ import numpy as np
 import pytest
 
 from companion.profile import VehicleProfile, load_profile
-from sitl.ardupilot import (
-    PARAM_SPECS,
+from sitl.ardupilot import ArduCopter, ArduCopterConfig
+from sitl.ardupilot_control import (
     ApAxisGains,
     ApRatePid,
-    ArduCopter,
-    ArduCopterConfig,
-    ArduParams,
-    CopterMode,
     GyroLowPass,
     actuator_to_thrust,
-    ardupilot_streams,
     climb_rate_from_thrust,
-    max_stream_rate_hz,
     thrust_to_actuator,
 )
-from sitl.autopilot import MavResult
+from sitl.ardupilot_face import ardupilot_streams, max_stream_rate_hz
+from sitl.ardupilot_modes import CopterMode
+from sitl.ardupilot_params import PARAM_SPECS, ArduParams
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
+from sitl.personality import MavResult
 from sitl.physics import Quadrotor, hover_motor_command
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,20 +9,18 @@ from pathlib import Path
 import pytest
 
 from companion.profile import VehicleProfile, load_profile
-from sitl.autopilot import (
+from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.personality import MavResult
+from sitl.px4_modes import (
     AUTO_SUB_LAND,
     AUTO_SUB_LOITER,
-    Autopilot,
-    AutopilotConfig,
     FlightMode,
     MainMode,
-    MavResult,
-    MessageStreams,
-    StreamSpec,
     mode_name,
     pack_custom_mode,
     unpack_custom_mode,
 )
+from sitl.streams import MessageStreams, StreamSpec
 
 ROOT = Path(__file__).resolve().parents[2]
 LEVEL = (0.0, 0.0, 0.0)

@@ -7,9 +7,11 @@ from pathlib import Path
 import pytest
 
 from companion.profile import load_profile
+from sitl.faults import FAULT_KINDS, Fault, parse_fault
+from sitl.flight_log import read_log
 from sitl.lab.fly import free_udp_port
-from sitl.mavlink_face import parse_endpoint
-from sitl.runner import FAULT_KINDS, Fault, RunConfig, Runner, parse_fault, read_log
+from sitl.mavlink_link import parse_endpoint
+from sitl.runner import RunConfig, Runner
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -19,7 +19,8 @@ from pymavlink.dialects.v20 import common as mavlink2
 from companion.profile import load_profile
 from sitl.autopilot import Autopilot, AutopilotConfig
 from sitl.lab.fly import free_udp_port
-from sitl.mavlink_face import MavlinkFace, default_streams, parse_endpoint
+from sitl.mavlink_link import parse_endpoint
+from sitl.px4_face import Px4Face, px4_streams
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -33,10 +34,10 @@ class _Collect:
 
 
 @pytest.fixture
-def face() -> Iterator[MavlinkFace]:
+def face() -> Iterator[Px4Face]:
     profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
     endpoint = parse_endpoint(f"udpin:127.0.0.1:{free_udp_port()}")
-    f = MavlinkFace(endpoint, Autopilot(profile, AutopilotConfig()), default_streams(250.0))
+    f = Px4Face(endpoint, Autopilot(profile, AutopilotConfig()), px4_streams(250.0))
     with f:
         yield f
 
@@ -49,7 +50,7 @@ def heartbeat() -> bytes:
     return out.frames[-1]
 
 
-def received_after(face: MavlinkFace, datagrams: list[bytes]) -> int:
+def received_after(face: Px4Face, datagrams: list[bytes]) -> int:
     """Send each datagram, let the face read them all; the heartbeats it took."""
     seen: list[str] = []
     handle = face._handle
@@ -72,13 +73,13 @@ def received_after(face: MavlinkFace, datagrams: list[bytes]) -> int:
     return seen.count("HEARTBEAT")
 
 
-def test_a_truncated_frame_does_not_eat_the_next_datagram(face: MavlinkFace) -> None:
+def test_a_truncated_frame_does_not_eat_the_next_datagram(face: Px4Face) -> None:
     hb = heartbeat()
     got = received_after(face, [hb[: len(hb) // 2], hb] * 20)
     assert got == 20
 
 
-def test_random_and_huge_datagrams_cost_no_heartbeat(face: MavlinkFace) -> None:
+def test_random_and_huge_datagrams_cost_no_heartbeat(face: Px4Face) -> None:
     rng = np.random.default_rng(7)
     hb = heartbeat()
     datagrams = []

@@ -17,10 +17,11 @@ ROOT = Path(__file__).resolve().parents[2]
 CHILD = """
 import os, signal, sys
 import numpy as np
+import sitl.flight_log as flight_log
 import sitl.runner as runner
 from sitl.lab.fly import free_udp_port
 from companion.profile import load_profile
-from sitl.mavlink_face import parse_endpoint
+from sitl.mavlink_link import parse_endpoint
 
 real = np.savez_compressed
 
@@ -28,7 +29,7 @@ def savez_with_a_signal(*args, **kwargs):
     os.kill(os.getpid(), signal.SIGINT)  # the driver's SIGINT, mid-write
     return real(*args, **kwargs)
 
-runner.np.savez_compressed = savez_with_a_signal
+flight_log.np.savez_compressed = savez_with_a_signal
 profile = load_profile(sys.argv[1], simulated=True)
 config = runner.RunConfig(
     mavlink=parse_endpoint(f"udpout:127.0.0.1:{free_udp_port()}"),
@@ -49,6 +50,6 @@ def test_a_signal_during_the_log_write_leaves_a_whole_log(tmp_path: Path) -> Non
     assert done.stdout.split() == ["completed"]
     assert log.exists()
     assert not list(tmp_path.glob("*.part*"))
-    from sitl.runner import read_log
+    from sitl.flight_log import read_log
 
     assert read_log(log).arrays["t_s"].size > 100

@@ -14,17 +14,11 @@ from pathlib import Path
 import pytest
 
 from companion.profile import VehicleProfile, load_profile
-from sitl.ardupilot import ArduCopter, ArduCopterConfig, CopterMode
-from sitl.autopilot import (
-    MODE_LAND,
-    MODE_LOITER,
-    MODE_OFFBOARD,
-    Autopilot,
-    AutopilotConfig,
-    FlightMode,
-    MainMode,
-    MavResult,
-)
+from sitl.ardupilot import ArduCopter, ArduCopterConfig
+from sitl.ardupilot_modes import CopterMode
+from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.personality import MavResult
+from sitl.px4_modes import MODE_LAND, MODE_LOITER, MODE_OFFBOARD, FlightMode, MainMode
 
 ROOT = Path(__file__).resolve().parents[2]
 LEVEL = (0.0, 0.0, 0.0)

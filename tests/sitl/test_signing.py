@@ -19,7 +19,8 @@ from companion.link.signing import signing_timestamp_now
 from companion.profile import load_profile
 from sitl.autopilot import Autopilot, AutopilotConfig
 from sitl.lab.fly import free_udp_port
-from sitl.mavlink_face import MavlinkFace, default_streams, enable_signing, parse_endpoint
+from sitl.mavlink_link import enable_signing, parse_endpoint
+from sitl.px4_face import Px4Face, px4_streams
 
 ROOT = Path(__file__).resolve().parents[2]
 KEY = bytes(range(32))
@@ -59,10 +60,10 @@ def request_heartbeat(mav: Any, out: _Collect) -> bytes:
 
 
 @pytest.fixture
-def face() -> Iterator[MavlinkFace]:
+def face() -> Iterator[Px4Face]:
     profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
     endpoint = parse_endpoint(f"udpin:127.0.0.1:{free_udp_port()}")
-    f = MavlinkFace(endpoint, Autopilot(profile, AutopilotConfig()), default_streams(250.0))
+    f = Px4Face(endpoint, Autopilot(profile, AutopilotConfig()), px4_streams(250.0))
     enable_signing(f.mav, KEY)
     with f:
         yield f
@@ -77,7 +78,7 @@ def sender() -> Iterator[socket.socket]:
     s.close()
 
 
-def deliver(face: MavlinkFace, sock: socket.socket, *frames: bytes) -> None:
+def deliver(face: Px4Face, sock: socket.socket, *frames: bytes) -> None:
     """Send each frame as its own datagram and let the face read them all."""
     before = face.messages_received + face.bad_packets
     for frame in frames:
@@ -105,7 +106,7 @@ def acks(sock: socket.socket) -> list[Any]:
 
 
 def test_a_forged_far_future_timestamp_does_not_block_the_real_sender(
-    face: MavlinkFace, sender: socket.socket
+    face: Px4Face, sender: socket.socket
 ) -> None:
     # Same stream (link 0, 255/190) as the real ground station, wrong key, and
     # the largest timestamp there is: if it counted, nothing could follow it.
@@ -125,7 +126,7 @@ def test_a_forged_far_future_timestamp_does_not_block_the_real_sender(
 
 
 def test_replays_and_stale_new_streams_are_still_dropped(
-    face: MavlinkFace, sender: socket.socket
+    face: Px4Face, sender: socket.socket
 ) -> None:
     real, genuine = ground_station(KEY, signing_timestamp_now())
     frame = request_heartbeat(real, genuine)
@@ -143,7 +144,7 @@ def test_replays_and_stale_new_streams_are_still_dropped(
 
 
 def test_a_valid_newer_timestamp_moves_the_sitl_clock_forward(
-    face: MavlinkFace, sender: socket.socket
+    face: Px4Face, sender: socket.socket
 ) -> None:
     ahead = face.mav.signing.timestamp + 10**7
     real, genuine = ground_station(KEY, ahead)
