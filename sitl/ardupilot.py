@@ -327,7 +327,15 @@ class ArduCopter(CopterLaws):
         return None
 
     def _on_armed(self, t_s: float) -> None:
+        # The flight starts here: the filters, the rate loop and its schedule too,
+        # so what follows does not depend on how long the vehicle sat disarmed.
         self._yaw_hold = None
+        self.gyro_lpf.reset()
+        self.gyro_filtered_rad_s = (0.0, 0.0, 0.0)  # what ATTITUDE shows until the next sample
+        self.rate_pid.reset()
+        self._last_imu_t_s = None
+        self._next_loop_s = None
+        self._limit = [False, False, False]
 
     def set_mode(self, t_s: float, number: int, sub: int = 0) -> MavResult:
         """``MAV_CMD_DO_SET_MODE`` param2 = Copter mode number (param3 unused)."""
@@ -430,7 +438,11 @@ class ArduCopter(CopterLaws):
 
         Between loop runs the motor outputs are held.
         """
-        dt_imu = 0.001 if self._last_imu_t_s is None else t_s - self._last_imu_t_s
+        # In whole microseconds: the difference of two large times would carry their
+        # rounding into the filter, and a flight would depend on when it began.
+        dt_imu = (
+            0.001 if self._last_imu_t_s is None else round((t_s - self._last_imu_t_s) * 1e6) * 1e-6
+        )
         self._last_imu_t_s = t_s
         self.gyro_filtered_rad_s = self.gyro_lpf.apply(gyro_frd_rad_s, dt_imu)
         if self._next_loop_s is not None and t_s + 1e-9 < self._next_loop_s:

@@ -4,9 +4,11 @@ Two lockstep flights of the SITL and the companion as separate processes: the
 moment the companion arms the vehicle (in simulated time) depends on how fast
 each started, but what follows must not. The causes found and removed: the
 SITL's message schedules ran from when the companion asked for them, commands
-took effect anywhere inside a lockstep wait, the companion's time step carried
-the rounding of the autopilot's absolute clock, and the samples commanded after
-``--duration`` depended on when the run's task woke.
+took effect anywhere inside a lockstep wait, the companion's time step (and the
+ArduPilot personality's gyro filter step) carried the rounding of the absolute
+clock, the samples commanded after ``--duration`` depended on when the run's
+task woke and were counted from the sample before engagement, and the ArduPilot
+personality's filters and loop schedule carried the time spent disarmed.
 """
 
 from __future__ import annotations
@@ -27,15 +29,24 @@ ROOT = Path(__file__).resolve().parents[2]
 F450 = ROOT / "vehicle_profiles" / "f450.yaml"
 
 
-def test_two_lockstep_flights_of_one_seed_are_the_same(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("autopilot", "output", "duration_s"), [("px4", "actuator", 8.0), ("ardupilot", "rates", 4.0)]
+)
+def test_two_lockstep_flights_of_one_seed_are_the_same(
+    tmp_path: Path, autopilot: str, output: str, duration_s: float
+) -> None:
     flights = [
-        fly_mavlink(F450, "paper-acro", tmp_path / f"run{i}", duration_s=8.0) for i in (1, 2)
-    ]
+        fly_mavlink(
+            F450, "paper-acro", tmp_path / f"run{i}", duration_s=duration_s,
+            autopilot=autopilot, output=output,
+        )
+        for i in (1, 2)
+    ]  # fmt: skip
     for f in flights:
         assert f.companion_rc == 0, f.text("companion.stderr")
     cols = [read_columnar(f.out_dir / "companion" / "control.bin")[0] for f in flights]
     engaged = [np.asarray(c["engaged"]).astype(bool) for c in cols]
-    assert engaged[0].sum() == engaged[1].sum() == 2000  # 8 s at 250 Hz
+    assert engaged[0].sum() == engaged[1].sum() == duration_s * 250  # the F450's IMU rate
     for key in cols[0]:
         if key in ("t_s", "wall_s", "latency_us"):
             continue  # the autopilot's clock at arming, and the wall clock, differ
@@ -52,7 +63,7 @@ def test_two_lockstep_flights_of_one_seed_are_the_same(tmp_path: Path) -> None:
                                               if e["kind"] == "pilot_start") - 1e-9))
         for log in logs
     ]  # fmt: skip
-    n = 8000
+    n = round(duration_s * 1000)  # physics steps
     for key in ("rate_frd_rad_s", "q_wxyz", "pos_ned_m", "motor_w_rad_s"):
         a, b = (log[key][i : i + n] for log, i in zip(logs, starts, strict=True))
         assert np.array_equal(a, b), key
