@@ -1,0 +1,52 @@
+"""Flight records: a MAVLink telemetry log (``.tlog``), a binary columnar log and an event log.
+
+The logs are fed from the control path (once per MAVLink message, once per
+control sample, once per event), so appending is a cheap copy into an
+in-memory buffer; the buffer is handed on, in one piece, on the first append
+at least ``flush_interval_s`` after the last hand-over (or on :meth:`flush`,
+:meth:`close`).
+
+Where it goes depends on the ``writer`` a log is given:
+
+* with a :class:`RecordWriter` (the app: one per run, for all its records),
+  the buffer is swapped for an empty one and queued to the writer's thread,
+  which does every ``write``, ``flush`` and ``close``. A slow or stalled disk
+  never blocks the caller: the queue is bounded (``max_pending_bytes``,
+  ``max_pending_chunks``) and a chunk that does not fit is dropped and
+  counted. A write error (``ENOSPC``, ``EIO``) stops that file only; the
+  thread keeps writing the others and reports the failure through
+  :meth:`RecordWriter.poll_failures`;
+* without one (offline tools such as ``companion replay``), the log writes the
+  buffer to its own file synchronously, from the caller.
+
+Nothing calls ``fsync`` (it can block for tens of milliseconds on an SD card):
+a killed process loses what was buffered or queued (normally the last
+``flush_interval_s``); a power cut may also lose what the kernel had not
+written back. Opening a file and writing its header are synchronous, at
+start-up, and raise ``OSError`` as ``open`` does.
+
+A write error never reaches the caller: it is logged once, the log stops
+recording (``failed`` holds the error) and later rows are counted in
+``dropped``.
+
+Formats are described in ``docs/logs.md``.
+"""
+
+from companion.records.columnar import FORMAT, ColumnarLog, columns, last_row, read_columnar
+from companion.records.events import EventLog
+from companion.records.tlog import TlogWriter
+from companion.records.writer import RECORD_FILES, RecordFileStats, RecordWriter, prepare_log_dir
+
+__all__ = [
+    "FORMAT",
+    "RECORD_FILES",
+    "ColumnarLog",
+    "EventLog",
+    "RecordFileStats",
+    "RecordWriter",
+    "TlogWriter",
+    "columns",
+    "last_row",
+    "prepare_log_dir",
+    "read_columnar",
+]
