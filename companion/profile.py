@@ -210,7 +210,7 @@ class VehicleProfile(StrictModel):
 
     def hover_problem(self) -> str | None:
         """Why the simulator could not hover this vehicle (undamaged, on equal
-        motor speeds: sitl.physics's hover command), or None if it can."""
+        motor speeds: sitl.rotors's hover command), or None if it can."""
         p = self.physics
         w = math.sqrt(p.mass_kg * 9.80665 / (self.n_motors * p.kf_n_per_rad_s2))
         if p.motor_w_idle_rad_s <= w <= p.motor_w_max_rad_s:

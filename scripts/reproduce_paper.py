@@ -118,7 +118,7 @@ def input_gains(profile: Any) -> dict[str, float]:
     ``b``). Read from the simulator's physics: this is the "why", not the controller.
     """
     from companion.config import build_mixer
-    from sitl.physics import GRAVITY_M_S2, VehicleParams
+    from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 
     P = VehicleParams.from_profile(profile)
     roll_f, pitch_f, _ = build_mixer(profile).factors()

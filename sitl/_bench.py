@@ -17,7 +17,9 @@ import numpy as np
 
 from companion.profile import VehicleProfile, load_profile
 from sitl.batch import BatchQuadrotor
-from sitl.physics import GRAVITY_M_S2, Quadrotor, hover_motor_command
+from sitl.physics import Quadrotor
+from sitl.rotors import hover_motor_command
+from sitl.vehicle_params import GRAVITY_M_S2
 
 __all__ = ["bench_sitl"]
 

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from companion.profile import VehicleProfile
-from sitl.physics import GRAVITY_M_S2, VehicleParams
+from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 
 __all__ = ["BatchQuadrotor"]
 

@@ -110,12 +110,8 @@ import numpy as np
 import yaml
 
 from companion.profile import Damage, MotorDamage, VehicleProfile
-from sitl.physics import (
-    GRAVITY_M_S2,
-    VehicleParams,
-    hover_motor_command,
-    motor_command_to_speed,
-)
+from sitl.rotors import hover_motor_command, motor_command_to_speed
+from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 
 __all__ = [
     "AIR_DENSITY_KG_M3",
@@ -550,7 +546,7 @@ def angular_accel_limits_rad_s2(
     command ``limits.motor_idle`` (``w_lo``) when negative, and at the equal
     hover speed when zero. Factors as the geometry mixer's: ``-y_i`` (roll),
     ``x_i`` (pitch), ``+1`` CCW / ``-1`` CW (yaw). With the damaged coefficients
-    and the lever arms about the CG (:class:`sitl.physics.VehicleParams`),
+    and the lever arms about the CG (:class:`sitl.vehicle_params.VehicleParams`),
 
     .. math::  \tau = \sum_i r_i \times (0, 0, -k_{T,i} w_i^2) + (0, 0, \sigma_i k_{Q,i} w_i^2),
                \qquad \dot\omega = J^{-1} \tau,

@@ -38,29 +38,16 @@ frame is CW from above, i.e. about ``+z`` in FRD: positive yaw (nose right). Tha
 is why PX4 raises its CCW motors to yaw right. Gravity acts at the CG, so it
 produces no torque.
 
-Rotor imbalance (a cut or damaged prop) is a radial force rotating with the
-rotor at its position: ``F_imb,i = A_i (w_i / w_max)^2 (cos phi_i, sin phi_i, 0)``
-with ``dphi_i/dt = -sigma_i w_i`` (a CCW rotor turns from +y towards +x in FRD).
-It excites the airframe at the rotor frequency ``w_i / 2pi``: through the yaw arm
-and, when the rotor plane is above or below the CG, in roll and pitch.
+The rotor forces and torques (``k_T,i``, ``k_Q,i``, the imbalance forces
+``F_imb,i``, the motor lag and damage) are modelled in :mod:`sitl.rotors`, the
+constants read from the profile in :mod:`sitl.vehicle_params`.
 
-Motors
-------
-Commands are normalised, clamped to ``[0, 1]`` (non-finite reads as 0). A
-command of exactly 0 means "stopped" (disarmed): ``w_cmd = 0``. Any positive
-command maps linearly onto speed,
-``w_cmd = w_idle + cmd (w_max - w_idle)``, so thrust is quadratic in the command
-as on a real ESC. Rotor speed follows a first-order lag with ``tau_up`` when
-speeding up and ``tau_down`` when slowing down. With the command held over a step
-this ODE is solved exactly, ``w(s) = w_cmd + (w_0 - w_cmd) e^{-s/tau}`` (it never
-crosses ``w_cmd``, so the choice of tau is fixed within a step), as is the phase
-integral; the rigid body is integrated with classic fixed-step RK4. Because the
-motor wrench does not depend on the rigid-body state, it is evaluated once at the
-three RK4 nodes ``s = 0, dt/2, dt``.
-
-Damage: after ``fail_at_s`` a motor delivers ``efficiency_after_fail`` of its
-thrust and torque, modelled as a loss of motor power: its commanded speed is
-scaled by ``sqrt(efficiency_after_fail)`` (0: the rotor spins down and stops).
+Integration
+-----------
+The rigid body is integrated with classic fixed-step RK4. Because the rotor
+wrench does not depend on the rigid-body state, it is evaluated once at the
+three RK4 nodes ``s = 0, dt/2, dt`` (the motor lag is solved exactly over the
+step).
 
 Ground and test stand
 ---------------------
@@ -88,32 +75,26 @@ import numpy as np
 
 from companion.profile import VehicleProfile
 from sitl.frames import euler_to_quat, quat_to_euler_rad
+from sitl.rotors import Rotors
+from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 from sitl.wind import Wind
 
 __all__ = [
     "CRASH_SPEED_M_S",
     "CRASH_TILT_RAD",
     "CRASH_TILT_SPEED_M_S",
-    "GRAVITY_M_S2",
     "Quadrotor",
-    "VehicleParams",
     "VehicleState",
-    "hover_motor_command",
-    "motor_command_to_speed",
 ]
 
 _log = logging.getLogger(__name__)
 
-#: Standard gravity (m/s²), as in ``VehicleProfile.thrust_to_weight``.
-GRAVITY_M_S2 = 9.80665
 #: Vertical touchdown speed above which the vehicle is wrecked (m/s).
 CRASH_SPEED_M_S = 3.0
 #: Tilt at touchdown beyond which a moving vehicle tips over and breaks props (rad).
 CRASH_TILT_RAD = math.radians(60.0)
 #: Speed above which a touchdown beyond :data:`CRASH_TILT_RAD` counts as a crash (m/s).
 CRASH_TILT_SPEED_M_S = 0.5
-
-_TWO_PI = 2.0 * math.pi
 
 
 @dataclass(frozen=True)
@@ -155,140 +136,6 @@ class VehicleState:
     crashed: bool
 
 
-@dataclass(frozen=True)
-class VehicleParams:
-    """Profile numbers turned into what the integrators use (SI units throughout).
-
-    Built once by :meth:`from_profile`; shared by :class:`Quadrotor` and
-    :class:`sitl.batch.BatchQuadrotor` so both read a profile the same way.
-    """
-
-    n_motors: int
-    mass_kg: float
-    inertia_kg_m2: tuple[tuple[float, float, float], ...]
-    inertia_inv: tuple[tuple[float, float, float], ...]
-    arm_frd_m: tuple[tuple[float, float, float], ...]  # motor positions relative to the CG
-    spin_sign: tuple[float, ...]  # +1 CCW (positive yaw reaction), -1 CW
-    thrust_coeff: tuple[float, ...]  # N/(rad/s)^2, kf * thrust_efficiency
-    torque_coeff: tuple[float, ...]  # N m/(rad/s)^2, km * kf * torque_efficiency
-    imbalance_coeff: tuple[float, ...]  # N/(rad/s)^2, imbalance_n / w_max^2
-    fail_at_s: tuple[float | None, ...]
-    speed_scale_after_fail: tuple[float, ...]  # sqrt(efficiency_after_fail)
-    w_idle_rad_s: float
-    w_max_rad_s: float
-    tau_up_s: float
-    tau_down_s: float
-    rotor_inertia_kg_m2: float
-    drag_linear: tuple[float, float, float]
-    drag_quadratic: tuple[float, float, float]
-    drag_angular: tuple[float, float, float]
-
-    @classmethod
-    def from_profile(cls, profile: VehicleProfile) -> VehicleParams:
-        """Derive integrator constants from a validated profile.
-
-        Raises
-        ------
-        ValueError
-            If the inertia plus ``damage.inertia_delta_kg_m2`` is not symmetric
-            positive definite (the profile schema checks only the undamaged one).
-        """
-        ph = profile.physics
-        dmg = ph.damage
-        n = profile.n_motors
-        J = np.array(ph.inertia_kg_m2, dtype=float) + np.array(dmg.inertia_delta_kg_m2, dtype=float)
-        if not np.allclose(J, J.T, atol=1e-12) or np.linalg.eigvalsh(J).min() <= 0.0:
-            raise ValueError(
-                "physics.inertia_kg_m2 + physics.damage.inertia_delta_kg_m2: expected a "
-                f"symmetric positive-definite matrix, got {J.tolist()}"
-            )
-        J_inv = np.linalg.inv(J)
-
-        def rows(a: np.ndarray) -> tuple[tuple[float, float, float], ...]:
-            return tuple((float(r[0]), float(r[1]), float(r[2])) for r in a)
-
-        cg = dmg.cg_offset_frd_m
-        arms = tuple(
-            (m.position_frd_m[0] - cg[0], m.position_frd_m[1] - cg[1], m.position_frd_m[2] - cg[2])
-            for m in profile.frame.motors
-        )
-        thrust_eff = [1.0] * n
-        torque_eff = [1.0] * n
-        imbalance = [0.0] * n
-        fail_at: list[float | None] = [None] * n
-        after = [1.0] * n
-        for d in dmg.motors:
-            thrust_eff[d.motor] *= d.thrust_efficiency
-            torque_eff[d.motor] *= d.torque_efficiency
-            imbalance[d.motor] += d.imbalance_n
-            if d.fail_at_s is not None:
-                fail_at[d.motor] = d.fail_at_s
-                after[d.motor] = math.sqrt(d.efficiency_after_fail)
-        kf = ph.kf_n_per_rad_s2
-        w_max = ph.motor_w_max_rad_s
-        return cls(
-            n_motors=n,
-            mass_kg=ph.mass_kg,
-            inertia_kg_m2=rows(J),
-            inertia_inv=rows(J_inv),
-            arm_frd_m=arms,
-            spin_sign=tuple(1.0 if m.spin == "ccw" else -1.0 for m in profile.frame.motors),
-            thrust_coeff=tuple(kf * e for e in thrust_eff),
-            torque_coeff=tuple(ph.km_m * kf * e for e in torque_eff),
-            imbalance_coeff=tuple(a / (w_max * w_max) for a in imbalance),
-            fail_at_s=tuple(fail_at),
-            speed_scale_after_fail=tuple(after),
-            w_idle_rad_s=ph.motor_w_idle_rad_s,
-            w_max_rad_s=w_max,
-            tau_up_s=ph.motor_tau_up_s,
-            tau_down_s=ph.motor_tau_down_s,
-            rotor_inertia_kg_m2=ph.rotor_inertia_kg_m2,
-            drag_linear=ph.drag_linear_n_per_m_s,
-            drag_quadratic=ph.drag_quadratic_n_per_m2_s2,
-            drag_angular=ph.angular_drag_n_m_per_rad_s,
-        )
-
-
-def motor_command_to_speed(cmd: float, w_idle_rad_s: float, w_max_rad_s: float) -> float:
-    """Commanded rotor speed (rad/s) for a normalised command.
-
-    ``0`` (or below, or non-finite) -> 0 (stopped); ``cmd in (0, 1]`` ->
-    ``w_idle + cmd (w_max - w_idle)``; above 1 is clamped to ``w_max``.
-    """
-    if not 0.0 < cmd < math.inf:  # also catches NaN
-        return 0.0
-    if cmd >= 1.0:
-        return w_max_rad_s
-    return w_idle_rad_s + cmd * (w_max_rad_s - w_idle_rad_s)
-
-
-def hover_motor_command(profile: VehicleProfile, *, include_damage: bool = True) -> float:
-    """Equal motor command whose total steady thrust equals the weight.
-
-    ``sum_i k_T,i w^2 = m g``  ->  ``w = sqrt(m g / sum_i k_T,i)``,
-    ``cmd = (w - w_idle) / (w_max - w_idle)``.
-
-    With ``include_damage`` the per-motor thrust efficiencies are used (failures
-    are not). Equal commands balance torques only for a symmetric, undamaged
-    vehicle with the CG at the centre.
-
-    Raises
-    ------
-    ValueError
-        If that speed is outside ``[w_idle, w_max]`` (cannot hover on equal commands).
-    """
-    ph = profile.physics
-    if include_damage:
-        kt_sum = sum(VehicleParams.from_profile(profile).thrust_coeff)
-    else:
-        kt_sum = profile.n_motors * ph.kf_n_per_rad_s2
-    w = math.sqrt(ph.mass_kg * GRAVITY_M_S2 / kt_sum)
-    w_idle, w_max = ph.motor_w_idle_rad_s, ph.motor_w_max_rad_s
-    if not w_idle <= w <= w_max:
-        raise ValueError(f"hover speed {w:.1f} rad/s outside [{w_idle}, {w_max}] rad/s")
-    return (w - w_idle) / (w_max - w_idle)
-
-
 def _rigid_body_rates(
     x: Sequence[float], wrench: Sequence[float], c: Sequence[float]
 ) -> tuple[float, ...]:
@@ -297,7 +144,7 @@ def _rigid_body_rates(
     ``wrench = (Fx, Fy, Fz, tau_x, tau_y, tau_z, h_rz)``: rotor forces and torques
     in FRD about the CG (spin-up reaction included) and rotor angular momentum.
     ``c`` packs mass, gravity, wind and drag, inertia and its inverse (see
-    :meth:`Quadrotor._constants`). Returns 16 floats: the 13 derivatives then the
+    :meth:`Quadrotor.step`). Returns 16 floats: the 13 derivatives then the
     specific force ``F_b / m`` in FRD. Plain floats on purpose: this runs four
     times per physics step.
     """
@@ -401,24 +248,8 @@ class Quadrotor:
         self._wind = wind
         self._rng = rng
         P = self.params
-        n = P.n_motors
-        self._n = n
-        # Per-motor linear coefficients of the wrench in w^2 and in w:
-        # (Fz, tau_x, tau_y, tau_z) per unit w^2, and sigma * J_r for the rotor terms.
-        self._coef_w2 = tuple(
-            (
-                -P.thrust_coeff[i],
-                -P.arm_frd_m[i][1] * P.thrust_coeff[i],
-                P.arm_frd_m[i][0] * P.thrust_coeff[i],
-                P.spin_sign[i] * P.torque_coeff[i],
-            )
-            for i in range(n)
-        )
-        self._sigma_jr = tuple(s * P.rotor_inertia_kg_m2 for s in P.spin_sign)
-        self._has_imbalance = any(a > 0.0 for a in P.imbalance_coeff)
-        h = 0.5 * self.dt_s
-        self._exp_up = (math.exp(-h / P.tau_up_s), math.exp(-self.dt_s / P.tau_up_s))
-        self._exp_down = (math.exp(-h / P.tau_down_s), math.exp(-self.dt_s / P.tau_down_s))
+        self._n = P.n_motors
+        self._rotors = Rotors(P, self.dt_s, rng)
         J, K = P.inertia_kg_m2, P.inertia_inv
         self._c_mass = (1.0 / P.mass_kg, GRAVITY_M_S2)
         self._c_rest = (
@@ -432,16 +263,11 @@ class Quadrotor:
             *K[1],
             *K[2],
         )
-        self._speed_scale = [1.0] * n
-        self._failed = [False] * n
         self._wind_ned = (0.0, 0.0, 0.0)
-        # Where each imbalanced prop starts: the plant's only randomness.
-        self._phase = [float(v) for v in rng.uniform(0.0, _TWO_PI, size=n)]
         self._k = 0  # steps taken: t = k dt, free of accumulated rounding
         self._t_s = 0.0
         self._x: list[float] = [0.0] * 13
         self._x[6] = 1.0
-        self._w = [0.0] * n
         self._sf = (0.0, 0.0, -GRAVITY_M_S2)
         self._landed = not self.test_stand
         self._crashed = False
@@ -477,7 +303,7 @@ class Quadrotor:
     @property
     def rotor_phase_rad(self) -> tuple[float, ...]:
         """Rotor angles (rad) that orient each imbalance force in the rotor plane."""
-        return tuple(self._phase)
+        return tuple(self._rotors.phase_rad)
 
     @property
     def wind_ned_m_s(self) -> tuple[float, float, float]:
@@ -494,7 +320,7 @@ class Quadrotor:
             vel_ned_m_s=(x[3], x[4], x[5]),
             q_wxyz=(x[6], x[7], x[8], x[9]),
             rate_frd_rad_s=(x[10], x[11], x[12]),
-            motor_w_rad_s=tuple(self._w),
+            motor_w_rad_s=tuple(self._rotors.speed_rad_s),
             specific_force_frd_m_s2=self._sf,
             landed=self._landed,
             crashed=self._crashed,
@@ -537,12 +363,12 @@ class Quadrotor:
             ws = [float(a) for a in motor_w_rad_s]
             if len(ws) != self._n or not all(math.isfinite(a) and a >= 0.0 for a in ws):
                 raise ValueError(f"motor_w_rad_s: expected {self._n} speeds >= 0, got {ws!r}")
-            self._w = ws
+            self._rotors.speed_rad_s = ws
         if rotor_phase_rad is not None:
             ph = [float(a) for a in rotor_phase_rad]
             if len(ph) != self._n or not all(math.isfinite(a) for a in ph):
                 raise ValueError(f"rotor_phase_rad: expected {self._n} angles, got {ph!r}")
-            self._phase = ph
+            self._rotors.phase_rad = ph
         self._crashed = False
         if self.test_stand:
             self._hold_pos = (x[0], x[1], x[2])
@@ -565,12 +391,7 @@ class Quadrotor:
         Same model as ``damage.motors[].fail_at_s``: commanded speed scaled by
         ``sqrt(efficiency)``.
         """
-        if not 0 <= motor < self._n:
-            raise ValueError(f"motor: expected 0..{self._n - 1}, got {motor}")
-        if not 0.0 <= efficiency <= 1.0:
-            raise ValueError(f"efficiency: expected in [0, 1], got {efficiency}")
-        self._failed[motor] = True
-        self._speed_scale[motor] = math.sqrt(efficiency)
+        self._rotors.fail(motor, efficiency)
 
     # -------------------------------------------------------------------- step
     def _settle_on_ground(self) -> None:
@@ -591,131 +412,6 @@ class Quadrotor:
             -g * (1.0 - 2.0 * (qx * qx + qy * qy)),
         )
 
-    def _motor_targets(self, motor_cmd: Sequence[float]) -> list[float]:
-        P = self.params
-        n = self._n
-        if len(motor_cmd) != n:
-            raise ValueError(f"motor_cmd: expected {n} commands, got {len(motor_cmd)}")
-        t = self._t_s
-        for i, t_fail in enumerate(P.fail_at_s):
-            if t_fail is not None and not self._failed[i] and t >= t_fail - 1e-9:
-                self._failed[i] = True
-                self._speed_scale[i] = P.speed_scale_after_fail[i]
-                _log.info("motor %d degraded at t=%.3f s", i, t)
-        w_idle, w_max = P.w_idle_rad_s, P.w_max_rad_s
-        scale = self._speed_scale
-        out = [0.0] * n
-        for i in range(n):
-            c = motor_cmd[i]
-            if 0.0 < c < math.inf:  # NaN, inf and negatives stay stopped
-                w = w_max if c >= 1.0 else w_idle + c * (w_max - w_idle)
-                out[i] = w * scale[i]
-        return out
-
-    def _advance_motors(
-        self, w_cmd: list[float]
-    ) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
-        """Exact motor lag over one step; the rotor wrench at ``s = 0, dt/2, dt``.
-
-        Updates rotor speeds and phases to the end of the step.
-        """
-        P = self.params
-        dt = self.dt_s
-        w = self._w
-        coef = self._coef_w2
-        sjr = self._sigma_jr
-        fz0 = tx0 = ty0 = tz0 = hz0 = 0.0
-        fz1 = tx1 = ty1 = tz1 = hz1 = 0.0
-        fz2 = tx2 = ty2 = tz2 = hz2 = 0.0
-        w_mid = [0.0] * self._n
-        w_end = [0.0] * self._n
-        taus = [0.0] * self._n
-        for i in range(self._n):
-            w0 = w[i]
-            wc = w_cmd[i]
-            if wc >= w0:
-                tau = P.tau_up_s
-                eh, ef = self._exp_up
-            else:
-                tau = P.tau_down_s
-                eh, ef = self._exp_down
-            taus[i] = tau
-            d = w0 - wc
-            wh = wc + d * eh
-            wf = wc + d * ef
-            w_mid[i] = wh
-            w_end[i] = wf
-            a_f, a_x, a_y, a_z = coef[i]
-            s = sjr[i]  # sigma J_r
-            # Rotor speed-up reaction on the frame: +sigma J_r dw/dt about z,
-            # dw/dt = (w_cmd - w) / tau; rotor momentum h_z = -sigma J_r w.
-            inv_tau = s / tau
-            w2 = w0 * w0
-            fz0 += a_f * w2
-            tx0 += a_x * w2
-            ty0 += a_y * w2
-            tz0 += a_z * w2 - inv_tau * d
-            hz0 -= s * w0
-            w2 = wh * wh
-            fz1 += a_f * w2
-            tx1 += a_x * w2
-            ty1 += a_y * w2
-            tz1 += a_z * w2 - inv_tau * (wh - wc)
-            hz1 -= s * wh
-            w2 = wf * wf
-            fz2 += a_f * w2
-            tx2 += a_x * w2
-            ty2 += a_y * w2
-            tz2 += a_z * w2 - inv_tau * (wf - wc)
-            hz2 -= s * wf
-        fx0 = fy0 = fx1 = fy1 = fx2 = fy2 = 0.0
-        if self._has_imbalance:
-            h = 0.5 * dt
-            for i in range(self._n):
-                a = P.imbalance_coeff[i]
-                if a <= 0.0:
-                    continue
-                rx, ry, rz = P.arm_frd_m[i]
-                sgn = P.spin_sign[i]
-                tau = taus[i]
-                w0, wc = w[i], w_cmd[i]
-                d = w0 - wc
-                ph0 = self._phase[i]
-                # Phase = phase0 - sigma * integral of w(s) ds, integrated exactly.
-                ph1 = ph0 - sgn * (wc * h + tau * (d - (w_mid[i] - wc)))
-                ph2 = ph0 - sgn * (wc * dt + tau * (d - (w_end[i] - wc)))
-                self._phase[i] = math.fmod(ph2, _TWO_PI)
-                for k, (wk, ph) in enumerate(((w0, ph0), (w_mid[i], ph1), (w_end[i], ph2))):
-                    amp = a * wk * wk
-                    Fx = amp * math.cos(ph)
-                    Fy = amp * math.sin(ph)
-                    # r x F for F in the rotor plane.
-                    dtx, dty, dtz = -rz * Fy, rz * Fx, rx * Fy - ry * Fx
-                    if k == 0:
-                        fx0 += Fx
-                        fy0 += Fy
-                        tx0 += dtx
-                        ty0 += dty
-                        tz0 += dtz
-                    elif k == 1:
-                        fx1 += Fx
-                        fy1 += Fy
-                        tx1 += dtx
-                        ty1 += dty
-                        tz1 += dtz
-                    else:
-                        fx2 += Fx
-                        fy2 += Fy
-                        tx2 += dtx
-                        ty2 += dty
-                        tz2 += dtz
-        self._w = w_end
-        return (
-            (fx0, fy0, fz0, tx0, ty0, tz0, hz0),
-            (fx1, fy1, fz1, tx1, ty1, tz1, hz1),
-            (fx2, fy2, fz2, tx2, ty2, tz2, hz2),
-        )
-
     def step(self, motor_cmd: Sequence[float]) -> None:
         """Advance one ``dt_s`` with normalised motor commands (see module docs).
 
@@ -729,8 +425,8 @@ class Quadrotor:
             return
         dt = self.dt_s
         x = self._x
-        w_cmd = self._motor_targets(motor_cmd)
-        wr0, wr1, wr2 = self._advance_motors(w_cmd)
+        w_cmd = self._rotors.targets(motor_cmd, self._t_s)
+        wr0, wr1, wr2 = self._rotors.advance(w_cmd)
         if self._wind is not None:
             wn = self._wind_ned
             airspeed = math.sqrt((x[3] - wn[0]) ** 2 + (x[4] - wn[1]) ** 2 + (x[5] - wn[2]) ** 2)

@@ -63,10 +63,11 @@ from sitl.imu import Imu
 from sitl.mavlink_face import MavlinkFace
 from sitl.mavlink_link import Endpoint, enable_signing
 from sitl.personality import Event, Personality
-from sitl.physics import Quadrotor, hover_motor_command
+from sitl.physics import Quadrotor
 from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.px4_face import Px4Face, px4_streams
 from sitl.px4_modes import FlightMode, MainMode
+from sitl.rotors import hover_motor_command
 from sitl.streams import MessageStreams
 from sitl.wind import Wind, WindConfig
 

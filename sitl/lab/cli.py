@@ -550,14 +550,9 @@ def envelope(
     _need_lab_extras()
 
     from companion.config import DEFAULT_CONTROLLER
-    from sitl.lab.envelope import (
-        envelope_cases,
-        envelope_meta,
-        load_setup,
-        run_envelope,
-        verdicts,
-        write_envelope_outputs,
-    )
+    from sitl.lab.envelope import envelope_meta, run_envelope, write_envelope_outputs
+    from sitl.lab.envelope_setup import envelope_cases, load_setup
+    from sitl.lab.envelope_verdicts import verdicts
 
     try:
         setup = load_setup(

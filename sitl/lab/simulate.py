@@ -27,8 +27,9 @@ from companion.profile import VehicleProfile
 from companion.step import LANDED_STATE_RATE_HZ, SampleStep
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.physics import Quadrotor, hover_motor_command
+from sitl.physics import Quadrotor
 from sitl.pilot import PilotView, make_pilot
+from sitl.rotors import hover_motor_command
 from sitl.scenario import Scenario
 from sitl.wind import Wind
 

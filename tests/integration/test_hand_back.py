@@ -18,7 +18,7 @@ import pytest
 from companion.profile import load_profile
 from sitl.ardupilot import ArduCopter, ArduCopterConfig
 from sitl.lab.fly import FlightProcesses, fly_mavlink
-from sitl.physics import hover_motor_command
+from sitl.rotors import hover_motor_command
 
 pytestmark = pytest.mark.integration
 

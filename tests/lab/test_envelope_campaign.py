@@ -22,19 +22,17 @@ from companion.cli import cli
 from companion.config import DEFAULT_CONTROLLER
 from companion.control import AXES
 from sitl.envelope import corners
-from sitl.lab.envelope import (
+from sitl.lab.envelope import envelope_meta, run_envelope, write_envelope_outputs
+from sitl.lab.envelope_setup import (
     CASES,
     CONTROLLERS,
     RATIO_TARGET,
     EnvelopeCase,
     EnvelopeSetup,
     envelope_cases,
-    envelope_meta,
     load_setup,
-    run_envelope,
-    verdicts,
-    write_envelope_outputs,
 )
+from sitl.lab.envelope_verdicts import verdicts
 
 TRAIN_SLICE_S = 15.0
 BUDGET = 25

@@ -25,7 +25,8 @@ from sitl.ardupilot_params import PARAM_SPECS, ArduParams
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
 from sitl.personality import MavResult
-from sitl.physics import Quadrotor, hover_motor_command
+from sitl.physics import Quadrotor
+from sitl.rotors import hover_motor_command
 
 ROOT = Path(__file__).resolve().parents[2]
 LEVEL = (0.0, 0.0, 0.0)

@@ -11,7 +11,8 @@ import pytest
 from companion.profile import VehicleProfile, load_profile
 from sitl.batch import BatchQuadrotor
 from sitl.frames import euler_to_quat
-from sitl.physics import GRAVITY_M_S2, Quadrotor
+from sitl.physics import Quadrotor
+from sitl.vehicle_params import GRAVITY_M_S2
 from sitl.wind import Wind, WindConfig
 
 PROFILES = Path(__file__).resolve().parents[2] / "vehicle_profiles"

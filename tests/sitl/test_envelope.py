@@ -27,8 +27,9 @@ from sitl.envelope import (
     write_profile_yaml,
 )
 from sitl.lab.simulate import simulate_flight
-from sitl.physics import GRAVITY_M_S2, VehicleParams, hover_motor_command
+from sitl.rotors import hover_motor_command
 from sitl.scenario import load_scenario
+from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 
 PROFILE_DIR = Path(__file__).resolve().parents[2] / "vehicle_profiles"
 SAMPLE = sample_envelope(30, seed=1)

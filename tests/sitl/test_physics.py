@@ -17,14 +17,9 @@ from companion.profile import VehicleProfile, load_profile
 from sitl import frames
 from sitl.frames import euler_to_quat, quat_rotate, quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.physics import (
-    CRASH_SPEED_M_S,
-    GRAVITY_M_S2,
-    Quadrotor,
-    VehicleParams,
-    hover_motor_command,
-    motor_command_to_speed,
-)
+from sitl.physics import CRASH_SPEED_M_S, Quadrotor
+from sitl.rotors import hover_motor_command, motor_command_to_speed
+from sitl.vehicle_params import GRAVITY_M_S2, VehicleParams
 from sitl.wind import Wind, WindConfig
 
 PROFILES = Path(__file__).resolve().parents[2] / "vehicle_profiles"

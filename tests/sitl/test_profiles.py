@@ -12,7 +12,8 @@ import yaml
 
 from companion.errors import ConfigError
 from companion.profile import load_profile
-from sitl.physics import VehicleParams, hover_motor_command
+from sitl.rotors import hover_motor_command
+from sitl.vehicle_params import VehicleParams
 
 PROFILE_DIR = Path(__file__).resolve().parents[2] / "vehicle_profiles"
 PROFILE_FILES = sorted(PROFILE_DIR.glob("*.yaml"))
