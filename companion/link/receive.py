@@ -244,9 +244,10 @@ class Receiver:
             return self._cut_short(data, j)
         if msgtype is not None:
             return (end, "") if crc_ok(data, j, crc_at, msgtype) else (j + 1, "bad_data")
-        if end == n:  # a datagram ends here; a stream: see what follows
-            return (end, "") if self._datagrams else self._cut_short(data, j)
-        if data[end] not in (MAGIC_V2, MAGIC_V1):
+        if end == n:  # a stream: see what follows; a datagram ends here
+            if not self._datagrams:
+                return self._cut_short(data, j)
+        elif data[end] not in (MAGIC_V2, MAGIC_V1):
             return j + 1, "bad_data"
         inside = self._frame_inside(data, j + 1, end, stream=not self._datagrams)
         if inside == -1:
