@@ -64,11 +64,11 @@ class Engagement:
     _rc_wall: float | None
     _pos_wall: float | None
 
-    def _event(self, kind: str, detail: str) -> None:
-        raise NotImplementedError
+    if TYPE_CHECKING:  # the app's
 
-    def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]:
-        raise NotImplementedError
+        def _event(self, kind: str, detail: str) -> None: ...
+
+        def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]: ...
 
     async def _engage_offboard(self, *, arm: bool) -> None:
         """Stream setpoints, switch to the stack's engage mode, arm if asked.

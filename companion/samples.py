@@ -52,8 +52,9 @@ class SamplePath(Engagement):
     _log_append: Any
     _telemetry: Any
 
-    async def _rerequest_streams(self, why: str) -> None:
-        raise NotImplementedError
+    if TYPE_CHECKING:  # the app's
+
+        async def _rerequest_streams(self, why: str) -> None: ...
 
     def _init_sample_path(self, opts: RunOptions) -> None:
         self.sticks = build_stick_map(opts.controller)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, TypeVar
@@ -128,7 +129,7 @@ class VehicleSnapshot:
     sticks_us: tuple[int, ...] | None = None
 
 
-class MavlinkFace(MavlinkLink, Generic[P]):
+class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     """MAVLink endpoint of a simulated autopilot: what the PX4 and ArduPilot faces share.
 
     Parameters
@@ -230,13 +231,13 @@ class MavlinkFace(MavlinkLink, Generic[P]):
         else:
             self._handle_other(mtype, msg, t_s)
 
+    @abstractmethod
     def _handle_actuator_target(self, msg: Any, t_s: float) -> None:
         """``SET_ACTUATOR_CONTROL_TARGET`` (counted in :attr:`messages_received`)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _handle_attitude_target(self, msg: Any, t_s: float) -> None:
         """``SET_ATTITUDE_TARGET`` addressed to us (counted in :attr:`setpoints_received`)."""
-        raise NotImplementedError
 
     def _handle_other(self, mtype: str, msg: Any, t_s: float) -> None:
         """Any other message (counted in :attr:`messages_received`): ignored here."""
@@ -273,12 +274,12 @@ class MavlinkFace(MavlinkLink, Generic[P]):
         logger.debug("unsupported command %d", command)
         return MavResult.UNSUPPORTED
 
+    @abstractmethod
     def _vehicle_command(self, command: int, p: Sequence[float], t_s: float) -> MavResult | None:
         """The stack's arming and mode commands (ARM_DISARM, DO_SET_MODE, NAV_LAND).
 
         Returns the result, or None for a command the face handles itself.
         """
-        raise NotImplementedError
 
     def _request(self, msg_id: int) -> MavResult:
         if msg_id not in self.one_shot:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -120,7 +121,7 @@ class _RateLoop(Protocol):
 ModeT = TypeVar("ModeT", bound=Mode)
 
 
-class Personality(Generic[ModeT]):
+class Personality(ABC, Generic[ModeT]):
     """Base of the simulated autopilots: the state and rules both stacks share.
 
     Parameters
@@ -183,24 +184,24 @@ class Personality(Generic[ModeT]):
         return 2
 
     @property
+    @abstractmethod
     def base_mode(self) -> int:
         """HEARTBEAT ``base_mode`` (``MAV_MODE_FLAG`` bits), as the stack sets them."""
-        raise NotImplementedError
 
     @property
+    @abstractmethod
     def system_status(self) -> int:
         """HEARTBEAT ``system_status`` (``MAV_STATE``), as the stack reports it."""
-        raise NotImplementedError
 
     @property
+    @abstractmethod
     def external_control(self) -> bool:
         """A companion's setpoints drive the vehicle (the lockstep clock waits for them)."""
-        raise NotImplementedError
 
     @property
+    @abstractmethod
     def rc_timeout_s(self) -> float:
         """RC silence after which RC counts as lost, s (the stack's parameter)."""
-        raise NotImplementedError
 
     def rc_lost(self, t_s: float) -> bool:
         """No RC frame for :attr:`rc_timeout_s` (or none ever)."""
@@ -232,9 +233,9 @@ class Personality(Generic[ModeT]):
         self._event(t_s, "armed", mode=self.mode.name)
         return MavResult.ACCEPTED
 
+    @abstractmethod
     def _arming_checks(self, t_s: float, *, force: bool) -> MavResult | None:
         """The stack's arming checks: the refusal (see :meth:`_arm_denied`), or None."""
-        raise NotImplementedError
 
     def _arm_denied(self, t_s: float, reason: str) -> MavResult:
         self._event(t_s, "arm_denied", reason=reason)
@@ -330,6 +331,7 @@ class Personality(Generic[ModeT]):
     def _on_rc_frame(self) -> None:
         """The stack's own state to reset when an RC frame arrives."""
 
+    @abstractmethod
     def _step(
         self,
         t_s: float,
@@ -338,7 +340,6 @@ class Personality(Generic[ModeT]):
         climb_rate_m_s: float,
     ) -> tuple[float, ...]:
         """The stack's checks and loops on a sample (not crashed)."""
-        raise NotImplementedError
 
     def _disarmed(self) -> tuple[float, ...]:
         """Disarmed: the rate loop forgets, the motors stop."""
