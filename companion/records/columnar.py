@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from companion.control import AXES
-from companion.records.writer import RecordWriter, Sink
+from companion.records.writer import BufferedLog, Chunk, RecordWriter, Sink
 
 __all__ = ["FORMAT", "ColumnarLog", "columns", "last_row", "read_columnar"]
 
@@ -59,7 +59,7 @@ def columns(n_motors: int) -> list[str]:
     return cols
 
 
-class ColumnarLog:
+class ColumnarLog(BufferedLog):
     """A binary columnar flight log: a text header, then one float64 row per sample.
 
     Layout: ``# key: value`` metadata lines, a line of comma-separated column
@@ -96,6 +96,8 @@ class ColumnarLog:
     control path, so there is no per-sample formatting cost and no flush
     burst to delay the next IMU sample.
     """
+
+    _sink: Sink  # always a file here
 
     def __init__(
         self,
@@ -149,11 +151,6 @@ class ColumnarLog:
         self._open = True  # False once closed, or stopped by a write error
         self._next_flush = time.monotonic() + flush_interval_s
 
-    @property
-    def failed(self) -> OSError | None:
-        """The write error that stopped recording (with a writer: its error for this file)."""
-        return self._sink.failure()
-
     def append(self, row: Sequence[float]) -> None:
         """Record one row (numbers in column order; bools and ints are fine).
 
@@ -179,28 +176,9 @@ class ColumnarLog:
         if time.monotonic() >= self._next_flush:
             self.flush()
 
-    def flush(self) -> None:
-        """Hand the buffered rows on now: to the writer's queue, or to the OS (no fsync)."""
-        self._next_flush = time.monotonic() + self._interval
-        if not self._open or not self._buf:
-            return
+    def _take(self) -> Chunk:
         buf, self._buf = self._buf, array("d")
-        if not self._sink.put(memoryview(buf).cast("B")):
-            self._open = False
-
-    def close(self) -> None:
-        """Flush and close; closing twice is harmless."""
-        if not self._open:
-            return
-        self.flush()
-        self._open = False
-        self._sink.close()
-
-    def __enter__(self) -> ColumnarLog:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        return memoryview(buf).cast("B")
 
 
 def last_row(path: str | Path) -> tuple[float, ...] | None:

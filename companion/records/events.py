@@ -10,14 +10,14 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from companion.records.writer import RecordWriter, Sink
+from companion.records.writer import BufferedLog, RecordWriter, Sink
 
 __all__ = ["EventLog"]
 
 log = logging.getLogger("companion.records")
 
 
-class EventLog:
+class EventLog(BufferedLog):
     """The run's events: the last ``ring_size`` in memory, all of them in a JSON-lines file.
 
     :meth:`append` keeps the event (a dict, by reference) in :attr:`recent`
@@ -88,11 +88,6 @@ class EventLog:
         self._next_flush = -math.inf  # the first event goes at once
 
     @property
-    def failed(self) -> OSError | None:
-        """The write error that stopped recording (with a writer: its error for this file)."""
-        return None if self._sink is None else self._sink.failure()
-
-    @property
     def buffered_bytes(self) -> int:
         """Bytes of lines not handed on yet (below ``max_buffer_bytes`` plus one line)."""
         return len(self._buf)
@@ -110,26 +105,3 @@ class EventLog:
         buf += b"\n"
         if len(buf) >= self._max_buf or time.monotonic() >= self._next_flush:
             self.flush()
-
-    def flush(self) -> None:
-        """Hand the buffered lines on now (cheap when there are none)."""
-        self._next_flush = time.monotonic() + self._interval
-        if not self._open or not self._buf or self._sink is None:
-            return
-        buf, self._buf = self._buf, bytearray()
-        if not self._sink.put(buf):
-            self._open = False
-
-    def close(self) -> None:
-        """Flush and close the file; closing twice is harmless. The ring stays readable."""
-        if not self._open or self._sink is None:
-            return
-        self.flush()
-        self._open = False
-        self._sink.close()
-
-    def __enter__(self) -> EventLog:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -8,7 +8,7 @@ import struct
 import time
 from pathlib import Path
 
-from companion.records.writer import RecordWriter, Sink
+from companion.records.writer import BufferedLog, RecordWriter, Sink
 
 __all__ = ["TlogWriter"]
 
@@ -17,7 +17,7 @@ log = logging.getLogger("companion.records")
 _pack_usec = struct.Struct(">Q").pack
 
 
-class TlogWriter:
+class TlogWriter(BufferedLog):
     """Append MAVLink frames to a ``.tlog`` file.
 
     The format is the one pymavlink's ``mavutil.mavlogfile`` reads (and QGC,
@@ -39,6 +39,8 @@ class TlogWriter:
         name) instead of writing it from the caller; the writer closes the file.
         None: write synchronously, as offline tools do.
     """
+
+    _sink: Sink  # always a file here
 
     def __init__(
         self,
@@ -62,11 +64,6 @@ class TlogWriter:
         self.dropped = 0
         """Frames not recorded because of an earlier write error."""
 
-    @property
-    def failed(self) -> OSError | None:
-        """The write error that stopped recording (with a writer: its error for this file)."""
-        return self._sink.failure()
-
     def write(self, unix_time_s: float, raw: bytes, outgoing: bool) -> None:
         """Record one MAVLink frame (``raw``, as on the wire) seen at ``unix_time_s``.
 
@@ -87,26 +84,3 @@ class TlogWriter:
             self.written_in += 1
         if time.monotonic() >= self._next_flush:
             self.flush()
-
-    def flush(self) -> None:
-        """Hand the buffer on now: to the writer's queue, or to the OS (no fsync)."""
-        self._next_flush = time.monotonic() + self._interval
-        if not self._open or not self._buf:
-            return
-        buf, self._buf = self._buf, bytearray()
-        if not self._sink.put(buf):
-            self._open = False
-
-    def close(self) -> None:
-        """Flush and close; closing twice is harmless."""
-        if not self._open:
-            return
-        self.flush()
-        self._open = False
-        self._sink.close()
-
-    def __enter__(self) -> TlogWriter:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

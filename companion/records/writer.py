@@ -19,9 +19,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO, TypeVar
 
-__all__ = ["RECORD_FILES", "Chunk", "RecordFileStats", "RecordWriter", "Sink", "prepare_log_dir"]
+__all__ = [
+    "RECORD_FILES",
+    "BufferedLog",
+    "Chunk",
+    "RecordFileStats",
+    "RecordWriter",
+    "Sink",
+    "prepare_log_dir",
+]
 
 log = logging.getLogger("companion.records")
 
@@ -526,3 +534,53 @@ class Sink:
             except OSError as exc:
                 log.error("%s: closing the %s failed: %s", self.path, self.what, exc)
                 self.failed = exc
+
+
+_L = TypeVar("_L", bound="BufferedLog")
+
+
+class BufferedLog:
+    """What every record shares: a buffer handed on to its :class:`Sink` in one
+    piece, at most every ``_interval`` seconds, and closing.
+
+    A record sets ``_sink`` (None: nowhere to write), ``_open``, ``_buf``,
+    ``_interval`` and ``_next_flush``; it appends to ``_buf`` itself.
+    """
+
+    _sink: Sink | None
+    _open: bool  # False once closed, or stopped by a write error
+    _buf: Any
+    _interval: float
+    _next_flush: float
+
+    @property
+    def failed(self) -> OSError | None:
+        """The write error that stopped recording (with a writer: its error for this file)."""
+        return None if self._sink is None else self._sink.failure()
+
+    def _take(self) -> Chunk:
+        """The buffered bytes, with an empty buffer left in their place."""
+        buf, self._buf = self._buf, bytearray()
+        return buf  # type: ignore[no-any-return]
+
+    def flush(self) -> None:
+        """Hand the buffer on now: to the writer's queue, or to the OS (no fsync)."""
+        self._next_flush = time.monotonic() + self._interval
+        if not self._open or not self._buf or self._sink is None:
+            return
+        if not self._sink.put(self._take()):
+            self._open = False
+
+    def close(self) -> None:
+        """Flush and close; closing twice is harmless."""
+        if not self._open or self._sink is None:
+            return
+        self.flush()
+        self._open = False
+        self._sink.close()
+
+    def __enter__(self: _L) -> _L:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
