@@ -169,6 +169,8 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
     imu_streams = (ID_HIGHRES_IMU, ID_RAW_IMU, ID_SCALED_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION)
     one_shot = _ONE_SHOT
     highres_temperature_c = 45.0
+    # SET_ACTUATOR_CONTROL_TARGET is ignored, as ArduPilot does: not waited for.
+    lockstep_setpoints = frozenset(("SET_ATTITUDE_TARGET",))
 
     def __init__(
         self,
@@ -183,6 +185,11 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
         self.params_sent = 0
 
     # -------------------------------------------------------------- handling
+
+    def neutral_setpoint(self, t_s: float) -> None:
+        self.autopilot.on_attitude_target(
+            t_s, mavlink.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE, (0.0, 0.0, 0.0), 0.0
+        )
 
     def _handle_actuator_target(self, msg: Any, t_s: float) -> None:
         self.autopilot.on_actuator_target(t_s, ())

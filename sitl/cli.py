@@ -24,10 +24,22 @@ import click
 from companion.errors import ConfigError, SigningError
 from companion.options import SEED, Finite, signing_key_opt, usable_out_dir, usable_out_file
 from companion.profile import load_profile
+from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 
 __all__ = ["cli", "main"]
 
 logger = logging.getLogger("sitl")
+
+
+def _link_opt(ctx: click.Context, param: click.Parameter, value: str | None) -> LinkSpec | None:
+    """``--link``: a profile or fields, checked before anything starts."""
+    if value is None:
+        return None
+    try:
+        return parse_link(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+
 
 _MODES = ["MANUAL", "ALTCTL", "POSCTL", "ACRO", "STABILIZED"]
 _COPTER_MODES = ["STABILIZE", "ALT_HOLD", "GUIDED", "GUIDED_NOGPS", "LAND"]
@@ -170,6 +182,18 @@ def cli(verbose: int) -> None:
     help="The vehicle has no position estimate (no GPS or flow): no LOCAL_POSITION_NED, "
     "hold modes refused.",
 )
+@click.option(
+    "--link",
+    "link",
+    default=None,
+    callback=_link_opt,
+    metavar="SPEC",
+    help="The companion link (sitl.link_model): a profile, "
+    f"{', '.join(LINK_PROFILES)}, or fields such as delay_ms=5,jitter_ms=2,loss=0.01 "
+    "(delay_ms, jitter_ms, up_/down_delay_ms, up_/down_jitter_ms, loss, duplicate, "
+    "fifo), or a profile with fields changed (wifi,loss=0) "
+    "[default: the scenario's, else ideal].",
+)
 def run(
     profile_path: Path,
     mavlink: str,
@@ -193,6 +217,7 @@ def run(
     no_position: bool,
     no_rc: bool,
     signing_key: Path | None,
+    link: LinkSpec | None,
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_link import parse_endpoint
@@ -213,6 +238,7 @@ def run(
             from sitl.scenario import load_scenario
 
             sc = load_scenario(scenario, check_pilot=pilot is None)
+            link = sc.link if link is None else link
             pilot = pilot or sc.pilot
             seed = sc.seed if seed is None else seed
             duration_s = duration_s if duration_s is not None else sc.duration_s
@@ -256,6 +282,7 @@ def run(
             px4_params=parsed_params if autopilot == "px4" else (),
             position=not no_position,
             rc=not no_rc,
+            link=LINK_PROFILES["ideal"] if link is None else link,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))
@@ -272,6 +299,14 @@ def run(
         f" ({summary.realtime_factor:.2f}x), final mode {summary.final_mode}",
         err=True,
     )
+    if summary.link_counts:
+        c = summary.link_counts
+        click.echo(
+            f"link {summary.link}: {c['up_sent']} frames up ({c['up_lost']} lost, "
+            f"{c['up_duplicated']} duplicated), {c['down_sent']} down ({c['down_lost']} lost, "
+            f"{c['down_duplicated']} duplicated)",
+            err=True,
+        )
 
 
 @cli.command()

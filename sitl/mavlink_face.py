@@ -17,7 +17,9 @@ autopilot queued (ArduPilot), the messages requested once
 mode change, and after 1 s of wall time without one), RC_CHANNELS, the
 IMU-based streams on a new IMU sample, then LOCAL_POSITION_NED, SYS_STATUS,
 EXTENDED_SYS_STATE and HOME_POSITION. Each face has its own stream table and
-defaults.
+defaults. Through a modelled link, what was sent then goes to the socket as the
+link delivers it (:meth:`~sitl.mavlink_link.MavlinkLink.flush`, at the end of
+:meth:`MavlinkFace.publish`).
 """
 
 from __future__ import annotations
@@ -171,6 +173,11 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     """What ``MAV_CMD_REQUEST_MESSAGE`` may ask for."""
     highres_temperature_c: ClassVar[float] = 0.0
     """HIGHRES_IMU ``temperature``."""
+    lockstep_setpoints: ClassVar[frozenset[str]] = frozenset(
+        ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
+    )
+    """The setpoints (addressed to us) the lockstep clock waits for: those counted
+    in :attr:`setpoints_received`."""
 
     def __init__(
         self,
@@ -197,6 +204,42 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         self.messages_received = 0
         self._pending: set[int] = set()
         self._last_heartbeat_wall_s = -math.inf
+        # How old the sample a setpoint answers is when the setpoint is handled (its
+        # time field against the simulation time): what the link added, s.
+        self.setpoint_age_n = 0
+        self.setpoint_age_sum_s = 0.0
+        self.setpoint_age_max_s = 0.0
+
+    @property
+    def setpoints_arrived(self) -> int:
+        """Setpoints that reached the socket, which the lockstep clock counts: those
+        handled (:attr:`setpoints_received`), or through a modelled link, which
+        hands them over later, those read from the socket."""
+        if self.link_model is None:
+            return self.setpoints_received
+        return self._setpoints_arrived
+
+    def setpoint_age_ms(self) -> dict[str, float]:
+        """How long after its sample's time each setpoint was handled: mean and max, ms."""
+        n = self.setpoint_age_n
+        return {
+            "n": n,
+            "mean": self.setpoint_age_sum_s / n * 1e3 if n else 0.0,
+            "max": self.setpoint_age_max_s * 1e3,
+        }
+
+    def _is_setpoint(self, msg: Any) -> bool:
+        return msg.get_type() in self.lockstep_setpoints and self._for_us(
+            msg.target_system, msg.target_component
+        )
+
+    def _setpoint_age(self, sample_t_s: float, t_s: float) -> None:
+        age = t_s - sample_t_s
+        if 0.0 <= age <= 1.0:  # a stamp on another clock (or a wrapped one) says nothing
+            self.setpoint_age_n += 1
+            self.setpoint_age_sum_s += age
+            if age > self.setpoint_age_max_s:
+                self.setpoint_age_max_s = age
 
     # -------------------------------------------------------------- handling
 
@@ -217,6 +260,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             if not self._for_us(msg.target_system, msg.target_component):
                 return
             self.setpoints_received += 1
+            self._setpoint_age(msg.time_boot_ms * 1e-3, t_s)
             self._handle_attitude_target(msg, t_s)
         elif mtype == "COMMAND_LONG":
             if self._for_us(msg.target_system, msg.target_component):
@@ -230,6 +274,18 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             self.mav.timesync_send(round(t_s * 1e9), msg.ts1)
         else:
             self._handle_other(mtype, msg, t_s)
+
+    @abstractmethod
+    def neutral_setpoint(self, t_s: float) -> None:
+        """Give the autopilot a setpoint of zero rates or torques and zero thrust
+        (motors at idle): through a modelled link, what it flies at the flight's
+        start until the first answer arrives, rather than a setpoint from before."""
+
+    def reset_setpoint_age(self) -> None:
+        """Start :meth:`setpoint_age_ms` again (at the flight's start)."""
+        self.setpoint_age_n = 0
+        self.setpoint_age_sum_s = 0.0
+        self.setpoint_age_max_s = 0.0
 
     @abstractmethod
     def _handle_actuator_target(self, msg: Any, t_s: float) -> None:
@@ -307,7 +363,12 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         bool
             True when the fastest IMU-based stream (:attr:`imu_streams`: the one
             the client runs its loop on) went out: the lockstep clock waits after it.
+            Through a modelled link: when the link delivered one or more samples
+            of that stream newer than any before (their arrival times in
+            :attr:`samples_delivered`), the client's next answers.
         """
+        linked = self.link_model is not None
+        self._t_s = t_s
         self._send_status_texts()
         st = self.streams
         pending = self._pending
@@ -332,7 +393,13 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             clock = st.lockstep_stream(self.imu_streams)
             for msg_id in self.imu_streams:
                 if st.due(msg_id, t_s):
-                    self._send_one(msg_id)
+                    if linked and msg_id == clock:
+                        # Tag its frame with the sample's time: flush tells a new one.
+                        self._clock_t_s = self.snapshot.imu_t_s
+                        self._send_one(msg_id)
+                        self._clock_t_s = None
+                    else:
+                        self._send_one(msg_id)
                     imu_sent = imu_sent or msg_id == clock
         for msg_id in (
             ID_LOCAL_POSITION_NED,
@@ -342,6 +409,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         ):
             if st.due(msg_id, t_s):
                 self._send_one(msg_id)
+        if linked:
+            return self.flush(t_s) > 0
         return imu_sent
 
     def _send_status_texts(self) -> None:

@@ -14,15 +14,35 @@ Networking (``--mavlink``)
 Every sender seen is added to the peer list (bounded, most recent kept), and all
 outgoing messages go to every peer. A datagram is parsed on its own: whole frames
 only, garbage skipped (see :func:`_parse_datagram`).
+
+Through a modelled link (``--link``)
+-------------------------------------
+With a :class:`~sitl.link_model.LinkModel` that is not ideal (:meth:`MavlinkLink.set_link`),
+the companion link sits between the autopilot and the socket. Each frame sent
+is queued with its arrival times (``arrivals(UP, msgid, t)``, ``t`` the
+simulation time it was sent at) and goes to the socket at the first
+:meth:`~MavlinkLink.flush` at or after its arrival; each frame read is queued
+with ``arrivals(DOWN, msgid, t)`` and handled at the first
+:meth:`~MavlinkLink.poll` at or after its arrival. A setpoint read while the
+lockstep clock waits for the answer to an IMU sample counts as sent when that
+sample arrived (:meth:`~MavlinkLink.expect_answers`), as the in-process
+simulation (``sitl.lab.simulate``) has it. With an ideal link nothing is
+queued: every frame goes out and is handled at once, as before links were
+modelled.
 """
 
 from __future__ import annotations
 
 import errno
+import heapq
+import itertools
 import logging
+import math
 import os
 import select
 import socket
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, TypeVar
 
@@ -30,7 +50,9 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink
 
-__all__ = ["Endpoint", "MavlinkLink", "enable_signing", "parse_endpoint"]
+from sitl.link_model import DOWN, UP, LinkModel
+
+__all__ = ["Endpoint", "MavlinkLink", "enable_signing", "frame_msgid", "parse_endpoint"]
 
 logger = logging.getLogger(__name__)
 
@@ -44,6 +66,21 @@ _DEFERRED_TYPES = frozenset(
      "PARAM_REQUEST_LIST")
 )  # fmt: skip
 """What ``poll(defer_commands=True)`` keeps for the start of the next step."""
+_DUE_TOLERANCE_S = 1e-12
+"""A queued frame is due at a step ``t`` when its arrival is at most ``t`` plus
+this (the in-process simulation's rule)."""
+
+
+def frame_msgid(buf: bytes) -> int:
+    """The message id of one packed MAVLink frame (-1 if ``buf`` is not one).
+
+    MAVLink 2 (start byte 0xFD): bytes 7..9, little-endian; MAVLink 1 (0xFE): byte 5.
+    """
+    if len(buf) >= 10 and buf[0] == 0xFD:
+        return int.from_bytes(buf[7:10], "little")
+    if len(buf) >= 6 and buf[0] == 0xFE:
+        return buf[5]
+    return -1
 
 
 def _parse_datagram(mav: Any, data: bytes) -> list[Any]:
@@ -181,6 +218,21 @@ class MavlinkLink:
         self.send_errors = 0
         self._deferred: list[Any] = []
         self._warned: set[str] = set()
+        # A modelled link (set_link); None: every frame goes out and is handled at once.
+        self.link_model: LinkModel | None = None
+        self._t_s = 0.0  # simulation time of what is sent now
+        self._order = itertools.count()
+        # On their way: (arrival s, order, frame bytes, IMU time of a clock-stream frame).
+        self._outbox: list[tuple[float, int, bytes, float | None]] = []
+        # On their way in: (arrival s, order, parsed message).
+        self._inbox: list[tuple[float, int, Any]] = []
+        self._clock_t_s: float | None = None  # set while the clock stream's frame is packed
+        self._last_clock_t_s = -math.inf
+        self.samples_delivered: list[float] = []
+        """Arrival times of the clock-stream frames the last :meth:`flush` gave the
+        socket that carry a newer IMU sample than any before (the ones a client answers)."""
+        self._answers: deque[float] = deque()
+        self._setpoints_arrived = 0
 
     # -------------------------------------------------------------- lifecycle
 
@@ -215,12 +267,92 @@ class MavlinkLink:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+    # ----------------------------------------------------------------- link
+
+    def set_link(self, model: LinkModel | None, *, restart: bool = False) -> None:
+        """Send and read through ``model`` (None or an ideal link: at once).
+
+        With ``restart`` (the runner's, at the pilot's start), the samples and
+        setpoints still on their way are lost: they belong to the time before
+        the flight, which they would otherwise reach into, at moments that
+        depend on the wall clock. Everything else on its way arrives as drawn.
+        """
+        self.link_model = None if model is None or model.spec.ideal else model
+        if restart:
+            self._outbox = [e for e in self._outbox if e[3] is None]
+            heapq.heapify(self._outbox)
+            self._inbox = [e for e in self._inbox if not self._is_setpoint(e[2])]
+            heapq.heapify(self._inbox)
+            self._answers.clear()
+
+    def expect_answers(self, arrivals_s: Sequence[float]) -> None:
+        """The lockstep clock waits for the answers to these samples (their arrival
+        times, in order): the setpoints that arrive meanwhile count as sent then.
+        Called with ``()`` when the wait ends."""
+        self._answers = deque(arrivals_s)
+
+    def flush(self, t_s: float) -> int:
+        """Give the socket what the link delivers by simulation time ``t_s``; return
+        how many of those frames are clock-stream samples newer than any before
+        (their arrival times in :attr:`samples_delivered`)."""
+        self.samples_delivered = delivered = []
+        outbox = self._outbox
+        due = t_s + _DUE_TOLERANCE_S
+        while outbox and outbox[0][0] <= due:
+            arrival, _, buf, clock_t = heapq.heappop(outbox)
+            sent = self._transmit(buf)
+            # A client drops a duplicate or a sample older than one it had, without
+            # answering: only a newer one is waited for.
+            if sent and clock_t is not None and clock_t > self._last_clock_t_s:
+                self._last_clock_t_s = clock_t
+                delivered.append(arrival)
+        return len(delivered)
+
+    def _queue_out(self, buf: bytes, model: LinkModel) -> None:
+        if self.sock is None:
+            return
+        for arrival in model.arrivals(UP, frame_msgid(buf), self._t_s):
+            heapq.heappush(self._outbox, (arrival, next(self._order), buf, self._clock_t_s))
+
+    def _queue_in(self, msg: Any, t_s: float, model: LinkModel) -> None:
+        t_sent = t_s
+        if self._is_setpoint(msg):
+            self._setpoints_arrived += 1
+            if self._answers:
+                t_sent = self._answers.popleft()
+        for arrival in model.arrivals(DOWN, msg.get_msgId(), t_sent):
+            heapq.heappush(self._inbox, (arrival, next(self._order), msg))
+
+    def _deliver_in(self, t_s: float, defer_commands: bool) -> None:
+        inbox = self._inbox
+        due = t_s + _DUE_TOLERANCE_S
+        while inbox and inbox[0][0] <= due:
+            msg = heapq.heappop(inbox)[2]
+            if self.muted:
+                continue  # a dropped link loses what is on its way too
+            if defer_commands and msg.get_type() in _DEFERRED_TYPES:
+                self._deferred.append(msg)
+            else:
+                self._handle(msg, t_s)
+
+    def _is_setpoint(self, msg: Any) -> bool:
+        """A setpoint the lockstep clock waits for (a face says which)."""
+        return False
+
     # ------------------------------------------------------------------ I/O
 
     def _send_bytes(self, buf: bytes) -> None:
+        model = self.link_model
+        if model is not None:
+            self._queue_out(buf, model)
+            return
+        self._transmit(buf)
+
+    def _transmit(self, buf: bytes) -> bool:
+        """Send one frame to every peer now; False if the link is closed or muted."""
         sock = self.sock
         if sock is None or self.muted:
-            return
+            return False
         for peer in self.peers:
             try:
                 sock.sendto(buf, peer)
@@ -229,6 +361,7 @@ class MavlinkLink:
                 if exc.errno not in (errno.ECONNREFUSED, errno.EAGAIN):
                     self._warn_once("send", "send to %s failed: %s", peer, exc)
         self.messages_sent += 1
+        return True
 
     def _warn_once(self, key: str, fmt: str, *args: Any) -> None:
         if key not in self._warned:
@@ -248,7 +381,8 @@ class MavlinkLink:
         Parameters
         ----------
         t_s
-            Current simulation time, stamped on setpoints and commands.
+            Current simulation time, stamped on setpoints and commands (and,
+            through a modelled link, when what is read was sent).
         defer_commands
             Keep commands (arm, mode, parameters) for the next poll without it
             (the lockstep clock's wait for a setpoint uses it): a command then
@@ -258,19 +392,21 @@ class MavlinkLink:
         sock = self.sock
         if sock is None:
             return 0
+        self._t_s = t_s
         if not defer_commands and self._deferred:
             deferred, self._deferred = self._deferred, []
             for msg in deferred:
                 self._handle(msg, t_s)
+        model = self.link_model
         n = 0
         while True:
             try:
                 data, addr = sock.recvfrom(_RECV_BYTES)
             except (BlockingIOError, InterruptedError):
-                return n
+                break
             except OSError as exc:  # e.g. ECONNREFUSED reported by an ICMP error
                 self._warn_once("recv", "receive failed: %s", exc)
-                return n
+                break
             n += 1
             if self.muted:
                 continue  # a dropped link loses what arrives too
@@ -285,10 +421,15 @@ class MavlinkLink:
                 self._warn_once("parse", "bad MAVLink data from %s: %s", addr, exc)
                 continue
             for msg in msgs:
-                if defer_commands and msg.get_type() in _DEFERRED_TYPES:
+                if model is not None and msg.get_type() != "BAD_DATA":
+                    self._queue_in(msg, t_s, model)
+                elif defer_commands and msg.get_type() in _DEFERRED_TYPES:
                     self._deferred.append(msg)
                 else:
                     self._handle(msg, t_s)
+        if self._inbox:
+            self._deliver_in(t_s, defer_commands)
+        return n
 
     def _add_peer(self, addr: tuple[str, int]) -> None:
         if addr in self.peers:

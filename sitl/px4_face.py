@@ -91,6 +91,9 @@ class Px4Face(MavlinkFace[Autopilot]):
 
     # -------------------------------------------------------------- handling
 
+    def neutral_setpoint(self, t_s: float) -> None:
+        self.autopilot.on_actuator_target(t_s, (0.0, 0.0, 0.0, 0.0))
+
     def _handle_actuator_target(self, msg: Any, t_s: float) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
             return
@@ -101,6 +104,7 @@ class Px4Face(MavlinkFace[Autopilot]):
                 self._warned.add("group")
                 logger.info("actuator control group %d ignored", msg.group_mlx)
             return
+        self._setpoint_age(msg.time_usec * 1e-6, t_s)
         self.autopilot.on_actuator_target(t_s, list(msg.controls))
 
     def _handle_attitude_target(self, msg: Any, t_s: float) -> None:

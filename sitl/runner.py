@@ -26,6 +26,20 @@ Clocks
     runs as fast as the CPU allows. With ``autopilot="ardupilot"`` the same holds
     in GUIDED / GUIDED_NOGPS after each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
+Link
+----
+``link`` (``--link``, :mod:`sitl.link_model`) puts the companion link between
+the autopilot and the socket: what the face sends reaches the socket, and what
+it reads is handled, when the link delivers it (delay, jitter, loss,
+duplicates, reordering), from the run's seed and in simulation time. The
+lockstep clock then waits after the link *delivers* a clock-stream sample newer
+than any before (a client drops duplicates and late samples without answering;
+a lost sample is not waited for), until as many setpoints as new samples have
+reached the socket; each such setpoint counts as sent when its sample arrived,
+and is handled when the link delivers it. The link's model starts again at the
+pilot's start (with ``pilot_from_arm``, at arming), as the wind, IMU and pilot
+streams do. With the ideal link (the default) nothing is queued.
+
 Outcome
 -------
 A run ends with ``status`` ``"completed"`` (duration reached), ``"stopped"``
@@ -60,6 +74,7 @@ from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
 from sitl.flight_log import LogWriter
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
+from sitl.link_model import LINK_PROFILES, LinkModel, LinkSpec
 from sitl.mavlink_face import MavlinkFace
 from sitl.mavlink_link import Endpoint, enable_signing
 from sitl.personality import Event, Personality
@@ -142,6 +157,9 @@ class RunConfig:
         The autopilot has a radio: False for a vehicle flown without one (the
         pilot's timeline still runs, but no sticks reach the autopilot and
         RC_CHANNELS carries no channels, as after ``rc-lost``).
+    link
+        The companion link (:mod:`sitl.link_model`): what it does to every frame
+        sent and read; the ideal link by default.
     signing_key
         MAVLink 2 signing key (32 bytes): sign everything sent, accept only
         validly signed frames.
@@ -180,6 +198,7 @@ class RunConfig:
     px4_params: tuple[tuple[str, float], ...] = ()
     position: bool = True
     rc: bool = True
+    link: LinkSpec = LINK_PROFILES["ideal"]
 
 
 @dataclass
@@ -206,6 +225,9 @@ class RunSummary:
     messages_received: int = 0
     final_mode: str = ""
     armed_at_end: bool = False
+    link: str = ""
+    link_counts: dict[str, int] = field(default_factory=dict)
+    setpoint_age_ms: dict[str, float] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -267,6 +289,9 @@ class Runner:
         self.face.rc_lost = not config.rc
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
+        self._link_counts: dict[str, int] = {}
+        self.link: LinkModel | None = None
+        self._make_link()
         self._outgoing: OutgoingFaults | None = None
         self.stop = threading.Event()
         self.duration_s = config.duration_s
@@ -368,6 +393,7 @@ class Runner:
         return summary
 
     def _run(self, log: LogWriter, summary: RunSummary, wall0: float) -> None:
+        cfg = self.config
         try:
             with self.face:
                 summary.status = self._loop(log, summary, wall0)
@@ -384,6 +410,9 @@ class Runner:
             summary.messages_received = self.face.messages_received
             summary.final_mode = ap.mode.name
             summary.armed_at_end = ap.armed
+            summary.link = cfg.link.describe()
+            summary.link_counts = self._counts_of_link()
+            summary.setpoint_age_ms = self.face.setpoint_age_ms()
             for ev in ap.drain_events():
                 log.event(ev)
             log.close(asdict(summary))
@@ -406,6 +435,32 @@ class Runner:
         self.imu = Imu(cfg.imu_model or self.profile.physics.imu, rng=rng_imu, dt_s=cfg.dt_s)
         if cfg.pilot:
             self.pilot = make_pilot(cfg.pilot, rng=rng_pilot, free_flight=not cfg.test_stand)
+
+    def _make_link(self, t_start_s: float | None = None) -> None:
+        """The link's model from the run's seed: at start-up, and again at the pilot's
+        start ``t_start_s`` (as :meth:`_make_streams`), so its draws do not depend
+        on how many frames went out before.
+
+        At the pilot's start the flight begins afresh, as the in-process
+        simulation's does: the samples and setpoints on their way are lost, and
+        an autopilot under external control holds a neutral setpoint (motors at
+        idle) until the first answer of the flight arrives.
+        """
+        spec = self.config.link
+        if spec.ideal:
+            return
+        self._link_counts = self._counts_of_link()
+        self.link = LinkModel(spec, self.config.seed)
+        self.face.set_link(self.link, restart=t_start_s is not None)
+        if t_start_s is not None and self.autopilot.external_control:
+            self.face.neutral_setpoint(t_start_s)
+
+    def _counts_of_link(self) -> dict[str, int]:
+        """Frames sent, lost and duplicated by the link over the whole run."""
+        if self.link is None:
+            return dict(self._link_counts)
+        now = self.link.counts()
+        return {k: v + self._link_counts.get(k, 0) for k, v in now.items()}
 
     def _inject(self, fault: Fault, t: float, log: LogWriter) -> None:
         face = self.face
@@ -436,6 +491,7 @@ class Runner:
         quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
         snap = face.snapshot
         lockstep = cfg.clock == "lockstep"
+        linked = not cfg.link.ideal
         duration = self.duration_s if self.duration_s is not None else math.inf
         hover = self.hover_thrust
         sticks: tuple[int, ...] | None = None
@@ -479,6 +535,8 @@ class Runner:
             if t_pilot0 is None and ap.armed:
                 t_pilot0 = t
                 self._make_streams()
+                self._make_link(t)
+                face.reset_setpoint_age()
                 # The messages too: their schedules began when the client asked.
                 self.streams.rephase(t)
                 imu, pilot = self.imu, self.pilot
@@ -512,18 +570,23 @@ class Runner:
                 snap.accel_frd_m_s2 = sample.accel_frd_m_s2
             imu_sent = face.publish(t, imu_sample=sample is not None, wall_s=monotonic())
 
-            if not client_active and face.setpoints_received != sp_at_timeout:
+            if not client_active and face.setpoints_arrived != sp_at_timeout:
                 client_active = True  # setpoints resumed after a lockstep timeout
             if lockstep and imu_sent and client_active and ap.external_control:
-                n0 = face.setpoints_received
+                # One answer per sample the client got: through a modelled link,
+                # each new sample the link delivered this step, sent when it arrived.
+                want = face.setpoints_arrived + 1
+                if linked:
+                    want += len(face.samples_delivered) - 1
+                    face.expect_answers(face.samples_delivered)
                 summary.lockstep_waits += 1
                 deadline = monotonic() + cfg.lockstep_timeout_s
-                while face.setpoints_received == n0 and not stop.is_set():
+                while face.setpoints_arrived < want and not stop.is_set():
                     left = deadline - monotonic()
                     if left <= 0.0:
                         summary.lockstep_timeouts += 1
                         client_active = False
-                        sp_at_timeout = n0
+                        sp_at_timeout = face.setpoints_arrived
                         logger.warning(
                             "lockstep: no setpoint within %.2f s at t=%.3f s; not waiting "
                             "until setpoints resume",
@@ -533,6 +596,8 @@ class Runner:
                         break
                     if face.wait_readable(left):
                         face.poll(t, defer_commands=True)
+                if linked:
+                    face.expect_answers(())
 
             if sample is not None:
                 motors = ap.update(

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
+from typing import Any
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from companion.profile import ImuModel, VehicleProfile
 from companion.schema import StrictModel, load_yaml_model
+from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 from sitl.wind import WindConfig
 
 __all__ = [
@@ -62,6 +64,15 @@ class Scenario(StrictModel):
     imu: ImuOverride = ImuOverride()
     physics_dt_s: float = Field(0.001, gt=0.0, le=0.01)
     rc_rate_hz: float = Field(50.0, gt=0.0, le=1000.0)
+    link: LinkSpec = Field(
+        LINK_PROFILES["ideal"],
+        description="the companion link: a profile name, fields as --link takes them, or a mapping",
+    )
+
+    @field_validator("link", mode="before")
+    @classmethod
+    def _link_by_name(cls, v: Any) -> Any:
+        return parse_link(v) if isinstance(v, str) else v
 
     def imu_model(self, profile: VehicleProfile) -> ImuModel:
         return self.imu.apply(profile.physics.imu)

@@ -36,6 +36,7 @@ from companion.options import (
     profile_opt,
     usable_out_dir,
 )
+from sitl.link_model import LinkSpec
 
 __all__ = ["campaign", "envelope", "fly", "simulate"]
 
@@ -77,6 +78,27 @@ _scenario_opt = click.option(
     "--scenario", default="paper-acro", show_default=True, help="Scenario name or file."
 )
 _seed_opt = click.option("--seed", type=SEED, default=None, help="Override the scenario's seed.")
+
+
+def _parse_link(ctx: click.Context, param: click.Parameter, value: str | None) -> Any:
+    if value is None:
+        return None
+    from sitl.link_model import parse_link
+
+    try:
+        return parse_link(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+_link_opt = click.option(
+    "--link",
+    default=None,
+    callback=_parse_link,
+    metavar="PROFILE|FIELDS",
+    help="The companion link the flight goes through: ideal, ethernet, uart, usb-serial, "
+    "wifi, or fields (delay_ms=10,jitter_ms=5,loss=0.01) [default: the scenario's].",
+)
 _progress_opt = click.option("--progress/--no-progress", default=True, show_default=True)
 
 
@@ -110,6 +132,7 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
     show_default=True,
     help="Folder for metrics.json, plots, flight.npz and report.md.",
 )
+@_link_opt
 @_progress_opt
 def simulate(
     profile_path: Path,
@@ -118,6 +141,7 @@ def simulate(
     seed: int | None,
     controller_profile: Path | None,
     out_dir: Path,
+    link: LinkSpec | None,
     progress: bool,
 ) -> None:
     """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
@@ -133,6 +157,8 @@ def simulate(
         ctrl_prof = load_profile(controller_profile) if controller_profile else None
     except ConfigError as exc:
         fail_config(exc)
+    if link is not None:
+        sc = sc.model_copy(update={"link": link})
     with _percent_bar(f"{sc.name} on {profile.name}", progress) as tick:
         record = simulate_flight(
             profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
@@ -186,6 +212,7 @@ def simulate(
     help="Rates output: fly the same scenario again sending the pilot's rates straight "
     "through (into OUT/passthrough) and report both.",
 )
+@_link_opt
 @_progress_opt
 def fly(
     profile_path: Path,
@@ -198,6 +225,7 @@ def fly(
     out_dir: Path,
     autopilot: str,
     compare_passthrough: bool,
+    link: LinkSpec | None,
     progress: bool,
 ) -> None:
     """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
@@ -230,8 +258,11 @@ def fly(
             load_profile(controller_profile)
     except ConfigError as exc:
         fail_config(exc)
+    if link is not None:
+        sc = sc.model_copy(update={"link": link})
     meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
-            "controller_profile": str(controller_profile or profile_path)}  # fmt: skip
+            "controller_profile": str(controller_profile or profile_path),
+            "link": sc.link.describe()}  # fmt: skip
 
     def fly_once(
         label: str, out: Path, companion_args: tuple[str, ...] = ()
@@ -242,6 +273,7 @@ def fly(
                 profile_path, scenario, out, controller_path=ctrl_path, output=output,
                 duration_s=duration, seed=seed, controller_profile_path=controller_profile,
                 autopilot=autopilot, companion_args=companion_args, progress=tick,
+                link=sc.link,
             )  # fmt: skip
         if not fl.control_log.exists():
             click.echo(
@@ -340,6 +372,7 @@ def fly(
     "a new flight of the kind both controllers were tuned for; paper-acro is the fixed test "
     "programme (reproduced by scripts/reproduce_paper.py).",
 )
+@_link_opt
 @_progress_opt
 def campaign(
     out_dir: Path,
@@ -352,6 +385,7 @@ def campaign(
     workers: int | None,
     duration: float,
     scenario: str,
+    link: LinkSpec | None,
     progress: bool,
 ) -> None:
     """Fly a grid (profiles x damage x gusts x seeds x controllers) in parallel, in process.
@@ -411,6 +445,8 @@ def campaign(
         sc = load_scenario(scenario)
     except ConfigError as exc:
         fail_config(exc)
+    if link is not None:
+        sc = sc.model_copy(update={"link": link})
     if len(ctrl) != len(ctrl_files) or len(prof) != len(prof_names):
         raise click.BadParameter("two profiles or two controllers share a file name")
     seed_list = list(range(seed_base, seed_base + seeds))
@@ -524,6 +560,7 @@ def campaign(
     default=None,
     help="Parallel cases [default: os.cpu_count()].",
 )
+@_link_opt
 @_progress_opt
 def envelope(
     out_dir: Path,
@@ -539,6 +576,7 @@ def envelope(
     controller_profile: Path,
     worst_k: int,
     workers: int | None,
+    link: LinkSpec | None,
     progress: bool,
 ) -> None:
     """MFC (one file, never retuned) against a PID retuned for each envelope vehicle.
@@ -562,6 +600,7 @@ def envelope(
             test_scenario=test_scenario,
             tune_budget=tune_budget,
             seed=seed,
+            link=link,
         )
         cases = envelope_cases(
             n, seed, corners_only=corners_only, damage=damage, damage_on=damage_on

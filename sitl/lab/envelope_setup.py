@@ -9,6 +9,7 @@ from typing import Any
 from companion.config import MfcConfig, PidConfig
 from companion.profile import VehicleProfile
 from sitl.lab.pidtune import TEST_SCENARIOS, apply_params
+from sitl.link_model import LinkSpec
 from sitl.scenario import Scenario
 
 __all__ = [
@@ -112,6 +113,7 @@ def load_setup(
     test_scenario: str | Path = ENVELOPE_TEST_SCENARIO,
     tune_budget: int = 40,
     seed: int = 1,
+    link: LinkSpec | None = None,
 ) -> EnvelopeSetup:
     """Load the files of an :class:`EnvelopeSetup` (the PID floor is PX4's defaults).
 
@@ -126,6 +128,9 @@ def load_setup(
         Scenario names or files.
     tune_budget, seed
         As in :class:`EnvelopeSetup`.
+    link
+        The companion link every flight goes through (tuning included: the PID
+        is tuned through the same link); default: each scenario's own.
 
     Raises
     ------
@@ -152,11 +157,15 @@ def load_setup(
         mfc=mfc,
         pid_default=pid_default,
         controller_profile=load_profile(prof_path),
-        train=load_scenario(train_scenario),
-        test=load_scenario(test_scenario),
+        train=_with_link(load_scenario(train_scenario), link),
+        test=_with_link(load_scenario(test_scenario), link),
         tune_budget=tune_budget,
         seed=seed,
     )
+
+
+def _with_link(sc: Scenario, link: LinkSpec | None) -> Scenario:
+    return sc if link is None else sc.model_copy(update={"link": link})
 
 
 def envelope_cases(

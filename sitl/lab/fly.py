@@ -1,7 +1,7 @@
 """One flight over MAVLink: the SITL and the companion as two processes on UDP.
 
 :func:`fly_mavlink` starts ``sitl run`` (lockstep clock, the scenario's pilot,
-seed, wind and IMU, the pilot's clock starting at arming) and ``companion run
+seed, wind, IMU and link, the pilot's clock starting at arming) and ``companion run
 --engage auto``, waits for the companion to finish its flight, stops the
 SITL, and merges the two logs into a :class:`~sitl.lab.simulate.FlightRecord`:
 the controller's view per sample from the companion's ``control.bin``, the
@@ -28,8 +28,28 @@ import numpy as np
 
 from companion.control import AXES
 from sitl.lab.simulate import FlightRecord
+from sitl.link_model import LINK_PROFILES, LinkSpec
 
-__all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "merge_logs"]
+__all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "link_arg", "merge_logs"]
+
+
+def link_arg(spec: LinkSpec) -> str:
+    """``spec`` as ``--link`` takes it (:func:`sitl.link_model.parse_link`): a
+    profile's name when it is one unchanged, else every field (delays to the
+    float's last digit)."""
+    if LINK_PROFILES.get(spec.name) == spec:
+        return spec.name
+    return ",".join(
+        (
+            f"up_delay_ms={spec.up_delay_s * 1e3!r}",
+            f"up_jitter_ms={spec.up_jitter_s * 1e3!r}",
+            f"down_delay_ms={spec.down_delay_s * 1e3!r}",
+            f"down_jitter_ms={spec.down_jitter_s * 1e3!r}",
+            f"loss={spec.loss!r}",
+            f"duplicate={spec.duplicate!r}",
+            f"fifo={'true' if spec.fifo else 'false'}",
+        )
+    )
 
 
 def free_udp_port() -> int:
@@ -91,6 +111,7 @@ def fly_mavlink(
     companion_args: Sequence[str] = (),
     controller_profile_path: str | Path | None = None,
     autopilot: str = "px4",
+    link: LinkSpec | None = None,
     timeout_s: float | None = None,
     progress: Callable[[float], None] | None = None,
     on_started: Callable[[subprocess.Popen[bytes], subprocess.Popen[bytes]], None] | None = None,
@@ -116,6 +137,9 @@ def fly_mavlink(
         The SITL's personality, ``px4`` or ``ardupilot`` (ArduPilot takes body
         rates only, so ``output`` becomes ``rates``; its GUID_OPTIONS is set to 8
         so the thrust is a normalised collective).
+    link
+        The companion link the SITL models (``sitl run --link``); default: the
+        scenario's.
     on_started
         Called with (sitl, companion) processes once both are running (tests
         use it to send signals).
@@ -152,6 +176,7 @@ def fly_mavlink(
         *(["--mode", "manual"] if autopilot == "px4" else
           ["--autopilot", "ardupilot", "--mode", "stabilize", "--param", "GUID_OPTIONS=8"]),
         "--log", str(out / "sitl.npz"),
+        "--link", link_arg(sc.link if link is None else link),
         *(["--seed", str(seed)] if seed is not None else []),
         *sitl_args,
     ]  # fmt: skip

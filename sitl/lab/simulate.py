@@ -15,6 +15,9 @@ so changing one (say, the wind) never shifts another's random numbers.
 
 from __future__ import annotations
 
+import heapq
+import itertools
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,6 +30,15 @@ from companion.profile import VehicleProfile
 from companion.step import LANDED_STATE_RATE_HZ, SampleStep
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
+from sitl.link_model import (
+    DOWN,
+    ID_EXTENDED_SYS_STATE,
+    ID_HIGHRES_IMU,
+    ID_RC_CHANNELS,
+    ID_SET_ACTUATOR_CONTROL_TARGET,
+    UP,
+    LinkModel,
+)
 from sitl.physics import Quadrotor
 from sitl.pilot import PilotView, make_pilot
 from sitl.rotors import hover_motor_command
@@ -125,6 +137,51 @@ def simulate_flight(
             "motors", "sat_axes", "held", "euler_rad", "altitude_m", "airborne",
         )
     }  # fmt: skip
+    link = LinkModel(scenario.link, scenario.seed if seed is None else seed)
+    ideal = scenario.link.ideal
+    down_stream = ID_SET_ACTUATOR_CONTROL_TARGET
+    # In flight through a link, what is on its way: (arrival, order, what, payload).
+    uplink: list[tuple[float, int, int, Any]] = []
+    downlink: list[tuple[float, int, tuple[float, ...]]] = []
+    order = itertools.count()
+    seen_channels = channels
+    last_sample_t = -math.inf
+
+    def on_sample(sample_t: float, gyro: tuple[float, float, float]) -> tuple[float, ...]:
+        """The companion's step for one sample it received; the motors it commands."""
+        nonlocal prev_sample_t
+        cmd = sticks_map.map(seen_channels)
+        # The first sample has no interval before it: the controller clamps
+        # dt = 0 to its minimum and primes its filters.
+        sample_dt = sample_t - prev_sample_t if prev_sample_t is not None else 0.0
+        prev_sample_t = sample_t
+        out = step.sample(sample_dt, gyro, cmd.rate_rad_s, cmd.thrust)
+        (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, cmd.thrust)
+        # The autopilot mixes the controls it is sent; ungated, they are the law's
+        # own mix.
+        sent = (
+            controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
+            if replaced
+            else out.motors
+        )
+        step.learn()
+        st = quad.state
+        cols["t_s"].append(sample_t)
+        cols["ref_rad_s"].append(cmd.rate_rad_s)
+        cols["meas_rad_s"].append(gyro)
+        cols["true_rad_s"].append(st.rate_frd_rad_s)
+        cols["thrust"].append(cmd.thrust)
+        cols["torque"].append(out.torque)
+        cols["u"].append(out.u)
+        cols["f_hat"].append(out.f_hat)
+        cols["motors"].append(out.motors)
+        cols["sat_axes"].append(out.saturated_axes)
+        cols["held"].append(out.held)
+        cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
+        cols["altitude_m"].append(-st.pos_ned_m[2])
+        cols["airborne"].append(not st.landed)
+        return sent
+
     wall0 = time.perf_counter()
     crashed_at: float | None = None
     report_every = max(1, n_steps // 100)
@@ -145,41 +202,42 @@ def simulate_flight(
             )
             channels = pilot.sticks(view).channels()
             next_rc += rc_period
+            if ideal:
+                seen_channels = channels
+            else:
+                for a in link.arrivals(UP, ID_RC_CHANNELS, t):
+                    heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
         sample = imu.update(t, quad.rate_frd_rad_s, quad.specific_force_frd_m_s2)
-        if sample is not None:
-            cmd = sticks_map.map(channels)
-            # The first sample has no interval before it: the controller clamps
-            # dt = 0 to its minimum and primes its filters.
-            sample_dt = sample.time_s - prev_sample_t if prev_sample_t is not None else 0.0
-            prev_sample_t = sample.time_s
-            out = step.sample(sample_dt, sample.gyro_frd_rad_s, cmd.rate_rad_s, cmd.thrust)
-            (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, cmd.thrust)
-            # The autopilot mixes the controls it is sent; ungated, they are the law's
-            # own mix.
-            motors = (
-                controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
-                if replaced
-                else out.motors
-            )
-            step.learn()
-            st = quad.state
-            if sample.time_s >= next_landed - 1e-12:
-                controller.on_ground = st.landed
+        if ideal:
+            if sample is not None:
+                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s)
+                if sample.time_s >= next_landed - 1e-12:
+                    controller.on_ground = quad.state.landed
+                    next_landed += landed_period
+        else:
+            if t >= next_landed - 1e-12:
                 next_landed += landed_period
-            cols["t_s"].append(sample.time_s)
-            cols["ref_rad_s"].append(cmd.rate_rad_s)
-            cols["meas_rad_s"].append(sample.gyro_frd_rad_s)
-            cols["true_rad_s"].append(st.rate_frd_rad_s)
-            cols["thrust"].append(cmd.thrust)
-            cols["torque"].append(out.torque)
-            cols["u"].append(out.u)
-            cols["f_hat"].append(out.f_hat)
-            cols["motors"].append(out.motors)
-            cols["sat_axes"].append(out.saturated_axes)
-            cols["held"].append(out.held)
-            cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
-            cols["altitude_m"].append(-st.pos_ned_m[2])
-            cols["airborne"].append(not st.landed)
+                for a in link.arrivals(UP, ID_EXTENDED_SYS_STATE, t):
+                    heapq.heappush(
+                        uplink, (a, next(order), ID_EXTENDED_SYS_STATE, quad.state.landed)
+                    )
+            if sample is not None:
+                payload = (sample.time_s, sample.gyro_frd_rad_s)
+                for a in link.arrivals(UP, ID_HIGHRES_IMU, t):
+                    heapq.heappush(uplink, (a, next(order), ID_HIGHRES_IMU, payload))
+            while uplink and uplink[0][0] <= t + 1e-12:
+                arrived, _, what, payload = heapq.heappop(uplink)
+                if what == ID_RC_CHANNELS:
+                    seen_channels = payload
+                elif what == ID_EXTENDED_SYS_STATE:
+                    controller.on_ground = payload
+                elif payload[0] > last_sample_t:  # the companion drops duplicates and late samples
+                    last_sample_t = payload[0]
+                    sent = on_sample(payload[0], payload[1])
+                    for a in link.arrivals(DOWN, down_stream, arrived):
+                        heapq.heappush(downlink, (a, next(order), sent))
+            while downlink and downlink[0][0] <= t + 1e-12:
+                motors = heapq.heappop(downlink)[2]
         quad.step(motors)
         if quad.crashed:
             crashed_at = quad.t_s
@@ -204,6 +262,8 @@ def simulate_flight(
         "nonfinite_events": controller.nonfinite_events,
         "dt_clamped_events": controller.dt_clamped_events,
         "imu_rate_hz": imu.model.rate_hz,
+        "link": scenario.link.describe(),
+        "link_counts": link.counts(),
         "n_motors": n_motors,
         "hover_throttle": hover,
     }

@@ -1,0 +1,123 @@
+"""Lockstep flights through a modelled companion link (``sitl run --link``).
+
+The SITL and the companion as separate processes on UDP, the link between them
+modelled by the SITL in simulation time (sitl.link_model): the flight is the
+same every time for a seed, whatever the link does (delay, jitter, loss,
+reordering), and the lockstep clock never waits for an answer that cannot
+come. (The same flight in process: test_inprocess_equivalence.)
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.records import read_columnar
+from sitl.flight_log import read_log
+from sitl.lab.fly import FlightProcesses, fly_mavlink
+from sitl.link_model import LINK_PROFILES, parse_link
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
+F450 = ROOT / "vehicle_profiles" / "f450.yaml"
+RATE_HZ = 250  # the F450's IMU in paper-acro
+_TIMEOUT = re.compile(r"lockstep: no setpoint within [\d.]+ s at t=([\d.]+) s")
+
+
+def _engaged(flight: FlightProcesses) -> dict[str, np.ndarray]:
+    cols = read_columnar(flight.control_log)[0]
+    eng = np.asarray(cols["engaged"]) > 0.5
+    return {k: np.asarray(v)[eng] for k, v in cols.items()}
+
+
+def _timeouts_before_the_end(flight: FlightProcesses) -> list[float]:
+    """The lockstep timeouts before the companion's last engaged sample: none may
+    be (the one after it is the sample the companion no longer answers)."""
+    last = float(_engaged(flight)["t_s"][-1])
+    return [t for t in map(float, _TIMEOUT.findall(flight.text("sitl.stderr"))) if t <= last]
+
+
+@pytest.mark.parametrize(("autopilot", "output"), [("px4", "actuator"), ("ardupilot", "rates")])
+def test_two_flights_through_a_uart_link_are_the_same(
+    tmp_path: Path, autopilot: str, output: str
+) -> None:
+    duration_s = 1.5
+    flights = [
+        fly_mavlink(
+            F450, "paper-acro", tmp_path / f"run{i}", duration_s=duration_s,
+            autopilot=autopilot, output=output, link=LINK_PROFILES["uart"],
+        )
+        for i in (1, 2)
+    ]  # fmt: skip
+    for f in flights:
+        assert f.companion_rc == 0, f.text("companion.stderr")
+        assert f.sitl_summary["link"].startswith("uart (2+-0.5 ms up")
+        assert f.sitl_summary["link_counts"]["up_sent"] > duration_s * RATE_HZ
+        assert _timeouts_before_the_end(f) == []
+        # Through it a command is handled 3 to 5 ms after its sample (the round trip).
+        age = f.sitl_summary["setpoint_age_ms"]
+        assert age["n"] == duration_s * RATE_HZ
+        assert 3.0 < age["mean"] < 5.0 and age["max"] <= 5.0 + 1e-6, age
+    cols = [_engaged(f) for f in flights]
+    assert len(cols[0]["t_s"]) == len(cols[1]["t_s"]) == duration_s * RATE_HZ
+    for key in cols[0]:
+        if key in ("t_s", "wall_s", "latency_us"):
+            continue  # the autopilot's clock at arming, and the wall clock, differ
+        assert np.array_equal(cols[0][key], cols[1][key], equal_nan=True), key
+    t = [c["t_s"] - c["t_s"][0] for c in cols]
+    np.testing.assert_array_equal(np.round(t[0] * 1e6), np.round(t[1] * 1e6))
+    # The plant too, from arming on.
+    logs = [read_log(f.sitl_log) for f in flights]
+    starts = [
+        int(np.searchsorted(log["t_s"], next(e["t_s"] for e in log.events
+                                              if e["kind"] == "pilot_start") - 1e-9))
+        for log in logs
+    ]  # fmt: skip
+    n = round(duration_s * 1000)  # physics steps
+    for key in ("rate_frd_rad_s", "q_wxyz", "pos_ned_m", "motor_w_rad_s"):
+        a, b = (log[key][i : i + n] for log, i in zip(logs, starts, strict=True))
+        assert np.array_equal(a, b), key
+
+
+def test_a_wifi_link_loses_and_reorders_and_lockstep_never_times_out(tmp_path: Path) -> None:
+    duration_s = 2.0
+    flight = fly_mavlink(
+        F450, "paper-acro", tmp_path, duration_s=duration_s, link=LINK_PROFILES["wifi"]
+    )
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    summary = flight.sitl_summary
+    counts = summary["link_counts"]
+    assert counts["up_lost"] > 0 and counts["down_lost"] >= 0
+    # The companion saw samples late or twice (reordered), and dropped them unanswered.
+    last = next(e for e in reversed(flight.companion_events) if e["kind"] == "counters")
+    late = re.search(r"imu_duplicate_or_late=(\d+)", last["detail"])
+    assert late is not None and int(late.group(1)) > 0
+    assert _timeouts_before_the_end(flight) == []
+    assert summary["lockstep_timeouts"] <= 1
+    # The samples flown are those the link delivered in order: lost ones and ones
+    # overtaken by the next (+-5 ms of jitter against 4 ms between samples) are not.
+    n = len(_engaged(flight)["t_s"])
+    assert 0.6 * duration_s * RATE_HZ < n < 0.95 * duration_s * RATE_HZ
+    # 10 +- 5 ms each way: a command is handled 10 to 30 ms after its sample.
+    age = summary["setpoint_age_ms"]
+    assert 10.0 <= age["mean"] <= 30.0 and age["max"] <= 30.0 + 1e-6, age
+
+
+def test_a_5_ms_link_hands_each_command_over_10_ms_after_its_sample(tmp_path: Path) -> None:
+    duration_s = 1.0
+    flight = fly_mavlink(
+        F450, "paper-acro", tmp_path, duration_s=duration_s, link=parse_link("delay_ms=5")
+    )
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    summary = flight.sitl_summary
+    assert summary["link"] == "custom (5+-0 ms up, 5+-0 ms down)"
+    age = summary["setpoint_age_ms"]
+    # Sample at t, at the companion at t + 5 ms, its command back at t + 10 ms.
+    assert age["n"] == duration_s * RATE_HZ
+    assert age["mean"] == pytest.approx(10.0, abs=1e-6)
+    assert age["max"] == pytest.approx(10.0, abs=1e-6)
+    assert _timeouts_before_the_end(flight) == []
