@@ -15,6 +15,7 @@ from typing import Literal
 from pydantic import Field, field_validator, model_validator
 
 from companion.control import (
+    MAX_DELAY_S,
     AlphaAdaptation,
     AxisRates,
     MfcAxisGains,
@@ -97,6 +98,31 @@ class AlphaAdaptConfig(StrictModel):
         description="lowest margin on a lag slower than actuator_tau_s (falls as "
         "sqrt(actuator_tau_s/tau), eased on weak vehicles); 0: constant margin",
     )
+    delay_candidates_s: tuple[float, ...] = Field(
+        (),
+        max_length=12,
+        description="loop delays (the link both ways) the identifier chooses from; "
+        "empty: none identified",
+    )
+    delay_margin_slope: float = Field(
+        0.0,
+        ge=0.0,
+        le=10.0,
+        description="margin rise per unit of identified delay over identified lag; 0: off",
+    )
+    delay_margin_free_ratio: float = Field(
+        0.0, ge=0.0, le=10.0, description="delay over lag the margin does not rise for"
+    )
+    delay_margin_max: float = Field(
+        0.0, ge=0.0, le=10.0, description="highest margin a delay raises it to"
+    )
+
+    @field_validator("delay_candidates_s")
+    @classmethod
+    def _delays(cls, v: tuple[float, ...]) -> tuple[float, ...]:
+        if not all(0.0 <= d <= MAX_DELAY_S for d in v):
+            raise ValueError(f"expected delays in [0, {MAX_DELAY_S}] s")
+        return v
 
     @field_validator("tau_candidates_s")
     @classmethod
@@ -111,6 +137,11 @@ class AlphaAdaptConfig(StrictModel):
             raise ValueError("alpha_min must not exceed alpha_max")
         if self.margin_min > self.margin:
             raise ValueError("margin_min must not exceed margin")
+        if self.delay_margin_slope > 0.0:
+            if not self.delay_candidates_s:
+                raise ValueError("delay_margin_slope needs delay_candidates_s")
+            if self.delay_margin_max < self.margin:
+                raise ValueError("delay_margin_max must not be below margin")
         return self
 
 
@@ -149,6 +180,12 @@ class MfcAxisConfig(StrictModel):
         description="smallest factor a lag slower than actuator_tau_s cuts the gains to; "
         "null: no floor",
     )
+    delay_kd_limit: float = Field(
+        0.0,
+        ge=0.0,
+        le=10.0,
+        description="kd at most this over the identified loop delay (1/s * s); 0: off",
+    )
 
     @model_validator(mode="after")
     def _adapt_requirements(self) -> MfcAxisConfig:
@@ -174,6 +211,8 @@ class MfcAxisConfig(StrictModel):
             raise ValueError(
                 "lag_scaling_authority_ref needs lag_scaled_gains or alpha_adapt.margin_min > 0"
             )
+        if self.delay_kd_limit > 0.0 and (adapt is None or not adapt.delay_candidates_s):
+            raise ValueError("delay_kd_limit needs alpha_adapt.delay_candidates_s")
         return self
 
     @field_validator("alpha")
@@ -287,6 +326,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             lag_scaling_authority_ref=a.lag_scaling_authority_ref,
             lag_scaling_max=math.inf if a.lag_scaling_max is None else a.lag_scaling_max,
             lag_scaling_min=0.0 if a.lag_scaling_min is None else a.lag_scaling_min,
+            delay_kd_limit=a.delay_kd_limit,
             adapt=None
             if a.alpha_adapt is None
             else AlphaAdaptation(
@@ -300,6 +340,10 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
                 tau_candidates_s=a.alpha_adapt.tau_candidates_s,
                 min_response=a.alpha_adapt.min_response_rad_s2,
                 margin_min=a.alpha_adapt.margin_min,
+                delay_candidates_s=a.alpha_adapt.delay_candidates_s,
+                delay_margin_slope=a.alpha_adapt.delay_margin_slope,
+                delay_margin_free_ratio=a.alpha_adapt.delay_margin_free_ratio,
+                delay_margin_max=a.alpha_adapt.delay_margin_max,
             ),
         )
 

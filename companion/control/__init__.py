@@ -14,7 +14,7 @@ flying yesterday's control law while reading today's is not an option.
 # imported directly imports this package first).
 from companion.control._compiled import COMPILED
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
-from companion.control.identifier import AlphaAdaptation
+from companion.control.identifier import MAX_DELAY_S, AlphaAdaptation
 from companion.control.intelligent import IntelligentController, MfcAxisGains
 from companion.control.mfc import ControlOutput, MfcController, MfcGains, PidController
 from companion.control.mixer import Mixer, MixResult
@@ -25,6 +25,7 @@ from companion.control.sticks import AxisRates, PilotCommand, StickMap
 __all__ = [
     "AXES",
     "COMPILED",
+    "MAX_DELAY_S",
     "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",
     "AlphaAdaptation",

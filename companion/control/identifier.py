@@ -20,10 +20,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["DT_REL_TOL", "LEARN_PERIOD_S", "AlphaAdaptation", "PlantIdentifier"]
+__all__ = ["DT_REL_TOL", "LEARN_PERIOD_S", "MAX_DELAY_S", "AlphaAdaptation", "PlantIdentifier"]
 
 LEARN_PERIOD_S = 0.004
 """The identifier runs at most this often (s): every sample at 250 Hz, every 4th at 1 kHz."""
+
+MAX_DELAY_S = 0.2
+"""The longest loop delay a candidate may name, s."""
 
 DT_REL_TOL = 1e-3
 """Discrete filter coefficients computed for one dt serve every dt within this
@@ -61,6 +64,15 @@ class AlphaAdaptation:
     margin_min
         0: the margin is constant. Otherwise the lowest margin a slow lag
         brings it to (:meth:`PlantIdentifier.margin_for`).
+    delay_candidates_s
+        Pure delays of the loop to choose from (the link both ways, the
+        autopilot's output path), s; empty: none identified (the command acts
+        after its lag alone).
+    delay_margin_slope, delay_margin_free_ratio, delay_margin_max
+        With ``delay_margin_slope`` > 0, the margin rises by that much per unit
+        of the identified delay over the identified lag beyond
+        ``delay_margin_free_ratio``, up to ``delay_margin_max``
+        (:meth:`PlantIdentifier.margin_for_delay`).
     """
 
     alpha_min: float
@@ -73,6 +85,10 @@ class AlphaAdaptation:
     tau_candidates_s: tuple[float, ...] = ()
     min_response: float = 2.0
     margin_min: float = 0.0
+    delay_candidates_s: tuple[float, ...] = ()
+    delay_margin_slope: float = 0.0
+    delay_margin_free_ratio: float = 0.0
+    delay_margin_max: float = 0.0
 
     def __post_init__(self) -> None:
         vals = (self.alpha_min, self.alpha_max, self.margin, self.memory_s, self.highpass_s)
@@ -86,6 +102,24 @@ class AlphaAdaptation:
             raise ValueError("tau_candidates_s must be finite and >= 0")
         if not 0.0 <= self.margin_min <= self.margin:
             raise ValueError("margin_min must be in [0, margin]")
+        if not all(math.isfinite(d) and 0.0 <= d <= MAX_DELAY_S for d in self.delay_candidates_s):
+            raise ValueError(f"delay_candidates_s must be in [0, {MAX_DELAY_S}] s")
+        if not (
+            math.isfinite(self.delay_margin_slope)
+            and self.delay_margin_slope >= 0.0
+            and math.isfinite(self.delay_margin_free_ratio)
+            and self.delay_margin_free_ratio >= 0.0
+        ):
+            raise ValueError(
+                "delay_margin_slope and delay_margin_free_ratio must be finite and >= 0"
+            )
+        if self.delay_margin_slope > 0.0:
+            if not self.delay_candidates_s:
+                raise ValueError(
+                    "delay_margin_slope needs delay_candidates_s (a delay to rise with)"
+                )
+            if not self.margin <= self.delay_margin_max <= 10.0:
+                raise ValueError("delay_margin_max must be in [margin, 10]")
 
 
 class PlantIdentifier:
@@ -114,12 +148,24 @@ class PlantIdentifier:
     ``margin_min`` lowers it for a slow lag (:meth:`margin_for`), which is
     where ``authority_ref`` and ``full_scale`` (the axis's
     ``lag_scaling_authority_ref`` and full-scale command) serve.
+
+    The loop's delay
+    ----------------
+    A companion's command reaches the motors a link round trip after the
+    sample it answers. With ``delay_candidates_s`` the regressors are also
+    tried delayed, :math:`x_{ij}(k) = x_i(k - d_j)` (the lag is linear, so a
+    delayed input is a delayed output), and the pair with the smallest
+    residual gives both the lag and :attr:`delay`; delays count in
+    identification intervals (:data:`LEARN_PERIOD_S`). The law feeds its
+    estimate of ``F`` the command that acted, one :attr:`delay` ago, and
+    (``delay_margin_slope``) a longer delay raises the margin
+    (:meth:`margin_for_delay`).
     """
 
     __slots__ = (
-        "_authority_ref", "_cfg", "_dt", "_full_scale", "_hp", "_ks", "_lam", "_pending",
-        "_pending_dt", "_sxx", "_sxz", "_szz", "_taus", "_u_lp", "_x", "_y_lp", "alpha", "alpha0",
-        "margin", "tau", "tau0",
+        "_authority_ref", "_cfg", "_delays", "_delays_s", "_dt", "_full_scale", "_hist",
+        "_hist_i", "_hp", "_ks", "_lam", "_pending", "_pending_dt", "_sxx", "_sxz", "_szz",
+        "_taus", "_u_lp", "_x", "_y_lp", "alpha", "alpha0", "delay", "margin", "tau", "tau0",
     )  # fmt: skip
 
     def __init__(
@@ -133,6 +179,11 @@ class PlantIdentifier:
     ) -> None:
         self._cfg = cfg
         self._taus = cfg.tau_candidates_s or (tau_s,)
+        # Delays count in identification intervals (LEARN_PERIOD_S apart at 250 Hz and
+        # 1 kHz); the delay reported is the candidate's own value, exact, so what the
+        # law does with it does not depend on the last bits of sample intervals.
+        self._delays_s = cfg.delay_candidates_s or (0.0,)
+        self._delays = tuple(round(d / LEARN_PERIOD_S) for d in self._delays_s)
         self.alpha0 = alpha
         self.tau0 = tau_s
         self._authority_ref = authority_ref
@@ -144,10 +195,15 @@ class PlantIdentifier:
 
     def reset(self) -> None:
         n = len(self._taus)
+        pairs = n * len(self._delays)
         self._x = [0.0] * n
-        self._sxx = [0.0] * n
-        self._sxz = [0.0] * n
+        # The regressors of the last max(delay) + 1 intervals, newest at _hist_i.
+        self._hist = [[0.0] * n for _ in range(max(self._delays) + 1)]
+        self._hist_i = 0
+        self._sxx = [0.0] * pairs  # per (lag i, delay j): index i * len(delays) + j
+        self._sxz = [0.0] * pairs
         self._szz = 0.0
+        self.delay = 0.0
         self._u_lp = self._y_lp = 0.0
         self._pending: tuple[float, float] | None = None
         self._pending_dt = 0.0
@@ -204,6 +260,26 @@ class PlantIdentifier:
         m = cfg.margin * h
         return m if m > cfg.margin_min else cfg.margin_min
 
+    def margin_for_delay(self, margin: float, delay_s: float, tau_s: float) -> float:
+        r"""The margin with the loop's delay taken into account.
+
+        With ``delay_margin_slope`` > 0: at least
+        :math:`\min(m_{max},\, m + s \max(0, D / \tau - r_{free}))`. A lower margin is a
+        larger loop gain, and the estimate's own loop (the command fed back
+        through :math:`\hat F` with gain :math:`b/\alpha - 1`) loses its
+        stability to a delay first: a margin towards 1 shrinks that gain.
+        """
+        cfg = self._cfg
+        if cfg.delay_margin_slope <= 0.0:
+            return margin
+        over = delay_s / tau_s - cfg.delay_margin_free_ratio if tau_s > 0.0 else 0.0
+        if over <= 0.0:
+            return margin
+        md = cfg.margin + cfg.delay_margin_slope * over
+        if md > cfg.delay_margin_max:
+            md = cfg.delay_margin_max
+        return md if md > margin else margin
+
     def _set_dt(self, dt_s: float) -> None:
         cfg = self._cfg
         self._dt = dt_s
@@ -225,6 +301,11 @@ class PlantIdentifier:
         for i in range(len(x)):
             xi = x[i]
             x[i] = xi + (ut - xi) * ks[i]
+        hist = self._hist
+        n_hist = len(hist)
+        if n_hist > 1:
+            self._hist_i = h = (self._hist_i + 1) % n_hist
+            hist[h] = list(x)
         if not learn or abs(ut) < cfg.min_excitation:
             return
         z = y_m - y_lp
@@ -234,21 +315,29 @@ class PlantIdentifier:
         self._szz = szz = lam * self._szz + z * z
         sxx = self._sxx
         sxz = self._sxz
+        delays = self._delays
+        nd = len(delays)
+        h = self._hist_i
         best = -1
         best_res = math.inf
-        for i in range(len(x)):
-            xi = x[i]
-            sxx[i] = a = lam * sxx[i] + xi * xi
-            sxz[i] = c = lam * sxz[i] + xi * z
-            if a >= cfg.min_samples_weight and c > 0.0:
-                res = szz - c * c / a
-                if res < best_res:
-                    best_res = res
-                    best = i
+        w = cfg.min_samples_weight
+        for j in range(nd):
+            xs = hist[(h - delays[j]) % n_hist] if n_hist > 1 else x
+            for i in range(len(x)):
+                xi = xs[i]
+                k = i * nd + j
+                sxx[k] = a = lam * sxx[k] + xi * xi
+                sxz[k] = c = lam * sxz[k] + xi * z
+                if a >= w and c > 0.0:
+                    res = szz - c * c / a
+                    if res < best_res:
+                        best_res = res
+                        best = k
         if best < 0:
             return
         b = sxz[best] / sxx[best]
-        self.tau = tau = self._taus[best]
-        self.margin = m = self.margin_for(b, tau)
+        self.tau = tau = self._taus[best // nd]
+        self.delay = delay = self._delays_s[best % nd]
+        self.margin = m = self.margin_for_delay(self.margin_for(b, tau), delay, tau)
         a = m * b
         self.alpha = cfg.alpha_max if a > cfg.alpha_max else max(a, cfg.alpha_min)

@@ -55,6 +55,10 @@ from companion.control.identifier import DT_REL_TOL, AlphaAdaptation, PlantIdent
 
 __all__ = ["IntelligentController", "MfcAxisGains"]
 
+_U_HIST_LEN = 512
+"""Command means kept for the delayed estimate: 0.2 s (the longest delay a
+candidate may name) at up to 2.5 kHz; a longer delay uses the oldest."""
+
 
 @dataclass(frozen=True)
 class MfcAxisGains:
@@ -106,6 +110,10 @@ class MfcAxisGains:
     lag_scaling_min: float = 0.0
     """With ``lag_scaled_gains``, the smallest factor (<= 1) a lag slower than
     ``actuator_tau_s`` may cut the gains to (0: no floor)."""
+    delay_kd_limit: float = 0.0
+    """With an identified loop delay ``D`` (``adapt.delay_candidates_s``), kd is
+    at most ``delay_kd_limit / D`` (kp by the square of the same cut): the phase
+    a delay costs at the error dynamics' bandwidth stays bounded (0: off)."""
     adapt: AlphaAdaptation | None = None
 
     def __post_init__(self) -> None:
@@ -145,6 +153,12 @@ class MfcAxisGains:
             raise ValueError("lag_scaling_max and lag_scaling_min need lag_scaled_gains")
         if self.lag_scaling_authority_ref > 0.0 and not self.lag_scaled_gains and margin_min <= 0.0:
             raise ValueError("lag_scaling_authority_ref needs lag_scaled_gains or adapt.margin_min")
+        if not (math.isfinite(self.delay_kd_limit) and self.delay_kd_limit >= 0.0):
+            raise ValueError("delay_kd_limit must be finite and >= 0")
+        if self.delay_kd_limit > 0.0 and (adapt is None or not adapt.delay_candidates_s):
+            raise ValueError(
+                "delay_kd_limit needs adapt.delay_candidates_s (a delay to limit kd by)"
+            )
 
 
 class IntelligentController:
@@ -168,13 +182,47 @@ class IntelligentController:
     * With :class:`AlphaAdaptation`, :math:`\alpha` and :math:`\tau` come from
       a :class:`~companion.control.identifier.PlantIdentifier` fed with the
       same window means (:meth:`learn`).
+    * With ``adapt.delay_candidates_s``, the identifier also names the loop's
+      delay :math:`D` (a companion's link both ways): the command in the
+      estimate is the window mean of one :math:`D` ago,
+      :math:`\hat F = \bar y^{(m)} - \alpha L_\tau \bar u(t - D)`, the one
+      that acted on the samples averaged; ``delay_kd_limit`` bounds kd by
+      :math:`D`.
     """
 
     __slots__ = (
-        "_alpha", "_authority_ref", "_e_lim", "_est", "_est_update", "_ident", "_kd", "_kd_eff",
-        "_kp", "_kp_eff", "_lag_dt", "_lag_k", "_lag_max", "_lag_min", "_lag_scaled", "_lag_tau",
-        "_lim", "_plain", "_scale", "_tau", "_u_a", "adapting", "e", "e_dot", "f_hat", "order",
-        "u_prev", "update",
+        "_alpha",
+        "_authority_ref",
+        "_delay_kd",
+        "_delayed",
+        "_e_lim",
+        "_est",
+        "_est_update",
+        "_ident",
+        "_kd",
+        "_kd_eff",
+        "_kp",
+        "_kp_eff",
+        "_lag_dt",
+        "_lag_k",
+        "_lag_max",
+        "_lag_min",
+        "_lag_scaled",
+        "_lag_tau",
+        "_lim",
+        "_plain",
+        "_scale",
+        "_tau",
+        "_u_a",
+        "_u_hist",
+        "_u_hist_i",
+        "adapting",
+        "e",
+        "e_dot",
+        "f_hat",
+        "order",
+        "u_prev",
+        "update",
     )  # fmt: skip
 
     def __init__(self, gains: MfcAxisGains, *, command_full_scale: float = 500.0) -> None:
@@ -209,6 +257,8 @@ class IntelligentController:
         self._lag_min = gains.lag_scaling_min
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
+        self._delayed = gains.adapt is not None and bool(gains.adapt.delay_candidates_s)
+        self._delay_kd = gains.delay_kd_limit
         self.adapting = False
         """Whether the identifier may learn now (the caller's say: the pilot flies)."""
         self.reset()
@@ -229,6 +279,8 @@ class IntelligentController:
             self._ident.reset()
         self._scale_gains()
         self._u_a = 0.0
+        self._u_hist = [0.0] * _U_HIST_LEN
+        self._u_hist_i = 0
         self.f_hat = 0.0
         self.e = 0.0
         self.e_dot = 0.0
@@ -323,6 +375,8 @@ class IntelligentController:
             ident.observe(dt_s, u_mean, y_m)
             tau = ident.tau
             alpha = ident.alpha
+            if self._delayed:
+                u_mean = self._delayed_mean(u_mean, ident.delay, dt_s)
         if tau > 0.0:
             if tau != self._lag_tau or abs(dt_s - self._lag_dt) > DT_REL_TOL * dt_s:
                 self._lag_dt = dt_s
@@ -332,6 +386,19 @@ class IntelligentController:
         else:
             self._u_a = u_a = u_mean
         return y_m - alpha * u_a, alpha
+
+    def _delayed_mean(self, u_mean: float, delay_s: float, dt_s: float) -> float:
+        """Note this sample's command mean; return the one of ``delay_s`` ago
+        (in samples of ``dt_s``; the oldest kept if longer)."""
+        hist = self._u_hist
+        self._u_hist_i = i = (self._u_hist_i + 1) % _U_HIST_LEN
+        hist[i] = u_mean
+        if delay_s <= 0.0 or dt_s <= 0.0:
+            return u_mean
+        n = round(delay_s / dt_s)
+        if n >= _U_HIST_LEN:
+            n = _U_HIST_LEN - 1
+        return hist[(i - n) % _U_HIST_LEN]
 
     # ----------------------------------------------- identification and the gains
 
@@ -344,10 +411,15 @@ class IntelligentController:
             return
         tau = ident.tau
         alpha = ident.alpha
+        delay = ident.delay
         if (
             ident.learn(self.adapting)
-            and self._lag_scaled
-            and (ident.tau != tau or (self._authority_ref > 0.0 and ident.alpha != alpha))
+            and (self._lag_scaled or self._delay_kd > 0.0)
+            and (
+                ident.tau != tau
+                or ident.delay != delay
+                or (self._authority_ref > 0.0 and ident.alpha != alpha)
+            )
         ):
             self._scale_gains()
 
@@ -380,5 +452,13 @@ class IntelligentController:
             authority = ident.alpha / ident.margin * self._scale  # rad/s^m, full scale
             if authority > self._authority_ref:
                 g = min(1.0 / r, math.sqrt(authority / self._authority_ref))
-        self._kd_eff = self._kd * r * g
-        self._kp_eff = self._kp * (r * r if self.order == 2 else r)
+        kd = self._kd * r * g
+        kp = self._kp * (r * r if self.order == 2 else r)
+        if self._delay_kd > 0.0 and ident is not None and ident.delay > 0.0:
+            cap = self._delay_kd / ident.delay
+            if kd > cap:
+                f = cap / kd
+                kd = cap
+                kp *= f * f if self.order == 2 else f
+        self._kd_eff = kd
+        self._kp_eff = kp
