@@ -1,12 +1,16 @@
 """Fly a rate controller against the bundled plant in one process, without MAVLink.
 
-The loop is the companion's, minus the link: every IMU sample goes through the
+The loop is the companion's, minus MAVLink: every IMU sample goes through the
 same step as ``companion run`` (:class:`companion.step.SampleStep`: the gyro
 range gate, the law, the command gate; ``dt`` from the sample stamps, which
 here are exact), pilot sticks arrive as RC frames at the scenario's RC rate, and
-the gated actuator controls, mixed, are held until the next sample. It is what
-campaigns run many times in parallel, and what the MAVLink path is checked
-against for the same seed.
+the gated actuator controls, mixed, are held until the next sample. Through the
+scenario's companion link (:mod:`sitl.link_model`) the samples, the RC frames and
+the landed state reach the companion late (or twice, or never), the companion
+drops samples not newer than the last, and each command acts at the autopilot's
+first IMU sample after it arrives, as in the SITL. It is what campaigns run many
+times in parallel, and what the MAVLink path is checked against for the same
+seed.
 
 Seeding: one :class:`numpy.random.SeedSequence` from the scenario's seed is
 split into independent streams for the plant, the IMU, the wind and the pilot,
@@ -236,8 +240,12 @@ def simulate_flight(
                     sent = on_sample(payload[0], payload[1])
                     for a in link.arrivals(DOWN, down_stream, arrived):
                         heapq.heappush(downlink, (a, next(order), sent))
-            while downlink and downlink[0][0] <= t + 1e-12:
-                motors = heapq.heappop(downlink)[2]
+            # The autopilot acts on the newest command at its next IMU sample (its
+            # output runs on the gyro loop, as the SITL's does): a command that
+            # arrives between two samples waits for the next.
+            if sample is not None:
+                while downlink and downlink[0][0] <= t + 1e-12:
+                    motors = heapq.heappop(downlink)[2]
         quad.step(motors)
         if quad.crashed:
             crashed_at = quad.t_s

@@ -69,12 +69,8 @@ def test_same_scenario_same_seed_same_flight_both_ways(tmp_path: Path) -> None:
 # Delay and jitter up, delay down, 5 % of the messages lost and 5 % duplicated each
 # way: the two flights lose and duplicate the same messages at the same moments
 # (each stream draws from the seed alone), and every command takes effect at the
-# same physics step both ways. That holds while each command arrives, in process,
-# at an IMU sample's step: here at most 1.5 + 2.5 = 4 ms after its sample, the
-# F450's sample period. The SITL's autopilot acts on a setpoint at its next IMU
-# sample (its loop runs on the gyro), the in-process flight at the physics step
-# it arrives in; through `uart` (a 3-5 ms round trip) or `delay_ms=1.5` they part
-# from the first command that arrives between two samples.
+# same physics step both ways: the autopilot's first IMU sample after it arrives,
+# here 4 ms after its own sample (1.5 + 2.5 ms at most, the F450's sample period).
 LINK = "up_delay_ms=1,up_jitter_ms=0.5,down_delay_ms=2.5,loss=0.05,duplicate=0.05"
 
 
@@ -99,3 +95,31 @@ def test_through_a_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     # Each command handled 4 ms after its sample (or lost).
     age = flight.sitl_summary["setpoint_age_ms"]
     assert age["mean"] == pytest.approx(4.0, abs=1e-6)
+
+
+def test_through_a_uart_link_the_same_flight_both_ways(tmp_path: Path) -> None:
+    """Through `uart` the round trip (3-5 ms) ends before or after the next IMU
+    sample: a command acts at the autopilot's first sample after it arrives (4 or
+    8 ms after its own), at the same step both ways."""
+    profile = ROOT / "vehicle_profiles" / "f450.yaml"
+    duration = 3.0
+    link = parse_link("uart")
+    flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration, link=link)
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    a = merge_logs(flight).columns
+    sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration, "link": link})
+    b = simulate_flight(load_profile(profile), load_controller(), sc).columns
+    assert len(a["t_s"]) == len(b["t_s"]) == duration * RATE_HZ
+    assert np.array_equal(a["ref_rad_s"], b["ref_rad_s"])
+    # float32 on the link, as in the ideal link's test; and the throttle: the SITL
+    # sends RC_CHANNELS on its stream's schedule, the in-process pilot's frames leave
+    # when the pilot moves, so a throttle step can reach the companion a sample apart
+    # (here 1 us of stick, 0.001 of collective, in 31 samples of 750).
+    assert np.max(np.abs(a["meas_rad_s"] - b["meas_rad_s"])) < 1e-5
+    thrust_apart = np.abs(a["thrust"] - b["thrust"])
+    assert np.count_nonzero(thrust_apart > 1e-9) <= 0.05 * len(thrust_apart)
+    assert np.max(thrust_apart) <= 0.0011
+    assert np.max(np.abs(a["motors"] - b["motors"])) < 0.0011
+    age = flight.sitl_summary["setpoint_age_ms"]
+    # Handled when it arrives: 2 x (2 +/- 0.5) ms after its sample.
+    assert 3.0 - 1e-6 <= age["mean"] <= 5.0 + 1e-6 and age["max"] <= 5.0 + 1e-6, age
