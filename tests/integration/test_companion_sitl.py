@@ -183,18 +183,20 @@ def test_rates_output_wraps_the_autopilot_rate_loop_and_beats_passthrough(tmp_pa
     The baseline sends the pilot's rates straight to the same autopilot rate loop.
     Measured on the F450, paper-acro, with the rates default (mfc_rates.yaml and the
     30 ms lead): MFC on top 10.8/9.3/6.5 deg/s, pass-through 15.4/13.9/19.3 (the
-    in-process PX4-default PID gives 15.3/13.7/19.3).
+    in-process PX4-default PID gives 15.3/13.7/19.3). The test flies the first 30 s
+    (`companion fly --output rates --compare-passthrough --duration 30`, 2026-11-25:
+    11.5/8.3/5.3 against 16.6/12.0/15.4).
     """
     maes = {}
     for label, extra in (("mfc", ()), ("passthrough", ("--rates-passthrough",))):
         flight = fly_mavlink(
             PROFILES / "f450.yaml", "paper-acro", tmp_path / label, output="rates",
-            companion_args=extra,
+            companion_args=extra, duration_s=30.0,
         )  # fmt: skip
         assert flight.companion_rc == 0, flight.text("companion.stderr")
-        assert flight.sitl_summary["setpoints_received"] > 10000
+        assert flight.sitl_summary["setpoints_received"] > 5000
         m = compute_metrics(merge_logs(flight))
-        assert not m["crashed"] and m["airborne_time_s"] > 50.0
+        assert not m["crashed"] and m["airborne_time_s"] > 25.0
         maes[label] = m["mae_deg_s"]
     for axis in ("roll", "pitch", "yaw"):
         assert maes["mfc"][axis] < 0.85 * maes["passthrough"][axis], (axis, maes)

@@ -22,6 +22,7 @@ from companion.records import read_columnar
 from sitl.flight_log import read_log
 from sitl.lab.fly import fly_mavlink, merge_logs
 from sitl.lab.report import compute_metrics
+from sitl.link_model import parse_link
 
 pytestmark = pytest.mark.integration
 
@@ -29,21 +30,26 @@ ROOT = Path(__file__).resolve().parents[2]
 F450 = ROOT / "vehicle_profiles" / "f450.yaml"
 
 
+# PX4 on the ideal link; ArduPilot through the main job's `uart` link (delays,
+# jitter, the link model's own streams of random numbers). The in-process
+# equivalence tests hold PX4 through `uart` to the deterministic in-process flight.
 @pytest.mark.parametrize(
-    ("autopilot", "output", "duration_s"), [("px4", "actuator", 8.0), ("ardupilot", "rates", 4.0)]
+    ("autopilot", "output", "duration_s", "link"),
+    [("px4", "actuator", 8.0, "ideal"), ("ardupilot", "rates", 4.0, "uart")],
 )
 def test_two_lockstep_flights_of_one_seed_are_the_same(
-    tmp_path: Path, autopilot: str, output: str, duration_s: float
+    tmp_path: Path, autopilot: str, output: str, duration_s: float, link: str
 ) -> None:
     flights = [
         fly_mavlink(
             F450, "paper-acro", tmp_path / f"run{i}", duration_s=duration_s,
-            autopilot=autopilot, output=output,
+            autopilot=autopilot, output=output, link=parse_link(link),
         )
         for i in (1, 2)
     ]  # fmt: skip
     for f in flights:
         assert f.companion_rc == 0, f.text("companion.stderr")
+        assert f.sitl_summary["link"].startswith(link)
     cols = [read_columnar(f.out_dir / "companion" / "control.bin")[0] for f in flights]
     engaged = [np.asarray(c["engaged"]).astype(bool) for c in cols]
     assert engaged[0].sum() == engaged[1].sum() == duration_s * 250  # the F450's IMU rate

@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from companion.records import read_columnar
-from sitl.flight_log import read_log
 from sitl.lab.fly import FlightProcesses, fly_mavlink
 from sitl.link_model import LINK_PROFILES, parse_link
 
@@ -39,48 +38,6 @@ def _timeouts_before_the_end(flight: FlightProcesses) -> list[float]:
     be (the one after it is the sample the companion no longer answers)."""
     last = float(_engaged(flight)["t_s"][-1])
     return [t for t in map(float, _TIMEOUT.findall(flight.text("sitl.stderr"))) if t <= last]
-
-
-@pytest.mark.parametrize(("autopilot", "output"), [("px4", "actuator"), ("ardupilot", "rates")])
-def test_two_flights_through_a_uart_link_are_the_same(
-    tmp_path: Path, autopilot: str, output: str
-) -> None:
-    duration_s = 1.5
-    flights = [
-        fly_mavlink(
-            F450, "paper-acro", tmp_path / f"run{i}", duration_s=duration_s,
-            autopilot=autopilot, output=output, link=LINK_PROFILES["uart"],
-        )
-        for i in (1, 2)
-    ]  # fmt: skip
-    for f in flights:
-        assert f.companion_rc == 0, f.text("companion.stderr")
-        assert f.sitl_summary["link"].startswith("uart (2+-0.5 ms up")
-        assert f.sitl_summary["link_counts"]["up_sent"] > duration_s * RATE_HZ
-        assert _timeouts_before_the_end(f) == []
-        # Through it a command is handled 3 to 5 ms after its sample (the round trip).
-        age = f.sitl_summary["setpoint_age_ms"]
-        assert age["n"] == duration_s * RATE_HZ
-        assert 3.0 < age["mean"] < 5.0 and age["max"] <= 5.0 + 1e-6, age
-    cols = [_engaged(f) for f in flights]
-    assert len(cols[0]["t_s"]) == len(cols[1]["t_s"]) == duration_s * RATE_HZ
-    for key in cols[0]:
-        if key in ("t_s", "wall_s", "latency_us"):
-            continue  # the autopilot's clock at arming, and the wall clock, differ
-        assert np.array_equal(cols[0][key], cols[1][key], equal_nan=True), key
-    t = [c["t_s"] - c["t_s"][0] for c in cols]
-    np.testing.assert_array_equal(np.round(t[0] * 1e6), np.round(t[1] * 1e6))
-    # The plant too, from arming on.
-    logs = [read_log(f.sitl_log) for f in flights]
-    starts = [
-        int(np.searchsorted(log["t_s"], next(e["t_s"] for e in log.events
-                                              if e["kind"] == "pilot_start") - 1e-9))
-        for log in logs
-    ]  # fmt: skip
-    n = round(duration_s * 1000)  # physics steps
-    for key in ("rate_frd_rad_s", "q_wxyz", "pos_ned_m", "motor_w_rad_s"):
-        a, b = (log[key][i : i + n] for log, i in zip(logs, starts, strict=True))
-        assert np.array_equal(a, b), key
 
 
 def test_a_wifi_link_loses_and_reorders_and_lockstep_never_times_out(tmp_path: Path) -> None:
