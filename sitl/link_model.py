@@ -255,10 +255,6 @@ class LinkModel:
             rng = self._rngs[key] = np.random.default_rng(ss)
         return rng
 
-    def delay_s(self, direction: int) -> float:
-        """The nominal delay one way (no jitter), s."""
-        return self._delay[direction][0]
-
     def arrivals(self, direction: int, stream: int, t_sent_s: float) -> tuple[float, ...]:
         """When a message of ``stream`` (its MAVLink message id) sent at
         ``t_sent_s`` in ``direction`` (:data:`UP` or :data:`DOWN`) arrives: ``()``
