@@ -16,7 +16,8 @@ Start-up
     ``auto``       stream setpoints, switch to OFFBOARD, arm (ACK-checked, retried);
     ``rc-switch``  take over while an RC channel is high, hand back when low;
     ``none``       shadow mode: compute and log; send no setpoint, mode or arm
-                   command (only our heartbeat and the stream-rate requests).
+                   command (only our heartbeat, the stream-rate requests and
+                   TIMESYNC, which measures the link).
 
 Engaged means the autopilot's heartbeat shows OFFBOARD and armed; the
 controller is reset on that edge, so ``F`` is learnt only from commands that
@@ -74,6 +75,7 @@ from companion.errors import (
 )
 from companion.failsafe import FailsafeConfig
 from companion.handback import candidates
+from companion.link.timesync import LINK_RTT_SHOWN_MS, REQUEST_PERIOD_S
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
@@ -83,6 +85,9 @@ from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
 """How often the counters (ours, the link's, the transport's) go to the events."""
+
+_LINK_REPORT_PERIOD_S = 1.0
+"""How often the link's figures go to telemetry (and are judged slow or not)."""
 
 _EVENTS_KEPT = 1000
 """Events kept in memory (``Companion.events``); the events file has them all."""
@@ -244,11 +249,15 @@ class Companion(SamplePath):
         }
 
     def counters_detail(self) -> str:
-        """Ours, the link's and the transport's non-zero counters, as ``name=value``."""
-        c = {k: v for k, v in self.counters.items() if v}
+        """Ours, the link's and the transport's non-zero counters, as ``name=value``,
+        then the link's measured figures (``timesync.*``, ms) once it has answered."""
+        c: dict[str, Any] = {k: v for k, v in self.counters.items() if v}
         if self.link is not None:
             c.update({f"link.{k}": v for k, v in self.link.counters.items() if v})
             c.update({f"transport.{k}": v for k, v in self.link.transport.counters.items() if v})
+        figures = self.link_figures()
+        if figures["n"]:
+            c.update({f"timesync.{k}": v for k, v in figures.items() if v is not None})
         return " ".join(f"{k}={v}" for k, v in c.items())
 
     # ------------------------------------------------------------------ events
@@ -379,6 +388,69 @@ class Companion(SamplePath):
             else:
                 self._rc_lost_logged = False
 
+    def link_figures(self) -> dict[str, float | int | None]:
+        """The link as measured: TIMESYNC round trips over the last few seconds
+        and the last samples' age when their command left (ms; None: none yet)."""
+        import numpy as np
+
+        figures = self.link_clock.stats().as_dict()
+        ages = np.asarray(self.sample_ages_s[: self._n_ages])
+        ages = ages[np.isfinite(ages)]
+        for name, q in (("sample_age_p50_ms", 50), ("sample_age_p99_ms", 99)):
+            figures[name] = round(float(np.percentile(ages, q)) * 1e3, 3) if ages.size else None
+        return figures
+
+    def _link_text(self) -> str:
+        f = self.link_figures()
+        if not f["n"]:
+            return "no TIMESYNC answer yet"
+        text = (
+            f"round trip {f['rtt_median_ms']} ms (min {f['rtt_min_ms']}, max {f['rtt_max_ms']},"
+            f" {f['n']} answers)"
+        )
+        if f["sample_age_p50_ms"] is not None:
+            text += f", sample age {f['sample_age_p50_ms']} ms (p99 {f['sample_age_p99_ms']})"
+        return text
+
+    async def _measure_link(self) -> None:
+        """Ask the autopilot's time every REQUEST_PERIOD_S (the answers arrive in
+        ``_on_message``); every _LINK_REPORT_PERIOD_S publish the figures and judge
+        the round trip against the slowest link the controller is shown to fly.
+
+        Watched (:meth:`_spawn`): if it raises while engaged, that is a failsafe."""
+        clock = self.link_clock
+        link = self.link
+        next_report = time.perf_counter() + _LINK_REPORT_PERIOD_S
+        slow = False
+        while not self._stop.is_set():
+            link.send(link.mav.timesync_encode(0, clock.request(time.perf_counter())))
+            await asyncio.sleep(REQUEST_PERIOD_S)
+            now = time.perf_counter()
+            if now < next_report:
+                continue
+            next_report = now + _LINK_REPORT_PERIOD_S
+            figures = self.link_figures()
+            if self._telemetry is not None:
+                try:
+                    self._telemetry.publish_link(figures)
+                except Exception:  # telemetry is never a reason to hand back
+                    self.n_event_errors += 1
+                    if self.n_event_errors == 1:
+                        _log.exception("publishing the link's figures failed (logged once)")
+            median = figures["rtt_median_ms"]
+            if median is None:
+                continue
+            if not slow and median > LINK_RTT_SHOWN_MS:
+                slow = True
+                self._event(
+                    "link_slow",
+                    f"{self._link_text()}: beyond the {LINK_RTT_SHOWN_MS:g} ms the controller"
+                    " is shown to fly (docs/link.md)",
+                )
+            elif slow and median < 0.8 * LINK_RTT_SHOWN_MS:
+                slow = False
+                self._event("link_ok", self._link_text())
+
     def _check_records(self) -> None:
         """A record file that stopped being written: an event, a counter, and with
         ``on_record_error = failsafe`` a failsafe. Flying goes on otherwise."""
@@ -498,6 +570,7 @@ class Companion(SamplePath):
             gc.collect()
             gc.freeze()
             self._spawn(self._supervise(), "supervise")
+            self._spawn(self._measure_link(), "timesync")
             if opts.engage == "auto":
                 self._start_engage(arm=True)
             await self._stop.wait()

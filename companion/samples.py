@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 from companion.config import build_stick_map
 from companion.engagement import Engagement
 from companion.failsafe import SampleWatch
+from companion.link.timesync import LinkClock
 from companion.step import NO_RATES, SampleStep, whole_us
 
 if TYPE_CHECKING:
@@ -39,10 +40,14 @@ _NEW_CLOCK_SAMPLES = 3
 # MAVLink numbers used here (common.xml).
 _MSG_HEARTBEAT = 0
 _MSG_LOCAL_POSITION_NED = 32
+_MSG_TIMESYNC = 111
 _MSG_EXTENDED_SYS_STATE = 245
 _MSG_STATUSTEXT = 253
 _BASE_MODE_ARMED = 128
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
+
+AGES_KEPT = 1024
+"""The last samples' ages kept for the link's figures (about 1 s at 1 kHz)."""
 
 
 class SamplePath(Engagement):
@@ -103,6 +108,11 @@ class SamplePath(Engagement):
         # Counted in the autopilot's whole microseconds: a float difference of two
         # large stamps would end the run one sample early or late by its rounding.
         self._duration_us = None if opts.duration_s is None else round(opts.duration_s * 1e6)
+        # The link, measured: TIMESYNC round trips (the app asks), and each
+        # sample's age when its command leaves (a ring of the last AGES_KEPT).
+        self.link_clock = LinkClock()
+        self.sample_ages_s = [float("nan")] * AGES_KEPT
+        self._n_ages = 0
 
     def _on_message(self, msg: Any) -> None:
         # HIGHRES_IMU, ATTITUDE and RC_CHANNELS never come here: run() registers
@@ -118,6 +128,9 @@ class SamplePath(Engagement):
             self._on_landed_state(int(msg.landed_state))
         elif mid == _MSG_LOCAL_POSITION_NED:
             self._pos_wall = time.perf_counter()
+        elif mid == _MSG_TIMESYNC and msg.tc1 != 0:
+            # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
+            self.link_clock.reply(msg.tc1, msg.ts1, self.link.rx_perf_s)
 
     def _on_landed_state(self, state: int) -> None:
         """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
@@ -286,6 +299,9 @@ class SamplePath(Engagement):
             sent = self._send_output(t_s, out, ref, thrust)
         t_sent = time.perf_counter()
         # ---- the command has left: what follows is off the latency path
+        age = t_sent + self.link_clock.offset_s - t_s  # NaN until the first TIMESYNC answer
+        self.sample_ages_s[self._n_ages % AGES_KEPT] = age
+        self._n_ages += 1
         step.learn()
         gyro = step.gyro
         if self.engaged:
@@ -308,6 +324,7 @@ class SamplePath(Engagement):
                     ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
                     thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
+                    self.link_clock.rtt_s * 1e3, age * 1e3,
                 ]
             )  # fmt: skip
         if self._telemetry is not None:

@@ -36,7 +36,7 @@ Vec3 = tuple[float, float, float]
 _SAMPLE = 0
 _STATUS = 1
 _EVENT = 2
-_KIND_NAMES = ("sample", "status", "event")
+_LINK = 3
 _DEG = 180.0 / math.pi
 
 
@@ -122,7 +122,7 @@ class MqttTelemetry:
         after the first), ``connect_failures``, ``disconnects``, ``errors``
         (unexpected exceptions in the publisher, logged; it restarts).
     topics
-        ``roll``/``pitch``/``yaw``/``status``/``event`` -> topic name.
+        ``roll``/``pitch``/``yaw``/``status``/``event``/``link`` -> topic name.
     connected
         True while a broker connection is up.
     """
@@ -152,6 +152,7 @@ class MqttTelemetry:
         self.topics: dict[str, str] = {a: f"{self.prefix}/axis/{a}" for a in _AXES}
         self.topics["status"] = f"{self.prefix}/status"
         self.topics["event"] = f"{self.prefix}/event"
+        self.topics["link"] = f"{self.prefix}/link"
         self._axis_topics = tuple(self.topics[a] for a in _AXES)
         self._queue: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue(maxsize=queue_size)
         self._put = self._queue.put_nowait
@@ -223,6 +224,17 @@ class MqttTelemetry:
         self._status = snap
         self._put_priority((_STATUS, snap))
 
+    def publish_link(self, figures: dict[str, Any]) -> None:
+        """Offer the link's figures (round trip, sample age) on ``<prefix>/link``;
+        dropped, like a sample, when the queue is full."""
+        try:
+            self._put((_LINK, dict(figures)))
+        except asyncio.QueueFull:
+            self.counters["dropped_full"] += 1
+            self._warn_full()
+            return
+        self.counters["queued"] += 1
+
     def publish_event(self, kind: str, detail: str, t_s: float) -> None:
         """Publish an event (failsafe, engage, disengage, ...) on ``<prefix>/event``."""
         self._put_priority((_EVENT, str(kind), str(detail), t_s))
@@ -231,7 +243,7 @@ class MqttTelemetry:
         q = self._queue
         if q.full():
             evicted = q.get_nowait()
-            if evicted[0] == _SAMPLE:
+            if evicted[0] in (_SAMPLE, _LINK):
                 self.counters["dropped_full"] += 1
             elif evicted[0] == _EVENT:
                 self.counters["dropped_events"] += 1
@@ -380,6 +392,8 @@ class MqttTelemetry:
                         }
                     )
                     await client.publish(topic, payload, qos=0)
+            elif kind == _LINK:
+                await client.publish(self.topics["link"], json.dumps(item[1]), qos=0)
             elif kind == _STATUS:
                 payload = json.dumps(item[1], default=str)
                 await client.publish(self.topics["status"], payload, qos=1, retain=True)
@@ -388,7 +402,7 @@ class MqttTelemetry:
                 payload = json.dumps({"kind": ev_kind, "detail": detail, "t_s": _num(t_s)})
                 await client.publish(self.topics["event"], payload, qos=1)
         except (aiomqtt.MqttError, asyncio.CancelledError):
-            if kind == _SAMPLE:
+            if kind in (_SAMPLE, _LINK):
                 self.counters["lost_disconnected"] += 1
             elif kind == _EVENT:
                 self._retry = item  # sent first after reconnecting

@@ -36,8 +36,11 @@ def columns(n_motors: int) -> list[str]:
     ``u_<axis>``, ``torque_<axis>``, ``sat_<axis>`` (0/1); then ``thrust``
     (pilot's collective, 0..1), ``thrust_out`` (realised),
     ``motor_1`` .. ``motor_<n_motors>``, ``sent_<axis>_rad_s``, the body
-    rates sent with ``--output rates`` (NaN when none were sent), and
-    ``on_ground`` (0/1: the autopilot said ON_GROUND, so nothing was learnt).
+    rates sent with ``--output rates`` (NaN when none were sent),
+    ``on_ground`` (0/1: the autopilot said ON_GROUND, so nothing was learnt),
+    ``link_rtt_ms`` (the last TIMESYNC round trip) and ``sample_age_ms`` (the
+    sample's age, on the autopilot's clock, when its command left); both NaN
+    until the autopilot first answers TIMESYNC.
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -55,7 +58,7 @@ def columns(n_motors: int) -> list[str]:
     cols += ["thrust", "thrust_out"]
     cols += [f"motor_{i}" for i in range(1, n_motors + 1)]
     cols += [f"sent_{a}_rad_s" for a in AXES]
-    cols.append("on_ground")
+    cols += ["on_ground", "link_rtt_ms", "sample_age_ms"]
     return cols
 
 

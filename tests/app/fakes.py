@@ -12,7 +12,11 @@ It speaks for system 1 / component 1 as PX4 (``autopilot`` 12) or ArduPilot (3):
   background HEARTBEAT, as a vehicle with a position estimate does;
 * with ``follow_modes`` (the default), shows an accepted DO_SET_MODE in a
   HEARTBEAT at once, as the real stacks do;
-* sends HIGHRES_IMU / ATTITUDE / RC_CHANNELS when the test asks;
+* with ``timesync_clock`` set (None by default: no answer), answers the
+  companion's TIMESYNC requests (``tc1 = 0``) with ``tc1`` that clock in ns and
+  ``ts1`` copied, each way ``timesync_delay_s`` late (as PX4 and ArduPilot do,
+  through a link of that delay);
+* sends HIGHRES_IMU / ATTITUDE / RC_CHANNELS (and TIMESYNC) when the test asks;
 * records every message it receives (``received``), decoded by its own parser.
 
 Armed state (and the mode, with ``follow_modes=False``) change only when the
@@ -105,6 +109,11 @@ class FakeAutopilot:
         self._changed = asyncio.Event()
         self._hb_task: asyncio.Task[None] | None = None
         self._bundle: list[bytes] | None = None
+        self.timesync_clock: Callable[[], float] | None = None
+        """The autopilot's clock (s) for TIMESYNC answers; None: requests go unanswered."""
+        self.timesync_delay_s = 0.0
+        """Each way: a request is stamped this late, and its answer arrives this late after."""
+        self._timers: set[asyncio.TimerHandle] = set()
 
     # ----------------------------------------------------------------- plumbing
     def write(self, buf: bytes) -> None:  # pymavlink's output "file"
@@ -134,6 +143,9 @@ class FakeAutopilot:
         return self
 
     async def close(self) -> None:
+        for timer in self._timers:
+            timer.cancel()
+        self._timers.clear()
         task, self._hb_task = self._hb_task, None
         if task is not None:
             task.cancel()
@@ -159,6 +171,8 @@ class FakeAutopilot:
                 self._answer_command(msg)
             elif mtype == "PARAM_REQUEST_READ":
                 self._answer_param(msg)
+            elif mtype == "TIMESYNC" and msg.tc1 == 0 and self.timesync_clock is not None:
+                self._later(self._answer_timesync, msg.ts1)
 
     def _answer_command(self, msg: Any) -> None:
         policy = self.results.get(msg.command, mavlink2.MAV_RESULT_ACCEPTED)
@@ -179,6 +193,27 @@ class FakeAutopilot:
             else:
                 self.custom_mode = int(msg.param2)
             self.heartbeat()
+
+    def _later(self, fn: Callable[..., None], *args: Any) -> None:
+        """``fn(*args)`` after ``timesync_delay_s`` (at once without a delay)."""
+        delay = self.timesync_delay_s
+        if delay <= 0.0:
+            fn(*args)
+            return
+        timer: asyncio.TimerHandle
+
+        def fire() -> None:
+            self._timers.discard(timer)
+            fn(*args)
+
+        timer = asyncio.get_running_loop().call_later(delay, fire)
+        self._timers.add(timer)
+
+    def _answer_timesync(self, ts1_ns: int) -> None:
+        """Stamped now, on our clock; on its way back ``timesync_delay_s`` more."""
+        assert self.timesync_clock is not None
+        answer = self.mav.timesync_encode(round(self.timesync_clock() * 1e9), ts1_ns)
+        self._later(self.mav.send, answer)
 
     def _answer_param(self, msg: Any) -> None:
         name = msg.param_id
@@ -224,6 +259,10 @@ class FakeAutopilot:
     def extended_sys_state(self, landed_state: int) -> None:
         self.mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, landed_state)
 
+    def timesync(self, tc1_ns: int, ts1_ns: int) -> None:
+        """TIMESYNC: a request of ours (``tc1 = 0``) or an answer, as the test says."""
+        self.mav.timesync_send(tc1_ns, ts1_ns)
+
     def statustext(self, text: bytes, severity: int = mavlink2.MAV_SEVERITY_INFO) -> None:
         self.mav.statustext_send(severity, text)
 
@@ -256,12 +295,20 @@ class FakeAutopilot:
 
     async def wait_until(self, cond: Callable[[], bool], timeout_s: float = 2.0) -> None:
         """Wait until ``cond()`` holds, re-checking on every message received
-        (and every 10 ms, for conditions on the companion's state)."""
+        (and every 10 ms, for conditions on the companion's state); TimeoutError
+        after ``timeout_s``.
 
-        async def _wait() -> None:
-            while not cond():
-                self._changed.clear()
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(self._changed.wait(), 0.01)
-
-        await asyncio.wait_for(_wait(), timeout_s)
+        A deadline rather than an outer ``wait_for``: before Python 3.12, a
+        ``wait_for`` cancelled just as what it awaits completes returns the result
+        and drops the cancellation (CPython gh-86296), so the inner wait below
+        could swallow the outer one's cancel; the loop went on, and the outer
+        ``wait_for`` waited for it for ever (a failing test hung instead of failing)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while not cond():
+            left = deadline - loop.time()
+            if left <= 0.0:
+                raise asyncio.TimeoutError(f"condition not met within {timeout_s} s")
+            self._changed.clear()
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._changed.wait(), min(0.01, left))

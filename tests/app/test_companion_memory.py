@@ -261,7 +261,8 @@ async def test_shadow_mode_sends_no_setpoint_mode_or_arm(start: Start) -> None:
     assert not f.companion.engaged
     f.companion._stop.set()
     assert await f.finish() == 0
-    assert {m.get_type() for m in fake.received} == {"HEARTBEAT", "COMMAND_LONG"}
+    # Asking the autopilot's time (TIMESYNC) measures the link; it commands nothing.
+    assert {m.get_type() for m in fake.received} == {"HEARTBEAT", "COMMAND_LONG", "TIMESYNC"}
     assert {m.command for m in fake.of_type("COMMAND_LONG")} == {CMD_SET_MESSAGE_INTERVAL}
 
 

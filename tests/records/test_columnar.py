@@ -23,11 +23,12 @@ def test_columns_layout() -> None:
         "torque_roll", "sat_roll",
     ]  # fmt: skip
     assert cols[12] == "ref_pitch_rad_s" and cols[19] == "ref_yaw_rad_s"
-    assert cols[-11:] == [
+    assert cols[-13:] == [
         "sat_yaw", "thrust", "thrust_out", "motor_1", "motor_2", "motor_3", "motor_4",
         "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s", "on_ground",
+        "link_rtt_ms", "sample_age_ms",
     ]  # fmt: skip
-    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1
+    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2
     assert len(columns(6)) == len(cols) + 2
     with pytest.raises(ValueError):
         columns(0)
@@ -70,11 +71,11 @@ def test_round_trip_with_metadata(tmp_path: Path) -> None:
 def test_wrong_row_length_raises(tmp_path: Path) -> None:
     cols = columns(4)
     with ColumnarLog(tmp_path / "x.bin", cols) as log:
-        with pytest.raises(ValueError, match="35 values, expected 36"):
-            log.append([0.0] * 35)
-        with pytest.raises(ValueError, match="37 values, expected 36"):
+        with pytest.raises(ValueError, match="37 values, expected 38"):
             log.append([0.0] * 37)
-        log.append([0.0] * 36)
+        with pytest.raises(ValueError, match="39 values, expected 38"):
+            log.append([0.0] * 39)
+        log.append([0.0] * 38)
     got, _ = read_columnar(tmp_path / "x.bin")
     assert len(got["t_s"]) == 1
 

@@ -37,6 +37,7 @@ def test_url_parsing() -> None:
         "yaw": "a/b/axis/yaw",
         "status": "a/b/status",
         "event": "a/b/event",
+        "link": "a/b/link",
     }
     for bad in (
         "mqtt://127.0.0.1:1883",  # no prefix

@@ -84,6 +84,7 @@ def write_log(
                     o.saturated_axes[a],
                 ]
             row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan, 0.0]
+            row += [np.nan, np.nan]  # link_rtt_ms, sample_age_ms: no TIMESYNC answer
             log.append(row)
 
 
