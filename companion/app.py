@@ -56,6 +56,7 @@ import asyncio
 import contextlib
 import gc
 import logging
+import os
 import signal
 import time
 from collections import deque
@@ -72,6 +73,7 @@ from companion.errors import (
     EXIT_OK,
     EngageError,
     LinkError,
+    LogDirInUseError,
 )
 from companion.failsafe import FailsafeConfig
 from companion.handback import candidates
@@ -222,6 +224,7 @@ class Companion(SamplePath):
         self._events_file = EventLog(ring_size=_EVENTS_KEPT)
         self._telemetry: Any = None
         self._writer: Any = None  # companion.records.RecordWriter, with --log-dir
+        self._log_dir_lock: int | None = None  # its lock file's descriptor, held till the end
 
     @property
     def events(self) -> deque[dict[str, Any]]:
@@ -476,22 +479,37 @@ class Companion(SamplePath):
 
     # ------------------------------------------------------------------- run
     def _open_records(self) -> None:
-        """Open the run's records; their writes go through one writer thread
+        """Lock the log folder, move an earlier run's records aside, open the run's
+        records; their writes go through one writer thread
         (companion.records.RecordWriter), so the disk never holds the loop.
 
         Raises
         ------
-        OSError
-            If a file cannot be created or its header written (start-up only).
+        LogDirInUseError
+            If another run holds the folder (nothing in it is touched).
+        OSError, ValueError
+            If the folder cannot be locked or tidied, or a file cannot be created
+            or its header written (start-up only).
         """
         from companion import __version__
         from companion.control import COMPILED
-        from companion.records import ColumnarLog, RecordWriter, TlogWriter, columns
+        from companion.records import (
+            ColumnarLog,
+            RecordWriter,
+            TlogWriter,
+            columns,
+            lock_log_dir,
+            prepare_log_dir,
+        )
 
         d = self.opts.log_dir
         if d is None:
             return
         d.mkdir(parents=True, exist_ok=True)
+        # The lock first: a second run on this folder must refuse before it moves
+        # the live run's records away.
+        self._log_dir_lock = lock_log_dir(d)
+        moved = prepare_log_dir(d)
         self._writer = writer = RecordWriter()
         self._tlog = TlogWriter(d / "flight.tlog", writer=writer)
         meta = {
@@ -509,9 +527,13 @@ class Companion(SamplePath):
         )
         self._log_append = self._log_rows.append
         self._events_file = EventLog(d / "events.jsonl", writer=writer)
+        if moved is not None:
+            _log.warning("--log-dir %s: an earlier run's records moved to %s", d, moved)
+            self._event("records_moved", f"an earlier run's records moved to {moved}")
 
     def _close_records(self) -> None:
-        """Hand the last buffers to the writer, then let it drain (bounded)."""
+        """Hand the last buffers to the writer, let it drain (bounded), remove the
+        records that hold nothing of a flight, then release the log folder."""
         for obj in (self._log_rows, self._tlog, self._events_file):
             if obj is not None:
                 with contextlib.suppress(Exception):
@@ -519,6 +541,20 @@ class Companion(SamplePath):
         if self._writer is not None:
             with contextlib.suppress(Exception):
                 self._writer.close(2.0)
+        # A start that failed (no autopilot, a refused stack) must not leave files
+        # that look like a flight: a control.bin without a row and a flight.tlog
+        # without a frame from the autopilot go; events.jsonl stays and says why.
+        rows, tlog = self._log_rows, self._tlog
+        for record, empty in (
+            (rows, rows is not None and rows.rows == 0),
+            (tlog, tlog is not None and tlog.written_in == 0),
+        ):
+            if empty:
+                with contextlib.suppress(OSError):
+                    record.path.unlink()
+        if self._log_dir_lock is not None:
+            os.close(self._log_dir_lock)
+            self._log_dir_lock = None
 
     async def run(self) -> int:
         """Run until a signal, the duration, or a failsafe; returns the exit code."""
@@ -531,7 +567,10 @@ class Companion(SamplePath):
         transport = self._transport or open_transport(opts.connect)
         try:
             self._open_records()
-        except OSError as exc:
+        except LogDirInUseError as exc:
+            _log.error("%s", exc)
+            return EXIT_ERROR
+        except (OSError, ValueError) as exc:
             _log.error("cannot open the records in %s: %s", opts.log_dir, exc)
             self._close_records()
             return EXIT_ERROR

@@ -30,6 +30,7 @@ from companion.options import (
     Finite,
     controller_opt,
     fail_config,
+    keep_earlier,
     load_inputs,
     output_opt,
     profile_opt,
@@ -182,7 +183,8 @@ def check_config(profile_path: Path, controller_path: Path | None) -> None:
     type=click.Path(file_okay=False),
     callback=usable_out_dir,
     default=None,
-    help="Write flight.tlog, control.bin and events.jsonl here.",
+    help="Write flight.tlog, control.bin and events.jsonl here. An earlier run's are moved "
+    "into earlier-<UTC time>/ in it first; a folder another run is using is refused (exit 1).",
 )
 @click.option("--mqtt", "mqtt_url", default=None, help="mqtt://HOST[:PORT]/PREFIX telemetry.")
 @signing_key_opt("MAVLink 2 signing key file (see docs/signing.md).")
@@ -365,16 +367,9 @@ def run(
             )
         if autopilot_compid is not None and autopilot_sysid is None:
             raise ValueError("--autopilot-compid: needs --autopilot-sysid as well")
-        moved = None
-        if log_dir is not None:
-            from companion.records import prepare_log_dir
-
-            moved = prepare_log_dir(log_dir)
     except (ValueError, MfcError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)
-    if moved is not None:
-        click.echo(f"--log-dir {log_dir}: an earlier run's records moved to {moved}", err=True)
     opts = RunOptions(
         connect=connect,
         profile=profile,
@@ -443,7 +438,8 @@ its controller file."""
     type=click.Path(dir_okay=False),
     callback=usable_out_file,
     default=None,
-    help="Write the replayed outputs here as a columnar log.",
+    help="Write the replayed outputs here as a columnar log (an earlier file of that name "
+    "is moved into earlier-<UTC time>/ beside it first).",
 )
 def replay_cmd(
     log: Path, controller_path: Path | None, profile_path: Path | None, out_path: Path | None
@@ -489,6 +485,7 @@ def replay_cmd(
         click.echo(f"  {name:24s} max |recorded - replayed| = {d:.3g}")
     click.echo(f"largest difference: {worst:.3g}")
     if out_path is not None:
+        keep_earlier(f"--out {out_path}", out_path.parent, (out_path.name,))
         names = list(out)
         with ColumnarLog(
             out_path, names, meta={"replay_of": str(log), "controller": str(ctrl)}

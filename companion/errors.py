@@ -6,7 +6,8 @@
     ├── ConfigError (also ValueError)  bad profile or controller file
     ├── LinkError                      the MAVLink transport failed or was closed
     │   └── SigningError               a signing key file is unusable
-    └── EngageError                    the autopilot refused engagement (ACK denied, timeout)
+    ├── EngageError                    the autopilot refused engagement (ACK denied, timeout)
+    └── LogDirInUseError               another run holds the --log-dir (its lock)
 
 A simulated flight's outcome (landed, crashed, failsafe) is a value, not an exception.
 
@@ -25,6 +26,7 @@ __all__ = [
     "ConfigError",
     "EngageError",
     "LinkError",
+    "LogDirInUseError",
     "MfcError",
     "SigningError",
 ]
@@ -63,3 +65,7 @@ class SigningError(LinkError):
 
 class EngageError(MfcError):
     """The autopilot refused or did not answer a step of engagement."""
+
+
+class LogDirInUseError(MfcError):
+    """Another run holds the ``--log-dir`` (its lock); the message names the folder and its pid."""

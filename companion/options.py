@@ -5,6 +5,8 @@ anything) and ``inf`` past an open end; a watchdog given ``--stale-imu-s nan``
 would never fire. :class:`Finite` closes that. :func:`usable_out_dir` checks an
 output folder before any work starts (making it and a file in it, then undoing
 that), so a bad ``--out`` fails at once rather than after a long run.
+:func:`keep_earlier` moves an earlier run's outputs aside before a command
+writes its own: no command overwrites one.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import math
 import os
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -28,6 +30,7 @@ __all__ = [
     "Finite",
     "controller_opt",
     "fail_config",
+    "keep_earlier",
     "load_inputs",
     "out_dir_problem",
     "output_opt",
@@ -113,6 +116,22 @@ def usable_out_file(
         raise click.BadParameter(f"{value} is a folder; expected a file path", ctx, param)
     usable_out_dir(ctx, param, path.parent)
     return path
+
+
+def keep_earlier(what: str, folder: Path, names: Iterable[str]) -> None:
+    """Before a command writes: its earlier outputs ``names`` in ``folder`` moved,
+    untouched, into ``folder/earlier-<UTC time>/`` (:func:`companion.records.move_earlier`),
+    and said so on stderr. ``what`` names the option (``--out runs/x``). Exits with
+    :data:`EXIT_BAD_INPUT`, nothing started, if they cannot be moved."""
+    from companion.records import move_earlier
+
+    try:
+        moved = move_earlier(folder, names, what=what)
+    except ValueError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    if moved is not None:
+        click.echo(f"{what}: an earlier run's outputs moved to {moved}", err=True)
 
 
 def fail_config(exc: ConfigError) -> NoReturn:

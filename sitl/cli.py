@@ -6,6 +6,10 @@ Usage::
         --pilot paper-acro --seed 1 --clock realtime --duration 30 --log out/flight.npz
     sitl envelope --n 30 --seed 1 --out runs/envelope --corners
 
+Neither overwrites an earlier run: its files (``--log FILE`` and its events,
+``--out``'s profiles and envelope.json) are first moved into
+``earlier-<UTC time>/`` in their folder.
+
 Exit codes: 0 when the flight ran (completed, stopped by SIGINT/SIGTERM, or
 crashed: the outcome is in the log summary), 2 for bad arguments or a bad
 profile / stick script (the message goes to stderr, nothing is started), 1 for
@@ -22,7 +26,14 @@ from typing import Any
 import click
 
 from companion.errors import ConfigError, SigningError
-from companion.options import SEED, Finite, signing_key_opt, usable_out_dir, usable_out_file
+from companion.options import (
+    SEED,
+    Finite,
+    keep_earlier,
+    signing_key_opt,
+    usable_out_dir,
+    usable_out_file,
+)
 from companion.profile import load_profile
 from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 
@@ -99,7 +110,8 @@ def cli(verbose: int) -> None:
     type=click.Path(dir_okay=False),
     callback=usable_out_file,
     default=None,
-    help="True-state log (.npz) plus FILE.events.jsonl; see sitl.runner.",
+    help="True-state log (.npz) plus FILE.events.jsonl; see sitl.runner. Earlier ones of "
+    "those names are moved into earlier-<UTC time>/ beside them first.",
 )
 @click.option(
     "--offboard-timeout",
@@ -289,6 +301,11 @@ def run(
     except (ConfigError, SigningError, ValueError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(2)
+    if log_path is not None:
+        from sitl.flight_log import events_path
+
+        names = (log_path.name, events_path(log_path).name)
+        keep_earlier(f"--log {log_path}", log_path.parent, names)
     try:
         summary = runner.run()
     except OSError as exc:
@@ -325,7 +342,8 @@ def run(
     required=True,
     type=click.Path(file_okay=False),
     callback=usable_out_dir,
-    help="Directory for NAME.yaml per vehicle and envelope.json.",
+    help="Directory for NAME.yaml per vehicle and envelope.json (an earlier run's *.yaml "
+    "and envelope.json are moved into earlier-<UTC time>/ in it first).",
 )
 @click.option("--corners", "with_corners", is_flag=True, help="Also write the named corners.")
 def envelope(n: int, seed: int, out_dir: Path, with_corners: bool) -> None:
@@ -337,6 +355,7 @@ def envelope(n: int, seed: int, out_dir: Path, with_corners: bool) -> None:
     vehicles = (sample_envelope(n, seed) if n > 0 else []) + (corners() if with_corners else [])
     if not vehicles:
         raise click.UsageError("nothing to write: give --n 1 or more, or --corners")
+    keep_earlier(f"--out {out_dir}", out_dir, ("*.yaml", "envelope.json"))
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         for v in vehicles:

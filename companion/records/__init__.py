@@ -29,16 +29,27 @@ A write error never reaches the caller: it is logged once, the log stops
 recording (``failed`` holds the error) and later rows are counted in
 ``dropped``.
 
+Nothing is overwritten: an earlier run's outputs are moved aside first, and a
+``--log-dir`` in use is locked (:mod:`companion.records.folder`).
+
 Formats are described in ``docs/logs.md``.
 """
 
 from companion.records.columnar import FORMAT, ColumnarLog, columns, last_row, read_columnar
 from companion.records.events import EventLog
+from companion.records.folder import (
+    LOCK_FILE,
+    RECORD_FILES,
+    lock_log_dir,
+    move_earlier,
+    prepare_log_dir,
+)
 from companion.records.tlog import TlogWriter
-from companion.records.writer import RECORD_FILES, RecordFileStats, RecordWriter, prepare_log_dir
+from companion.records.writer import RecordFileStats, RecordWriter
 
 __all__ = [
     "FORMAT",
+    "LOCK_FILE",
     "RECORD_FILES",
     "ColumnarLog",
     "EventLog",
@@ -47,6 +58,8 @@ __all__ = [
     "TlogWriter",
     "columns",
     "last_row",
+    "lock_log_dir",
+    "move_earlier",
     "prepare_log_dir",
     "read_columnar",
 ]

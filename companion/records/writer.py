@@ -10,73 +10,29 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import os
 import queue
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, BinaryIO, TypeVar
 
 __all__ = [
-    "RECORD_FILES",
     "BufferedLog",
     "Chunk",
     "RecordFileStats",
     "RecordWriter",
     "Sink",
-    "prepare_log_dir",
 ]
 
 log = logging.getLogger("companion.records")
-
-RECORD_FILES = ("flight.tlog", "control.bin", "events.jsonl")
-"""What ``companion run --log-dir DIR`` writes into DIR."""
 
 Chunk = bytes | bytearray | memoryview
 """Bytes for :meth:`RecordWriter.submit`; ``len()`` must be the size in bytes."""
 
 _MIB = 1 << 20
-
-
-def prepare_log_dir(path: str | Path) -> Path | None:
-    """Make ``path`` ready for one run's records; never overwrite an earlier run's.
-
-    Creates the folder if needed. Records already in it (an earlier run's, or a
-    start-up that failed: a service restarting into the same folder) are moved,
-    untouched, into a subfolder ``earlier-<UTC time of their last write>`` first.
-    Returns that subfolder, or None when there was nothing to move.
-
-    Raises
-    ------
-    ValueError
-        If the folder cannot be created or written, naming it.
-    """
-    d = Path(path)
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ValueError(f"--log-dir {d}: cannot create the folder: {exc.strerror}") from None
-    if not os.access(d, os.W_OK | os.X_OK):
-        raise ValueError(f"--log-dir {d}: the folder is not writable")
-    held = [d / n for n in RECORD_FILES if (d / n).exists()]
-    if not held:
-        return None
-    when = datetime.fromtimestamp(max(p.stat().st_mtime for p in held), tz=timezone.utc)
-    base = d / f"earlier-{when:%Y%m%dT%H%M%SZ}"
-    dest, n = base, 1
-    while dest.exists():
-        dest, n = base.with_name(f"{base.name}-{n}"), n + 1
-    try:
-        dest.mkdir()
-        for p in held:
-            p.rename(dest / p.name)
-    except OSError as exc:
-        raise ValueError(f"--log-dir {d}: cannot move the earlier records aside: {exc}") from None
-    return dest
 
 
 @dataclass(frozen=True)

@@ -49,6 +49,7 @@ from companion.profile import MotorDamage, VehicleProfile
 from sitl.scenario import Scenario
 
 __all__ = [
+    "CAMPAIGN_FILES",
     "FlightSpec",
     "build_grid",
     "damaged_profile",
@@ -60,6 +61,9 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
+
+CAMPAIGN_FILES = ("campaign.json", "summary.md", "mae.png")
+"""What :func:`write_outputs` writes into its folder."""
 
 
 @dataclass(frozen=True)

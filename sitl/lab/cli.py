@@ -4,7 +4,9 @@ They are ``companion`` subcommands (the product's command line imports this
 module only when one of them is asked for) and fly the bundled simulator, so
 they need the ``lab`` extra (matplotlib for the plots, tqdm for progress).
 Their flags, exit codes and ``metrics.json`` keys are contracts: extend them,
-never rename.
+never rename. None overwrites an earlier run: what an earlier run wrote into
+``--out`` is moved into ``earlier-<UTC time>/`` in it (after the arguments are
+checked, before the work starts).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from companion.options import (
     controller_opt,
     fail_config,
     find_profile,
+    keep_earlier,
     load_inputs,
     output_opt,
     profile_opt,
@@ -130,7 +133,8 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
     callback=usable_out_dir,
     default=Path("runs/latest"),
     show_default=True,
-    help="Folder for metrics.json, plots, flight.npz and report.md.",
+    help="Folder for metrics.json, plots, flight.npz and report.md (an earlier run's are "
+    "moved into earlier-<UTC time>/ in it first).",
 )
 @_link_opt
 @_progress_opt
@@ -147,7 +151,7 @@ def simulate(
     """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
     _need_lab_extras()
     from companion.profile import load_profile
-    from sitl.lab.report import write_report
+    from sitl.lab.report import REPORT_FILES, write_report
     from sitl.lab.simulate import simulate_flight
     from sitl.scenario import load_scenario
 
@@ -159,6 +163,7 @@ def simulate(
         fail_config(exc)
     if link is not None:
         sc = sc.model_copy(update={"link": link})
+    keep_earlier(f"--out {out_dir}", out_dir, REPORT_FILES)
     with _percent_bar(f"{sc.name} on {profile.name}", progress) as tick:
         record = simulate_flight(
             profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
@@ -198,6 +203,8 @@ def simulate(
     callback=usable_out_dir,
     default=Path("runs/fly"),
     show_default=True,
+    help="Folder for the report and both processes' logs (an earlier run's are moved "
+    "into earlier-<UTC time>/ in it first).",
 )
 @click.option(
     "--autopilot",
@@ -234,8 +241,8 @@ def fly(
     """
     _need_lab_extras()
     from companion.profile import load_profile
-    from sitl.lab.fly import FlightProcesses, fly_mavlink, merge_logs
-    from sitl.lab.report import write_report
+    from sitl.lab.fly import FLIGHT_FILES, FlightProcesses, fly_mavlink, merge_logs
+    from sitl.lab.report import REPORT_FILES, write_report
     from sitl.lab.simulate import FlightRecord
     from sitl.scenario import load_scenario
 
@@ -263,6 +270,7 @@ def fly(
     meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
             "controller_profile": str(controller_profile or profile_path),
             "link": sc.link.describe()}  # fmt: skip
+    keep_earlier(f"--out {out_dir}", out_dir, (*FLIGHT_FILES, *REPORT_FILES, "passthrough"))
 
     def fly_once(
         label: str, out: Path, companion_args: tuple[str, ...] = ()
@@ -320,7 +328,8 @@ def fly(
     callback=usable_out_dir,
     default=Path("runs/campaign"),
     show_default=True,
-    help="Folder for campaign.json, summary.md and mae.png.",
+    help="Folder for campaign.json, summary.md and mae.png (an earlier run's are moved "
+    "into earlier-<UTC time>/ in it first).",
 )
 @click.option(
     "--profiles",
@@ -399,7 +408,7 @@ def campaign(
 
     from companion.config import DEFAULT_CONTROLLER, load_controller
     from companion.profile import load_profile
-    from sitl.lab.campaign import build_grid, run_campaign, write_outputs
+    from sitl.lab.campaign import CAMPAIGN_FILES, build_grid, run_campaign, write_outputs
     from sitl.scenario import load_scenario
 
     root = Path(__file__).resolve().parents[2]
@@ -457,6 +466,7 @@ def campaign(
         )  # fmt: skip
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
+    keep_earlier(f"--out {out_dir}", out_dir, CAMPAIGN_FILES)
     n_workers = workers or os.cpu_count() or 1
     _log.info("campaign: %d flights on %d workers", len(specs), n_workers)
     t0 = time.perf_counter()
@@ -488,7 +498,8 @@ def campaign(
     type=click.Path(file_okay=False),
     callback=usable_out_dir,
     required=True,
-    help="Folder for envelope.json, summary.md, ratio.png and worst-*.png.",
+    help="Folder for envelope.json, summary.md, ratio.png and worst-*.png (an earlier "
+    "run's are moved into earlier-<UTC time>/ in it first).",
 )
 @click.option(
     "--n",
@@ -588,7 +599,12 @@ def envelope(
     _need_lab_extras()
 
     from companion.config import DEFAULT_CONTROLLER
-    from sitl.lab.envelope import envelope_meta, run_envelope, write_envelope_outputs
+    from sitl.lab.envelope import (
+        ENVELOPE_FILES,
+        envelope_meta,
+        run_envelope,
+        write_envelope_outputs,
+    )
     from sitl.lab.envelope_setup import envelope_cases, load_setup
     from sitl.lab.envelope_verdicts import verdicts
 
@@ -609,6 +625,7 @@ def envelope(
         fail_config(exc)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
+    keep_earlier(f"--out {out_dir}", out_dir, ENVELOPE_FILES)
     n_workers = workers or os.cpu_count() or 1
     _log.info("envelope: %d cases on %d workers", len(cases), n_workers)
     t0 = time.perf_counter()

@@ -80,9 +80,12 @@ from sitl.lab.envelope_verdicts import verdicts, worst_cases
 from sitl.lab.pidtune import tune_pid
 from sitl.scenario import Scenario
 
-__all__ = ["envelope_meta", "run_envelope", "write_envelope_outputs"]
+__all__ = ["ENVELOPE_FILES", "envelope_meta", "run_envelope", "write_envelope_outputs"]
 
 _log = logging.getLogger(__name__)
+
+ENVELOPE_FILES = ("envelope.json", "summary.md", "ratio.png", "worst-*.png")
+"""What :func:`write_envelope_outputs` writes into its folder (names or patterns)."""
 
 
 def _test_flight(

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import socket
 import subprocess
@@ -27,10 +26,21 @@ from typing import Any
 import numpy as np
 
 from companion.control import AXES
+from companion.records import move_earlier
 from sitl.lab.simulate import FlightRecord
 from sitl.link_model import LINK_PROFILES, LinkSpec
 
-__all__ = ["FlightProcesses", "fly_mavlink", "free_udp_port", "link_arg", "merge_logs"]
+__all__ = [
+    "FLIGHT_FILES",
+    "FlightProcesses",
+    "fly_mavlink",
+    "free_udp_port",
+    "link_arg",
+    "merge_logs",
+]
+
+FLIGHT_FILES = ("companion", "companion.stderr", "sitl.npz", "sitl.events.jsonl", "sitl.stderr")
+"""What :func:`fly_mavlink` writes into its folder (``companion`` is a folder)."""
 
 
 def link_arg(spec: LinkSpec) -> str:
@@ -126,7 +136,8 @@ def fly_mavlink(
         Scenario name or file (pilot, seed, wind, IMU).
     out_dir
         Where ``sitl.npz``, its events, ``companion/`` (tlog, control.bin,
-        events) and both processes' stderr go.
+        events) and both processes' stderr go (:data:`FLIGHT_FILES`; an earlier
+        flight's are moved into ``earlier-<UTC time>/`` in it first).
     controller_path, output
         Passed to ``companion run``.
     duration_s
@@ -145,15 +156,18 @@ def fly_mavlink(
         use it to send signals).
     timeout_s
         Wall-clock limit for the companion; default 30 s + 4x the flight.
+
+    Raises
+    ------
+    ValueError
+        If an earlier flight's files in ``out_dir`` cannot be moved aside.
     """
     from sitl.pilot import make_pilot
     from sitl.scenario import load_scenario
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    # The companion would move an earlier flight's records aside; OUT/companion
-    # is fly's own, from an earlier flight into the same OUT: it is replaced.
-    shutil.rmtree(out / "companion", ignore_errors=True)
+    move_earlier(out, FLIGHT_FILES, what=str(out))  # an earlier flight's, kept
     sc = load_scenario(scenario)
     if duration_s is None:
         duration_s = sc.duration_s or make_pilot(sc.pilot, rng=np.random.default_rng(0)).duration_s

@@ -34,7 +34,10 @@ import numpy as np
 from companion.control import AXES
 from sitl.lab.simulate import FlightRecord
 
-__all__ = ["AXES", "compute_metrics", "plot_flight", "versions", "write_report"]
+__all__ = ["AXES", "REPORT_FILES", "compute_metrics", "plot_flight", "versions", "write_report"]
+
+REPORT_FILES = ("metrics.json", "flight.npz", "report.md", "rates.png", "motors_and_estimate.png")
+"""What :func:`write_report` writes into its folder."""
 
 
 def _per_axis(values: np.ndarray) -> dict[str, float]:

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from companion.app import Companion, RunOptions
 from companion.cli import cli
 from companion.records import read_columnar
 from companion.reference import ReferenceScript
@@ -716,8 +717,9 @@ def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log
     (earlier,) = logs.glob("earlier-*")
     assert (earlier / "control.bin").read_bytes() == b"the last flight"
     assert "failsafe_link_lost" in (earlier / "events.jsonl").read_text()
-    assert f"moved to {earlier}" in res.output
-    assert "no HEARTBEAT" in (logs / "events.jsonl").read_text()  # this run's own
+    events = (logs / "events.jsonl").read_text()  # this run's own
+    assert f"moved to {earlier}" in events
+    assert "no HEARTBEAT" in events
     # The same again (a service restarting): a second folder, nothing lost.
     res = CliRunner().invoke(
         cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", str(PROFILE_PATH),
@@ -728,7 +730,7 @@ def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log
     # A path that cannot be a folder: exit 2, no traceback.
     res = CliRunner().invoke(
         cli, ["run", "--connect", f"udpout:127.0.0.1:{port}", "--profile", str(PROFILE_PATH),
-              "--engage", "none", "--log-dir", str(logs / "control.bin" / "x")],
+              "--engage", "none", "--log-dir", str(logs / "events.jsonl" / "x")],
     )  # fmt: skip
     assert res.exit_code == 2, res.output
     assert "cannot create the folder" in res.output
@@ -762,15 +764,24 @@ def test_cli_run_refuses_to_wait_after_a_failsafe_when_nothing_could_engage_agai
 def test_cli_run_logs_absolute_paths_so_replay_works_from_anywhere(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # The run's options, as the command line gives them: _open_records writes these
+    # paths into control.bin's header (a run that never started keeps no control.bin).
+    given: list[RunOptions] = []
+
+    async def run(self: Companion) -> int:
+        given.append(self.opts)
+        return 1
+
+    monkeypatch.setattr(Companion, "run", run)
     monkeypatch.chdir(ROOT)
     res = CliRunner().invoke(
         cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", "vehicle_profiles/f450.yaml",
-              "--engage", "none", "--log-dir", str(tmp_path), "--heartbeat-timeout-s", "0.2"],
+              "--engage", "none", "--log-dir", str(tmp_path)],
     )  # fmt: skip
-    assert res.exit_code == 1, res.output  # no autopilot; the log header is written first
-    _, meta = read_columnar(tmp_path / "control.bin")
-    assert meta["profile_path"] == str(PROFILE_PATH)
-    assert Path(meta["controller_path"]).is_absolute()
+    assert res.exit_code == 1, res.output
+    (opts,) = given
+    assert opts.profile_path == str(PROFILE_PATH)
+    assert Path(opts.controller_path).is_absolute()
 
 
 def test_cli_default_profile_is_found_from_any_directory(

@@ -16,13 +16,14 @@ import tracemalloc
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import pytest
 
 from companion.app import Companion, RunOptions
 from companion.failsafe import FailsafeConfig
 from companion.link.transport import MemoryTransport
+from companion.records import writer as records_writer
 from tests.app.fakes import CMD_DO_SET_MODE, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import (
     CONTROLLER,
@@ -121,22 +122,28 @@ async def test_an_rc_glitch_holds_the_last_valid_sticks_never_idle_thrust(start:
 # ------------------------------------------------------------- failing records
 
 
-def full_disk(log_dir: Path) -> Path:
-    """A log folder whose MAVLink log and events file are /dev/full: every write to
-    them fails with ENOSPC (the columnar log's header, written at start-up, goes
-    to a real file, so the disk fills in flight)."""
-    log_dir.mkdir()
-    for name in ("flight.tlog", "events.jsonl"):
-        os.symlink("/dev/full", log_dir / name)
+def full_disk(log_dir: Path, monkeypatch: pytest.MonkeyPatch, *names: str) -> Path:
+    """A log folder whose records ``names`` (default: the MAVLink log and the events
+    file) are written to /dev/full: every write to them fails with ENOSPC (the
+    columnar log's header, written at start-up, goes to a real file, so the disk
+    fills in flight). The records' writer opens them through its opener: files put
+    in the folder beforehand would be moved aside as an earlier run's."""
+    full = names or ("flight.tlog", "events.jsonl")
+
+    def opener(path: Path) -> BinaryIO:
+        return open("/dev/full" if path.name in full else path, "wb")
+
+    monkeypatch.setattr(records_writer, "_open_binary", opener)
     return log_dir
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
-async def test_a_full_disk_leaves_the_watchdogs_running(start: Start, tmp_path: Path) -> None:
+async def test_a_full_disk_leaves_the_watchdogs_running(
+    start: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     fs = replace(LOOSE, stale_imu_s=0.2, rc_timeout_s=5.0, link_timeout_s=5.0)
-    f = await start(
-        engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
-    )
+    log_dir = full_disk(tmp_path / "r", monkeypatch)
+    f = await start(engage="auto", output="actuator", failsafe=fs, log_dir=log_dir)
     await engage_px4_auto(f)
     await fly(f, 100)  # enough rows and frames for every writer to have tried
     for _ in range(40):
@@ -160,12 +167,13 @@ async def test_a_full_disk_leaves_the_watchdogs_running(start: Start, tmp_path: 
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
-async def test_a_full_disk_fails_safe_when_asked_to(start: Start, tmp_path: Path) -> None:
+async def test_a_full_disk_fails_safe_when_asked_to(
+    start: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0,
                         on_record_error="failsafe")  # fmt: skip
-    f = await start(
-        engage="auto", output="actuator", failsafe=fs, log_dir=full_disk(tmp_path / "r")
-    )
+    log_dir = full_disk(tmp_path / "r", monkeypatch)
+    f = await start(engage="auto", output="actuator", failsafe=fs, log_dir=log_dir)
     f.fake.rc(1000)
     # Commanding starts with the engagement (setpoints stream before OFFBOARD): from
     # then on, the first failed write (within a flush interval) is a failsafe.
@@ -583,11 +591,9 @@ async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
 async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sent(
-    tmp_path: Path,
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    log_dir = tmp_path / "r"
-    log_dir.mkdir()
-    os.symlink("/dev/full", log_dir / "control.bin")  # its header cannot be written
+    log_dir = full_disk(tmp_path / "r", monkeypatch, "control.bin")  # no room for its header
     ours, _theirs = MemoryTransport.pair()
     opts = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, log_dir=log_dir)
     assert await asyncio.wait_for(Companion(opts, transport=ours).run(), 2.0) == 1
