@@ -110,19 +110,48 @@ def cli(verbose: int) -> None:
 @cli.command("check-config")
 @profile_opt
 @controller_opt
-def check_config(profile_path: Path, controller_path: Path | None) -> None:
+@click.option(
+    "--fly",
+    is_flag=True,
+    help="Also fly the controller config in the bundled simulator (in process, about "
+    "10 s of acro on the paper's three vehicles and two envelope corners, the shipped "
+    "controller beside it) and fail it (exit 2) when a flight crashes or its error "
+    "exceeds the shipped controller's by more than 20 deg/s on an axis.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Processes for --fly's flights (the result does not depend on it).",
+)
+def check_config(
+    profile_path: Path, controller_path: Path | None, fly: bool, workers: int
+) -> None:
     """Validate a profile and a controller config; print the effective values."""
     from companion.config import build_mixer
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path)
     mixer = build_mixer(profile)
     roll_f, pitch_f, yaw_f = mixer.factors()
-    doc = {
+    doc: dict[str, Any] = {
         "profile": {"path": str(profile_path), **profile.model_dump(mode="json")},
         "controller": {"path": str(ctrl_path), **cfg.model_dump(mode="json")},
         "mixer": {"roll": roll_f, "pitch": pitch_f, "yaw": yaw_f, "idle": mixer.idle},
     }
+    failed: list[str] = []
+    if fly:
+        from sitl.lab.config_check import check_controller
+
+        flights = check_controller(cfg, workers=workers)
+        doc["flight_check"] = [f.as_dict() for f in flights]
+        failed = [p for f in flights for p in f.problems]
     click.echo(json.dumps(doc, indent=2))
+    if failed:
+        click.echo(f"error: {ctrl_path}: flown in the simulator, it fails:", err=True)
+        for problem in failed:
+            click.echo(f"  {problem}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
 
 
 @cli.command("run")

@@ -90,7 +90,13 @@ class AlphaAdaptConfig(StrictModel):
     min_excitation_us: float = Field(10.0, ge=0.0, le=1000.0)
     min_samples_weight_us2: float = Field(2.0e4, ge=0.0)
     tau_candidates_s: tuple[float, ...] = Field((), max_length=8)
-    min_response_rad_s2: float = Field(2.0, ge=0.0, le=1000.0)
+    min_response_rad_s2: float = Field(
+        2.0,
+        ge=0.0,
+        le=10.0,
+        description="smallest response the identifier learns from; measured with "
+        "check-config --fly: 10 flies every reference vehicle, 40 ruins the F450's roll",
+    )
     margin_min: float = Field(
         0.0,
         ge=0.0,
@@ -147,7 +153,10 @@ class AlphaAdaptConfig(StrictModel):
 
 class MfcAxisConfig(StrictModel):
     order: Literal[1, 2]
-    alpha: float = Field(description="(rad/s^m) per us; non-zero")
+    alpha: float = Field(
+        description="(rad/s^m) per us; positive: a positive command accelerates the axis "
+        "positively (the mixer's convention), so a negative alpha is positive feedback"
+    )
     window_s: float = Field(gt=0.0, le=0.5)
     kp: float = Field(ge=0.0, le=1000.0)
     kd: float = Field(0.0, ge=0.0, le=100.0)
@@ -218,9 +227,22 @@ class MfcAxisConfig(StrictModel):
     @field_validator("alpha")
     @classmethod
     def _alpha(cls, v: float) -> float:
-        if not (1e-6 <= abs(v) <= 1e6):
-            raise ValueError("expected a non-zero magnitude in [1e-6, 1e6]")
+        if not (1e-6 <= v <= 1e6):
+            raise ValueError(
+                "expected a positive value in [1e-6, 1e6] (a negative alpha turns the law's "
+                "feedback positive)"
+            )
         return v
+
+    @model_validator(mode="after")
+    def _alpha_in_adapt_range(self) -> MfcAxisConfig:
+        adapt = self.alpha_adapt
+        if adapt is not None and not adapt.alpha_min <= self.alpha <= adapt.alpha_max:
+            raise ValueError(
+                f"alpha {self.alpha:g} (the value until identified) must lie within "
+                f"alpha_adapt's [{adapt.alpha_min:g}, {adapt.alpha_max:g}]"
+            )
+        return self
 
 
 class MfcAxes(StrictModel):
@@ -256,12 +278,37 @@ class _LoopConfig(StrictModel):
         return self
 
 
+OUTPUT_LIMIT_MIN_FRACTION = 0.25
+"""An axis's output limit is at least this share of the command's full scale:
+measured with check-config --fly, a roll limit of 125 us (of 500) flies every
+reference vehicle and 50 us crashes the Tarot."""
+
+
 class MfcConfig(_LoopConfig):
     kind: Literal["mfc"]
-    command_full_scale_us: float = Field(500.0, gt=0.0, le=1000.0)
+    command_full_scale_us: float = Field(
+        500.0,
+        ge=100.0,
+        le=1000.0,
+        description="the command (us) the mixer takes as full scale: a PWM half-span is "
+        "400-500 us; 100 still flies every reference vehicle, 0.51 makes the gain 1000x",
+    )
     prefilter_hz: float | None = Field(20.0, gt=0.0, le=500.0)
     adapt_min_thrust: float = Field(0.15, ge=0.0, le=1.0)
     axes: MfcAxes
+
+    @model_validator(mode="after")
+    def _authority(self) -> MfcConfig:
+        floor = OUTPUT_LIMIT_MIN_FRACTION * self.command_full_scale_us
+        for name in ("roll", "pitch", "yaw"):
+            limit = getattr(self.axes, name).output_limit_us
+            if limit < floor:
+                raise ValueError(
+                    f"axes.{name}.output_limit_us {limit:g} leaves the law too little "
+                    f"authority: expected at least {OUTPUT_LIMIT_MIN_FRACTION:g} x "
+                    f"command_full_scale_us = {floor:g}"
+                )
+        return self
 
 
 class PidConfig(_LoopConfig):

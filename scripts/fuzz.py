@@ -5,11 +5,13 @@ Usage::
 
     python scripts/fuzz.py --json --seed 1 --cases 3000 --rate 1000
     python scripts/fuzz.py --json --cases full --rate 2000        # >= 100,000 cases
+    python scripts/fuzz.py config --json --seed 1 --n 100         # controller configs
 
 Prints the report (``--json``: one JSON object) and exits 0 when the targets
 are met, 1 otherwise. The harness is ``tests/fuzzing.py`` (test equipment,
 kept out of ``companion/``); its docstring describes the topology, the kinds
-and the targets.
+and the targets. ``config``: the seeded mutation campaign over the controller
+config, ``tests/config_fuzzing.py``.
 """
 
 from __future__ import annotations
@@ -19,7 +21,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.fuzzing import main
-
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["config"]:
+        from tests.config_fuzzing import main as config_main
+
+        sys.exit(config_main(sys.argv[2:]))
+    from tests.fuzzing import main
+
     sys.exit(main())

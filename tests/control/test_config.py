@@ -143,6 +143,25 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
             "axes.roll.lag_scaling_min",
             id="lag-scaling-min-above-one",
         ),
+        # Each value in its range, the combination (or the sign) dangerous in flight:
+        # the fields a seeded campaign found crashing or blowing up (config fuzz).
+        pytest.param(_set("axes.roll.alpha", -1.0), "axes.roll.alpha", id="alpha-negative"),
+        pytest.param(
+            _set("axes.pitch.alpha_adapt.alpha_min", 2.07), "axes.pitch", id="alpha-below-adapt"
+        ),
+        pytest.param(
+            _set("command_full_scale_us", 0.51), "command_full_scale_us", id="full-scale-tiny"
+        ),
+        pytest.param(
+            _set("axes.roll.output_limit_us", 0.0065),
+            "axes.roll.output_limit_us",
+            id="output-limit-tiny",
+        ),
+        pytest.param(
+            _set("axes.roll.alpha_adapt.min_response_rad_s2", 470.0),
+            "axes.roll.alpha_adapt.min_response_rad_s2",
+            id="min-response-huge",
+        ),
     ],
 )
 def test_bad_controller_file_names_file_and_key(
