@@ -574,6 +574,12 @@ class Companion(SamplePath):
             _log.error("cannot open the records in %s: %s", opts.log_dir, exc)
             self._close_records()
             return EXIT_ERROR
+        if opts.failsafe.bounds_lifted:
+            self._event(
+                "bounds_lifted",
+                "thresholds beyond their bounds (--beyond-bounds): "
+                + "; ".join(opts.failsafe.bounds_lifted),
+            )
         on_raw = self._tlog.write if self._tlog is not None else None
         self.link = MavlinkLink(
             transport,

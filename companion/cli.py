@@ -24,7 +24,7 @@ import click
 
 from companion import __version__
 from companion.errors import ConfigError, MfcError
-from companion.failsafe import FailsafeConfig
+from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
 from companion.options import (
     EXIT_BAD_INPUT,
     Finite,
@@ -125,9 +125,7 @@ def cli(verbose: int) -> None:
     show_default=True,
     help="Processes for --fly's flights (the result does not depend on it).",
 )
-def check_config(
-    profile_path: Path, controller_path: Path | None, fly: bool, workers: int
-) -> None:
+def check_config(profile_path: Path, controller_path: Path | None, fly: bool, workers: int) -> None:
     """Validate a profile and a controller config; print the effective values."""
     from companion.config import build_mixer
 
@@ -330,6 +328,16 @@ def check_config(
     "tracking_error_max_deg_s",
     "Failsafe when the tracking error averaged over 0.5 s exceeds this.",
 )
+@click.option(
+    "--beyond-bounds",
+    "beyond_bounds",
+    multiple=True,
+    type=click.Choice(sorted(THRESHOLD_MAX)),
+    help="Let this failsafe threshold exceed its bound (repeatable; recorded as an "
+    "event). Bounds: "
+    + ", ".join(f"{k} {v:g}" for k, (v, _) in sorted(THRESHOLD_MAX.items()))
+    + ".",
+)
 def run(
     connect: str,
     profile_path: Path,
@@ -360,6 +368,7 @@ def run(
     reference_path: Path | None,
     heartbeat_timeout_s: float,
     envelope_error_deg_s: float,
+    beyond_bounds: tuple[str, ...],
 ) -> None:
     """Fly the vehicle's rates with the controller over MAVLink."""
     import asyncio
@@ -396,6 +405,22 @@ def run(
             )
         if autopilot_compid is not None and autopilot_sysid is None:
             raise ValueError("--autopilot-compid: needs --autopilot-sysid as well")
+        thresholds = {
+            "--stale-imu-s": stale_imu_s,
+            "--invalid-imu-s": invalid_imu_s,
+            "--link-timeout-s": link_timeout_s,
+            "--rc-timeout-s": rc_timeout_s,
+            "--envelope-time-s": envelope_time_s,
+            "--envelope-error-deg-s": envelope_error_deg_s,
+            "--hand-back-watch-s": hand_back_watch_s,
+        }
+        for name, value in thresholds.items():
+            bound, why = THRESHOLD_MAX[name]
+            if value > bound and name not in beyond_bounds:
+                raise ValueError(
+                    f"{name} {value:g}: beyond {bound:g} ({why}), where the failsafe no "
+                    f"longer protects; to fly so anyway, add --beyond-bounds {name}"
+                )
     except (ValueError, MfcError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)
@@ -433,6 +458,11 @@ def run(
             on_failsafe=on_failsafe,  # type: ignore[arg-type]
             safe_mode=safe_mode,
             hand_back_watch_s=hand_back_watch_s,
+            bounds_lifted=tuple(
+                f"{name} {thresholds[name]:g} (bound {THRESHOLD_MAX[name][0]:g})"
+                for name in sorted(beyond_bounds)
+                if thresholds[name] > THRESHOLD_MAX[name][0]
+            ),
         ),
     )
     sys.exit(asyncio.run(Companion(opts).run()))

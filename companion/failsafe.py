@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-__all__ = ["FailsafeConfig", "SampleWatch", "Verdict"]
+__all__ = ["THRESHOLD_MAX", "FailsafeConfig", "SampleWatch", "Verdict"]
 
 Verdict = tuple[str, str]
 """A failsafe's kind (an event name) and its detail."""
@@ -32,9 +32,26 @@ def _average_abs(ema: list[float], a: float, e0: float, e1: float, e2: float) ->
         ema[2] += a * (abs(e2) - ema[2])
 
 
+THRESHOLD_MAX: dict[str, tuple[float, str]] = {
+    "--stale-imu-s": (1.0, "a vehicle in free fall drops 5 m in 1 s"),
+    "--invalid-imu-s": (0.5, "half a second flown on a gyro known to be wrong"),
+    "--link-timeout-s": (10.0, "ten lost 1 Hz heartbeats"),
+    "--rc-timeout-s": (5.0, "PX4 acts on RC loss after 0.5 s, ArduPilot after 1 s"),
+    "--envelope-time-s": (2.0, "at 720 deg/s, four turns before the envelope acts"),
+    "--envelope-error-deg-s": (2000.0, "the usual gyro range: nothing beyond it is measured"),
+    "--hand-back-watch-s": (30.0, "a safe mode not shown in 30 s is not coming"),
+}
+"""The largest value each failsafe threshold of ``companion run`` takes without
+``--beyond-bounds``, and why: beyond it the failsafe no longer protects."""
+
+
 @dataclass(frozen=True)
 class FailsafeConfig:
     """Thresholds of the failsafes and what follows one."""
+
+    bounds_lifted: tuple[str, ...] = ()
+    """The thresholds (``--`` option names) set beyond :data:`THRESHOLD_MAX` on
+    purpose (``--beyond-bounds``): the run records them as an event."""
 
     stale_imu_s: float = 0.1
     invalid_imu_s: float = 0.05

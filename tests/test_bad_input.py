@@ -9,6 +9,7 @@ pilot in a scenario, a negative seed, an output folder that cannot be made.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -185,3 +186,37 @@ def test_an_out_dir_through_dotdot_or_a_broken_symlink(tmp_path: Path) -> None:
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "link").symlink_to(tmp_path / "gone")
     assert "is a broken symlink" in str(out_dir_problem(str(tmp_path / "link" / "x")))
+
+
+# Every failsafe threshold of `companion run` has a bound beyond which the failsafe
+# no longer protects (companion.failsafe.THRESHOLD_MAX).
+THRESHOLDS = (
+    "--stale-imu-s", "--invalid-imu-s", "--link-timeout-s", "--rc-timeout-s",
+    "--envelope-time-s", "--envelope-error-deg-s", "--hand-back-watch-s",
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("flag", THRESHOLDS)
+def test_run_refuses_a_failsafe_threshold_beyond_its_bound(flag: str) -> None:
+    res = companion("run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450), flag, "1e9")
+    refused(res, flag, "1e+09: beyond", "no longer protects", f"--beyond-bounds {flag}")
+
+
+def test_a_bound_lifted_on_purpose_is_recorded(tmp_path: Path) -> None:
+    """--beyond-bounds lets one threshold past its bound; the run says so in its events
+    (here a run that finds no autopilot within the heartbeat timeout: exit 1)."""
+    res = companion(
+        "run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450),
+        "--link-timeout-s", "60", "--beyond-bounds", "--link-timeout-s",
+        "--heartbeat-timeout-s", "0.2", "--log-dir", str(tmp_path),
+    )  # fmt: skip
+    assert res.exit_code == 1, res.output
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    lifted = [e for e in events if e["kind"] == "bounds_lifted"]
+    assert len(lifted) == 1 and "--link-timeout-s 60 (bound 10)" in lifted[0]["detail"]
+    # The bound lifted is that one only.
+    res = companion(
+        "run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450),
+        "--stale-imu-s", "60", "--beyond-bounds", "--link-timeout-s",
+    )  # fmt: skip
+    refused(res, "--stale-imu-s 60: beyond 1")

@@ -352,7 +352,8 @@ def run_loop_bench(
              "--profile", str(profile), "--engage", "auto",
              "--rate-hz", str(rate_hz), "--log-dir", logs,
              # The harness serves the floor half the time: gaps are expected here.
-             "--stale-imu-s", "5", "--link-timeout-s", "10"],
+             "--stale-imu-s", "5", "--beyond-bounds", "--stale-imu-s",
+             "--link-timeout-s", "10"],
         ]  # fmt: skip
         # stderr to files, not pipes: a pipe nobody reads fills up at 64 KiB and
         # blocks the writer in the middle of the measurement.
