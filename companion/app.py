@@ -258,6 +258,9 @@ class Companion(SamplePath):
         if self.link is not None:
             c.update({f"link.{k}": v for k, v in self.link.counters.items() if v})
             c.update({f"transport.{k}": v for k, v in self.link.transport.counters.items() if v})
+        telemetry_counters = getattr(self._telemetry, "counters", None)
+        if isinstance(telemetry_counters, dict):
+            c.update({f"telemetry.{k}": v for k, v in telemetry_counters.items() if v})
         figures = self.link_figures()
         if figures["n"]:
             c.update({f"timesync.{k}": v for k, v in figures.items() if v is not None})
@@ -662,6 +665,7 @@ class Companion(SamplePath):
             from companion.telemetry import MqttTelemetry
 
             self._telemetry = MqttTelemetry(opts.mqtt_url)
+            self._telemetry.on_outage = self._event
             self._spawn(self._telemetry.run(), "mqtt")
         hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
         self.autopilot = int(hb.autopilot)

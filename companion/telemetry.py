@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -172,6 +173,12 @@ class MqttTelemetry:
         self._status: dict[str, Any] | None = None
         self._retry: tuple[Any, ...] | None = None
         self.connected = False
+        self.on_outage: Callable[[str, str], None] | None = None
+        """Told ``("telemetry_lost", detail)`` once per outage (the broker went
+        away, or could not be reached) and ``("telemetry_restored", detail)`` when
+        it is back, with the samples dropped meanwhile: the app records both."""
+        self._outage_dropped: int | None = None  # samples lost before this outage
+        self._lost_when_up = 0  # samples lost when the broker was last reached
         self.counters: dict[str, int] = {
             "samples": 0,
             "queued": 0,
@@ -303,6 +310,8 @@ class MqttTelemetry:
                     self.connected = True
                     if not first:
                         self.counters["reconnects"] += 1
+                    self._outage_ended()
+                    self._lost_when_up = self._lost()
                     first = False
                     failing = False
                     backoff = self._backoff_min
@@ -320,6 +329,7 @@ class MqttTelemetry:
                 if self.connected:
                     self.counters["disconnects"] += 1
                     log.warning("telemetry lost the broker %s:%d: %s", self.host, self.port, exc)
+                    self._outage_began(f"lost the broker {self.host}:{self.port}: {exc}")
                 else:
                     self.counters["connect_failures"] += 1
                     # One warning per outage, then quiet until it comes back.
@@ -329,6 +339,10 @@ class MqttTelemetry:
                         self.port,
                         exc,
                     )
+                    if not failing:
+                        self._outage_began(
+                            f"cannot reach the broker {self.host}:{self.port}: {exc}"
+                        )
                     failing = True
             except Exception:
                 # A bug here must not end telemetry for the rest of the flight.
@@ -338,6 +352,30 @@ class MqttTelemetry:
                 self.connected = False
             await asyncio.sleep(backoff)
             backoff = min(2.0 * backoff, self._backoff_max)
+
+    def _lost(self) -> int:
+        c = self.counters
+        return c["dropped_full"] + c["lost_disconnected"]
+
+    def _outage_began(self, detail: str) -> None:
+        if self._outage_dropped is not None:
+            return  # one outage, however many attempts
+        # From the last time the broker was reached: a sample in flight when it went
+        # away is this outage's too.
+        self._outage_dropped = self._lost_when_up
+        if self.on_outage is not None:
+            self.on_outage("telemetry_lost", detail)
+
+    def _outage_ended(self) -> None:
+        if self._outage_dropped is None:
+            return
+        lost = self._lost() - self._outage_dropped
+        self._outage_dropped = None
+        if self.on_outage is not None:
+            self.on_outage(
+                "telemetry_restored",
+                f"the broker {self.host}:{self.port} is back; {lost} samples dropped meanwhile",
+            )
 
     async def _serve(self, client: aiomqtt.Client) -> None:
         """Publish until the connection drops (MqttError) or we are cancelled."""

@@ -262,6 +262,8 @@ async def test_topics_payloads_decimation_and_clean_cancel(broker: Broker) -> No
 @pytest.mark.integration
 async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
     t = MqttTelemetry(f"mqtt://127.0.0.1:{broker.port}/{PREFIX}", decimate_hz=100.0)
+    outages: list[tuple[str, str]] = []
+    t.on_outage = lambda kind, detail: outages.append((kind, detail))
     task = asyncio.create_task(t.run(), name="telemetry")
     k = 0
 
@@ -284,6 +286,10 @@ async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
     await stream(1.0)  # publish_* keep working while the broker is gone
     assert not t.connected
     assert t.counters["disconnects"] == 1
+    # The outage is said once (the app records it in events.jsonl), however many
+    # attempts fail meanwhile.
+    assert [kind for kind, _ in outages] == ["telemetry_lost"]
+    assert f"lost the broker 127.0.0.1:{broker.port}" in outages[0][1]
     t.publish_event("link", "broker restarted", k * 0.001)
     k_restart = k
     broker.start()  # same port
@@ -297,6 +303,10 @@ async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
         await until(lambda: sub2.on("event"))
         assert sub2.on("event")[0]["detail"] == "broker restarted"
     assert t.counters["reconnects"] == 1
+    assert [kind for kind, _ in outages] == ["telemetry_lost", "telemetry_restored"]
+    dropped = int(outages[1][1].split("; ")[1].split()[0])
+    assert dropped == t.counters["dropped_full"] + t.counters["lost_disconnected"]
+    assert outages[1][1].endswith("samples dropped meanwhile")
     async with subscribed(broker.port) as late:
         await until(lambda: late.on("status"))
         assert late.on("status")[-1]["state"] == "engaged"
