@@ -107,6 +107,14 @@ def cli(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def _warn_profile(profile: Any, path: Path) -> None:
+    """What in the profile is possible but unlike a multirotor, on stderr."""
+    from companion.profile import profile_warnings
+
+    for warning in profile_warnings(profile):
+        click.echo(f"warning: {path}: {warning}", err=True)
+
+
 @cli.command("check-config")
 @profile_opt
 @controller_opt
@@ -130,6 +138,7 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
     from companion.config import build_mixer
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path)
+    _warn_profile(profile, profile_path)
     mixer = build_mixer(profile)
     roll_f, pitch_f, yaw_f = mixer.factors()
     doc: dict[str, Any] = {
@@ -378,6 +387,7 @@ def run(
     from companion.link.transport import open_transport
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, output)
+    _warn_profile(profile, profile_path)
     # Check everything a run needs before anything is opened or sent.
     reference = None
     try:
