@@ -121,13 +121,18 @@ def load_signing_key(
     """
     p = Path(path)
     expected = "expected one line: 64 hex characters (a 32-byte key) or an ASCII passphrase"
+    from companion.errors import ConfigError
+    from companion.schema import read_text
+
+    if not p.exists():
+        raise SigningError(f"{p}: signing key file not found; {expected}")
     try:
-        text = p.read_text(encoding="utf-8")
+        # Bounded: a regular file of at most 1 MiB (a FIFO would hang, /dev/zero fill memory).
+        text = read_text(p)
         mode = p.stat().st_mode
-    except FileNotFoundError:
-        raise SigningError(f"{p}: signing key file not found; {expected}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SigningError(f"{p}: cannot read signing key file ({exc}); {expected}") from exc
+    except (ConfigError, OSError) as exc:
+        why = "; ".join(exc.problems) if isinstance(exc, ConfigError) else str(exc)
+        raise SigningError(f"{p}: {why}; {expected}") from exc
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     if not lines:
         raise SigningError(f"{p}: signing key file is empty; {expected}")

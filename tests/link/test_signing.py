@@ -268,3 +268,19 @@ def test_checker_verdicts_directly() -> None:
     assert chk.check(plain.heartbeat_encode(2, 12, 0, 0, 3).pack(plain), 0)[0] == (
         SignatureChecker.UNSIGNED
     )
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "folder"])
+def test_a_key_that_is_not_a_regular_file_is_refused_without_blocking(
+    tmp_path: Path, kind: str
+) -> None:
+    """A FIFO would block the read forever; /dev/zero would fill memory."""
+    if kind == "fifo":
+        path = tmp_path / "key.fifo"
+        os.mkfifo(path)
+    elif kind == "device":
+        path = Path("/dev/zero")
+    else:
+        path = tmp_path
+    with pytest.raises(SigningError, match=r"expected a regular file.*64 hex"):
+        load_signing_key(path)
