@@ -14,12 +14,13 @@ from __future__ import annotations
 import os
 import reprlib
 import stat
+import types
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from companion.errors import ConfigError
 
@@ -81,10 +82,50 @@ def _clip(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def _numeric(tp: Any) -> bool:
+    """Whether a field annotation is a number (int or float), maybe optional."""
+    if tp in (int, float):
+        return True
+    origin, args = get_origin(tp), get_args(tp)
+    if origin is Annotated:
+        return _numeric(args[0])
+    if origin in (Union, types.UnionType):
+        kinds = [a for a in args if a is not type(None)]
+        return bool(kinds) and all(_numeric(a) for a in kinds)
+    return False
+
+
+def _numbers(tp: Any) -> bool:
+    """Whether a field annotation is a tuple of plain numbers (a vector, a list of
+    candidates); elements with validators of their own (Annotated) judge themselves."""
+    origin, args = get_origin(tp), get_args(tp)
+    if origin is Annotated:
+        return _numbers(args[0])
+    elements = [a for a in args if a is not ...]
+    return origin is tuple and bool(elements) and all(a in (int, float) for a in elements)
+
+
 class StrictModel(BaseModel):
-    """Frozen, rejects unknown keys and non-finite numbers (``.nan``, ``.inf``)."""
+    """Frozen, rejects unknown keys, non-finite numbers (``.nan``, ``.inf``) and
+    booleans where a number belongs (pydantic would read ``true`` as 1)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        if info.field_name is None:
+            return value
+        tp = cls.model_fields[info.field_name].annotation
+        items = value if isinstance(value, (list, tuple)) else ()
+        if (isinstance(value, bool) and _numeric(tp)) or (
+            any(isinstance(v, bool) for v in items) and _numbers(tp)
+        ):
+            raise ValueError(
+                "expected a number, not a boolean (YAML reads true/false, yes/no, on/off "
+                "as booleans)"
+            )
+        return value
 
 
 _NOT_REGULAR: tuple[tuple[Callable[[int], bool], str], ...] = (

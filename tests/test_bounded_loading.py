@@ -261,3 +261,13 @@ def test_shipped_scenarios_load_well_within_the_limits(path: Path) -> None:
 @pytest.mark.usefixtures("tight_limits")
 def test_the_shipped_stick_script_loads_well_within_the_limits() -> None:
     assert load_stick_script(ROOT / "sitl" / "sticks" / "example_sticks.yaml")
+
+
+def test_a_boolean_is_not_a_number_in_any_config(tmp_path: Path) -> None:
+    """``duration_s: yes`` would be read as 1 s: every config model refuses it."""
+    from sitl.scenario import load_scenario
+
+    path = tmp_path / "scenario.yaml"
+    path.write_text("name: s\npilot: paper-acro\nduration_s: yes\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="duration_s: expected a number, not a boolean"):
+        load_scenario(path)

@@ -146,6 +146,12 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
         # Each value in its range, the combination (or the sign) dangerous in flight:
         # the fields a seeded campaign found crashing or blowing up (config fuzz).
         pytest.param(_set("axes.roll.alpha", -1.0), "axes.roll.alpha", id="alpha-negative"),
+        pytest.param(_set("axes.roll.kd", True), "axes.roll.kd: expected a number", id="bool-kd"),
+        pytest.param(
+            _set("axes.yaw.alpha_adapt.tau_candidates_s", [0.01, True]),
+            "axes.yaw.alpha_adapt.tau_candidates_s: expected a number",
+            id="bool-in-a-list",
+        ),
         pytest.param(
             _set("axes.pitch.alpha_adapt.alpha_min", 2.07), "axes.pitch", id="alpha-below-adapt"
         ),
