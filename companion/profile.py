@@ -35,14 +35,14 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BeforeValidator, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from companion.errors import ConfigError
-from companion.schema import StrictModel, load_yaml_model
+from companion.schema import Count, Real, StrictModel, load_yaml_model
 
 __all__ = [
     "GYRO_RANGE_MAX_DEG_S",
@@ -134,21 +134,6 @@ KM_MIN_TYPICAL_M = 1e-3
 """Smallest usual reaction torque over thrust: ~0.13 r is 0.003 m for a 2-inch prop; below
 1e-3 m yaw has next to no authority (or a torque constant ``kf * km`` was given)."""
 
-
-def _refuse_bool(v: object) -> object:
-    """Refuse a boolean where a number belongs (pydantic would read ``true`` as 1)."""
-    if isinstance(v, bool):
-        raise ValueError(
-            "expected a number, not a boolean (YAML reads true/false, yes/no, on/off as booleans)"
-        )
-    return v
-
-
-Real = Annotated[float, BeforeValidator(_refuse_bool)]
-"""A float field: ints and numeric strings (YAML 1.1 reads ``1e-5`` as one) pass, booleans not."""
-
-Count = Annotated[int, BeforeValidator(_refuse_bool)]
-"""An int field that refuses booleans."""
 
 Vec3 = tuple[Real, Real, Real]
 

@@ -20,7 +20,14 @@ from pathlib import Path
 from typing import Annotated, Any, TypeVar, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from companion.errors import ConfigError
 
@@ -31,11 +38,14 @@ __all__ = [
     "MAX_YAML_CHARS",
     "MAX_YAML_DEPTH",
     "MAX_YAML_NODES",
+    "Count",
+    "Real",
     "StrictModel",
     "format_validation_error",
     "load_yaml_model",
     "read_text",
     "read_yaml",
+    "refuse_bool",
 ]
 
 MAX_FILE_BYTES = 1024 * 1024
@@ -82,6 +92,23 @@ def _clip(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def refuse_bool(v: object) -> object:
+    """Refuse a boolean where a number belongs (pydantic would read ``true`` as 1)."""
+    if isinstance(v, bool):
+        raise ValueError(
+            "expected a number, not a boolean (YAML reads true/false, yes/no, on/off as booleans)"
+        )
+    return v
+
+
+Real = Annotated[float, BeforeValidator(refuse_bool)]
+"""A float that refuses booleans, element by element in a tuple (an error names the
+index); ints and numeric strings (YAML 1.1 reads ``1e-5`` as one) pass."""
+
+Count = Annotated[int, BeforeValidator(refuse_bool)]
+"""An int that refuses booleans."""
+
+
 def _numeric(tp: Any) -> bool:
     """Whether a field annotation is a number (int or float), maybe optional."""
     if tp in (int, float):
@@ -117,14 +144,11 @@ class StrictModel(BaseModel):
         if info.field_name is None:
             return value
         tp = cls.model_fields[info.field_name].annotation
-        items = value if isinstance(value, (list, tuple)) else ()
-        if (isinstance(value, bool) and _numeric(tp)) or (
-            any(isinstance(v, bool) for v in items) and _numbers(tp)
-        ):
-            raise ValueError(
-                "expected a number, not a boolean (YAML reads true/false, yes/no, on/off "
-                "as booleans)"
-            )
+        if _numeric(tp):
+            return refuse_bool(value)
+        if _numbers(tp) and isinstance(value, (list, tuple)):
+            for v in value:
+                refuse_bool(v)
         return value
 
 

@@ -20,17 +20,22 @@ from __future__ import annotations
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from companion.config import DEFAULT_CONTROLLER, MfcConfig, PidConfig, load_controller
 from companion.control import AXES
 from companion.profile import VehicleProfile, load_profile
+
+if TYPE_CHECKING:
+    from sitl.scenario import Scenario
 
 __all__ = [
     "CHECK_SCENARIO",
     "EXCESS_MAX_DEG_S",
     "CheckFlight",
     "check_controller",
+    "fly_flight",
+    "judge_flight",
     "reference_vehicles",
 ]
 
@@ -80,19 +85,29 @@ class CheckFlight:
         }
 
 
-def _fly(args: tuple[VehicleProfile, MfcConfig | PidConfig, VehicleProfile]) -> dict[str, Any]:
+def fly_flight(
+    plant: VehicleProfile,
+    cfg: MfcConfig | PidConfig,
+    given: VehicleProfile,
+    scenario: Scenario | None = None,
+) -> dict[str, Any]:
+    """One flight of ``cfg`` given ``given``'s profile on ``plant``: ``crashed`` and
+    ``mae_deg_s`` per axis (the check's scenario unless another is given)."""
     from sitl.lab.report import compute_metrics
     from sitl.lab.simulate import simulate_flight
     from sitl.scenario import load_scenario
 
-    plant, cfg, given = args
-    m = compute_metrics(
-        simulate_flight(plant, cfg, load_scenario(CHECK_SCENARIO), controller_profile=given)
-    )
+    sc = load_scenario(CHECK_SCENARIO) if scenario is None else scenario
+    m = compute_metrics(simulate_flight(plant, cfg, sc, controller_profile=given))
     return {"crashed": bool(m["crashed"]), "mae_deg_s": m["mae_deg_s"]}
 
 
-def _judge(vehicle: str, flown: dict[str, Any], shipped: dict[str, Any]) -> CheckFlight:
+def _fly(args: tuple[VehicleProfile, MfcConfig | PidConfig, VehicleProfile]) -> dict[str, Any]:
+    return fly_flight(*args)
+
+
+def judge_flight(vehicle: str, flown: dict[str, Any], shipped: dict[str, Any]) -> CheckFlight:
+    """A flight of the config against the shipped controller's same flight."""
     problems = []
     if flown["crashed"]:
         problems.append(f"{vehicle}: crashed")
@@ -138,4 +153,4 @@ def check_controller(
             results = list(pool.map(_fly, jobs))
     flown = results[: len(vehicles)]
     _SHIPPED.update({v.name: r for v, r in zip(todo, results[len(vehicles) :], strict=True)})
-    return [_judge(v.name, r, _SHIPPED[v.name]) for v, r in zip(vehicles, flown, strict=True)]
+    return [judge_flight(v.name, r, _SHIPPED[v.name]) for v, r in zip(vehicles, flown, strict=True)]
