@@ -1,12 +1,21 @@
 """The ArduPilot personality's MAVLink face: identity, commands, parameters, streams.
 
 It shows the ArduCopter-like :class:`~sitl.ardupilot.ArduCopter` as ArduCopter
-4.x would (``docs/ardupilot.md``): HEARTBEAT with ``autopilot =
+4.x would (``docs/research/ardupilot.md``): HEARTBEAT with ``autopilot =
 MAV_AUTOPILOT_ARDUPILOTMEGA`` and Copter mode numbers, ``SET_MODE`` and
 ``MAV_CMD_DO_SET_MODE``, parameters, ``STATUSTEXT``, ArduPilot's IMU messages
 and its message-interval rules. Dispatch, the commands both stacks answer
-alike and the streams' schedule are :class:`~sitl.mavlink_face.MavlinkFace`'s;
-the socket and peers :class:`~sitl.mavlink_link.MavlinkLink`'s.
+alike, the parameter protocol and the streams' schedule are
+:class:`~sitl.mavlink_face.MavlinkFace`'s; the socket and peers
+:class:`~sitl.mavlink_link.MavlinkLink`'s.
+
+Parameters (``sitl.ardupilot_params``) travel C-cast, as ArduPilot's
+``GCS_MAVLINK`` sends them (``cast_to_float``: an integer parameter's value as a
+float) and reads ``PARAM_SET`` (the float, whatever its ``param_type``);
+AUTOPILOT_VERSION advertises ``MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST``.
+``flight_sw_version`` is ArduCopter 4.7.0-dev unless ``firmware`` says otherwise
+(``major << 24 | minor << 16 | patch << 8 | FIRMWARE_VERSION_TYPE``, as
+``GCS_MAVLINK::send_autopilot_version`` packs ``AP_FWVersion``).
 """
 
 from __future__ import annotations
@@ -34,10 +43,11 @@ from sitl.mavlink_face import (
     as_int,
 )
 from sitl.mavlink_link import Endpoint
-from sitl.personality import FORCE_DISARM_MAGIC, MavResult
+from sitl.personality import FORCE_DISARM_MAGIC, FirmwareVersion, MavResult
 from sitl.streams import MessageStreams, StreamSpec
 
 __all__ = [
+    "ARDUPILOT_DEFAULT_FIRMWARE",
     "FORCE_ARM_MAGIC",
     "MAV_AUTOPILOT_ARDUPILOTMEGA",
     "ArduPilotFace",
@@ -132,9 +142,19 @@ ARDUPILOT_CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
     | mavlink.MAV_PROTOCOL_CAPABILITY_FLIGHT_TERMINATION
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
 )
-# major << 24 | minor << 16 | patch << 8 | FIRMWARE_VERSION_TYPE_DEV (0)
-ARDUPILOT_SW_VERSION = (4 << 24) | (7 << 16) | (0 << 8) | 0
+"""ArduCopter's (``GCS_MAVLINK_Copter::capabilities``) less terrain and the
+position targets. PARAM_FLOAT (2, deprecated) is what ArduPilot sets for its
+parameter protocol; PARAM_ENCODE_C_CAST (131072), the bit that now names its
+encoding, entered ArduPilot's MAVLink definitions in July 2025
+(ArduPilot/mavlink #414): real ArduPilot releases before that do not set it,
+so a client should also take PARAM_FLOAT without BYTEWISE, or autopilot 3, as
+C-cast."""
+
+ARDUPILOT_DEFAULT_FIRMWARE = FirmwareVersion(4, 7, 0, 0)
+"""ArduCopter 4.7.0-dev (``FIRMWARE_VERSION_TYPE_DEV``), the SITL checked in facts.md 10."""
+ARDUPILOT_SW_VERSION = ARDUPILOT_DEFAULT_FIRMWARE.flight_sw_version
 
 _ONE_SHOT = ONE_SHOT | {ID_RAW_IMU, ID_SCALED_IMU}
 
@@ -146,10 +166,9 @@ def _i16(x: float) -> int:
 class ArduPilotFace(MavlinkFace[ArduCopter]):
     """The MAVLink face of :class:`~sitl.ardupilot.ArduCopter` (sysid 1, compid 1, autopilot 3).
 
-    On top of :class:`~sitl.mavlink_face.MavlinkFace` (sockets, peers, streams):
-    ArduPilot heartbeat and modes, ``SET_MODE``, parameters
-    (``PARAM_REQUEST_READ`` / ``_LIST`` / ``PARAM_SET`` -> ``PARAM_VALUE``),
-    ``STATUSTEXT``, ``RAW_IMU`` / ``SCALED_IMU`` / ``HIGHRES_IMU``, and
+    On top of :class:`~sitl.mavlink_face.MavlinkFace` (sockets, peers, streams,
+    parameters): ArduPilot heartbeat and modes, ``SET_MODE``, C-cast parameter
+    values, ``STATUSTEXT``, ``RAW_IMU`` / ``SCALED_IMU`` / ``HIGHRES_IMU``, and
     ``SET_ATTITUDE_TARGET`` with ArduCopter's rules. ``SET_ACTUATOR_CONTROL_TARGET``
     is ignored, as ArduPilot does.
 
@@ -180,9 +199,11 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
         *,
         sysid: int = 1,
         compid: int = 1,
+        firmware: FirmwareVersion = ARDUPILOT_DEFAULT_FIRMWARE,
     ) -> None:
         super().__init__(endpoint, autopilot, streams, sysid=sysid, compid=compid)
-        self.params_sent = 0
+        self.firmware = firmware
+        self.flight_sw_version = firmware.flight_sw_version
 
     # -------------------------------------------------------------- handling
 
@@ -196,23 +217,12 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
         self._warn_once("act", "SET_ACTUATOR_CONTROL_TARGET ignored (ArduPilot)")
 
     def _handle_other(self, mtype: str, msg: Any, t_s: float) -> None:
-        if mtype not in ("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET", "SET_MODE"):
+        if mtype != "SET_MODE" or not self._for_us(msg.target_system, None):
             return
-        comp = None if mtype == "SET_MODE" else msg.target_component
-        if not self._for_us(msg.target_system, comp):
-            return
-        if mtype == "PARAM_REQUEST_READ":
-            self._param_read(msg.param_id, msg.param_index)
-        elif mtype == "PARAM_REQUEST_LIST":
-            for i in range(len(self.autopilot.params)):
-                self._send_param_index(i)
-        elif mtype == "PARAM_SET":
-            self._param_set(msg.param_id, msg.param_value)
-        else:
-            result = self._set_mode_common(msg.base_mode, msg.custom_mode, t_s)
-            self._ack(msg, mavlink.MAVLINK_MSG_ID_SET_MODE, result)
-            if result == MavResult.ACCEPTED:
-                self._heartbeat_now = True
+        result = self._set_mode_common(msg.base_mode, msg.custom_mode, t_s)
+        self._ack(msg, mavlink.MAVLINK_MSG_ID_SET_MODE, result)
+        if result == MavResult.ACCEPTED:
+            self._heartbeat_now = True
 
     def _handle_attitude_target(self, msg: Any, t_s: float) -> None:
         rates = (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate)
@@ -236,37 +246,6 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
         if command == mavlink.MAV_CMD_NAV_LAND:
             return ap.set_mode(t_s, CopterMode.LAND)
         return None
-
-    # ------------------------------------------------------------ parameters
-
-    def _param_read(self, param_id: str, index: int) -> None:
-        params = self.autopilot.params
-        if index >= 0:
-            self._send_param_index(index)
-        elif param_id in params:
-            self._send_param_index(params.index(param_id))
-        # Unknown names get no answer (ArduPilot ignores them).
-
-    def _param_set(self, param_id: str, value: float) -> None:
-        params = self.autopilot.params
-        if param_id not in params:
-            self._warn_once(f"param:{param_id}", "PARAM_SET of unknown parameter %s", param_id)
-            return
-        try:
-            params.set(param_id, float(value))
-        except ValueError as exc:
-            logger.warning("PARAM_SET %s: %s", param_id, exc)
-        self._send_param_index(params.index(param_id))
-
-    def _send_param_index(self, index: int) -> None:
-        params = self.autopilot.params
-        spec = params.by_index(index)
-        if spec is None:
-            return
-        self.mav.param_value_send(
-            spec.name.encode(), params[spec.name], spec.param_type, len(params), index
-        )
-        self.params_sent += 1
 
     # -------------------------------------------------------------- streams
 

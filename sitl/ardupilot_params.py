@@ -3,20 +3,42 @@
 ``PARAM_REQUEST_READ`` / ``PARAM_REQUEST_LIST`` / ``PARAM_SET`` reach
 :class:`ArduParams` through the face (``sitl.ardupilot_face``); the autopilot
 (``sitl.ardupilot``) reads its values and listens for changes.
+
+Names are ArduCopter 4.7's, the version the face reports by default
+(``4.7.0-dev``): 4.7 moved the MAVLink settings into the ``MAV_`` group
+(ArduPilot PR #29617, "PARAMETER_CONVERSION - Added: Mar-2025 for
+ArduPilot-4.7"), so the ground station's sysid is ``MAV_GCS_SYSID`` (formerly
+``SYSID_MYGCS``) and this vehicle's is ``MAV_SYSID`` (formerly
+``SYSID_THISMAV``); the table keeps these names whatever ``--firmware`` says.
+The per-port stream rates (``MAVn_*``, formerly ``SRn_*``) are not in the
+table: the face's streams do not follow them (``sitl.ardupilot_face``).
+
+Values ride in ``PARAM_VALUE`` C-cast (the number as a float, integers too),
+as ArduPilot's ``GCS_MAVLINK`` sends them (``cast_to_float``).
+
+Defaults are ArduCopter's; the SITL vehicle is then set up at boot with
+:data:`SITL_RATE_TUNE` and :data:`SITL_AIRFRAME` (flight-mode switch on channel 6),
+before ``sitl run --param``. Followed by the autopilot: ``ARMING_CHECK``,
+``FS_THR_ENABLE``, ``FS_OPTIONS``, ``RC_FS_TIMEOUT``, ``GUID_OPTIONS``,
+``GUID_TIMEOUT``, ``INS_GYRO_FILTER``, ``LAND_SPEED``, ``MOT_*``,
+``WPNAV_SPEED_*``, ``ATC_RAT_*``; at boot only ``SCHED_LOOP_RATE`` and
+``MAV_SYSID``. Stored only: ``MAV_GCS_SYSID``, ``FS_GCS_*``, ``RCMAP_*`` (the
+SITL radio sends AETR), ``FLTMODE_CH`` (modes change over MAVLink).
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink
 
-__all__ = ["PARAM_SPECS", "SITL_RATE_TUNE", "ArduParams", "ParamSpec"]
+from sitl.personality import ParamSpec, ParamStore
+
+__all__ = ["PARAM_SPECS", "SITL_AIRFRAME", "SITL_RATE_TUNE", "ArduParams", "ParamSpec"]
 
 PARAM_INT8 = mavlink.MAV_PARAM_TYPE_INT8
 PARAM_INT16 = mavlink.MAV_PARAM_TYPE_INT16
@@ -27,18 +49,6 @@ _INT_RANGE = {
     PARAM_INT16: (-32768, 32767),
     PARAM_INT32: (-(2**31), 2**31 - 1),
 }
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    """One ArduPilot parameter: name, default, MAVLink type, documented range."""
-
-    name: str
-    default: float
-    param_type: int
-    min_value: float = -math.inf
-    max_value: float = math.inf
-    doc: str = ""
 
 
 def _rate_pid_specs(axis: str, p: float, i: float, d: float, flte: float) -> list[ParamSpec]:
@@ -57,18 +67,28 @@ def _rate_pid_specs(axis: str, p: float, i: float, d: float, flte: float) -> lis
 
 PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("ARMING_CHECK", 1, PARAM_INT32, doc="0: skip the pre-arm checks"),
+    ParamSpec("FLTMODE_CH", 5, PARAM_INT8, 0, 16, "flight-mode channel (0 none)"),
+    ParamSpec("FS_GCS_ENABLE", 0, PARAM_INT8, 0, 7, "GCS loss: 0 off (stored only)"),
+    ParamSpec("FS_GCS_TIMEOUT", 5.0, PARAM_REAL32, 2.0, 120.0, "s without GCS (stored only)"),
     ParamSpec("FS_OPTIONS", 16, PARAM_INT32, 0, 1023, "bit 2 (4): continue guided on RC loss"),
     ParamSpec("FS_THR_ENABLE", 1, PARAM_INT8, 0, 7, "RC loss: 0 off, 1 RTL, 3 land, 7 brake"),
     ParamSpec("GUID_OPTIONS", 0, PARAM_INT32, 0, 255, "bit 3 (8): thrust is thrust"),
     ParamSpec("GUID_TIMEOUT", 3.0, PARAM_REAL32, 0.1, 5.0, "s without targets before levelling"),
     ParamSpec("INS_GYRO_FILTER", 20, PARAM_INT16, 0, 256, "gyro LPF, Hz"),
     ParamSpec("LAND_SPEED", 50, PARAM_INT16, 30, 200, "final descent speed, cm/s"),
+    # GCS.cpp (4.7): MAV_GCS_SYSID (was SYSID_MYGCS), MAV_SYSID (was SYSID_THISMAV).
     ParamSpec("MAV_GCS_SYSID", 255, PARAM_INT16, 1, 255, "ground station sysid"),
+    ParamSpec("MAV_SYSID", 1, PARAM_INT16, 1, 255, "this vehicle's sysid (at boot)"),
     ParamSpec("MOT_SPIN_ARM", 0.10, PARAM_REAL32, 0.0, 0.2, "armed idle"),
     ParamSpec("MOT_SPIN_MAX", 0.95, PARAM_REAL32, 0.9, 1.0, "top of the output range"),
     ParamSpec("MOT_SPIN_MIN", 0.15, PARAM_REAL32, 0.0, 0.3, "bottom of the output range"),
     ParamSpec("MOT_THST_EXPO", 0.65, PARAM_REAL32, -1.0, 1.0, "thrust curve expo"),
     ParamSpec("RC_FS_TIMEOUT", 1.0, PARAM_REAL32, 0.1, 10.0, "s without RC before failsafe"),
+    # AP_RCMapper.cpp; the SITL radio sends AETR whatever they say (stored only).
+    ParamSpec("RCMAP_PITCH", 2, PARAM_INT8, 1, 16, "pitch channel"),
+    ParamSpec("RCMAP_ROLL", 1, PARAM_INT8, 1, 16, "roll channel"),
+    ParamSpec("RCMAP_THROTTLE", 3, PARAM_INT8, 1, 16, "throttle channel"),
+    ParamSpec("RCMAP_YAW", 4, PARAM_INT8, 1, 16, "yaw channel"),
     ParamSpec("SCHED_LOOP_RATE", 400, PARAM_INT16, 50, 2000, "main loop, Hz (at boot)"),
     ParamSpec("WPNAV_SPEED_DN", 150.0, PARAM_REAL32, 10, 500, "guided max descent, cm/s"),
     ParamSpec("WPNAV_SPEED_UP", 250.0, PARAM_REAL32, 10, 1000, "guided max climb, cm/s"),
@@ -79,7 +99,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
 )
 
 
-class ArduParams:
+class ArduParams(ParamStore):
     """ArduPilot-style parameter store (``PARAM_REQUEST_*`` / ``PARAM_SET``).
 
     Values are kept as the type says: integer types are rounded and saturated to
@@ -88,53 +108,15 @@ class ArduParams:
     """
 
     def __init__(self, specs: Sequence[ParamSpec] = PARAM_SPECS) -> None:
-        self.specs = tuple(sorted(specs, key=lambda s: s.name))
-        self._by_name = {s.name: s for s in self.specs}
-        self._values = {s.name: float(s.default) for s in self.specs}
-        self._listeners: list[Callable[[str, float], None]] = []
+        super().__init__(specs)
 
-    def __contains__(self, name: str) -> bool:
-        return name in self._by_name
-
-    def __len__(self) -> int:
-        return len(self.specs)
-
-    def __getitem__(self, name: str) -> float:
-        return self._values[name]
-
-    def index(self, name: str) -> int:
-        return self.specs.index(self._by_name[name])
-
-    def by_index(self, index: int) -> ParamSpec | None:
-        return self.specs[index] if 0 <= index < len(self.specs) else None
-
-    def spec(self, name: str) -> ParamSpec | None:
-        return self._by_name.get(name)
-
-    def on_change(self, fn: Callable[[str, float], None]) -> None:
-        """Call ``fn(name, value)`` after every successful :meth:`set`."""
-        self._listeners.append(fn)
-
-    def set(self, name: str, value: float) -> float:
-        """Store ``value``; return what was stored.
-
-        Raises
-        ------
-        KeyError
-            For an unknown name.
-        ValueError
-            For a non-finite value.
-        """
-        spec = self._by_name[name]
+    def _coerce(self, spec: ParamSpec, value: float) -> float:
         if not math.isfinite(value):
-            raise ValueError(f"{name}: expected a finite value, got {value!r}")
+            raise ValueError(f"{spec.name}: expected a finite value, got {value!r}")
         if spec.param_type in _INT_RANGE:
             lo, hi = _INT_RANGE[spec.param_type]
             value = float(min(hi, max(lo, round(value))))
-        self._values[name] = float(value)
-        for fn in self._listeners:
-            fn(name, self._values[name])
-        return self._values[name]
+        return float(value)
 
 
 SITL_RATE_TUNE: tuple[tuple[str, float], ...] = tuple(
@@ -148,3 +130,9 @@ Chosen so a +1 rad/s roll-rate step on the F450 profile reaches 0.38 / 0.89 /
 0.99 rad/s after 40 / 80 / 120 ms, as ArduCopter's own loop did (facts.md 10:
 0.38 / 0.90 / 0.98); I, D, IMAX, FF and the yaw axis keep ArduPilot's defaults.
 """
+
+SITL_AIRFRAME: tuple[tuple[str, float], ...] = (("FLTMODE_CH", 6),)
+"""How the SITL vehicle is set up beyond its tune (the runner applies it at boot,
+before ``--param``): the flight-mode switch on channel 6 (ArduCopter's default
+is 5), as channel 5 of the SITL radio is the companion's engage switch (the
+pilot's first aux channel, ``companion run --engage-channel`` 5)."""

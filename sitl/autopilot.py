@@ -26,12 +26,14 @@ Offboard rules (as PX4)
 -----------------------
 * Switching to OFFBOARD is refused with ``MAV_RESULT_TEMPORARILY_REJECTED`` unless a
   setpoint arrived within ``offboard_entry_window_s`` (0.5 s: the ">= 2 Hz" rule).
-* In OFFBOARD, if no setpoint arrives for ``offboard_timeout_s`` the vehicle fails
-  safe. Default 1.0 s, PX4's ``COM_OF_LOSS_T`` default since v1.9 (commander_params.c;
-  older releases had 0). In free flight it switches to AUTO LAND (main 4, sub 6):
-  level and descend, then disarm on touchdown. On the test stand it switches to
-  AUTO LOITER (main 4, sub 3): hold level with the last offboard thrust, clamped to
-  [``failsafe_thrust_min``, hover thrust].
+* In OFFBOARD, if no setpoint arrives for ``offboard_timeout_s`` (parameter
+  ``COM_OF_LOSS_T``) the vehicle fails safe. Default 1.0 s, PX4's
+  ``COM_OF_LOSS_T`` default since v1.9 (commander_params.c; older releases had 0).
+  In free flight it switches to AUTO LAND (main 4, sub 6): level and descend,
+  then disarm on touchdown. On the test stand it switches to AUTO LOITER (main 4,
+  sub 3): hold level with the last offboard thrust, clamped to
+  [``failsafe_thrust_min``, hover thrust]. The action is fixed: PX4's
+  ``COM_OBL_RC_ACT`` (``COM_OBL_ACT`` before 1.14) is stored, not followed.
 * Actuator setpoints (``SET_ACTUATOR_CONTROL_TARGET`` group 0, PX4 <= 1.13) are
   mixed directly; body-rate setpoints (``SET_ATTITUDE_TARGET`` with ``type_mask``
   bit 128) go through the internal rate loop first (PX4 >= 1.14). Non-finite
@@ -45,13 +47,23 @@ RC and position (as PX4 >= 1.15, ``commander/failsafe``)
   in any mode but LAND and those ``COM_RCL_EXCEPT`` exempts (bit 1 hold, bit 2
   offboard; default none) the RC-loss failsafe acts: ``NAV_RCL_ACT`` 1 Hold
   (Land without a position), 2 Return (PX4's default; flown as Land: this SITL
-  does not fly home), 3 Land. RC already lost when arming (a vehicle flown with
+  does not fly home), 3 Land, 5 Terminate and 6 Disarm (motors off where it is),
+  0 nothing ("Disabled" in PX4 <= 1.13's list; PX4's failsafe maps 0 to no
+  action, as for ``NAV_DLL_ACT``). RC already lost when arming (a vehicle flown with
   no radio) does not trigger it until RC has come back once. The hold before
   the action (``COM_FAIL_ACT_T``) is not modelled.
 * A position estimate (``--no-position``, fault ``position-lost``): without one,
   POSCTL and AUTO.LOITER are refused; in POSCTL the autopilot falls back to
   ALTCTL, in AUTO.LOITER to LAND. AUTO.LAND is always accepted (from 1.15 it
   is forced through and flown as a descent without a position).
+
+Parameters (``sitl.px4_params``)
+--------------------------------
+:attr:`Autopilot.params` is the PX4 parameter table the face serves. The
+parameters this autopilot models (:data:`PX4_PARAMS`) start from
+:class:`AutopilotConfig` and follow ``PARAM_SET`` at once, as PX4's commander
+does; a value it cannot fly (``NAV_RCL_ACT`` 4, ``COM_OF_LOSS_T`` 0...) is
+refused with the same error :class:`AutopilotConfig` gives.
 
 Arming rules
 ------------
@@ -63,11 +75,12 @@ Arming rules
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from companion.control.pid import PX4_DEFAULT_GAINS, RatePid
 from companion.profile import VehicleProfile
@@ -88,6 +101,7 @@ from sitl.px4_modes import (
     FlightMode,
     MainMode,
 )
+from sitl.px4_params import Px4Params
 
 __all__ = ["PX4_PARAMS", "Autopilot", "AutopilotConfig"]
 
@@ -138,7 +152,8 @@ class AutopilotConfig:
     rc_loss_timeout_s
         ``COM_RC_LOSS_T``: RC silence before it counts as lost (0.5 s).
     rc_loss_action
-        ``NAV_RCL_ACT``: 1 Hold, 2 Return (flown as Land), 3 Land; default 2.
+        ``NAV_RCL_ACT``: 0 none, 1 Hold, 2 Return (flown as Land), 3 Land,
+        5 Terminate, 6 Disarm; default 2.
     rc_loss_exceptions
         ``COM_RCL_EXCEPT`` bits: 2 (bit 1) hold, 4 (bit 2) offboard; default 0.
     """
@@ -167,23 +182,27 @@ class AutopilotConfig:
             raise ValueError(f"hover_thrust must be in (0, 1), got {self.hover_thrust}")
         if not (self.rc_loss_timeout_s > 0.0 and math.isfinite(self.rc_loss_timeout_s)):
             raise ValueError(f"COM_RC_LOSS_T must be > 0, got {self.rc_loss_timeout_s}")
-        if self.rc_loss_action not in (1, 2, 3):
+        if self.rc_loss_action not in _RCL_ACTIONS:
             raise ValueError(
-                f"NAV_RCL_ACT {self.rc_loss_action} is not modelled: expected 1, 2 or 3"
+                f"NAV_RCL_ACT {self.rc_loss_action} is not modelled: expected 0, 1, 2, 3, 5 or 6"
             )
         if not 0 <= self.rc_loss_exceptions <= 31:
             raise ValueError(f"COM_RCL_EXCEPT must be in 0..31, got {self.rc_loss_exceptions}")
 
 
 PX4_PARAMS = {
+    "COM_OF_LOSS_T": "offboard_timeout_s",
     "COM_RC_LOSS_T": "rc_loss_timeout_s",
     "NAV_RCL_ACT": "rc_loss_action",
     "COM_RCL_EXCEPT": "rc_loss_exceptions",
 }
-"""PX4 parameters ``sitl run --param`` sets at boot, by the config field each sets."""
+"""The PX4 parameters this autopilot follows, by the :class:`AutopilotConfig` field
+each sets (the rest of :class:`~sitl.px4_params.Px4Params` is stored only)."""
 
 _RCL_EXCEPT_HOLD = 2
 _RCL_EXCEPT_OFFBOARD = 4
+_RCL_NONE, _RCL_HOLD, _RCL_TERMINATE, _RCL_DISARM = 0, 1, 5, 6
+_RCL_ACTIONS = (_RCL_NONE, _RCL_HOLD, 2, 3, _RCL_TERMINATE, _RCL_DISARM)
 
 
 @dataclass
@@ -202,15 +221,19 @@ class Autopilot(Personality[FlightMode]):
         The vehicle; its frame makes the mixer (``physics.mixer`` picks geometry or
         the paper's '+' mixer) and ``limits`` gives the idle and the rate limits.
     config
-        Tunables, see :class:`AutopilotConfig`.
+        Tunables, see :class:`AutopilotConfig`; the parameters of :data:`PX4_PARAMS`
+        start from it.
     initial_mode
         Mode at boot (PX4 SITL boots disarmed in a manual mode).
+    params
+        The parameter table (a new :class:`~sitl.px4_params.Px4Params` by default).
     """
 
     refusal = MavResult.DENIED
     land_mode = MODE_LAND
     log = logger
     rate_pid: RatePid
+    params: Px4Params
 
     def __init__(
         self,
@@ -218,6 +241,7 @@ class Autopilot(Personality[FlightMode]):
         config: AutopilotConfig | None = None,
         *,
         initial_mode: FlightMode | None = None,
+        params: Px4Params | None = None,
     ) -> None:
         self.motor_idle = profile.limits.motor_idle
         super().__init__(
@@ -226,6 +250,12 @@ class Autopilot(Personality[FlightMode]):
             motor_idle=self.motor_idle,
         )
         self.config = config or AutopilotConfig()
+        self.params = params if params is not None else Px4Params()
+        for name, field_name in PX4_PARAMS.items():
+            self.params.set(name, getattr(self.config, field_name))
+        # Only now: the seeds leave the config as given (COM_OF_LOSS_T's is a float32).
+        self.params.add_check(self._check_param)
+        self.params.on_change(self._param_changed)
         self.rate_pid = RatePid(PX4_DEFAULT_GAINS)
         self._setpoint: _Setpoint | None = None
         self._rc_lost_at_arming = False
@@ -270,6 +300,22 @@ class Autopilot(Personality[FlightMode]):
     def setpoint_age_s(self, t_s: float) -> float:
         """Seconds since the last accepted offboard setpoint (inf if none)."""
         return math.inf if self._setpoint is None else t_s - self._setpoint.t_s
+
+    # ------------------------------------------------------------ parameters
+
+    def _config_with(self, name: str, value: float) -> AutopilotConfig:
+        field_name = PX4_PARAMS[name]
+        v: Any = value if field_name.endswith("_s") else int(value)
+        return dataclasses.replace(self.config, **{field_name: v})
+
+    def _check_param(self, name: str, value: float) -> None:
+        """Refuse a value the autopilot cannot fly (AutopilotConfig's ValueError)."""
+        if name in PX4_PARAMS:
+            self._config_with(name, value)
+
+    def _param_changed(self, name: str, value: float) -> None:
+        if name in PX4_PARAMS:
+            self.config = self._config_with(name, value)
 
     # ---------------------------------------------------------------- commands
 
@@ -443,7 +489,17 @@ class Autopilot(Personality[FlightMode]):
         ):
             return
         self._rc_loss_handled = True
-        hold = self.config.rc_loss_action == 1 and self.position_valid
+        action = self.config.rc_loss_action
+        if action == _RCL_NONE:
+            return
+        if action in (_RCL_TERMINATE, _RCL_DISARM):
+            # Motors off where it is (Terminate also fires a parachute PX4 may have).
+            self.failsafe = "rc_loss"
+            name = "TERMINATE" if action == _RCL_TERMINATE else "DISARM"
+            self._event(t_s, "failsafe", cause="rc_loss", action=name)
+            self.disarm(t_s, force=True, reason="rc lost")
+            return
+        hold = action == _RCL_HOLD and self.position_valid
         new = MODE_LOITER if hold else MODE_LAND
         self._enter_failsafe(t_s, "rc_loss", new, reason="rc lost")
 

@@ -4,6 +4,8 @@ Usage::
 
     sitl run --profile vehicle_profiles/f450.yaml --mavlink udpout:127.0.0.1:14540 \\
         --pilot paper-acro --seed 1 --clock realtime --duration 30 --log out/flight.npz
+    sitl run --profile vehicle_profiles/f450.yaml --firmware 1.14.0 \\
+        --param COM_OF_LOSS_T=0.5 --param RC_MAP_ROLL=2
     sitl envelope --n 30 --seed 1 --out runs/envelope --corners
 
 Neither overwrites an earlier run: its files (``--log FILE`` and its events,
@@ -36,10 +38,23 @@ from companion.options import (
 )
 from companion.profile import load_profile
 from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
+from sitl.personality import FirmwareVersion
 
 __all__ = ["cli", "main"]
 
 logger = logging.getLogger("sitl")
+
+
+def _firmware_opt(
+    ctx: click.Context, param: click.Parameter, value: str | None
+) -> FirmwareVersion | None:
+    """``--firmware``: a version the face reports, checked before anything starts."""
+    if value is None:
+        return None
+    try:
+        return FirmwareVersion.parse(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
 
 
 def _link_opt(ctx: click.Context, param: click.Parameter, value: str | None) -> LinkSpec | None:
@@ -119,7 +134,7 @@ def cli(verbose: int) -> None:
     type=Finite(min=0.0, min_open=True),
     default=1.0,
     show_default=True,
-    help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T).",
+    help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T; --param COM_OF_LOSS_T wins).",
 )
 @click.option(
     "--lockstep-timeout",
@@ -162,7 +177,7 @@ def cli(verbose: int) -> None:
     type=click.Choice(["px4", "ardupilot"]),
     default="px4",
     show_default=True,
-    help="Personality shown over MAVLink: PX4 or ArduCopter (docs/ardupilot.md).",
+    help="Personality shown over MAVLink: PX4 or ArduCopter (docs/research/ardupilot.md).",
 )
 @click.option(
     "--prearm-fail",
@@ -179,8 +194,21 @@ def cli(verbose: int) -> None:
     "ap_params",
     multiple=True,
     metavar="NAME=VALUE",
-    help="Set a parameter at boot (repeatable): ardupilot, any of its table, e.g. "
-    "SCHED_LOOP_RATE=200; px4, COM_RC_LOSS_T, NAV_RCL_ACT or COM_RCL_EXCEPT.",
+    help="Set a parameter at boot (repeatable), any of the personality's table, served "
+    "over MAVLink: px4 (sitl.px4_params), e.g. COM_OF_LOSS_T=0.5, NAV_RCL_ACT=3, "
+    "COM_RCL_EXCEPT=4, COM_RC_IN_MODE=1, RC_MAP_ROLL=2, IMU_GYRO_RATEMAX=250, "
+    "MAV_SYS_ID=2; ardupilot (sitl.ardupilot_params), e.g. SCHED_LOOP_RATE=200, "
+    "GUID_OPTIONS=8, FS_THR_ENABLE=0, RCMAP_ROLL=2. An unknown name lists the table.",
+)
+@click.option(
+    "--firmware",
+    "firmware",
+    default=None,
+    callback=_firmware_opt,
+    metavar="X.Y.Z",
+    help="Firmware version AUTOPILOT_VERSION reports, MAJOR.MINOR.PATCH[-dev|-alpha|-beta|-rcN] "
+    "[default: px4 1.13.3, ardupilot 4.7.0-dev]. PX4 1.14 and later drop "
+    "SET_ACTUATOR_CONTROL_TARGET and clear its capability bit, as real PX4 does.",
 )
 @click.option(
     "--no-rc",
@@ -230,6 +258,7 @@ def run(
     no_rc: bool,
     signing_key: Path | None,
     link: LinkSpec | None,
+    firmware: FirmwareVersion | None,
 ) -> None:
     """Run one simulated flight."""
     from sitl.mavlink_link import parse_endpoint
@@ -265,6 +294,7 @@ def run(
 
         parsed_faults = tuple(parse_fault(f) for f in faults)
         parsed_params = tuple(_parse_param(p) for p in ap_params)
+        _check_param_names(autopilot, firmware, parsed_params)
         if autopilot != "ardupilot" and prearm_fail is not None:
             raise ValueError("--prearm-fail needs --autopilot ardupilot")
         key = None
@@ -292,6 +322,7 @@ def run(
             prearm_fail=prearm_fail,
             ardupilot_params=parsed_params if autopilot == "ardupilot" else (),
             px4_params=parsed_params if autopilot == "px4" else (),
+            firmware=firmware,
             position=not no_position,
             rc=not no_rc,
             link=LINK_PROFILES["ideal"] if link is None else link,
@@ -366,6 +397,27 @@ def envelope(n: int, seed: int, out_dir: Path, with_corners: bool) -> None:
         click.echo(f"error: {exc}", err=True)
         sys.exit(1)
     click.echo(f"{len(vehicles)} profiles and envelope.json written to {out_dir}", err=True)
+
+
+def _check_param_names(
+    autopilot: str, firmware: FirmwareVersion | None, params: tuple[tuple[str, float], ...]
+) -> None:
+    """``--param``: every name is in the personality's table (for that firmware)."""
+    if autopilot == "ardupilot":
+        from sitl.ardupilot_params import ArduParams
+
+        names = ArduParams().names
+    else:
+        from sitl.px4_params import PX4_DEFAULT_FIRMWARE, Px4Params
+
+        names = Px4Params(firmware or PX4_DEFAULT_FIRMWARE).names
+    for name, _ in params:
+        if name not in names:
+            raise click.BadParameter(
+                f"{autopilot} has no parameter {name!r} in the SITL: expected one of "
+                f"{', '.join(names)}",
+                param_hint="--param",
+            )
 
 
 def _parse_param(text: str) -> tuple[str, float]:

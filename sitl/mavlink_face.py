@@ -9,6 +9,15 @@ in simulation time. Each stack's face derives from it: ``sitl.px4_face`` shows t
 the :class:`~sitl.ardupilot.ArduCopter` as ArduCopter would (arming and mode
 commands, setpoints, the IMU messages and the identity differ).
 
+Parameters (``PARAM_REQUEST_READ`` / ``PARAM_REQUEST_LIST`` / ``PARAM_SET``)
+---------------------------------------------------------------------------
+Both faces serve the autopilot's :class:`~sitl.personality.ParamStore`: a read by
+name or index, the list and a set are answered with ``PARAM_VALUE`` (the
+parameter's index in name order and the count); an unknown name or index gets
+no answer, a refused value the current one. How a value rides in
+``param_value`` is each face's (:meth:`MavlinkFace._param_wire`,
+:meth:`MavlinkFace._param_from_set`): C-cast for ArduPilot, bytewise for PX4.
+
 Streams (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``sitl.streams``)
 -----------------------------------------------------------
 Each step :meth:`MavlinkFace.publish` sends, in this order: the STATUSTEXTs the
@@ -37,7 +46,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.mavlink_link import Endpoint, MavlinkLink
-from sitl.personality import MavResult, Personality
+from sitl.personality import MavResult, ParamSpec, Personality
 from sitl.streams import MessageStreams, StreamSpec
 
 __all__ = ["ONE_SHOT", "STATUS_STREAMS", "MavlinkFace", "VehicleSnapshot", "as_int"]
@@ -108,6 +117,8 @@ _ARMING_AND_MODE_COMMANDS = (
     mavlink.MAV_CMD_NAV_LAND,
 )
 
+_PARAM_MESSAGES = frozenset(("PARAM_REQUEST_READ", "PARAM_REQUEST_LIST", "PARAM_SET"))
+
 P = TypeVar("P", bound=Personality[Any])
 
 
@@ -156,16 +167,17 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     requests, :attr:`highres_temperature_c`), and implements
     :meth:`_vehicle_command`, :meth:`_handle_actuator_target` and
     :meth:`_handle_attitude_target`; it may say which body rates its IMU
-    messages carry (:meth:`_body_rates`) and extend :meth:`_send_one` with
-    messages of its own.
+    messages carry (:meth:`_body_rates`), extend :meth:`_send_one` with
+    messages of its own, and say how parameter values ride on the wire
+    (:meth:`_param_wire`, :meth:`_param_from_set`, :meth:`_param_list`).
     """
 
     mav_autopilot: ClassVar[int]
     """HEARTBEAT ``autopilot`` (``MAV_AUTOPILOT_*``)."""
-    capabilities: ClassVar[int]
-    """AUTOPILOT_VERSION ``capabilities``."""
-    flight_sw_version: ClassVar[int]
-    """AUTOPILOT_VERSION ``flight_sw_version``."""
+    capabilities: int
+    """AUTOPILOT_VERSION ``capabilities`` (a face may set its own per firmware)."""
+    flight_sw_version: int
+    """AUTOPILOT_VERSION ``flight_sw_version`` (see :class:`~sitl.personality.FirmwareVersion`)."""
     imu_streams: ClassVar[tuple[int, ...]]
     """The IMU-based streams, in the order they go out; the lockstep clock waits
     after the fastest (ties: the first)."""
@@ -173,7 +185,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     """What ``MAV_CMD_REQUEST_MESSAGE`` may ask for."""
     highres_temperature_c: ClassVar[float] = 0.0
     """HIGHRES_IMU ``temperature``."""
-    lockstep_setpoints: ClassVar[frozenset[str]] = frozenset(
+    lockstep_setpoints: frozenset[str] = frozenset(
         ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
     )
     """The setpoints (addressed to us) the lockstep clock waits for: those counted
@@ -202,6 +214,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         self.imu_nan = False
         self.rc_lost = False
         self.messages_received = 0
+        self.params_sent = 0
         self._pending: set[int] = set()
         self._last_heartbeat_wall_s = -math.inf
         # How old the sample a setpoint answers is when the setpoint is handled (its
@@ -272,6 +285,9 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                 self._handle_command(msg, msg.command, params, t_s)
         elif mtype == "TIMESYNC" and msg.tc1 == 0:
             self.mav.timesync_send(round(t_s * 1e9), msg.ts1)
+        elif mtype in _PARAM_MESSAGES:
+            if self._for_us(msg.target_system, msg.target_component):
+                self._handle_param(mtype, msg)
         else:
             self._handle_other(mtype, msg, t_s)
 
@@ -297,6 +313,63 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
 
     def _handle_other(self, mtype: str, msg: Any, t_s: float) -> None:
         """Any other message (counted in :attr:`messages_received`): ignored here."""
+
+    # ------------------------------------------------------------ parameters
+
+    def _handle_param(self, mtype: str, msg: Any) -> None:
+        """``PARAM_REQUEST_READ`` (by index when ``param_index`` >= 0, else by name),
+        ``PARAM_REQUEST_LIST``, ``PARAM_SET``, addressed to us."""
+        params = self.autopilot.params
+        if mtype == "PARAM_REQUEST_READ":
+            if msg.param_index >= 0:
+                self._send_param_index(msg.param_index)
+            elif msg.param_id in params:
+                self._send_param_index(params.index(msg.param_id))
+            # Unknown names get no answer (neither stack answers them).
+        elif mtype == "PARAM_REQUEST_LIST":
+            self._param_list()
+        else:
+            self._param_set(msg.param_id, msg.param_value, msg.param_type)
+
+    def _param_list(self) -> None:
+        """Answer ``PARAM_REQUEST_LIST``: every parameter, in index order."""
+        for i in range(len(self.autopilot.params)):
+            self._send_param_index(i)
+
+    def _param_set(self, param_id: str, wire_value: float, wire_type: int) -> None:
+        params = self.autopilot.params
+        spec = params.spec(param_id)
+        if spec is None:
+            self._warn_once(f"param:{param_id}", "PARAM_SET of unknown parameter %s", param_id)
+            return
+        value = self._param_from_set(spec, wire_value, wire_type)
+        if value is None:
+            return
+        try:
+            params.set(param_id, value)
+        except ValueError as exc:
+            logger.warning("PARAM_SET %s: %s", param_id, exc)
+        self._send_param_index(params.index(param_id))
+
+    def _param_wire(self, spec: ParamSpec, value: float) -> float:
+        """``PARAM_VALUE.param_value`` for ``value``: C-cast (the value as a float)."""
+        return value
+
+    def _param_from_set(self, spec: ParamSpec, wire_value: float, wire_type: int) -> float | None:
+        """The value a ``PARAM_SET`` asks for (C-cast: the float, whatever its
+        ``param_type``), or None to drop the message unanswered."""
+        return float(wire_value)
+
+    def _send_param_index(self, index: int) -> None:
+        params = self.autopilot.params
+        spec = params.by_index(index)
+        if spec is None:
+            return
+        wire = self._param_wire(spec, params[spec.name])
+        self.mav.param_value_send(spec.name.encode(), wire, spec.param_type, len(params), index)
+        self.params_sent += 1
+
+    # -------------------------------------------------------------- commands
 
     def _handle_command(self, msg: Any, command: int, p: Sequence[float], t_s: float) -> None:
         try:

@@ -21,14 +21,22 @@ Shared rules
   (:attr:`Personality.rc_timeout_s`); the last frame's sticks are kept.
 * A mode change resets the climb-rate integrator. Mode changes, arming,
   disarming, refusals and failsafes are recorded as :class:`Event` s.
+
+Also shared: the firmware version a stack reports (:class:`FirmwareVersion`,
+``AUTOPILOT_VERSION.flight_sw_version``) and the parameter table
+(:class:`ParamStore`, :class:`ParamSpec`). Each stack's store decides how a
+value is kept (``sitl.ardupilot_params``: rounded and saturated as ArduPilot
+does; ``sitl.px4_params``: int32 or float32 as PX4 does) and its face how a
+value rides in ``PARAM_VALUE.param_value`` (C-cast or bytewise).
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import re
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar, Generic, Protocol, TypeVar
@@ -40,8 +48,11 @@ __all__ = [
     "FORCE_DISARM_MAGIC",
     "PILOT_ACRO_RATE_MAX_RAD_S",
     "Event",
+    "FirmwareVersion",
     "MavResult",
     "Mode",
+    "ParamSpec",
+    "ParamStore",
     "Personality",
     "clip",
     "make_mixer",
@@ -77,6 +88,147 @@ class Event:
     t_s: float
     kind: str
     detail: dict[str, Any] = field(default_factory=dict)
+
+
+_FIRMWARE_TYPES = {"dev": 0, "alpha": 64, "beta": 128, "rc": 192}
+"""``FIRMWARE_VERSION_TYPE`` of a version's suffix; none is OFFICIAL (255)."""
+_FIRMWARE_RE = re.compile(r"v?(\d+)\.(\d+)\.(\d+)(?:-(dev|alpha|beta|rc)\d*)?")
+
+
+@dataclass(frozen=True)
+class FirmwareVersion:
+    """A flight stack's version, as ``AUTOPILOT_VERSION.flight_sw_version`` carries it.
+
+    Both stacks pack it as ``major << 24 | minor << 16 | patch << 8 | type``
+    (PX4 ``px4_firmware_version()``; ArduPilot ``GCS_MAVLINK::send_autopilot_version``
+    from ``AP_FWVersion``), ``type`` a ``FIRMWARE_VERSION_TYPE``: 0 dev, 64
+    alpha, 128 beta, 192 rc, 255 official release.
+    """
+
+    major: int
+    minor: int
+    patch: int
+    fw_type: int = 255
+
+    @classmethod
+    def parse(cls, text: str) -> FirmwareVersion:
+        """``MAJOR.MINOR.PATCH`` with an optional ``-dev``/``-alpha``/``-beta``/``-rcN``.
+
+        Raises
+        ------
+        ValueError
+            For anything else, or a part above 255.
+        """
+        m = _FIRMWARE_RE.fullmatch(text.strip())
+        parts = [int(m.group(i)) for i in (1, 2, 3)] if m else []
+        if m is None or any(p > 255 for p in parts):
+            raise ValueError(
+                f"{text!r}: expected MAJOR.MINOR.PATCH, each 0..255, optionally with "
+                "-dev, -alpha, -beta or -rcN (e.g. 1.13.3, 1.14.0-rc1, 4.7.0-dev)"
+            )
+        suffix = m.group(4)
+        return cls(parts[0], parts[1], parts[2], _FIRMWARE_TYPES[suffix] if suffix else 255)
+
+    @property
+    def flight_sw_version(self) -> int:
+        """``AUTOPILOT_VERSION.flight_sw_version``."""
+        return self.major << 24 | self.minor << 16 | self.patch << 8 | self.fw_type
+
+    def at_least(self, major: int, minor: int) -> bool:
+        """This is ``major.minor`` or later (a pre-release of it counts as it)."""
+        return (self.major, self.minor) >= (major, minor)
+
+    def __str__(self) -> str:
+        names = {v: k for k, v in _FIRMWARE_TYPES.items()}
+        suffix = f"-{names[self.fw_type]}" if self.fw_type in names else ""
+        return f"{self.major}.{self.minor}.{self.patch}{suffix}"
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One autopilot parameter: name, default, MAVLink type, documented range.
+
+    ``param_type`` is the ``MAV_PARAM_TYPE`` the stack reports; ``min_value`` /
+    ``max_value`` are the parameter reference's range, shown, not enforced
+    (neither stack enforces it on ``PARAM_SET``).
+    """
+
+    name: str
+    default: float
+    param_type: int
+    min_value: float = -math.inf
+    max_value: float = math.inf
+    doc: str = ""
+
+
+class ParamStore(ABC):
+    """A stack's parameter table (``PARAM_REQUEST_*`` / ``PARAM_SET``), ordered by name.
+
+    The index a ``PARAM_VALUE`` carries is the position in name order (both
+    stacks list their parameters sorted). A subclass says how a value is kept
+    (:meth:`_coerce`); the autopilot may refuse values it cannot fly
+    (:meth:`add_check`) and follow changes (:meth:`on_change`).
+    """
+
+    def __init__(self, specs: Sequence[ParamSpec]) -> None:
+        self.specs = tuple(sorted(specs, key=lambda s: s.name))
+        self._by_name = {s.name: s for s in self.specs}
+        self._values = {s.name: float(s.default) for s in self.specs}
+        self._listeners: list[Callable[[str, float], None]] = []
+        self._checks: list[Callable[[str, float], None]] = []
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.specs)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._by_name
+
+    def __len__(self) -> int:
+        return len(self.specs)
+
+    def __getitem__(self, name: str) -> float:
+        return self._values[name]
+
+    def index(self, name: str) -> int:
+        return self.specs.index(self._by_name[name])
+
+    def by_index(self, index: int) -> ParamSpec | None:
+        return self.specs[index] if 0 <= index < len(self.specs) else None
+
+    def spec(self, name: str) -> ParamSpec | None:
+        return self._by_name.get(name)
+
+    def on_change(self, fn: Callable[[str, float], None]) -> None:
+        """Call ``fn(name, value)`` after every successful :meth:`set`."""
+        self._listeners.append(fn)
+
+    def add_check(self, fn: Callable[[str, float], None]) -> None:
+        """Call ``fn(name, value)`` before a value is stored; a ValueError refuses it."""
+        self._checks.append(fn)
+
+    def set(self, name: str, value: float) -> float:
+        """Store ``value`` as the stack keeps it; return what was stored.
+
+        Raises
+        ------
+        KeyError
+            For an unknown name.
+        ValueError
+            For a value the stack cannot keep (non-finite) or the autopilot refuses.
+        """
+        spec = self._by_name[name]
+        value = self._coerce(spec, value)
+        for check in self._checks:
+            check(name, value)
+        self._values[name] = value
+        for fn in self._listeners:
+            fn(name, value)
+        return value
+
+    @abstractmethod
+    def _coerce(self, spec: ParamSpec, value: float) -> float:
+        """The value as the stack stores it; ValueError if it cannot."""
 
 
 def clip(x: float, lo: float, hi: float) -> float:
@@ -133,8 +285,8 @@ class Personality(ABC, Generic[ModeT]):
     motor_idle
         The mixer's idle output.
 
-    Subclasses set :attr:`refusal`, :attr:`land_mode`, :attr:`log` and
-    ``rate_pid``, implement :attr:`base_mode`, :attr:`system_status`,
+    Subclasses set :attr:`refusal`, :attr:`land_mode`, :attr:`log`,
+    ``rate_pid`` and :attr:`params`, implement :attr:`base_mode`, :attr:`system_status`,
     :attr:`external_control`, :attr:`rc_timeout_s`, :meth:`_arming_checks` and
     :meth:`_step`, and reset their own state in the ``_on_*`` hooks.
     """
@@ -146,6 +298,8 @@ class Personality(ABC, Generic[ModeT]):
     log: ClassVar[logging.Logger] = logger
     """Where events are logged (each stack logs under its own module's name)."""
     rate_pid: _RateLoop
+    params: ParamStore
+    """The stack's parameters, which its face serves over MAVLink."""
 
     def __init__(self, profile: VehicleProfile, *, initial_mode: ModeT, motor_idle: float) -> None:
         self.profile = profile

@@ -1,12 +1,33 @@
-"""The PX4 personality's MAVLink face: identity, arming and mode commands, setpoints, IMU.
+"""The PX4 personality's MAVLink face: identity, arming and mode commands, setpoints,
+parameters, IMU.
 
 It shows the PX4-like :class:`~sitl.autopilot.Autopilot` to a ground station or
-companion exactly as PX4 SITL would: HEARTBEAT from sysid 1 / compid 1 with
-``autopilot = MAV_AUTOPILOT_PX4`` and PX4 custom modes, ``COMMAND_ACK`` for every
-command addressed to it, and streams in simulation time. Dispatch, the
-commands both stacks answer alike and the streams' schedule are
+companion exactly as PX4 SITL would: HEARTBEAT from sysid 1 / compid 1 (PX4's
+``MAV_SYS_ID`` / ``MAV_COMP_ID``) with ``autopilot = MAV_AUTOPILOT_PX4`` and PX4
+custom modes, ``COMMAND_ACK`` for every command addressed to it, PX4's parameter
+protocol, and streams in simulation time. Dispatch, the commands both stacks
+answer alike, the parameter messages and the streams' schedule are
 :class:`~sitl.mavlink_face.MavlinkFace`'s; the socket and peers
 :class:`~sitl.mavlink_link.MavlinkLink`'s.
+
+Firmware (``firmware``, ``sitl run --firmware``; default 1.13.3)
+-----------------------------------------------------------------
+AUTOPILOT_VERSION reports ``flight_sw_version = major << 24 | minor << 16 |
+patch << 8 | type`` (255 for a release). Up to 1.13 ``SET_ACTUATOR_CONTROL_TARGET``
+group 0 drives the mixer and ``capabilities`` has SET_ACTUATOR_TARGET (1024);
+from 1.14 (PX4 PR #20837) the message is dropped unhandled (logged once, not a
+setpoint: it neither enters nor keeps OFFBOARD) and the bit is clear, while
+body-rate ``SET_ATTITUDE_TARGET`` works in both. From 1.13 ``capabilities``
+also has PARAM_ENCODE_BYTEWISE (16; PX4 PR #19447, April 2022).
+
+Parameters (``sitl.px4_params``)
+--------------------------------
+As PX4's ``MavlinkParametersManager``: ``PARAM_VALUE`` carries an INT32's bytes
+in ``param_value`` (bytewise) and a FLOAT as itself; ``PARAM_SET`` is decoded
+the same way, and dropped unanswered (logged: "param types mismatch") when its
+``param_type`` is not the parameter's; ``PARAM_REQUEST_LIST`` answers
+``_HASH_CHECK`` first (index 65535, UINT32, not counted) and then every
+parameter; ``PARAM_REQUEST_READ`` of ``_HASH_CHECK`` answers the hash alone.
 
 Streams and their defaults (change with ``MAV_CMD_SET_MESSAGE_INTERVAL``)
 -------------------------------------------------------------------------
@@ -37,27 +58,51 @@ from sitl.mavlink_face import (
     MavlinkFace,
     as_int,
 )
-from sitl.personality import FORCE_DISARM_MAGIC, MavResult
+from sitl.mavlink_link import Endpoint
+from sitl.personality import FORCE_DISARM_MAGIC, FirmwareVersion, MavResult, ParamSpec
 from sitl.px4_modes import AUTO_SUB_LAND, MainMode
+from sitl.px4_params import (
+    PARAM_INT32,
+    PARAM_REAL32,
+    PARAM_UINT32,
+    PX4_DEFAULT_FIRMWARE,
+    decode_bytewise,
+    encode_bytewise,
+)
 from sitl.streams import MessageStreams, StreamSpec
 
-__all__ = ["Px4Face", "px4_streams"]
+__all__ = ["CAP_SET_ACTUATOR_TARGET", "Px4Face", "px4_capabilities", "px4_streams"]
 
 logger = logging.getLogger(__name__)
 
 MAV_AUTOPILOT_PX4 = 12
 CAP_SET_ACTUATOR_TARGET = 1024
 """``MAV_PROTOCOL_CAPABILITY_SET_ACTUATOR_TARGET`` (now ``RESERVED3`` in common.xml)."""
+HASH_PARAM = "_HASH_CHECK"
+"""PX4's parameter-cache hash, sent first in a parameter list."""
 
-CAPABILITIES = (
-    mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+_BASE_CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
-    | CAP_SET_ACTUATOR_TARGET
     | mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
 )
-# PX4 encodes versions as major << 24 | minor << 16 | patch << 8 | type (255 = release).
-# 1.13.3: the last PX4 release that honours SET_ACTUATOR_CONTROL_TARGET, which we do.
-FLIGHT_SW_VERSION = (1 << 24) | (13 << 16) | (3 << 8) | 255
+"""What PX4's ``Mavlink::send_autopilot_capabilities`` sets and this SITL has (no
+missions, FTP or position targets); PARAM_FLOAT (2) is set by PX4 too."""
+
+
+def px4_capabilities(firmware: FirmwareVersion) -> int:
+    """AUTOPILOT_VERSION ``capabilities`` of PX4 ``firmware``."""
+    caps: int = _BASE_CAPABILITIES
+    if not firmware.at_least(1, 14):
+        caps |= CAP_SET_ACTUATOR_TARGET
+    if firmware.at_least(1, 13):
+        caps |= mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    return caps
+
+
+CAPABILITIES = px4_capabilities(PX4_DEFAULT_FIRMWARE)
+FLIGHT_SW_VERSION = PX4_DEFAULT_FIRMWARE.flight_sw_version
 
 
 def px4_streams(imu_rate_hz: float) -> MessageStreams:
@@ -80,8 +125,16 @@ class Px4Face(MavlinkFace[Autopilot]):
     On top of :class:`~sitl.mavlink_face.MavlinkFace`: PX4's heartbeat identity,
     ``MAV_CMD_COMPONENT_ARM_DISARM`` (param2 21196 forces), ``MAV_CMD_DO_SET_MODE``
     with PX4 main / sub modes, ``MAV_CMD_NAV_LAND`` (AUTO.LAND),
-    ``SET_ACTUATOR_CONTROL_TARGET`` group 0 and ``SET_ATTITUDE_TARGET`` body rates
-    (attitude ignored), and HIGHRES_IMU / ATTITUDE with the IMU's gyro.
+    ``SET_ACTUATOR_CONTROL_TARGET`` group 0 (PX4 <= 1.13) and ``SET_ATTITUDE_TARGET``
+    body rates (attitude ignored), bytewise parameters, and HIGHRES_IMU / ATTITUDE
+    with the IMU's gyro.
+
+    Parameters
+    ----------
+    endpoint, autopilot, streams, sysid, compid
+        As :class:`~sitl.mavlink_face.MavlinkFace`.
+    firmware
+        The PX4 version shown (see the module's docstring).
     """
 
     mav_autopilot = MAV_AUTOPILOT_PX4
@@ -89,13 +142,42 @@ class Px4Face(MavlinkFace[Autopilot]):
     flight_sw_version = FLIGHT_SW_VERSION
     imu_streams = (ID_HIGHRES_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION)
 
+    def __init__(
+        self,
+        endpoint: Endpoint,
+        autopilot: Autopilot,
+        streams: MessageStreams,
+        *,
+        sysid: int = 1,
+        compid: int = 1,
+        firmware: FirmwareVersion = PX4_DEFAULT_FIRMWARE,
+    ) -> None:
+        super().__init__(endpoint, autopilot, streams, sysid=sysid, compid=compid)
+        self.firmware = firmware
+        self.flight_sw_version = firmware.flight_sw_version
+        self.capabilities = px4_capabilities(firmware)
+        self.actuator_targets = not firmware.at_least(1, 14)
+        """``SET_ACTUATOR_CONTROL_TARGET`` is handled (PX4 <= 1.13)."""
+        if not self.actuator_targets:
+            self.lockstep_setpoints = frozenset(("SET_ATTITUDE_TARGET",))
+
     # -------------------------------------------------------------- handling
 
     def neutral_setpoint(self, t_s: float) -> None:
-        self.autopilot.on_actuator_target(t_s, (0.0, 0.0, 0.0, 0.0))
+        if self.actuator_targets:
+            self.autopilot.on_actuator_target(t_s, (0.0, 0.0, 0.0, 0.0))
+        else:
+            self.autopilot.on_rates_target(t_s, (0.0, 0.0, 0.0), 0.0)
 
     def _handle_actuator_target(self, msg: Any, t_s: float) -> None:
         if not self._for_us(msg.target_system, msg.target_component):
+            return
+        if not self.actuator_targets:
+            self._warn_once(
+                "act",
+                "SET_ACTUATOR_CONTROL_TARGET dropped: PX4 %s does not handle it (>= 1.14)",
+                self.firmware,
+            )
             return
         self.setpoints_received += 1
         if msg.group_mlx != 0:
@@ -137,3 +219,40 @@ class Px4Face(MavlinkFace[Autopilot]):
         if command == mavlink.MAV_CMD_NAV_LAND:
             return ap.set_mode(t_s, MainMode.AUTO, AUTO_SUB_LAND)
         return None
+
+    # ------------------------------------------------------------ parameters
+
+    def _param_wire(self, spec: ParamSpec, value: float) -> float:
+        """Bytewise: an INT32's bytes read as a float32, a FLOAT as itself."""
+        return encode_bytewise(value, spec.param_type)
+
+    def _param_from_set(self, spec: ParamSpec, wire_value: float, wire_type: int) -> float | None:
+        """Decoded bytewise; None (dropped, no answer) when ``wire_type`` is not the
+        parameter's, as PX4 does ("param types mismatch")."""
+        if wire_type != spec.param_type or wire_type not in (PARAM_INT32, PARAM_REAL32):
+            self._warn_once(
+                f"param-type:{spec.name}",
+                "param types mismatch param: %s (PARAM_SET type %d, parameter type %d)",
+                spec.name,
+                wire_type,
+                spec.param_type,
+            )
+            return None
+        return decode_bytewise(wire_value, wire_type)
+
+    def _handle_param(self, mtype: str, msg: Any) -> None:
+        if mtype == "PARAM_REQUEST_READ" and msg.param_index < 0 and msg.param_id == HASH_PARAM:
+            self._send_hash()
+        elif mtype == "PARAM_SET" and msg.param_id == HASH_PARAM:
+            return  # "stop sending the list": it went out whole already
+        else:
+            super()._handle_param(mtype, msg)
+
+    def _param_list(self) -> None:
+        self._send_hash()
+        super()._param_list()
+
+    def _send_hash(self) -> None:
+        params = self.autopilot.params
+        wire = encode_bytewise(params.hash_check(), PARAM_UINT32)
+        self.mav.param_value_send(HASH_PARAM.encode(), wire, PARAM_UINT32, len(params), 65535)

@@ -40,6 +40,19 @@ and is handled when the link delivers it. The link's model starts again at the
 pilot's start (with ``pilot_from_arm``, at arming), as the wind, IMU and pilot
 streams do. With the ideal link (the default) nothing is queued.
 
+Autopilot, firmware and parameters
+----------------------------------
+``autopilot`` picks the personality, ``firmware`` the version its face reports
+(PX4: 1.13.3 by default, and from 1.14 ``SET_ACTUATOR_CONTROL_TARGET`` is
+dropped, ``sitl.px4_face``; ArduPilot: 4.7.0-dev). ``px4_params`` /
+``ardupilot_params`` are set at boot, after the SITL airframe's own settings
+(PX4: ``sitl.px4_params.px4_sitl_airframe``; ArduPilot: ``SITL_RATE_TUNE`` and
+``SITL_AIRFRAME`` of ``sitl.ardupilot_params``), so they win; any name of the
+stack's table is accepted. Read at boot: PX4 ``MAV_SYS_ID`` / ``MAV_COMP_ID``
+and ArduPilot ``MAV_SYSID`` (the face's ids), PX4 ``IMU_GYRO_RATEMAX`` (the
+fastest IMU stream) and ArduPilot ``SCHED_LOOP_RATE``. PX4 ``COM_OF_LOSS_T``
+given as a parameter wins over ``offboard_timeout_s``.
+
 Outcome
 -------
 A run ends with ``status`` ``"completed"`` (duration reached), ``"stopped"``
@@ -69,7 +82,7 @@ from typing import Any, Literal
 import numpy as np
 
 from companion.profile import ImuModel, VehicleProfile
-from sitl.autopilot import PX4_PARAMS, Autopilot, AutopilotConfig
+from sitl.autopilot import Autopilot, AutopilotConfig
 from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
 from sitl.flight_log import LogWriter
 from sitl.frames import quat_to_euler_rad
@@ -77,11 +90,12 @@ from sitl.imu import Imu
 from sitl.link_model import LINK_PROFILES, LinkModel, LinkSpec
 from sitl.mavlink_face import MavlinkFace
 from sitl.mavlink_link import Endpoint, enable_signing
-from sitl.personality import Event, Personality
+from sitl.personality import Event, FirmwareVersion, ParamStore, Personality
 from sitl.physics import Quadrotor
 from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.px4_face import Px4Face, px4_streams
 from sitl.px4_modes import FlightMode, MainMode
+from sitl.px4_params import PX4_DEFAULT_FIRMWARE, Px4Params, px4_sitl_airframe
 from sitl.rotors import hover_motor_command
 from sitl.streams import MessageStreams
 from sitl.wind import Wind, WindConfig
@@ -124,7 +138,8 @@ class RunConfig:
     log_path
         ``.npz`` log to write (plus its ``.events.jsonl``), or None.
     offboard_timeout_s
-        Offboard-loss timeout (PX4 ``COM_OF_LOSS_T``), s.
+        Offboard-loss timeout (PX4 ``COM_OF_LOSS_T``; a ``COM_OF_LOSS_T`` in
+        ``px4_params`` wins), s.
     lockstep_timeout_s
         Longest wall-clock wait for a setpoint in lockstep, s.
     initial_mode
@@ -148,8 +163,11 @@ class RunConfig:
     ardupilot_params
         ArduPilot personality: parameters set at boot, ``(name, value)`` pairs.
     px4_params
-        PX4 personality: the parameters of ``sitl.autopilot.PX4_PARAMS`` set at
+        PX4 personality: parameters of :class:`sitl.px4_params.Px4Params` set at
         boot, ``(name, value)`` pairs.
+    firmware
+        The version the face reports; None: the stack's default (PX4 1.13.3,
+        ArduCopter 4.7.0-dev).
     position
         The autopilot has a position estimate (GPS, flow...): False for a vehicle
         without one (no LOCAL_POSITION_NED; hold modes refused).
@@ -196,6 +214,7 @@ class RunConfig:
     prearm_fail: str | None = None
     ardupilot_params: tuple[tuple[str, float], ...] = ()
     px4_params: tuple[tuple[str, float], ...] = ()
+    firmware: FirmwareVersion | None = None
     position: bool = True
     rc: bool = True
     link: LinkSpec = LINK_PROFILES["ideal"]
@@ -229,6 +248,14 @@ class RunSummary:
     link_counts: dict[str, int] = field(default_factory=dict)
     setpoint_age_ms: dict[str, float] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _mavlink_id(params: ParamStore, name: str) -> int:
+    """A MAVLink system / component id parameter, checked (1..254)."""
+    value = int(params[name])
+    if not 1 <= value <= 254:
+        raise ValueError(f"{name} {value}: a MAVLink id is 1..254")
+    return value
 
 
 @contextmanager
@@ -307,35 +334,46 @@ class Runner:
             main = _MODE_BY_NAME[cfg.initial_mode.upper()]
         else:
             main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
-        px4: dict[str, Any] = {}
-        for name, value in cfg.px4_params:
-            if name not in PX4_PARAMS:
-                raise ValueError(
-                    f"PX4 parameter {name!r} is not modelled: expected one of "
-                    f"{', '.join(sorted(PX4_PARAMS))}"
-                )
-            field_name = PX4_PARAMS[name]
-            px4[field_name] = value if field_name.endswith("_s") else int(value)
+        params = Px4Params(cfg.firmware or PX4_DEFAULT_FIRMWARE)
         ap = Autopilot(
             self.profile,
             AutopilotConfig(
                 offboard_timeout_s=cfg.offboard_timeout_s,
                 test_stand=cfg.test_stand,
                 hover_thrust=min(max(hover_thrust, 0.05), 0.95),
-                **px4,
             ),
             initial_mode=FlightMode(main),
+            params=params,
         )
         imu_rate_hz = min(self.imu.model.rate_hz, 1.0 / cfg.dt_s)
+        for name, value in (*px4_sitl_airframe(imu_rate_hz), *cfg.px4_params):
+            if name not in params:
+                raise ValueError(
+                    f"PX4 parameter {name!r} is not modelled: expected one of "
+                    f"{', '.join(params.names)}"
+                )
+            params.set(name, value)
+        # IMU_GYRO_RATEMAX caps the gyro rate PX4 publishes: no IMU stream goes faster.
+        gyro_max_hz = params["IMU_GYRO_RATEMAX"]
+        if 0 < gyro_max_hz < round(imu_rate_hz):
+            imu_rate_hz = gyro_max_hz
         self.autopilot = ap
         self.streams = px4_streams(imu_rate_hz)
-        self.face = Px4Face(cfg.mavlink, ap, self.streams)
+        self.face = Px4Face(
+            cfg.mavlink,
+            ap,
+            self.streams,
+            sysid=_mavlink_id(params, "MAV_SYS_ID"),
+            compid=_mavlink_id(params, "MAV_COMP_ID"),
+            firmware=params.firmware,
+        )
 
     def _make_ardupilot(self, hover_motor_cmd: float) -> None:
         """The ArduCopter personality (``--autopilot ardupilot``)."""
         from sitl.ardupilot import ArduCopter, ArduCopterConfig
         from sitl.ardupilot_face import ArduPilotFace, ardupilot_streams
         from sitl.ardupilot_modes import CopterMode
+        from sitl.ardupilot_params import SITL_AIRFRAME
 
         cfg = self.config
         if cfg.initial_mode is not None:
@@ -351,14 +389,22 @@ class Runner:
                 test_stand=cfg.test_stand,
                 hover_motor_cmd=min(max(hover_motor_cmd, 0.05), 0.95),
                 prearm_fail=cfg.prearm_fail,
-                params=cfg.ardupilot_params,
+                params=(*SITL_AIRFRAME, *cfg.ardupilot_params),
             ),
             initial_mode=mode,
         )
+        from sitl.ardupilot_face import ARDUPILOT_DEFAULT_FIRMWARE
+
         streams = ardupilot_streams(ap.loop_rate_hz)
         self.autopilot = ap
         self.streams = streams
-        self.face = ArduPilotFace(cfg.mavlink, ap, streams)
+        self.face = ArduPilotFace(
+            cfg.mavlink,
+            ap,
+            streams,
+            sysid=_mavlink_id(ap.params, "MAV_SYSID"),
+            firmware=cfg.firmware or ARDUPILOT_DEFAULT_FIRMWARE,
+        )
 
     def run(self) -> RunSummary:
         """Fly until the duration, a signal, or a crash; write the log.

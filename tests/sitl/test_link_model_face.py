@@ -4,7 +4,6 @@ sends reaches the socket, and what it reads is handled, when the link delivers i
 from __future__ import annotations
 
 import os
-import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,45 +21,9 @@ from sitl.autopilot import Autopilot, AutopilotConfig
 from sitl.link_model import LINK_PROFILES, LinkModel, parse_link
 from sitl.mavlink_link import frame_msgid, parse_endpoint
 from sitl.px4_face import Px4Face, px4_streams
+from tests.sitl.udp_client import Client, Collect
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-class _Collect:
-    def __init__(self) -> None:
-        self.frames: list[bytes] = []
-
-    def write(self, buf: bytes) -> None:
-        self.frames.append(bytes(buf))
-
-
-class Client:
-    """The other end: a UDP socket the face sends to, which can answer."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
-        self.out = _Collect()
-        self.mav = mavlink2.MAVLink(self.out, srcSystem=255, srcComponent=190)
-        self.parser = mavlink2.MAVLink(None)
-        self.parser.robust_parsing = True
-
-    def received(self, wait_s: float = 0.05) -> list[Any]:
-        """Every message that arrived within ``wait_s``, in order."""
-        self.sock.settimeout(wait_s)
-        msgs: list[Any] = []
-        while True:
-            try:
-                data = self.sock.recv(4096)
-            except TimeoutError:
-                return msgs
-            msgs += self.parser.parse_buffer(data) or []
-
-    def send_last(self, face: Px4Face) -> None:
-        """Send the frame packed last to the face, and let it reach its socket."""
-        self.sock.sendto(self.out.frames[-1], face.sock.getsockname())  # type: ignore[union-attr]
-        assert face.wait_readable(1.0)
 
 
 @pytest.fixture
@@ -92,7 +55,7 @@ def _highres_us(msgs: list[Any]) -> list[int]:
 
 
 def test_the_message_id_is_read_from_mavlink_1_and_2_frames() -> None:
-    v2, v1 = _Collect(), _Collect()
+    v2, v1 = Collect(), Collect()
     mavlink2.MAVLink(v2).highres_imu_send(1, *[0.0] * 13, 0)
     mavlink2.MAVLink(v2).set_actuator_control_target_send(1, 0, 1, 1, [0.0] * 8)
     mavlink1.MAVLink(v1).heartbeat_send(2, 12, 0, 0, 0)
