@@ -148,7 +148,7 @@ class RunOptions:
     ArduPilot personality); the law's own feed-forward ``y_r''/alpha``, with alpha
     identified on that closed loop, is only about 8 ms of it. The lead is not
     taught to the F estimate as applied: taught, it drags the identified alpha
-    down and the law's feedback rings. Measured: docs/ardupilot.md."""
+    down and the law's feedback rings. Measured: docs/research/ardupilot.md."""
     rates_passthrough: bool = False
     """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
     MFC-on-top is compared with); the law still runs and is logged."""
@@ -671,6 +671,7 @@ class Companion(SamplePath):
         self.autopilot = int(hb.autopilot)
         await self._recognise_stack()
         await self._request_streams()
+        self.started_up = True
 
     async def _until_stopped(self, coro: Coroutine[Any, Any, None]) -> bool:
         """Run ``coro`` unless the run is stopped first (then cancel it); True if it ran."""

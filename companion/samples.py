@@ -101,6 +101,14 @@ class SamplePath(Engagement):
         self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._thrust = 0.0
         self._switch_high = False
+        self._switch_seen_low = False
+        """The engage switch was seen low since start-up: until then, a switch
+        that is already high engages nothing (a companion that starts, or
+        restarts, in flight with the switch high must not take over at once)."""
+        self._switch_said_high = False
+        self.started_up = False
+        """Start-up is over (the stack recognised, the streams requested): the
+        switch is read from then on."""
         self._restart_dt = False
         self._actuator_output = opts.output == "actuator"
         self._script = opts.reference
@@ -370,11 +378,23 @@ class SamplePath(Engagement):
         self._rc = chans
         self._ref, self._thrust = cmd.rate_rad_s, cmd.thrust
         self._rc_wall = time.perf_counter()
-        if self.opts.engage != "rc-switch":
+        if self.opts.engage != "rc-switch" or not self.started_up:
             return
         ch = self.opts.engage_channel
         value = chans[ch - 1] if ch <= len(chans) else 0
-        if not self._switch_high and 1700 <= value <= 2200:
+        high = 1700 <= value <= 2200
+        if not self._switch_seen_low:
+            if not high:
+                self._switch_seen_low = True
+            elif not self._switch_said_high:
+                self._switch_said_high = True
+                self._event(
+                    "rc_switch_high_at_start",
+                    f"ch{ch} high ({value} us) at start: nothing engages until the "
+                    "switch has been low; put it low, then high to engage",
+                )
+            return
+        if not self._switch_high and high:
             self._switch_high = True
             self._event("rc_switch", f"ch{ch} high ({value} us): engaging")
             self._start_engage(arm=False)

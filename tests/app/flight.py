@@ -112,6 +112,11 @@ async def streams_requested(f: Flight, imu_id: int = MSG_HIGHRES_IMU) -> None:
     await f.fake.wait_until(both, 2.0)
 
 
+async def started_up(f: Flight) -> None:
+    """Start-up over: the engage switch is read from then on."""
+    await f.fake.wait_until(lambda: f.companion.started_up, 2.0)
+
+
 async def engage_px4_auto(f: Flight) -> None:
     """Start-up, setpoints, OFFBOARD, ARM, and the heartbeat that shows them applied."""
     await streams_requested(f)
@@ -147,6 +152,7 @@ async def switch_flicked_high(start: Start) -> Flight:
         follow_modes=False,
     )  # fmt: skip
     await streams_requested(f)
+    await started_up(f)
     f.fake.rc(1000)
     await settle()
     f.fake.rc(2000)

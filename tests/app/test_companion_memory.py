@@ -56,6 +56,7 @@ from tests.app.flight import (
     index_of,
     is_mode,
     setpoint_times,
+    started_up,
     streams_requested,
     switch_flicked_high,
 )
@@ -276,6 +277,7 @@ async def test_rc_switch_engages_hands_back_and_reengages(start: Start) -> None:
         follow_modes=False,  # the test says when the autopilot really switched
     )  # fmt: skip
     await streams_requested(f)
+    await started_up(f)
     fake = f.fake
 
     # Switch low: nothing commanded, however long we wait.
@@ -317,6 +319,32 @@ async def test_rc_switch_engages_hands_back_and_reengages(start: Start) -> None:
 
     f.companion._stop.set()
     assert await f.finish() == 0
+
+
+async def test_a_switch_already_high_at_start_engages_nothing_until_it_has_been_low(
+    start: Start,
+) -> None:
+    """A companion started (or restarted by its service) with the pilot's switch
+    high must not take over at once: only a low-to-high flick engages."""
+    f = await start(
+        engage="rc-switch", output="actuator", custom_mode=PX4_MANUAL, armed=True,
+        follow_modes=False,
+    )  # fmt: skip
+    fake = f.fake
+    fake.rc(2000)  # high before and through start-up
+    await streams_requested(f)
+    await started_up(f)
+    fake.rc(2000)
+    await f.feed_until(lambda: f.companion.counters["imu_samples"] >= 50, what="samples",
+                       send=lambda: (f.imu(), fake.rc(2000)))  # fmt: skip
+    assert not fake.setpoints() and not fake.commands(CMD_DO_SET_MODE)
+    assert f.kinds().count("rc_switch_high_at_start") == 1
+    assert "rc_switch" not in f.kinds()
+    fake.rc(1000)
+    await settle()
+    fake.rc(2000)
+    await f.feed_until(lambda: fake.commands(CMD_DO_SET_MODE), what="OFFBOARD")
+    assert is_mode(fake.commands(CMD_DO_SET_MODE)[0], 6.0)
 
 
 async def test_rc_switch_flicked_back_low_leaves_the_autopilot_in_the_safe_mode(
@@ -584,6 +612,7 @@ async def test_a_signal_while_the_pilots_hand_back_retries_leaves_the_safe_mode_
         results={CMD_DO_SET_MODE: first_posctl_lost},
     )
     await streams_requested(f)
+    await started_up(f)
     fake = f.fake
     fake.rc(1000)
     await settle()

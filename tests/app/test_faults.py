@@ -68,7 +68,7 @@ async def engaged_by_switch(start: Start) -> Flight:
     fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, on_failsafe="wait")
     f = await start(engage="rc-switch", output="actuator", failsafe=fs,
                     custom_mode=PX4_OFFBOARD, armed=True)  # fmt: skip
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.started_up, 2.0)
     f.fake.rc(1000)
     await settle()
     f.fake.rc(2000)
