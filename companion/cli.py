@@ -23,7 +23,7 @@ from typing import Any
 import click
 
 from companion import __version__
-from companion.errors import ConfigError, MfcError
+from companion.errors import EXIT_ERROR, ConfigError, MfcError
 from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
 from companion.options import (
     EXIT_BAD_INPUT,
@@ -115,6 +115,40 @@ def _warn_profile(profile: Any, path: Path) -> None:
         click.echo(f"warning: {path}: {warning}", err=True)
 
 
+# Options `companion run` and `companion preflight` share: preflight checks the
+# autopilot for the run those options describe.
+_connect_opt = click.option(
+    "--connect",
+    default="udpin:0.0.0.0:14540",
+    show_default=True,
+    help="udpin:HOST:PORT, udpout:HOST:PORT or serial:DEVICE:BAUD.",
+)
+_engage_opt = click.option(
+    "--engage",
+    type=click.Choice(["auto", "rc-switch", "none"]),
+    default="rc-switch",
+    show_default=True,
+    help="auto: OFFBOARD+arm (simulation); rc-switch: while an RC "
+    "channel is high; none: shadow mode, sends no setpoint, mode or arm command.",
+)
+_engage_channel_opt = click.option(
+    "--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True
+)
+_rate_hz_opt = click.option(
+    "--rate-hz",
+    type=Finite(50.0, 1000.0),
+    default=250.0,
+    show_default=True,
+    help="IMU stream (= control loop) rate requested from the autopilot.",
+)
+_autopilot_sysid_opt = click.option(
+    "--autopilot-sysid",
+    type=click.IntRange(1, 255),
+    default=None,
+    help="Listen only to this system [default: learnt from the first autopilot heartbeat].",
+)
+
+
 @cli.command("check-config")
 @profile_opt
 @controller_opt
@@ -161,25 +195,119 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
         sys.exit(EXIT_BAD_INPUT)
 
 
-@cli.command("run")
-@click.option(
-    "--connect",
-    default="udpin:0.0.0.0:14540",
-    show_default=True,
-    help="udpin:HOST:PORT, udpout:HOST:PORT or serial:DEVICE:BAUD.",
-)
+@cli.command("preflight")
+@_connect_opt
 @profile_opt
 @controller_opt
 @output_opt
+@_engage_opt
+@_engage_channel_opt
+@_rate_hz_opt
+@signing_key_opt("MAVLink 2 signing key file (as companion run will use).")
+@_autopilot_sysid_opt
 @click.option(
-    "--engage",
-    type=click.Choice(["auto", "rc-switch", "none"]),
-    default="rc-switch",
+    "--watch-s",
+    type=Finite(min=1.0, max=120.0),
+    default=3.0,
     show_default=True,
-    help="auto: OFFBOARD+arm (simulation); rc-switch: while an RC "
-    "channel is high; none: shadow mode, sends no setpoint, mode or arm command.",
+    help="How long to watch the streams (flip the engage switch meanwhile).",
 )
-@click.option("--engage-channel", type=click.IntRange(5, 18), default=5, show_default=True)
+@click.option(
+    "--heartbeat-timeout-s",
+    type=Finite(min=0.1, max=60.0),
+    default=5.0,
+    show_default=True,
+    help="How long to wait for the autopilot's HEARTBEAT.",
+)
+@click.option("--json", "as_json", is_flag=True, help="Print the checklist as JSON.")
+def preflight(
+    connect: str,
+    profile_path: Path,
+    controller_path: Path | None,
+    output: str,
+    engage: str,
+    engage_channel: int,
+    rate_hz: float,
+    signing_key: Path | None,
+    autopilot_sysid: int | None,
+    watch_s: float,
+    heartbeat_timeout_s: float,
+    as_json: bool,
+) -> None:
+    """Check the autopilot is set up for companion run; move nothing.
+
+    Reads the stack and its version, the parameters a safe offboard flight
+    needs, the IMU rate and the link's round trip, the radio and the engage
+    switch, signing, the landed state and the position estimate, and times the
+    control law here. Each line passes, warns or fails with the fix. Exit 0 when
+    nothing fails, 1 otherwise, 2 for bad input.
+    """
+    import asyncio
+
+    from companion.config import build_controller
+    from companion.control import COMPILED
+    from companion.link.mavlink import MavlinkLink
+    from companion.link.signing import load_signing_key
+    from companion.link.transport import open_transport
+    from companion.preflight import Plan, as_data, judge, measure_core, observe, summary
+
+    profile, cfg, _ = load_inputs(profile_path, controller_path, output)
+    _warn_profile(profile, profile_path)
+    try:
+        transport = open_transport(connect)
+        signing = load_signing_key(signing_key) if signing_key else None
+    except (ValueError, MfcError) as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(EXIT_BAD_INPUT)
+    link = MavlinkLink(transport, signing=signing, target_system=autopilot_sysid)
+    plan = Plan(
+        output=output,  # type: ignore[arg-type]
+        engage=engage,  # type: ignore[arg-type]
+        engage_channel=engage_channel,
+        rate_hz=rate_hz,
+        sticks_channels=cfg.sticks.channels,
+        signing=signing is not None,
+        serial=connect.startswith("serial:"),
+        source_system=link.source_system,
+        source_component=link.source_component,
+    )
+
+    async def observed() -> Any:
+        try:
+            return await observe(
+                link, plan, watch_s=watch_s, heartbeat_timeout_s=heartbeat_timeout_s
+            )
+        finally:
+            await link.close()
+
+    try:
+        obs = asyncio.run(observed())
+    except OSError as exc:
+        click.echo(f"error: {connect}: {exc}", err=True)
+        sys.exit(EXIT_ERROR)
+    # Timed after the link is closed, so the watch and the timing do not disturb each other.
+    core = measure_core(build_controller(cfg, profile), COMPILED, rate_hz)
+    checks = judge(obs, plan, core)
+    counts = summary(checks)
+    if as_json:
+        click.echo(json.dumps(as_data(obs, checks, core), indent=2))
+    else:
+        width = min(16, max(len(c.name) for c in checks))
+        for c in checks:
+            click.echo(f"{c.status.upper():4}  {c.name:<{width}}  {c.detail}")
+            if c.fix and c.status != "pass":
+                click.echo(f"{'':4}  {'':<{width}}  fix: {c.fix}")
+        click.echo(f"{counts['fail']} failed, {counts['warn']} warnings, {counts['pass']} passed")
+    sys.exit(EXIT_ERROR if counts["fail"] else 0)
+
+
+@cli.command("run")
+@_connect_opt
+@profile_opt
+@controller_opt
+@output_opt
+@_engage_opt
+@_engage_channel_opt
 @click.option(
     "--rates-full-scale-deg-s",
     type=Finite(min=10.0, max=2000.0),
@@ -207,13 +335,7 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
     show_default=True,
     help="auto: the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE).",
 )
-@click.option(
-    "--rate-hz",
-    type=Finite(50.0, 1000.0),
-    default=250.0,
-    show_default=True,
-    help="IMU stream (= control loop) rate requested from the autopilot.",
-)
+@_rate_hz_opt
 @click.option(
     "--log-dir",
     type=click.Path(file_okay=False),
@@ -306,12 +428,7 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
     "How long a rate beyond the profile's limit, or the averaging time of the "
     "tracking error, before the envelope failsafe.",
 )
-@click.option(
-    "--autopilot-sysid",
-    type=click.IntRange(1, 255),
-    default=None,
-    help="Listen only to this system [default: learnt from the first autopilot heartbeat].",
-)
+@_autopilot_sysid_opt
 @click.option(
     "--autopilot-compid",
     type=click.IntRange(1, 255),

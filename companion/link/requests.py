@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import struct
 from typing import TYPE_CHECKING, Any
 
 from pymavlink.dialects.v20 import common as mavlink2
@@ -11,12 +12,36 @@ from pymavlink.dialects.v20 import common as mavlink2
 from companion.errors import LinkError
 from companion.link.transport import Transport
 
-__all__ = ["Requester"]
+__all__ = ["Requester", "param_value"]
 
 logger = logging.getLogger("companion.link.mavlink")
 
 _MAX_IN_PROGRESS = 100
 """At most this many MAV_RESULT_IN_PROGRESS acks extend one command's wait."""
+
+_MAV_AUTOPILOT_PX4 = 12
+_INT_FORMATS = {
+    mavlink2.MAV_PARAM_TYPE_UINT8: "<B",
+    mavlink2.MAV_PARAM_TYPE_INT8: "<b",
+    mavlink2.MAV_PARAM_TYPE_UINT16: "<H",
+    mavlink2.MAV_PARAM_TYPE_INT16: "<h",
+    mavlink2.MAV_PARAM_TYPE_UINT32: "<I",
+    mavlink2.MAV_PARAM_TYPE_INT32: "<i",
+}
+
+
+def param_value(msg: Any, *, bytewise: bool) -> float:
+    """The value a PARAM_VALUE carries.
+
+    With ``bytewise`` (the MAVLink parameter protocol's bytewise encoding, as
+    PX4 sends), an integer parameter's bytes sit in the float field and are
+    read back as that integer; otherwise (C-cast, as ArduPilot sends) the float
+    is the value."""
+    fmt = _INT_FORMATS.get(int(msg.param_type)) if bytewise else None
+    if fmt is None:
+        return float(msg.param_value)
+    raw = struct.pack("<f", msg.param_value)
+    return float(struct.unpack_from(fmt, raw)[0])
 
 
 class Requester:
@@ -201,7 +226,7 @@ class Requester:
                         )
                     )
                 msg = await asyncio.wait_for(fut, timeout_s)
-                return float(msg.param_value)
+                return param_value(msg, bytewise=self._params_bytewise())
             except asyncio.TimeoutError:
                 logger.debug("parameter %s: no PARAM_VALUE, attempt %d", name, attempt + 1)
             finally:
@@ -212,6 +237,12 @@ class Requester:
             f"{self.transport.description}: no PARAM_VALUE for {name} from {sysid}/{compid} "
             f"after {retries + 1} attempts ({timeout_s:g} s each)"
         )
+
+    def _params_bytewise(self) -> bool:
+        """Whether the autopilot sends integer parameters bytewise: PX4 does (its
+        int32's bits in the float field); ArduPilot casts them to float."""
+        hb = self.last_heartbeat
+        return hb is not None and int(hb.autopilot) == _MAV_AUTOPILOT_PX4
 
     def _on_param_value(self, msg: Any) -> None:
         name = msg.param_id

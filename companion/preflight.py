@@ -1,0 +1,1077 @@
+"""``companion preflight``: is this autopilot set up for the companion to fly it?
+
+Connects, sends nothing that moves the vehicle (HEARTBEAT, parameter reads,
+stream-interval requests, TIMESYNC), watches the streams for a few seconds and
+judges what it saw: one :class:`Check` per line, pass / warn / fail, each with
+its reason and, when it is not a pass, the fix.
+
+Two halves: :func:`observe` gathers (the only part that touches the link), and
+:func:`judge` decides, a pure function of what was observed and of the run
+that is planned, tested against exact answers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import math
+import statistics
+import time
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from typing import Any, Literal
+
+from companion.errors import LinkError
+from companion.link.timesync import LINK_RTT_SHOWN_MS, LinkClock, LinkStats
+from companion.stacks import ARDUPILOT, PX4, FlightStack, stack_for
+from companion.step import LANDED_STATE_RATE_HZ
+
+__all__ = [
+    "ARDUPILOT_PARAMS",
+    "PX4_PARAMS",
+    "Check",
+    "CoreCost",
+    "Observed",
+    "Plan",
+    "judge",
+    "measure_core",
+    "observe",
+    "summary",
+]
+
+Status = Literal["pass", "warn", "fail"]
+
+# MAVLink numbers (common.xml).
+_MSG_ATTITUDE = 30
+_MSG_LOCAL_POSITION_NED = 32
+_MSG_RC_CHANNELS = 65
+_MSG_HIGHRES_IMU = 105
+_MSG_AUTOPILOT_VERSION = 148
+_MSG_EXTENDED_SYS_STATE = 245
+_CMD_SET_MESSAGE_INTERVAL = 511
+_CMD_REQUEST_MESSAGE = 512
+_RESULT_ACCEPTED = 0
+_BASE_MODE_ARMED = 128
+_CAP_SET_ATTITUDE_TARGET = 64  # MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+_CAP_SET_ACTUATOR_TARGET = 1024  # ..._SET_ACTUATOR_TARGET (RESERVED3 in today's common.xml)
+_LANDED_STATES = {0: "undefined", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
+
+_RC_RATE_HZ = 50.0
+"""RC_CHANNELS as ``companion run`` asks for it."""
+_POSITION_RATE_HZ = 4.0
+_SWITCH_HIGH_US = (1700, 2200)
+"""The engage switch counts as high in this range (companion.samples)."""
+_SWITCH_LOW_BELOW_US = 1300
+
+PX4_PARAMS = (
+    "COM_OF_LOSS_T",
+    "COM_OBL_RC_ACT",
+    "COM_RC_LOSS_T",
+    "NAV_RCL_ACT",
+    "COM_RCL_EXCEPT",
+    "COM_RC_IN_MODE",
+    "RC_MAP_ROLL",
+    "RC_MAP_PITCH",
+    "RC_MAP_THROTTLE",
+    "RC_MAP_YAW",
+    "RC_MAP_FLTMODE",
+    "IMU_GYRO_RATEMAX",
+)
+"""What preflight reads from PX4 (its parameter reference has each)."""
+
+ARDUPILOT_PARAMS = (
+    "GUID_OPTIONS",
+    "GUID_TIMEOUT",
+    "MAV_GCS_SYSID",
+    "FS_THR_ENABLE",
+    "FS_OPTIONS",
+    "RC_FS_TIMEOUT",
+    "SCHED_LOOP_RATE",
+    "RCMAP_ROLL",
+    "RCMAP_PITCH",
+    "RCMAP_THROTTLE",
+    "RCMAP_YAW",
+    "FLTMODE_CH",
+)
+"""What preflight reads from ArduPilot Copter (MAV_GCS_SYSID from 4.7; SYSID_MYGCS,
+its name before, is read when it is missing)."""
+
+_PX4_OBL_ACTIONS = {
+    0: "Position mode",
+    1: "Altitude mode",
+    2: "Manual",
+    3: "Return",
+    4: "Land",
+    5: "Hold",
+    6: "Terminate",
+    7: "Disarm",
+}
+_PX4_RCL_ACTIONS = {0: "Disabled", 1: "Hold", 2: "Return", 3: "Land", 5: "Terminate", 6: "Disarm"}
+_PX4_RC_IN_MODES = {
+    0: "RC only",
+    1: "MAVLink joystick only",
+    2: "RC and joystick with fallback",
+    3: "RC or joystick, first kept",
+    4: "stick input disabled",
+}
+_ARDU_FS_THR = {
+    0: "disabled",
+    1: "RTL",
+    2: "continue mission in auto",
+    3: "land",
+    4: "SmartRTL or RTL",
+    5: "SmartRTL or land",
+    6: "auto DO_LAND_START or RTL",
+    7: "brake or land",
+}
+
+_ACTUATOR_LOSS_S = 0.3
+"""With actuator output a held torque can flip the vehicle within the autopilot's
+offboard-loss timeout: 0.3 s is the most it should be (README, "Flying a real vehicle")."""
+_RATES_LOSS_S = 1.0
+"""With body rates the autopilot holds the last rate: PX4's default of 1 s."""
+_RC_LOSS_MAX_S = 1.0
+_CORE_WARN_SHARE = 0.25
+"""The law's update may take this share of the loop period before it is a warning:
+the sample path also decodes, gates, logs and sends."""
+_CORE_FAIL_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class Check:
+    """One line of the checklist."""
+
+    name: str
+    status: Status
+    detail: str
+    fix: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The run the checks judge the autopilot for (``companion run``'s options)."""
+
+    output: Literal["actuator", "rates"] = "actuator"
+    engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
+    engage_channel: int = 5
+    rate_hz: float = 250.0
+    sticks_channels: tuple[int, int, int, int] = (1, 2, 3, 4)
+    """Roll, pitch, throttle, yaw (the controller config's ``sticks.channels``)."""
+    signing: bool = False
+    serial: bool = False
+    """The link is a serial port (no one else on it), not a network."""
+    source_system: int = 1
+    source_component: int = 191
+
+
+@dataclass(frozen=True)
+class CoreCost:
+    """The control law's cost per update on this computer."""
+
+    compiled: bool
+    mean_us: float
+    p99_us: float
+    updates: int
+
+
+@dataclass
+class Observed:
+    """What the autopilot showed during preflight (None: not seen)."""
+
+    heartbeat: bool = False
+    autopilot_id: int | None = None
+    target: tuple[int, int] | None = None
+    armed: bool = False
+    version: tuple[int, int, int] | None = None
+    capabilities: int | None = None
+    params: dict[str, float | None] = field(default_factory=dict)
+    imu_message: str = ""
+    imu_asked_hz: float = 0.0
+    imu_result: int | None = None
+    imu_count: int = 0
+    imu_window_s: float = 0.0
+    imu_max_gap_s: float = math.nan
+    link: LinkStats | None = None
+    timesync_requests: int = 0
+    rc_messages: int = 0
+    rc_chancount: int = 0
+    rc_min_us: list[int] = field(default_factory=list)
+    rc_max_us: list[int] = field(default_factory=list)
+    rc_last_us: list[int] = field(default_factory=list)
+    landed_states: list[int] = field(default_factory=list)
+    position_messages: int = 0
+    frames_signed: int = 0
+    frames_unsigned: int = 0
+    frames_rejected_unsigned: int = 0
+    error: str = ""
+    """Why the observation stopped early (no heartbeat, unsupported stack)."""
+
+    @property
+    def stack(self) -> FlightStack | None:
+        return stack_for(self.autopilot_id) if self.autopilot_id is not None else None
+
+
+# ----------------------------------------------------------------- judging
+
+
+def judge(obs: Observed, plan: Plan, core: CoreCost | None = None) -> list[Check]:
+    """The checklist for ``obs`` and the planned run, in the order a pilot reads it."""
+    checks: list[Check] = []
+    checks.append(_check_link_up(obs, plan))
+    stack = obs.stack
+    if stack is None:
+        if core is not None:
+            checks.append(_check_core(core, plan))
+        return checks
+    if obs.frames_signed and not plan.signing:
+        checks.append(_check_signing(obs, plan))
+        if core is not None:
+            checks.append(_check_core(core, plan))
+        return checks
+    checks.append(_check_output(obs, plan, stack))
+    checks.append(_check_armed(obs))
+    checks.extend(_check_ids(obs, plan))
+    if stack is PX4:
+        checks.extend(_px4_params(obs.params, plan))
+    else:
+        checks.extend(_ardupilot_params(obs.params, plan))
+    checks.append(_check_imu_rate(obs, plan, stack))
+    checks.append(_check_round_trip(obs))
+    checks.extend(_check_rc(obs, plan))
+    checks.append(_check_signing(obs, plan))
+    checks.append(_check_landed_state(obs))
+    checks.append(_check_position(obs))
+    if core is not None:
+        checks.append(_check_core(core, plan))
+    return checks
+
+
+def summary(checks: Iterable[Check]) -> dict[str, int]:
+    counts = {"pass": 0, "warn": 0, "fail": 0}
+    for c in checks:
+        counts[c.status] += 1
+    return counts
+
+
+def _check_link_up(obs: Observed, plan: Plan) -> Check:
+    if not obs.heartbeat:
+        fix = (
+            "check the --connect URL, the baud rate and the wiring, and that the autopilot "
+            "streams MAVLink on that port"
+        )
+        if obs.frames_rejected_unsigned:
+            fix = (
+                f"{obs.frames_rejected_unsigned} unsigned frames were refused: the autopilot "
+                "does not sign; set up signing on it with the same key (docs: signing), or "
+                "run without --signing-key"
+            )
+        return Check("link", "fail", obs.error or "no HEARTBEAT from an autopilot", fix)
+    if obs.stack is None:
+        return Check(
+            "link",
+            "fail",
+            f"autopilot type {obs.autopilot_id} is not supported",
+            "the companion flies PX4 (autopilot 12) and ArduPilot Copter (autopilot 3)",
+        )
+    name = "PX4" if obs.stack is PX4 else "ArduPilot"
+    version = ".".join(map(str, obs.version)) if obs.version else "version unknown"
+    return Check("link", "pass", f"{name} {version}, system {obs.target[0]} component "
+                 f"{obs.target[1]}" if obs.target else f"{name} {version}")  # fmt: skip
+
+
+def _check_output(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
+    name = "PX4" if stack is PX4 else "ArduPilot"
+    if obs.version is None:
+        shown = "no AUTOPILOT_VERSION answer"
+    else:
+        shown = f"{name} {'.'.join(map(str, obs.version))}"
+    if plan.output == "actuator":
+        if stack is ARDUPILOT:
+            return Check(
+                "output",
+                "fail",
+                "ArduPilot accepts no actuator setpoints over MAVLink",
+                "run with --output rates (body rates, SET_ATTITUDE_TARGET)",
+            )
+        if obs.version is None:
+            return Check(
+                "output",
+                "warn",
+                f"{shown}: PX4 takes actuator setpoints only up to 1.13",
+                "check the firmware is PX4 <= 1.13, or run with --output rates",
+            )
+        if obs.version >= (1, 14, 0):
+            return Check(
+                "output",
+                "fail",
+                f"{shown} ignores SET_ACTUATOR_CONTROL_TARGET (removed in PX4 1.14)",
+                "run with --output rates (body rates, SET_ATTITUDE_TARGET)",
+            )
+        if obs.capabilities is not None and not obs.capabilities & _CAP_SET_ACTUATOR_TARGET:
+            return Check(
+                "output",
+                "warn",
+                f"{shown} does not advertise SET_ACTUATOR_TARGET",
+                "run with --output rates, or check the firmware build",
+            )
+        return Check("output", "pass", f"{shown} takes actuator setpoints (--output actuator)")
+    if obs.capabilities is not None and not obs.capabilities & _CAP_SET_ATTITUDE_TARGET:
+        return Check(
+            "output",
+            "warn",
+            f"{shown} does not advertise SET_ATTITUDE_TARGET",
+            "check the firmware: body-rate setpoints need it",
+        )
+    mode = "OFFBOARD" if stack is PX4 else "GUIDED_NOGPS"
+    return Check("output", "pass", f"{shown} takes body rates in {mode} (--output rates)")
+
+
+def _check_armed(obs: Observed) -> Check:
+    if obs.armed:
+        return Check(
+            "armed",
+            "warn",
+            "the vehicle is armed",
+            "run preflight on the ground, disarmed, before each flight",
+        )
+    return Check("armed", "pass", "disarmed")
+
+
+def _check_ids(obs: Observed, plan: Plan) -> list[Check]:
+    ours = (plan.source_system, plan.source_component)
+    if obs.target == ours:
+        return [
+            Check(
+                "ids",
+                "fail",
+                f"the companion's system/component {ours[0]}/{ours[1]} is the autopilot's",
+                "give the autopilot another component id (PX4 MAV_COMP_ID, ArduPilot is always 1)",
+            )
+        ]
+    return [
+        Check(
+            "ids",
+            "pass",
+            f"companion {ours[0]}/{ours[1]} (onboard computer), autopilot "
+            f"{obs.target[0]}/{obs.target[1]}"
+            if obs.target
+            else f"companion {ours[0]}/{ours[1]}",
+        )
+    ]
+
+
+def _missing(name: str, label: str = "") -> Check:
+    return Check(
+        label or name,
+        "warn",
+        f"{name} not read (no PARAM_VALUE)",
+        f"check {name} in a ground station",
+    )
+
+
+def _px4_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
+    out: list[Check] = []
+    t = p.get("COM_OF_LOSS_T")
+    if t is None:
+        out.append(_missing("COM_OF_LOSS_T"))
+    else:
+        bound = _ACTUATOR_LOSS_S if plan.output == "actuator" else _RATES_LOSS_S
+        what = "torque" if plan.output == "actuator" else "body rate"
+        if t <= bound + 1e-6:
+            out.append(Check("COM_OF_LOSS_T", "pass", f"{t:g} s (<= {bound:g} s)"))
+        else:
+            out.append(
+                Check(
+                    "COM_OF_LOSS_T",
+                    "fail" if t > 3 * _RATES_LOSS_S else "warn",
+                    f"{t:g} s: a lost companion link holds the last {what} that long",
+                    f"set COM_OF_LOSS_T to {bound:g}",
+                )
+            )
+    act = p.get("COM_OBL_RC_ACT")
+    if act is None:
+        out.append(_missing("COM_OBL_RC_ACT"))
+    else:
+        label = _PX4_OBL_ACTIONS.get(int(act), f"value {int(act)}")
+        if int(act) in (6, 7):
+            out.append(
+                Check(
+                    "COM_OBL_RC_ACT",
+                    "fail",
+                    f"{int(act)} ({label}): a lost companion link drops the vehicle",
+                    "set COM_OBL_RC_ACT to 0 (Position mode) or 1 (Altitude mode)",
+                )
+            )
+        elif int(act) not in _PX4_OBL_ACTIONS:
+            out.append(
+                Check("COM_OBL_RC_ACT", "warn", f"{label}: not a known action", "set it to 0")
+            )
+        else:
+            out.append(Check("COM_OBL_RC_ACT", "pass", f"{int(act)} ({label}) on offboard loss"))
+    t = p.get("COM_RC_LOSS_T")
+    if t is None:
+        out.append(_missing("COM_RC_LOSS_T"))
+    elif t <= _RC_LOSS_MAX_S + 1e-6:
+        out.append(Check("COM_RC_LOSS_T", "pass", f"{t:g} s"))
+    else:
+        out.append(
+            Check(
+                "COM_RC_LOSS_T",
+                "warn",
+                f"{t:g} s before a lost radio counts",
+                f"set COM_RC_LOSS_T to at most {_RC_LOSS_MAX_S:g} (default 0.5)",
+            )
+        )
+    act = p.get("NAV_RCL_ACT")
+    if act is None:
+        out.append(_missing("NAV_RCL_ACT"))
+    else:
+        label = _PX4_RCL_ACTIONS.get(int(act), f"value {int(act)}")
+        if int(act) in (0, 5, 6):
+            out.append(
+                Check(
+                    "NAV_RCL_ACT",
+                    "fail",
+                    f"{int(act)} ({label}) on RC loss",
+                    "set NAV_RCL_ACT to 2 (Return), 3 (Land) or 1 (Hold)",
+                )
+            )
+        else:
+            out.append(Check("NAV_RCL_ACT", "pass", f"{int(act)} ({label}) on RC loss"))
+    ex = p.get("COM_RCL_EXCEPT")
+    if ex is None:
+        out.append(_missing("COM_RCL_EXCEPT"))
+    elif int(ex) & 4:
+        out.append(
+            Check(
+                "COM_RCL_EXCEPT",
+                "warn",
+                f"{int(ex)}: bit 2 set, PX4 ignores RC loss in OFFBOARD",
+                "clear bit 2 so the autopilot acts on a lost radio too (the companion's own "
+                f"RC-loss failsafe is the only one otherwise): COM_RCL_EXCEPT = {int(ex) & ~4}",
+            )
+        )
+    else:
+        out.append(Check("COM_RCL_EXCEPT", "pass", f"{int(ex)}: RC loss acted on in OFFBOARD"))
+    mode = p.get("COM_RC_IN_MODE")
+    if mode is None:
+        out.append(_missing("COM_RC_IN_MODE"))
+    else:
+        label = _PX4_RC_IN_MODES.get(int(mode), f"value {int(mode)}")
+        if int(mode) in (1, 4) and plan.engage == "rc-switch":
+            out.append(
+                Check(
+                    "COM_RC_IN_MODE",
+                    "fail",
+                    f"{int(mode)} ({label}): no radio reaches the autopilot, so no engage switch",
+                    "set COM_RC_IN_MODE to 0 (RC only)",
+                )
+            )
+        else:
+            out.append(Check("COM_RC_IN_MODE", "pass", f"{int(mode)} ({label})"))
+    out.extend(
+        _rc_map(
+            p,
+            plan,
+            ("RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW"),
+            "RC_MAP_FLTMODE",
+        )
+    )
+    gyro = p.get("IMU_GYRO_RATEMAX")
+    if gyro is None:
+        out.append(_missing("IMU_GYRO_RATEMAX"))
+    elif gyro + 1e-6 < plan.rate_hz:
+        out.append(
+            Check(
+                "IMU_GYRO_RATEMAX",
+                "warn",
+                f"{gyro:g} Hz: below the loop rate asked ({plan.rate_hz:g} Hz)",
+                f"set IMU_GYRO_RATEMAX to at least {plan.rate_hz:g}, or run with "
+                f"--rate-hz {gyro:g}",
+            )
+        )
+    else:
+        out.append(Check("IMU_GYRO_RATEMAX", "pass", f"{gyro:g} Hz"))
+    return out
+
+
+def _rc_map(
+    p: dict[str, float | None], plan: Plan, names: tuple[str, str, str, str], mode_name: str
+) -> list[Check]:
+    """The autopilot's stick channels against the controller's, and the flight-mode
+    channel against the engage channel."""
+    out: list[Check] = []
+    seen = [p.get(n) for n in names]
+    if any(v is None for v in seen):
+        out.append(_missing(", ".join(n for n, v in zip(names, seen) if v is None), "RC map"))
+    else:
+        theirs = tuple(int(v) for v in seen if v is not None)
+        unmapped = [n for n, c in zip(names, theirs) if c == 0]
+        if unmapped:
+            out.append(
+                Check(
+                    "RC map",
+                    "fail",
+                    f"{', '.join(unmapped)} 0: no channel mapped at the autopilot",
+                    "calibrate the radio in a ground station (it sets "
+                    + ", ".join(names)
+                    + f" to channels {_chans(plan.sticks_channels)})",
+                )
+            )
+        elif theirs != plan.sticks_channels:
+            out.append(
+                Check(
+                    "RC map",
+                    "fail",
+                    f"roll/pitch/throttle/yaw on channels {_chans(theirs)} at the autopilot, "
+                    f"{_chans(plan.sticks_channels)} in the controller config",
+                    "make them the same: the controller config's sticks.channels, or "
+                    + ", ".join(names),
+                )
+            )
+        else:
+            out.append(Check("RC map", "pass", f"roll/pitch/throttle/yaw on {_chans(theirs)}"))
+    if plan.engage == "rc-switch":
+        fm = p.get(mode_name)
+        if fm is not None and int(fm) == plan.engage_channel:
+            out.append(
+                Check(
+                    mode_name,
+                    "fail",
+                    f"channel {int(fm)} is the flight-mode switch and the engage switch",
+                    f"move the engage switch (--engage-channel) or {mode_name} to another channel",
+                )
+            )
+        elif fm is not None and 1 <= int(fm) <= 18 and int(fm) in plan.sticks_channels:
+            out.append(
+                Check(mode_name, "fail", f"channel {int(fm)} is also a stick", f"fix {mode_name}")
+            )
+    return out
+
+
+def _chans(c: tuple[int, ...]) -> str:
+    return "/".join(str(x) for x in c)
+
+
+def _ardupilot_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
+    out: list[Check] = []
+    g = p.get("GUID_OPTIONS")
+    if g is None:
+        out.append(_missing("GUID_OPTIONS"))
+    elif plan.output == "rates" and not int(g) & 8:
+        out.append(
+            Check(
+                "GUID_OPTIONS",
+                "fail",
+                f"{int(g)}: bit 3 clear, SET_ATTITUDE_TARGET thrust is read as a climb rate",
+                f"set GUID_OPTIONS to {int(g) | 8} (add 8: thrust is thrust); companion run "
+                "refuses to start otherwise",
+            )
+        )
+    else:
+        out.append(Check("GUID_OPTIONS", "pass", f"{int(g)}: thrust is a normalised thrust"))
+    t = p.get("GUID_TIMEOUT")
+    if t is None:
+        out.append(_missing("GUID_TIMEOUT"))
+    elif t <= _RATES_LOSS_S + 1e-6:
+        out.append(Check("GUID_TIMEOUT", "pass", f"{t:g} s"))
+    else:
+        out.append(
+            Check(
+                "GUID_TIMEOUT",
+                "warn",
+                f"{t:g} s: a lost companion link holds the last body rate that long "
+                "before the vehicle levels",
+                f"set GUID_TIMEOUT to {_RATES_LOSS_S:g}",
+            )
+        )
+    name = "MAV_GCS_SYSID" if p.get("MAV_GCS_SYSID") is not None else "SYSID_MYGCS"
+    gcs = p.get(name)
+    if gcs is None:
+        out.append(_missing("MAV_GCS_SYSID or SYSID_MYGCS", "MAV_GCS_SYSID"))
+    elif int(gcs) == plan.source_system:
+        out.append(
+            Check(
+                name,
+                "warn",
+                f"{int(gcs)}: the companion's system id is the ground station's, so its "
+                "heartbeat hides a lost ground station",
+                f"set {name} to the ground station's id (255 by default)",
+            )
+        )
+    else:
+        out.append(
+            Check(name, "pass", f"{int(gcs)}: RC overrides and GCS failsafe from that system")
+        )
+    fs = p.get("FS_THR_ENABLE")
+    if fs is None:
+        out.append(_missing("FS_THR_ENABLE"))
+    elif int(fs) == 0:
+        out.append(
+            Check(
+                "FS_THR_ENABLE",
+                "fail",
+                "0: no radio failsafe",
+                "set FS_THR_ENABLE to 1 (RTL) or 3 (land)",
+            )
+        )
+    else:
+        label = _ARDU_FS_THR.get(int(fs), f"value {int(fs)}")
+        out.append(Check("FS_THR_ENABLE", "pass", f"{int(fs)} ({label}) on RC loss"))
+    opt = p.get("FS_OPTIONS")
+    if opt is None:
+        out.append(_missing("FS_OPTIONS"))
+    elif int(opt) & 4:
+        out.append(
+            Check(
+                "FS_OPTIONS",
+                "warn",
+                f"{int(opt)}: bit 2 set, GUIDED continues on RC loss",
+                f"clear bit 2 (FS_OPTIONS = {int(opt) & ~4}) so a lost radio is acted on while "
+                "the companion flies",
+            )
+        )
+    else:
+        out.append(Check("FS_OPTIONS", "pass", f"{int(opt)}: RC loss acted on in GUIDED"))
+    t = p.get("RC_FS_TIMEOUT")
+    if t is not None:
+        if t <= _RC_LOSS_MAX_S + 1e-6:
+            out.append(Check("RC_FS_TIMEOUT", "pass", f"{t:g} s"))
+        else:
+            out.append(
+                Check(
+                    "RC_FS_TIMEOUT",
+                    "warn",
+                    f"{t:g} s before a lost radio counts",
+                    f"set RC_FS_TIMEOUT to at most {_RC_LOSS_MAX_S:g}",
+                )
+            )
+    loop = p.get("SCHED_LOOP_RATE")
+    if loop is None:
+        out.append(_missing("SCHED_LOOP_RATE"))
+    elif 0.8 * loop + 1e-6 < plan.rate_hz:
+        out.append(
+            Check(
+                "SCHED_LOOP_RATE",
+                "warn",
+                f"{loop:g} Hz: ArduPilot streams at most {0.8 * loop:g} Hz, below the "
+                f"{plan.rate_hz:g} Hz asked",
+                f"run with --rate-hz {math.floor(0.8 * loop):g}, or raise SCHED_LOOP_RATE",
+            )
+        )
+    else:
+        out.append(Check("SCHED_LOOP_RATE", "pass", f"{loop:g} Hz"))
+    out.extend(
+        _rc_map(p, plan, ("RCMAP_ROLL", "RCMAP_PITCH", "RCMAP_THROTTLE", "RCMAP_YAW"), "FLTMODE_CH")
+    )
+    return out
+
+
+def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
+    asked = obs.imu_asked_hz
+    if obs.imu_result is not None and obs.imu_result != _RESULT_ACCEPTED:
+        return Check(
+            "IMU rate",
+            "fail",
+            f"{obs.imu_message} at {asked:g} Hz refused (MAV_RESULT {obs.imu_result})",
+            "lower --rate-hz, or check the autopilot's stream limits",
+        )
+    if obs.imu_count < 2 or obs.imu_window_s <= 0:
+        return Check(
+            "IMU rate",
+            "fail",
+            f"no {obs.imu_message} stream ({obs.imu_count} messages)",
+            "check the port's MAVLink mode and bandwidth (PX4 MAV_n_MODE / MAV_n_RATE, "
+            "ArduPilot SERIALn_PROTOCOL / baud)",
+        )
+    got = obs.imu_count / obs.imu_window_s
+    gap_ms = obs.imu_max_gap_s * 1e3
+    text = f"{obs.imu_message} at {got:.0f} Hz (asked {asked:g}), longest gap {gap_ms:.0f} ms"
+    capped = f" (the stack's limit {stack.max_imu_rate_hz:g} Hz)" if asked < plan.rate_hz else ""
+    if got < 0.8 * asked:
+        return Check(
+            "IMU rate",
+            "fail",
+            text + capped,
+            "the link or the autopilot cannot stream this fast: a faster baud rate, a "
+            "higher MAVLink rate limit on that port (PX4 MAV_n_RATE, ArduPilot SRn_*), or a "
+            f"lower --rate-hz (e.g. {10 * math.floor(got / 10):g})",
+        )
+    if got < 0.95 * asked or gap_ms > 4e3 / asked or capped:
+        return Check(
+            "IMU rate",
+            "warn",
+            text + capped,
+            "the loop runs at the rate the stream gives; see the link's bandwidth and load",
+        )
+    return Check("IMU rate", "pass", text)
+
+
+def _check_round_trip(obs: Observed) -> Check:
+    st = obs.link
+    if st is None or st.n == 0:
+        return Check(
+            "round trip",
+            "warn",
+            f"no TIMESYNC answer to {obs.timesync_requests} requests",
+            "the link cannot be measured in flight; PX4 and ArduPilot answer TIMESYNC on "
+            "a MAVLink port in normal mode",
+        )
+    text = (
+        f"TIMESYNC median {st.rtt_median_ms:.1f} ms, jitter {st.jitter_ms:.1f} ms ({st.n} answers)"
+    )
+    if st.rtt_median_ms > LINK_RTT_SHOWN_MS:
+        return Check(
+            "round trip",
+            "warn",
+            text + f": beyond the {LINK_RTT_SHOWN_MS:g} ms the controller is shown to fly",
+            "use a faster link (UART at 921600 baud, or Ethernet), not Wi-Fi or a slow "
+            "USB-serial adapter",
+        )
+    if st.jitter_ms > 0.5 * LINK_RTT_SHOWN_MS:
+        return Check(
+            "round trip",
+            "warn",
+            text + ": an uneven link",
+            "look for a busy USB hub, Wi-Fi or a shared serial port",
+        )
+    return Check("round trip", "pass", text)
+
+
+def _check_rc(obs: Observed, plan: Plan) -> list[Check]:
+    if obs.rc_messages == 0 or obs.rc_chancount == 0:
+        if plan.engage == "rc-switch":
+            return [
+                Check(
+                    "RC",
+                    "fail",
+                    "no RC channels from the autopilot: the engage switch cannot be read",
+                    "bind and power the radio; check the autopilot sees it",
+                )
+            ]
+        return [
+            Check(
+                "RC",
+                "warn",
+                "no RC channels: no pilot to take over, every hand-back lands or holds",
+                "fly with a radio bound to the autopilot",
+            )
+        ]
+    out = [Check("RC", "pass", f"{obs.rc_chancount} channels, {obs.rc_messages} messages")]
+    if plan.engage != "rc-switch":
+        return out
+    ch = plan.engage_channel
+    if ch > obs.rc_chancount or ch > len(obs.rc_last_us):
+        out.append(
+            Check(
+                "engage switch",
+                "fail",
+                f"channel {ch} not among the {obs.rc_chancount} the radio sends",
+                "assign a switch to that channel, or pick another with --engage-channel",
+            )
+        )
+        return out
+    lo, hi, last = obs.rc_min_us[ch - 1], obs.rc_max_us[ch - 1], obs.rc_last_us[ch - 1]
+    if _SWITCH_HIGH_US[0] <= last <= _SWITCH_HIGH_US[1]:
+        out.append(
+            Check(
+                "engage switch",
+                "warn",
+                f"channel {ch} is high ({last} us): companion run would engage as soon as "
+                "it starts",
+                "put the switch low before starting the companion",
+            )
+        )
+    elif lo < _SWITCH_LOW_BELOW_US and _SWITCH_HIGH_US[0] <= hi <= _SWITCH_HIGH_US[1]:
+        out.append(Check("engage switch", "pass", f"channel {ch} seen low and high ({lo}-{hi} us)"))
+    else:
+        out.append(
+            Check(
+                "engage switch",
+                "warn",
+                f"channel {ch} not seen moving low and high ({lo}-{hi} us)",
+                "flip the engage switch while preflight watches (longer with --watch-s); "
+                f"high is {_SWITCH_HIGH_US[0]}-{_SWITCH_HIGH_US[1]} us, low below "
+                f"{_SWITCH_LOW_BELOW_US} us",
+            )
+        )
+    return out
+
+
+def _check_signing(obs: Observed, plan: Plan) -> Check:
+    if plan.signing:
+        if obs.frames_unsigned:
+            return Check(
+                "signing",
+                "warn",
+                f"{obs.frames_unsigned} unsigned frames from the autopilot accepted",
+                "enable signing on the autopilot with the same key",
+            )
+        return Check("signing", "pass", f"both sign ({obs.frames_signed} signed frames checked)")
+    if obs.frames_signed:
+        return Check(
+            "signing",
+            "fail",
+            "the autopilot signs but the companion has no key: its commands will be refused",
+            "run with --signing-key FILE (the autopilot's key)",
+        )
+    if plan.serial:
+        return Check("signing", "pass", "unsigned, on a serial port only the companion uses")
+    return Check(
+        "signing",
+        "warn",
+        "unsigned on a network link: anyone who reaches the port can command the vehicle",
+        "set up MAVLink 2 signing on both sides (docs: signing), or use a serial link",
+    )
+
+
+def _check_landed_state(obs: Observed) -> Check:
+    states = [s for s in obs.landed_states if s != 0]
+    if not states:
+        return Check(
+            "landed state",
+            "warn",
+            "no landed state (EXTENDED_SYS_STATE)"
+            + (" other than undefined" if obs.landed_states else ""),
+            "the controller then stops learning on the ground by the collective alone; "
+            "PX4 and ArduPilot Copter send it when asked",
+        )
+    return Check("landed state", "pass", _LANDED_STATES.get(states[-1], f"state {states[-1]}"))
+
+
+def _check_position(obs: Observed) -> Check:
+    if obs.position_messages:
+        return Check("position", "pass", "a position estimate (LOCAL_POSITION_NED)")
+    return Check(
+        "position",
+        "warn",
+        "no position estimate: a hand-back without the pilot's radio lands",
+        "a GPS or flow sensor gives the autopilot a hold mode to hand back to",
+    )
+
+
+def _check_core(core: CoreCost, plan: Plan) -> Check:
+    period_us = 1e6 / plan.rate_hz
+    which = "compiled" if core.compiled else "pure Python"
+    text = (
+        f"{which} core: {core.mean_us:.0f} us per update (p99 {core.p99_us:.0f}), "
+        f"{100 * core.p99_us / period_us:.0f} % of the {period_us:.0f} us loop period"
+    )
+    fix = (
+        "a lower --rate-hz"
+        if core.compiled
+        else "install with a C compiler and the Python headers (apt install build-essential "
+        "python3-dev) so the compiled core is built, or a lower --rate-hz"
+    )
+    if core.p99_us > _CORE_FAIL_SHARE * period_us:
+        return Check("control core", "fail", text, fix)
+    if core.p99_us > _CORE_WARN_SHARE * period_us:
+        return Check("control core", "warn", text, fix)
+    if not core.compiled:
+        return Check("control core", "warn", text, fix)
+    return Check("control core", "pass", text)
+
+
+# --------------------------------------------------------------- measuring
+
+
+def measure_core(controller: Any, compiled: bool, rate_hz: float, updates: int = 3000) -> CoreCost:
+    """Time the law's update and learning on a made-up flight (a slow sine on
+    every axis), after a warm-up."""
+    dt = 1.0 / rate_hz
+    times: list[float] = []
+    clock = time.perf_counter
+    for k in range(updates + 200):
+        t = k * dt
+        w = 2.0 * math.pi * 0.7 * t
+        gyro = (0.5 * math.sin(w), 0.4 * math.cos(w), 0.2 * math.sin(0.5 * w))
+        ref = (0.5 * math.sin(w + 0.1), 0.4 * math.cos(w + 0.1), 0.2 * math.sin(0.5 * w + 0.1))
+        t0 = clock()
+        controller.update(dt, gyro, ref, 0.5)
+        controller.learn()
+        if k >= 200:
+            times.append(clock() - t0)
+    times.sort()
+    return CoreCost(
+        compiled=compiled,
+        mean_us=statistics.fmean(times) * 1e6,
+        p99_us=times[int(0.99 * (len(times) - 1))] * 1e6,
+        updates=len(times),
+    )
+
+
+async def observe(
+    link: Any,
+    plan: Plan,
+    *,
+    watch_s: float = 3.0,
+    heartbeat_timeout_s: float = 5.0,
+) -> Observed:
+    """Connect, read, ask for the streams, watch them for ``watch_s``; the link is
+    started here and left open (the caller closes it).
+
+    ``link`` is a :class:`~companion.link.mavlink.MavlinkLink` whose ``on_message``
+    and ``on_raw`` this replaces."""
+    obs = Observed()
+    watcher = _Watcher(obs)
+    link.on_message = watcher.on_message
+    link.on_raw = watcher.on_raw
+    await link.start()
+    try:
+        hb = await link.wait_heartbeat(heartbeat_timeout_s)
+    except LinkError as exc:
+        obs.error = str(exc)
+        obs.frames_rejected_unsigned = int(link.counters.get("unsigned_rejected", 0))
+        return obs
+    obs.heartbeat = True
+    obs.autopilot_id = int(hb.autopilot)
+    obs.target = link.target
+    obs.armed = bool(hb.base_mode & _BASE_MODE_ARMED)
+    stack = obs.stack
+    if stack is None:
+        return obs
+    await _read_version(link, watcher)
+    names = PX4_PARAMS if stack is PX4 else ARDUPILOT_PARAMS
+    if obs.frames_signed and not plan.signing:
+        # It would refuse everything we send: nothing more to learn.
+        return obs
+    for name in names:
+        obs.params[name] = await _param(link, name)
+    if stack is ARDUPILOT and obs.params.get("MAV_GCS_SYSID") is None:
+        obs.params["SYSID_MYGCS"] = await _param(link, "SYSID_MYGCS")
+    imu_id = _MSG_HIGHRES_IMU if stack.imu_message == "highres_imu" else _MSG_ATTITUDE
+    obs.imu_message = "HIGHRES_IMU" if imu_id == _MSG_HIGHRES_IMU else "ATTITUDE"
+    obs.imu_asked_hz = min(plan.rate_hz, stack.max_imu_rate_hz)
+    obs.imu_result = await link.command_long(
+        _CMD_SET_MESSAGE_INTERVAL, imu_id, 1e6 / obs.imu_asked_hz
+    )
+    for msg_id, hz in (
+        (_MSG_RC_CHANNELS, _RC_RATE_HZ),
+        (_MSG_EXTENDED_SYS_STATE, LANDED_STATE_RATE_HZ),
+        (_MSG_LOCAL_POSITION_NED, _POSITION_RATE_HZ),
+    ):
+        with contextlib.suppress(LinkError):
+            await link.command_long(_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+    await watcher.watch(link, imu_id, watch_s)
+    obs.frames_rejected_unsigned = int(link.counters.get("unsigned_rejected", 0))
+    # Leave the IMU stream as the autopilot had it: interval 0 restores its default.
+    with contextlib.suppress(LinkError):
+        await link.command_long(_CMD_SET_MESSAGE_INTERVAL, imu_id, 0.0, retries=1)
+    return obs
+
+
+async def _param(link: Any, name: str) -> float | None:
+    try:
+        value: float = await link.param_read(name, timeout_s=0.3, retries=2)
+    except LinkError:
+        return None
+    return value
+
+
+async def _read_version(link: Any, watcher: _Watcher) -> None:
+    watcher.version_seen.clear()
+    with contextlib.suppress(LinkError):
+        res = await link.command_long(_CMD_REQUEST_MESSAGE, _MSG_AUTOPILOT_VERSION)
+        if res == _RESULT_ACCEPTED:
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(watcher.version_seen.wait(), 1.0)
+
+
+class _Watcher:
+    """Counts what the autopilot streams into an :class:`Observed`."""
+
+    def __init__(self, obs: Observed) -> None:
+        self.obs = obs
+        self.version_seen = asyncio.Event()
+        self.clock = LinkClock()
+        self.imu_id = -1
+        self.imu_times: list[float] = []
+        self.watching = False
+
+    def on_raw(self, _t: float, frame: bytes, outgoing: bool) -> None:
+        if outgoing or len(frame) < 3 or frame[0] != 0xFD:
+            return
+        if frame[2] & 0x01:
+            self.obs.frames_signed += 1
+        else:
+            self.obs.frames_unsigned += 1
+
+    def on_message(self, msg: Any) -> None:
+        obs = self.obs
+        mid = msg.get_msgId()
+        if mid == _MSG_AUTOPILOT_VERSION:
+            v = int(msg.flight_sw_version)
+            obs.version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+            obs.capabilities = int(msg.capabilities)
+            self.version_seen.set()
+            return
+        if not self.watching:
+            return
+        if mid == self.imu_id:
+            self.imu_times.append(time.perf_counter())
+        elif mid == _MSG_RC_CHANNELS:
+            count = int(msg.chancount)
+            obs.rc_messages += 1
+            obs.rc_chancount = max(obs.rc_chancount, count)
+            if count:
+                chans = [int(getattr(msg, f"chan{i}_raw")) for i in range(1, min(count, 18) + 1)]
+                if len(chans) > len(obs.rc_min_us):
+                    grow = len(chans) - len(obs.rc_min_us)
+                    obs.rc_min_us += [65535] * grow
+                    obs.rc_max_us += [0] * grow
+                for i, v in enumerate(chans):
+                    obs.rc_min_us[i] = min(obs.rc_min_us[i], v)
+                    obs.rc_max_us[i] = max(obs.rc_max_us[i], v)
+                obs.rc_last_us = chans
+        elif mid == _MSG_EXTENDED_SYS_STATE:
+            obs.landed_states.append(int(msg.landed_state))
+        elif mid == _MSG_LOCAL_POSITION_NED:
+            obs.position_messages += 1
+        elif msg.get_type() == "TIMESYNC" and msg.tc1 != 0:
+            self.clock.reply(int(msg.tc1), int(msg.ts1), time.perf_counter())
+
+    async def watch(self, link: Any, imu_id: int, watch_s: float) -> None:
+        """Watch the streams for ``watch_s``, asking the autopilot's time 10 times a second."""
+        self.imu_id = imu_id
+        self.watching = True
+        start = time.perf_counter()
+        end = start + watch_s
+        try:
+            while (now := time.perf_counter()) < end:
+                link.send(link.mav.timesync_encode(0, self.clock.request(now)))
+                self.obs.timesync_requests += 1
+                await asyncio.sleep(min(0.1, max(0.0, end - now)))
+            await asyncio.sleep(0.05)  # the last answers
+        finally:
+            self.watching = False
+        obs = self.obs
+        ts = self.imu_times
+        # The stream's own rate: from its first sample on (a new interval takes a
+        # moment to apply), over the rest of the window.
+        if len(ts) >= 2:
+            obs.imu_count = len(ts) - 1
+            obs.imu_window_s = end - ts[0]
+            obs.imu_max_gap_s = max(b - a for a, b in itertools.pairwise(ts))
+            obs.imu_max_gap_s = max(obs.imu_max_gap_s, end - ts[-1])
+        else:
+            obs.imu_count = len(ts)
+        obs.link = self.clock.stats()
+
+
+def as_data(obs: Observed, checks: list[Check], core: CoreCost | None) -> dict[str, Any]:
+    """``--json``'s document."""
+    counts = summary(checks)
+    stack = obs.stack
+    return {
+        "ok": counts["fail"] == 0,
+        "counts": counts,
+        "stack": stack.name if stack else None,
+        "version": ".".join(map(str, obs.version)) if obs.version else None,
+        "target": list(obs.target) if obs.target else None,
+        "checks": [asdict(c) for c in checks],
+        "params": obs.params,
+        "link": obs.link.as_dict() if obs.link else None,
+        "imu_rate_hz": round(obs.imu_count / obs.imu_window_s, 1) if obs.imu_window_s else None,
+        "core": asdict(core) if core else None,
+    }

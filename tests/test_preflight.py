@@ -1,0 +1,335 @@
+"""``companion preflight``'s judgement, against exact answers: a well set-up
+autopilot of each stack passes every line; each misconfiguration fails or warns
+on its own line, with its fix. (The integration tests run the command against
+the SITL: tests/integration/test_preflight.py.)"""
+
+from __future__ import annotations
+
+import dataclasses
+import struct
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+
+from companion.link.requests import param_value
+from companion.link.timesync import LinkStats
+from companion.preflight import Check, CoreCost, Observed, Plan, judge, summary
+
+GOOD_PX4_PARAMS: dict[str, float | None] = {
+    "COM_OF_LOSS_T": 0.3,
+    "COM_OBL_RC_ACT": 0,
+    "COM_RC_LOSS_T": 0.5,
+    "NAV_RCL_ACT": 2,
+    "COM_RCL_EXCEPT": 0,
+    "COM_RC_IN_MODE": 0,
+    "RC_MAP_ROLL": 1,
+    "RC_MAP_PITCH": 2,
+    "RC_MAP_THROTTLE": 3,
+    "RC_MAP_YAW": 4,
+    "RC_MAP_FLTMODE": 6,
+    "IMU_GYRO_RATEMAX": 400,
+}
+GOOD_ARDU_PARAMS: dict[str, float | None] = {
+    "GUID_OPTIONS": 8,
+    "GUID_TIMEOUT": 0.5,
+    "MAV_GCS_SYSID": 255,
+    "SYSID_MYGCS": None,
+    "FS_THR_ENABLE": 1,
+    "FS_OPTIONS": 16,
+    "RC_FS_TIMEOUT": 1.0,
+    "SCHED_LOOP_RATE": 400,
+    "RCMAP_ROLL": 1,
+    "RCMAP_PITCH": 2,
+    "RCMAP_THROTTLE": 3,
+    "RCMAP_YAW": 4,
+    "FLTMODE_CH": 6,
+}
+GOOD_CORE = CoreCost(compiled=True, mean_us=20.0, p99_us=40.0, updates=3000)
+
+
+def observed(stack: str = "px4", **changes: Any) -> Observed:
+    """A well set-up autopilot, seen for 3 s: disarmed, engage switch flipped."""
+    px4 = stack == "px4"
+    obs = Observed(
+        heartbeat=True,
+        autopilot_id=12 if px4 else 3,
+        target=(1, 1),
+        version=(1, 13, 3) if px4 else (4, 6, 0),
+        capabilities=64 | 1024 if px4 else 64,
+        params=dict(GOOD_PX4_PARAMS if px4 else GOOD_ARDU_PARAMS),
+        imu_message="HIGHRES_IMU" if px4 else "ATTITUDE",
+        imu_asked_hz=250.0,
+        imu_result=0,
+        imu_count=750,
+        imu_window_s=3.0,
+        imu_max_gap_s=0.005,
+        link=LinkStats(30, 2.0, 1.8, 2.0, 2.6),
+        timesync_requests=30,
+        rc_messages=150,
+        rc_chancount=8,
+        rc_min_us=[1000, 1000, 1000, 1000, 1000, 1000, 1000, 1000],
+        rc_max_us=[2000, 2000, 2000, 2000, 2000, 1000, 1000, 1000],
+        rc_last_us=[1500, 1500, 1000, 1500, 1000, 1000, 1000, 1000],
+        landed_states=[1, 1, 1],
+        position_messages=12,
+        frames_signed=900,
+    )
+    for name, value in changes.items():
+        if name == "params":
+            obs.params.update(value)
+        else:
+            setattr(obs, name, value)
+    return obs
+
+
+def plan(stack: str = "px4", **changes: Any) -> Plan:
+    base = Plan(output="actuator" if stack == "px4" else "rates", signing=True)
+    return dataclasses.replace(base, **changes)
+
+
+def line(checks: list[Check], name: str) -> Check:
+    found = [c for c in checks if c.name == name]
+    assert len(found) == 1, f"{name}: {[c.name for c in checks]}"
+    return found[0]
+
+
+@pytest.mark.parametrize("stack", ["px4", "ardupilot"])
+def test_a_well_set_autopilot_passes_every_line(stack: str) -> None:
+    checks = judge(observed(stack), plan(stack), GOOD_CORE)
+    assert [c for c in checks if c.status != "pass"] == []
+    assert summary(checks)["pass"] == len(checks) > 15
+
+
+@pytest.mark.parametrize(
+    ("stack", "obs", "run", "name", "status", "fix"),
+    [
+        # The stack and the output.
+        ("px4", {"version": (1, 14, 0)}, {}, "output", "fail", "--output rates"),
+        ("px4", {"version": (1, 15, 2)}, {}, "output", "fail", "--output rates"),
+        ("ardupilot", {}, {"output": "actuator"}, "output", "fail", "--output rates"),
+        ("px4", {"version": None}, {}, "output", "warn", "PX4 <= 1.13"),
+        ("px4", {"capabilities": 64}, {}, "output", "warn", "--output rates"),
+        ("px4", {"armed": True}, {}, "armed", "warn", "disarmed"),
+        # PX4's parameters.
+        ("px4", {"params": {"COM_OF_LOSS_T": 1.0}}, {}, "COM_OF_LOSS_T", "warn", "to 0.3"),
+        ("px4", {"params": {"COM_OF_LOSS_T": 5.0}}, {}, "COM_OF_LOSS_T", "fail", "to 0.3"),
+        (
+            "px4",
+            {"params": {"COM_OF_LOSS_T": 2.0}},
+            {"output": "rates"},
+            "COM_OF_LOSS_T",
+            "warn",
+            "to 1",
+        ),
+        ("px4", {"params": {"COM_OF_LOSS_T": None}}, {}, "COM_OF_LOSS_T", "warn", "ground station"),
+        ("px4", {"params": {"COM_OBL_RC_ACT": 6}}, {}, "COM_OBL_RC_ACT", "fail", "Position"),
+        ("px4", {"params": {"COM_OBL_RC_ACT": 7}}, {}, "COM_OBL_RC_ACT", "fail", "Position"),
+        ("px4", {"params": {"COM_RC_LOSS_T": 3.0}}, {}, "COM_RC_LOSS_T", "warn", "at most 1"),
+        ("px4", {"params": {"NAV_RCL_ACT": 0}}, {}, "NAV_RCL_ACT", "fail", "2 (Return)"),
+        ("px4", {"params": {"NAV_RCL_ACT": 5}}, {}, "NAV_RCL_ACT", "fail", "2 (Return)"),
+        ("px4", {"params": {"RC_MAP_ROLL": 0}}, {}, "RC map", "fail", "calibrate the radio"),
+        (
+            "px4",
+            {"params": {"COM_RCL_EXCEPT": 5}},
+            {},
+            "COM_RCL_EXCEPT",
+            "warn",
+            "COM_RCL_EXCEPT = 1",
+        ),
+        ("px4", {"params": {"COM_RC_IN_MODE": 4}}, {}, "COM_RC_IN_MODE", "fail", "RC only"),
+        (
+            "px4",
+            {"params": {"RC_MAP_PITCH": 3, "RC_MAP_THROTTLE": 2}},
+            {},
+            "RC map",
+            "fail",
+            "sticks.channels",
+        ),
+        (
+            "px4",
+            {"params": {"RC_MAP_FLTMODE": 5}},
+            {},
+            "RC_MAP_FLTMODE",
+            "fail",
+            "--engage-channel",
+        ),
+        (
+            "px4",
+            {"params": {"IMU_GYRO_RATEMAX": 200}},
+            {},
+            "IMU_GYRO_RATEMAX",
+            "warn",
+            "--rate-hz 200",
+        ),
+        # ArduPilot's.
+        (
+            "ardupilot",
+            {"params": {"GUID_OPTIONS": 0}},
+            {},
+            "GUID_OPTIONS",
+            "fail",
+            "GUID_OPTIONS to 8",
+        ),
+        (
+            "ardupilot",
+            {"params": {"GUID_OPTIONS": 1}},
+            {},
+            "GUID_OPTIONS",
+            "fail",
+            "GUID_OPTIONS to 9",
+        ),
+        ("ardupilot", {"params": {"GUID_TIMEOUT": 3.0}}, {}, "GUID_TIMEOUT", "warn", "to 1"),
+        ("ardupilot", {"params": {"MAV_GCS_SYSID": 1}}, {}, "MAV_GCS_SYSID", "warn", "255"),
+        (
+            "ardupilot",
+            {"params": {"MAV_GCS_SYSID": None, "SYSID_MYGCS": 1}},
+            {},
+            "SYSID_MYGCS",
+            "warn",
+            "255",
+        ),
+        ("ardupilot", {"params": {"FS_THR_ENABLE": 0}}, {}, "FS_THR_ENABLE", "fail", "1 (RTL)"),
+        ("ardupilot", {"params": {"FS_OPTIONS": 20}}, {}, "FS_OPTIONS", "warn", "FS_OPTIONS = 16"),
+        ("ardupilot", {"params": {"RC_FS_TIMEOUT": 5.0}}, {}, "RC_FS_TIMEOUT", "warn", "at most 1"),
+        (
+            "ardupilot",
+            {"params": {"SCHED_LOOP_RATE": 200}},
+            {},
+            "SCHED_LOOP_RATE",
+            "warn",
+            "--rate-hz 160",
+        ),
+        (
+            "ardupilot",
+            {"params": {"RCMAP_YAW": 1, "RCMAP_ROLL": 4}},
+            {},
+            "RC map",
+            "fail",
+            "RCMAP_ROLL",
+        ),
+        ("ardupilot", {"params": {"FLTMODE_CH": 5}}, {}, "FLTMODE_CH", "fail", "--engage-channel"),
+        # The streams and the link.
+        ("px4", {"imu_result": 2}, {}, "IMU rate", "fail", "lower --rate-hz"),
+        ("px4", {"imu_count": 0}, {}, "IMU rate", "fail", "MAV_n_RATE"),
+        ("px4", {"imu_count": 300}, {}, "IMU rate", "fail", "--rate-hz (e.g. 100)"),
+        ("px4", {"imu_count": 690}, {}, "IMU rate", "warn", "bandwidth"),
+        ("px4", {"imu_max_gap_s": 0.05}, {}, "IMU rate", "warn", "bandwidth"),
+        (
+            "px4",
+            {"link": LinkStats(30, 30.0, 28.0, 30.0, 33.0)},
+            {},
+            "round trip",
+            "warn",
+            "faster link",
+        ),
+        ("px4", {"link": LinkStats(30, 3.0, 1.0, 3.0, 15.0)}, {}, "round trip", "warn", "busy USB"),
+        ("px4", {"link": LinkStats(0, *[float("nan")] * 4)}, {}, "round trip", "warn", "TIMESYNC"),
+        ("px4", {"rc_messages": 0, "rc_chancount": 0}, {}, "RC", "fail", "bind"),
+        ("px4", {"rc_messages": 0, "rc_chancount": 0}, {"engage": "auto"}, "RC", "warn", "radio"),
+        ("px4", {}, {"engage_channel": 9}, "engage switch", "fail", "--engage-channel"),
+        (
+            "px4",
+            {"rc_last_us": [1500, 1500, 1000, 1500, 1900, 1000, 1000, 1000]},
+            {},
+            "engage switch",
+            "warn",
+            "switch low",
+        ),
+        (
+            "px4",
+            {"rc_max_us": [2000] * 4 + [1000] * 4},
+            {},
+            "engage switch",
+            "warn",
+            "flip the engage switch",
+        ),
+        # Signing, the landed state, the position.
+        ("px4", {"frames_signed": 0, "frames_unsigned": 900}, {}, "signing", "warn", "same key"),
+        (
+            "px4",
+            {"frames_signed": 0, "frames_unsigned": 900},
+            {"signing": False},
+            "signing",
+            "warn",
+            "signing on both sides",
+        ),
+        ("px4", {"landed_states": []}, {}, "landed state", "warn", "collective alone"),
+        ("px4", {"landed_states": [0, 0]}, {}, "landed state", "warn", "collective alone"),
+        ("px4", {"position_messages": 0}, {}, "position", "warn", "GPS"),
+    ],
+)
+def test_each_misconfiguration_is_named_with_its_fix(
+    stack: str, obs: dict[str, Any], run: dict[str, Any], name: str, status: str, fix: str
+) -> None:
+    checks = judge(observed(stack, **obs), plan(stack, **run), GOOD_CORE)
+    c = line(checks, name)
+    assert (c.status, fix in c.fix) == (status, True), c
+    # Every other line still passes: each check judges one thing.
+    others = [x for x in checks if x.name != name and x.status != "pass"]
+    assert others == [], others
+
+
+def test_an_autopilot_that_signs_against_a_companion_without_a_key_is_one_failed_line() -> None:
+    # (It would refuse every request: preflight stops after the heartbeat.)
+    checks = judge(observed(), plan(signing=False), GOOD_CORE)
+    assert [(c.name, c.status) for c in checks] == [
+        ("link", "pass"),
+        ("signing", "fail"),
+        ("control core", "pass"),
+    ]
+    assert "--signing-key" in checks[1].fix
+
+
+def test_an_unsigned_serial_link_passes() -> None:
+    obs = observed(frames_signed=0, frames_unsigned=900)
+    c = line(judge(obs, plan(signing=False, serial=True)), "signing")
+    assert c.status == "pass"
+
+
+@pytest.mark.parametrize(
+    ("core", "status"),
+    [
+        (CoreCost(True, 300.0, 900.0, 3000), "pass"),  # 900 us of 4000: under a quarter
+        (CoreCost(True, 300.0, 1100.0, 3000), "warn"),
+        (CoreCost(True, 900.0, 2100.0, 3000), "fail"),
+        (CoreCost(False, 60.0, 100.0, 3000), "warn"),  # pure Python: build the compiled one
+    ],
+)
+def test_the_control_core_against_the_loop_period(core: CoreCost, status: str) -> None:
+    c = line(judge(observed(), plan(), core), "control core")
+    assert c.status == status
+    assert ("compiled" in c.detail) == core.compiled
+
+
+def test_no_heartbeat_is_one_failed_line_naming_signing_when_frames_were_refused() -> None:
+    obs = Observed(error="udpin:0.0.0.0:14540: no HEARTBEAT from any autopilot within 5 s")
+    (c,) = judge(obs, plan())
+    assert (c.name, c.status) == ("link", "fail")
+    assert "--connect" in c.fix
+    obs.frames_rejected_unsigned = 12
+    (c,) = judge(obs, plan())
+    assert "does not sign" in c.fix
+
+
+def test_an_unknown_autopilot_fails() -> None:
+    (c,) = judge(Observed(heartbeat=True, autopilot_id=8, target=(1, 1)), plan())
+    assert c.status == "fail"
+    assert "not supported" in c.detail
+
+
+@pytest.mark.parametrize(
+    ("param_type", "value", "bytewise", "expected"),
+    [
+        (6, struct.unpack("<f", struct.pack("<i", 7))[0], True, 7.0),  # PX4 int32, bytewise
+        (6, struct.unpack("<f", struct.pack("<i", -1))[0], True, -1.0),
+        (9, 0.3, True, pytest.approx(0.3)),  # a float is a float
+        (6, 7.0, False, 7.0),  # ArduPilot: C-cast
+        (2, 255.0, False, 255.0),
+    ],
+)
+def test_parameter_values_decode_by_encoding(
+    param_type: int, value: float, bytewise: bool, expected: Any
+) -> None:
+    msg = SimpleNamespace(param_type=param_type, param_value=value)
+    assert param_value(msg, bytewise=bytewise) == expected
