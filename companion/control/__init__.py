@@ -4,15 +4,17 @@ Everything here takes ``dt_s`` and samples from its caller and returns plain
 values, so the same code runs against hardware, a real-time simulator or a
 lockstep simulator at any speed.
 
-The modules can be compiled with mypyc (``MFC_COMPILE=1 pip install .``, see
-``setup.py``); :data:`COMPILED` says whether they were. An extension whose
+The modules are compiled with mypyc when installed from a wheel built where a
+C compiler and the Python headers are present (``setup.py``); :data:`COMPILED`
+says whether they were, :data:`CORE` says which core runs and, for the pure
+one, why (for ``companion preflight`` and a person). An extension whose
 source has changed since it was built is refused here, before it is imported:
 flying yesterday's control law while reading today's is not an option.
 """
 
 # First, so its check runs before any control module is imported (a submodule
 # imported directly imports this package first).
-from companion.control._compiled import COMPILED
+from companion.control._compiled import COMPILED, CORE
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
 from companion.control.identifier import MAX_DELAY_S, AlphaAdaptation
 from companion.control.intelligent import IntelligentController, MfcAxisGains
@@ -25,6 +27,7 @@ from companion.control.sticks import AxisRates, PilotCommand, StickMap
 __all__ = [
     "AXES",
     "COMPILED",
+    "CORE",
     "MAX_DELAY_S",
     "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",

@@ -117,7 +117,8 @@ def compiled_copy(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for name in ("setup.py", "pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, copy / name)
     ignore = shutil.ignore_patterns("__pycache__", "*.so", MANIFEST)
-    for name in ("companion", "sitl", "tests", "vehicle_profiles"):
+    # (_build: setup.py imports its compile decision from there)
+    for name in ("_build", "companion", "sitl", "tests", "vehicle_profiles"):
         shutil.copytree(ROOT / name, copy / name, ignore=ignore)
     env = {**os.environ, "MFC_COMPILE": "1"}
     build = subprocess.run(
