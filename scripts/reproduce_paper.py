@@ -573,9 +573,9 @@ def _why(flights: dict[str, dict[str, Any]], gains: dict[str, dict[str, float]])
             f"({_fmt_mae(t_pid)} vs {_fmt_mae(t_mfc)} deg/s). The MFC law identifies the "
             "Tarot's input gain and actuator lag in flight and inverts them, so the rate "
             "follows the pilot's reference through the Tarot's slow motors (45-60 ms spin-up, "
-            "plus the gyro filter) with gains scaled to that lag (docs/gains.md); the PID "
+            "plus the gyro filter) with gains scaled to that lag (docs/research/gains.md); the PID "
             "was tuned on this very vehicle, while the MFC file is one set for every vehicle "
-            "of the envelope (docs/envelope.md)."
+            "of the envelope (docs/research/envelope.md)."
         )
     f = F["f450_mfc"]["mae_deg_s"]
     tr = F["f450_mfc"]["after_fast_changes"]

@@ -1,7 +1,7 @@
 """The SITL's ArduPilot personality: an ArduCopter-like autopilot.
 
 ``sitl run --autopilot ardupilot`` shows the vehicle as ArduCopter 4.x would
-(``docs/ardupilot.md`` lists what was checked against ArduPilot's source and what
+(``docs/research/ardupilot.md`` lists what was checked against ArduPilot's source and what
 is assumed). Like :mod:`sitl.autopilot`, the autopilot logic here has no sockets
 and no clock: :class:`ArduCopter` is driven with simulation time by the runner,
 and :class:`sitl.ardupilot_face.ArduPilotFace` turns MAVLink into calls on it.

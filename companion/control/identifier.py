@@ -3,7 +3,7 @@ r"""Online identification of one axis's input gain and actuator lag.
 Not in the paper, which takes :math:`\alpha` as a constant ("it is
 meaningless to try to estimate alpha precisely", Section II-A). The shipped
 controller identifies it, with the lag of the motors, because one gain set has
-to fly every vehicle (``docs/gains.md``, points 1-2): :class:`PlantIdentifier`
+to fly every vehicle (``docs/research/gains.md``, points 1-2): :class:`PlantIdentifier`
 fits the window means of :math:`y^{(m)} = F + b\,u_a` (:math:`u_a` the command
 after a first-order lag) and gives :math:`\alpha = \text{margin} \cdot \hat b`
 and the lag :math:`\tau` that the law (:mod:`companion.control.intelligent`)
@@ -245,7 +245,7 @@ class PlantIdentifier:
         (with ``authority_ref`` 0, the lag term alone). A lower margin is a larger
         loop gain: slow motors need it to stop a reversal's overshoot, and a
         vehicle with much authority can give it without saturating, while a
-        weak one keeps the whole margin (docs/gains.md, point 7).
+        weak one keeps the whole margin (docs/research/gains.md, point 7).
         """
         cfg = self._cfg
         tau0 = self.tau0

@@ -25,7 +25,7 @@ Remark on :math:`\dot e`). With a good :math:`\hat F` the error obeys
 (iP). ``u`` is saturated at ``output_limit``; there is no integrator of the
 command to wind up: ``u`` is recomputed from scratch every sample, and ``F``
 is learnt from the command that was really applied. The shipped controllers
-fly the iPD with :math:`K_P = 0` (``docs/gains.md``, point 5): its rate part,
+fly the iPD with :math:`K_P = 0` (``docs/research/gains.md``, point 5): its rate part,
 an iP on the rate :math:`\dot y`.
 
 Estimate of F (Section II-D)
@@ -40,7 +40,7 @@ With ``actuator_tau_s`` and/or identification (:class:`AlphaAdaptation`),
 :math:`\hat F = \bar y^{(m)} - \alpha L_\tau \bar u`: the command through a
 first-order actuator lag, :math:`\alpha` and :math:`\tau` identified in
 flight, and with ``lag_scaled_gains`` the gains scaled with the identified lag
-(:class:`IntelligentController` explains why; ``docs/gains.md`` gives the
+(:class:`IntelligentController` explains why; ``docs/research/gains.md`` gives the
 evidence). Both are off by default, which is the paper's law exactly.
 """
 
@@ -433,11 +433,11 @@ class IntelligentController:
         back part of the kd cut: by ``sqrt(authority / ref)``, never beyond the
         unscaled kd. A strong vehicle can afford the faster error dynamics
         without saturating; a weak one, which saturates, keeps the full cut
-        (docs/gains.md, point 6).
+        (docs/research/gains.md, point 6).
 
         A fast lag raises the gains by at most ``lag_scaling_max``: below the
         configured lag, the estimate's window and the reference prefilter, not
-        the motors, bound how fast the error may be driven (docs/gains.md,
+        the motors, bound how fast the error may be driven (docs/research/gains.md,
         point 8). A slow lag cuts them to no less than ``lag_scaling_min``: beyond the
         slowest lag worth scaling for, part of what the identifier calls lag is
         the loop's delays, which a cut in kd does not serve (point 10)."""

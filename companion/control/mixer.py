@@ -25,41 +25,10 @@ only the headroom left. The result reports what was achieved and what
 saturated, so a caller can keep an estimator from learning a command that was
 never applied.
 
-Yaw never moves the collective. Letting it (by at most an allowance down and
-one up, never so far that roll and pitch stop fitting) was measured in
-November 2026 (MFC given the F450 profile) and not shipped, and the allowance
-is gone from the mixer:
-
-* Down (PX4's default, ``MC_REDUCE_THRUST``) trades altitude for yaw. On a
-  vehicle with a weak motor the yaw demand never ends and the vehicle sinks:
-  with 0.15 down, the default ``companion campaign`` grid went from 11 to 25
-  crashes (X500 with motor 1 at 60 %: 0 -> 5 of 6 for both controllers).
-  Re-measured with the MFC set of the time (November 2026, second half): 0.15
-  down takes the cut-prop F450's paper-acro yaw from 26.8 to 19.6 deg/s, and the
-  campaign from 10 to 23 crashes (with the set after docs/gains.md point 10:
-  25.5 to 19.9). A leaky budget on the borrowed collective
-  (0.3 collective-seconds, refilling over 10 s) still crashed the X500 with
-  motor 1 at 60 % in 5 of 6 flights (20 crashes in all) and gave back most
-  of the yaw gain (23.4).
-  Gated borrowing, measured later (MFC alone on the default grid: 72 flights
-  of train-acro, 6 crashes without borrowing, all the cut-prop F450 with a
-  further 60 % motor). Ungated 0.15 down: 12 crashes (adds the X500 at 60 %
-  and the cut-prop F450 at 80 %), while the yaw median / p90 of the flights
-  that flew goes 4.0 / 20.5 -> 1.2 / 5.0 deg/s. Borrowing only while the
-  yaw trim (the yaw law's output while neither the pilot nor the vehicle
-  yaws, averaged over 2 s) is under 0.1 of full scale: 7 crashes (the
-  cut-prop F450 at 80 % in 2 of 6), paper-acro's cut-prop yaw 20.6. Never
-  below the collective held in quiet flight (a hover estimate): 11 crashes
-  (the X500 at 60 % in 4 of 6), cut-prop yaw 22.1. Both gates: 6 crashes,
-  one of them the cut-prop F450 at 80 %, which never crashes without the
-  borrow; cut-prop yaw 22.6. A weak vehicle needs all the collective the
-  pilot asks for, even above hover.
-* Up, on train-acro over 21 vehicles (4 paper profiles, 5 envelope corners,
-  12 sampled), looked good: mean yaw MAE 2.89 -> 2.41 deg/s with 0.2, no
-  vehicle worse, no crash. On the held-out envelope-test flight the 250 g
-  T/W 10 corner's yaw went from about 2.2 to 4.8 deg/s (ratio to its tuned
-  PID 0.98 -> 2.28, and worse than PX4's default PID): on a vehicle that
-  hovers near 10 % collective, 0.2 more is two extra g.
+Yaw never moves the collective. Borrowing some downwards (PX4's
+``MC_REDUCE_THRUST``) bought yaw on the cut-prop F450 but sank and crashed
+vehicles with a weak motor, gated or not; upwards it cost a light, strong quad
+its yaw on the held-out flight. The measurements: docs/research/mixer.md.
 """
 
 from __future__ import annotations

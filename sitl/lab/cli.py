@@ -594,7 +594,7 @@ def envelope(
 
     Per vehicle and case: tunes the PID on the training scenario, then flies MFC (given
     the F450's profile), the tuned PID and PX4's default PID on the test scenario. Writes
-    the ratio table, the envelope plot and the worst cases. Method: docs/envelope.md.
+    the ratio table, the envelope plot and the worst cases. Method: docs/research/envelope.md.
     """
     _need_lab_extras()
 

@@ -42,7 +42,7 @@ def _met(flag: bool) -> str:
 
 def _shown(path: str) -> str:
     """A file inside this checkout as a path from its root (the summary is kept in the
-    repository: docs/envelope/), any other as given."""
+    repository: docs/research/envelope/), any other as given."""
     p = Path(path)
     return str(p.relative_to(_ROOT)) if p.is_absolute() and p.is_relative_to(_ROOT) else path
 

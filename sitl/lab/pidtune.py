@@ -439,7 +439,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         args.out,
         comments=[
             f"Rate PID tuned on {profile.name} by sitl/lab/pidtune.py (a seeded pattern",
-            "search; procedure in that module's docstring and docs/paper.md). Produced by:",
+            "search; procedure in that module's docstring and docs/research/paper.md). "
+            "Produced by:",
             f"  python -m sitl.lab.pidtune --profile {args.profile} --scenario {args.scenario} \\",
             f"      --budget {args.budget} --seed {args.seed} --workers {args.workers} "
             f"--objective {args.objective} --out {args.out}",

@@ -1,6 +1,6 @@
 """The shipped default gain set (companion/data/mfc_default.yaml), and why not Table I.
 
-See docs/gains.md for the search that produced the set and the full evidence
+See docs/research/gains.md for the search that produced the set and the full evidence
 tables. Table I's yaw limit cycle (its iP on the yaw angle) is still there to
 see in a calm hover, and the shipped set does not have it. The flight figures
 the set reaches are pinned in tests/regression/.

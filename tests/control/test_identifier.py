@@ -78,7 +78,7 @@ def test_the_shipped_roll_identifier_learns_from_small_motions() -> None:
 
     Until it has learnt, alpha is 1.0, the strong end of the envelope, and the
     command is divided by it, so the corrections before the first maneuver are
-    small. The shipped thresholds learn from them (docs/gains.md, point 9); the
+    small. The shipped thresholds learn from them (docs/research/gains.md, point 9); the
     ones before (3 us, 0.5 rad/s^2, 500 us^2) learnt nothing. (On 0.2 per us the
     slope from such small steps comes out about 30 % high, 0.266: the response
     gate keeps the samples where the slow F adds to the answer; with it at 0 the

@@ -89,7 +89,7 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
 
 # The issue's targets at the corners: ratio <= RATIO_TARGET (1.25) on every corner and
 # axis, and MFC better than PX4's default PID everywhere. Both met since the margin
-# falls on slow lags with much authority (docs/gains.md, point 7). Measured with the
+# falls on slow lags with much authority (docs/research/gains.md, point 7). Measured with the
 # shipped controller (this test's short tuning, 25 flights on 15 s of train-acro),
 # ratio MFC / tuned PID roll/pitch/yaw: tiny-fast 0.96/1.06/0.98, tiny-slow-motor
 # 0.79/0.97/0.35, heavy-weak 0.87/0.76/0.76, heavy-strong 0.76/0.70/0.90, mid
@@ -97,7 +97,7 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
 # Before point 7 tiny-slow-motor was 1.11/1.39/0.35, and 1.35 over the default PID
 # on pitch; before point 8 tiny-fast was 0.97/1.12/0.98; before point 9 tiny-fast
 # was 0.89/1.06/0.98 and the median 0.89; before point 10 the median was 0.90.
-# docs/envelope.md has the full campaign.
+# docs/research/envelope.md has the full campaign.
 
 
 @pytest.mark.slow
