@@ -16,7 +16,6 @@ import asyncio
 import contextlib
 import itertools
 import math
-import statistics
 import time
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -170,7 +169,7 @@ class CoreCost:
     """The control law's cost per update on this computer."""
 
     compiled: bool
-    mean_us: float
+    median_us: float
     p99_us: float
     updates: int
 
@@ -855,8 +854,8 @@ def _check_core(core: CoreCost, plan: Plan) -> Check:
     period_us = 1e6 / plan.rate_hz
     which = "compiled" if core.compiled else "pure Python"
     text = (
-        f"{which} core: {core.mean_us:.0f} us per update (p99 {core.p99_us:.0f}), "
-        f"{100 * core.p99_us / period_us:.0f} % of the {period_us:.0f} us loop period"
+        f"{which} core: {core.median_us:.0f} us per update (p99 {core.p99_us:.0f}), "
+        f"{100 * core.median_us / period_us:.0f} % of the {period_us:.0f} us loop period"
     )
     fix = (
         "a lower --rate-hz"
@@ -864,9 +863,10 @@ def _check_core(core: CoreCost, plan: Plan) -> Check:
         else "install with a C compiler and the Python headers (apt install build-essential "
         "python3-dev) so the compiled core is built, or a lower --rate-hz"
     )
-    if core.p99_us > _CORE_FAIL_SHARE * period_us:
+    # Judged on the median: a p99 timed on a busy computer is mostly preemption.
+    if core.median_us > _CORE_FAIL_SHARE * period_us:
         return Check("control core", "fail", text, fix)
-    if core.p99_us > _CORE_WARN_SHARE * period_us:
+    if core.median_us > _CORE_WARN_SHARE * period_us:
         return Check("control core", "warn", text, fix)
     if not core.compiled:
         return Check("control core", "warn", text, fix)
@@ -895,7 +895,7 @@ def measure_core(controller: Any, compiled: bool, rate_hz: float, updates: int =
     times.sort()
     return CoreCost(
         compiled=compiled,
-        mean_us=statistics.fmean(times) * 1e6,
+        median_us=times[len(times) // 2] * 1e6,
         p99_us=times[int(0.99 * (len(times) - 1))] * 1e6,
         updates=len(times),
     )

@@ -31,6 +31,7 @@ from companion.errors import ConfigError, SigningError
 from companion.options import (
     SEED,
     Finite,
+    find_profile,
     keep_earlier,
     signing_key_opt,
     usable_out_dir,
@@ -85,7 +86,9 @@ def cli(verbose: int) -> None:
     "profile_path",
     required=True,
     type=click.Path(dir_okay=False, path_type=Path),
-    help="Vehicle profile YAML.",
+    callback=find_profile,
+    help="Vehicle profile YAML (a relative path not found here is also looked up among "
+    "the bundled profiles, so vehicle_profiles/NAME.yaml works from any directory).",
 )
 @click.option(
     "--mavlink",

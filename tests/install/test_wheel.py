@@ -264,3 +264,108 @@ def test_preflight_passes_against_the_sitl(installed: Installed, sitl_from_the_v
     report = json.loads(out.stdout)
     # "which core runs", as preflight reports it
     assert report["core"]["compiled"] is (problem is None), report["core"]
+
+
+def test_the_quickstart_flight_runs_from_the_venv(installed: Installed, tmp_path: Path) -> None:
+    """docs/quickstart.md's two terminals, from the installed environment and an
+    empty folder: sitl run waits for the companion to arm it, companion run
+    engages, flies, hands back and exits 0; the recorded flight replays. (In
+    lockstep, not real time: a loaded test machine stalls a real-time SITL past
+    the companion's stale-IMU failsafe.)"""
+    port = _free_udp_port()
+    t0 = time.perf_counter()
+    cmd = [
+        str(installed.venv / "bin" / "sitl"), "run", "--profile", "vehicle_profiles/f450.yaml",
+        "--scenario", "paper-acro", "--clock", "lockstep", "--pilot-from-arm", "--no-auto-arm",
+        "--mode", "MANUAL", "--mavlink", f"udpout:127.0.0.1:{port}", "--duration", "60",
+    ]  # fmt: skip
+    err = tmp_path / "sitl.stderr"
+    with err.open("wb") as f:
+        sitl = subprocess.Popen(
+            cmd, cwd=installed.empty, env=installed.env, stdout=subprocess.DEVNULL, stderr=f
+        )
+    try:
+        out = installed.run(
+            "companion", "run", "--connect", f"udpin:127.0.0.1:{port}",
+            "--profile", "vehicle_profiles/f450.yaml", "--engage", "auto", "--duration", "2",
+            "--log-dir", "runs/quickstart",
+        )  # fmt: skip
+    finally:
+        sitl.send_signal(signal.SIGTERM)
+        sitl.wait(timeout=10)
+    assert out.returncode == 0, out.stderr[-3000:] + err.read_text()[-2000:]
+    events = installed.empty / "runs" / "quickstart" / "events.jsonl"
+    kinds = [json.loads(x)["kind"] for x in events.read_text().splitlines()]
+    assert {"connected", "engaged", "duration", "handed_back"} <= set(kinds), kinds
+    replay = installed.run("companion", "replay", "runs/quickstart/control.bin")
+    assert replay.returncode == 0, replay.stdout[-2000:] + replay.stderr[-2000:]
+    installed.times_s["quickstart"] = time.perf_counter() - t0
+
+
+# ------------------------------------------- the compiled core against the pure one
+
+FLIGHT = """
+import sys
+import numpy as np
+from pathlib import Path
+import companion.control as control
+from companion.config import load_controller
+from companion.profile import load_profile
+from sitl.lab.simulate import simulate_flight
+from sitl.scenario import load_scenario
+
+sc = load_scenario("paper-acro").model_copy(update={"duration_s": 8.0})
+profile = load_profile(Path(sys.argv[1]) / "vehicle_profiles" / "f450_cut_props.yaml")
+rec = simulate_flight(profile, load_controller(), sc)
+np.savez(sys.argv[2], compiled=control.COMPILED, mfc=control.mfc.__file__,
+         **{k: v for k, v in rec.columns.items() if v.dtype.kind in "fiub"})
+"""
+
+
+def _with_the_wheels_core(installed: Installed, *args: str) -> subprocess.CompletedProcess[str]:
+    """This interpreter (with the test tools) in the checkout, importing the project
+    from the wheel's installed package (its compiled core) instead of the checkout."""
+    assert _mfc_compile().toolchain_problem() is None, "no C toolchain: nothing was compiled"
+    env = {**os.environ, "PYTHONPATH": str(installed.purelib())}
+    return _run([sys.executable, *args], ROOT, env, 600.0)
+
+
+def test_the_control_tests_pass_on_the_compiled_core(installed: Installed) -> None:
+    # pytest.main in an interpreter that has just imported the compiled core (and
+    # said so), so the tests run against it.
+    # ('' off the path first: python -c would put the checkout ahead of PYTHONPATH.)
+    main = (
+        "import sys; sys.path[:] = [p for p in sys.path if p not in ('', '.')]; "
+        "import pytest, companion.control as c; print('compiled', c.COMPILED); "
+        "sys.exit(pytest.main(['-q', '-p', 'no:cacheprovider', '-p', 'no:xdist', "
+        "'tests/control', '--deselect', 'tests/control/test_compiled.py', '--deselect', "
+        "'tests/control/test_gain_set.py::test_default_controller_points_at_the_shipped_set']))"
+    )  # (that one checks the checkout's file is the default: here the wheel's is)
+    run = _with_the_wheels_core(installed, "-c", main)
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+    assert run.stdout.startswith("compiled True"), run.stdout[:200]
+    assert " passed" in run.stdout.splitlines()[-1], run.stdout[-500:]
+
+
+def test_a_compiled_flight_matches_the_pure_python_one(
+    installed: Installed, tmp_path: Path
+) -> None:
+    import numpy as np
+
+    script = tmp_path / "flight.py"
+    script.write_text(FLIGHT, encoding="utf-8")
+    compiled_out, pure_out = tmp_path / "compiled.npz", tmp_path / "pure.npz"
+    run = _with_the_wheels_core(installed, str(script), str(ROOT), str(compiled_out))
+    assert run.returncode == 0, run.stderr[-3000:]
+    run = _run([sys.executable, str(script), str(ROOT), str(pure_out)], ROOT, dict(os.environ),
+               600.0)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    compiled, pure = np.load(compiled_out), np.load(pure_out)
+    suffix = EXTENSION_SUFFIXES[0]
+    assert bool(compiled["compiled"]) and str(compiled["mfc"]).endswith(suffix)
+    assert not bool(pure["compiled"]) and str(pure["mfc"]).endswith(".py")
+    keys = set(pure.files) - {"compiled", "mfc"}
+    assert keys == set(compiled.files) - {"compiled", "mfc"}
+    assert len(pure["t_s"]) > 1500  # 8 s at 250 Hz
+    for k in sorted(keys):
+        np.testing.assert_array_equal(compiled[k], pure[k], err_msg=k)
