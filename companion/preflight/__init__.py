@@ -1,0 +1,38 @@
+"""``companion preflight``: is this autopilot set up for the companion to fly it?
+
+Connects, sends nothing that moves the vehicle (HEARTBEAT, parameter reads,
+stream-interval requests, TIMESYNC), watches the streams for a few seconds and
+judges what it saw: one :class:`Check` per line, pass / warn / fail, each with
+its reason and, when it is not a pass, the fix.
+
+Two halves: :func:`observe` gathers (the only part that touches the link), and
+:func:`judge` decides, a pure function of what was observed and of the run
+that is planned, tested against exact answers.
+"""
+
+from companion.preflight.judge import judge, summary
+from companion.preflight.model import (
+    ARDUPILOT_PARAMS,
+    PX4_PARAMS,
+    Check,
+    CoreCost,
+    Observed,
+    Plan,
+    Status,
+)
+from companion.preflight.observe import as_data, measure_core, observe
+
+__all__ = [
+    "ARDUPILOT_PARAMS",
+    "PX4_PARAMS",
+    "Check",
+    "CoreCost",
+    "Observed",
+    "Plan",
+    "Status",
+    "as_data",
+    "judge",
+    "measure_core",
+    "observe",
+    "summary",
+]

@@ -1,0 +1,122 @@
+"""What preflight reads from the autopilot and the run it judges it for: the
+observation, the plan, the law's measured cost, and one checklist line."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+from companion.link.timesync import LinkStats
+from companion.stacks import FlightStack, stack_for
+
+__all__ = ["ARDUPILOT_PARAMS", "PX4_PARAMS", "Check", "CoreCost", "Observed", "Plan", "Status"]
+
+Status = Literal["pass", "warn", "fail"]
+
+PX4_PARAMS = (
+    "COM_OF_LOSS_T",
+    "COM_OBL_RC_ACT",
+    "COM_RC_LOSS_T",
+    "NAV_RCL_ACT",
+    "COM_RCL_EXCEPT",
+    "COM_RC_IN_MODE",
+    "RC_MAP_ROLL",
+    "RC_MAP_PITCH",
+    "RC_MAP_THROTTLE",
+    "RC_MAP_YAW",
+    "RC_MAP_FLTMODE",
+    "IMU_GYRO_RATEMAX",
+)
+"""What preflight reads from PX4 (its parameter reference has each)."""
+
+ARDUPILOT_PARAMS = (
+    "GUID_OPTIONS",
+    "GUID_TIMEOUT",
+    "MAV_GCS_SYSID",
+    "FS_THR_ENABLE",
+    "FS_OPTIONS",
+    "RC_FS_TIMEOUT",
+    "SCHED_LOOP_RATE",
+    "RCMAP_ROLL",
+    "RCMAP_PITCH",
+    "RCMAP_THROTTLE",
+    "RCMAP_YAW",
+    "FLTMODE_CH",
+)
+"""What preflight reads from ArduPilot Copter (MAV_GCS_SYSID from 4.7; SYSID_MYGCS,
+its name before, is read when it is missing)."""
+
+
+@dataclass(frozen=True)
+class Check:
+    """One line of the checklist."""
+
+    name: str
+    status: Status
+    detail: str
+    fix: str = ""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The run the checks judge the autopilot for (``companion run``'s options)."""
+
+    output: Literal["actuator", "rates"] = "actuator"
+    engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
+    engage_channel: int = 5
+    rate_hz: float = 250.0
+    sticks_channels: tuple[int, int, int, int] = (1, 2, 3, 4)
+    """Roll, pitch, throttle, yaw (the controller config's ``sticks.channels``)."""
+    signing: bool = False
+    serial: bool = False
+    """The link is a serial port (no one else on it), not a network."""
+    source_system: int = 1
+    source_component: int = 191
+
+
+@dataclass(frozen=True)
+class CoreCost:
+    """The control law's cost per update on this computer."""
+
+    compiled: bool
+    median_us: float
+    p99_us: float
+    updates: int
+
+
+@dataclass
+class Observed:
+    """What the autopilot showed during preflight (None: not seen)."""
+
+    heartbeat: bool = False
+    autopilot_id: int | None = None
+    target: tuple[int, int] | None = None
+    armed: bool = False
+    version: tuple[int, int, int] | None = None
+    capabilities: int | None = None
+    params: dict[str, float | None] = field(default_factory=dict)
+    imu_message: str = ""
+    imu_asked_hz: float = 0.0
+    imu_result: int | None = None
+    imu_count: int = 0
+    imu_window_s: float = 0.0
+    imu_max_gap_s: float = math.nan
+    link: LinkStats | None = None
+    timesync_requests: int = 0
+    rc_messages: int = 0
+    rc_chancount: int = 0
+    rc_min_us: list[int] = field(default_factory=list)
+    rc_max_us: list[int] = field(default_factory=list)
+    rc_last_us: list[int] = field(default_factory=list)
+    landed_states: list[int] = field(default_factory=list)
+    position_messages: int = 0
+    frames_signed: int = 0
+    frames_unsigned: int = 0
+    frames_rejected_unsigned: int = 0
+    error: str = ""
+    """Why the observation stopped early (no heartbeat, unsupported stack)."""
+
+    @property
+    def stack(self) -> FlightStack | None:
+        return stack_for(self.autopilot_id) if self.autopilot_id is not None else None
