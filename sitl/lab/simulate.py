@@ -87,6 +87,7 @@ def simulate_flight(
     controller_profile: VehicleProfile | None = None,
     seed: int | None = None,
     progress: Callable[[float], None] | None = None,
+    law: Any | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -106,6 +107,13 @@ def simulate_flight(
         Overrides ``scenario.seed``.
     progress
         Called now and then with the fraction of the flight done.
+    law
+        A rate controller to fly in place of the one ``controller_cfg`` builds
+        (which still gives the stick map and the recorded kind): the lab's
+        oracle (:mod:`sitl.lab.oracle`). If it has a ``see_plant`` method, the
+        loop calls it with the :class:`~sitl.physics.Quadrotor` (to read, never
+        to change) just before each ``update``. The shipped laws have none, so
+        their flights are untouched.
     """
     rngs = scenario_streams(scenario.seed if seed is None else seed)
     dt = scenario.physics_dt_s
@@ -116,7 +124,10 @@ def simulate_flight(
     imu = Imu(scenario.imu_model(plant), rng=rngs["imu"], dt_s=dt)
     pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
     duration = scenario.duration_s or pilot.duration_s
-    controller = build_controller(controller_cfg, controller_profile or plant)
+    controller = (
+        build_controller(controller_cfg, controller_profile or plant) if law is None else law
+    )
+    see_plant = getattr(controller, "see_plant", None)
     step = SampleStep(controller, controller_profile or plant, output="actuator")
     sticks_map = build_stick_map(controller_cfg)
     hover = hover_motor_command(plant)
@@ -159,6 +170,8 @@ def simulate_flight(
         # dt = 0 to its minimum and primes its filters.
         sample_dt = sample_t - prev_sample_t if prev_sample_t is not None else 0.0
         prev_sample_t = sample_t
+        if see_plant is not None:
+            see_plant(quad)
         out = step.sample(sample_dt, gyro, cmd.rate_rad_s, cmd.thrust)
         (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, cmd.thrust)
         # The autopilot mixes the controls it is sent; ungated, they are the law's
