@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+import json
 import logging
 import math
 import os
@@ -103,6 +104,40 @@ _link_opt = click.option(
     "wifi, or fields (delay_ms=10,jitter_ms=5,loss=0.01) [default: the scenario's].",
 )
 _progress_opt = click.option("--progress/--no-progress", default=True, show_default=True)
+_oracle_opt = click.option(
+    "--oracle",
+    is_flag=True,
+    help="Also fly the lab's oracle (sitl/lab/oracle.py: a law that knows the plant) on the "
+    "same scenario, seed and link, in process, and add its MAE, the flight's ratio to it "
+    "and, if the flight crashed, whether the oracle that may also set the collective "
+    "crashes too (feasible: false) to metrics.json under 'oracle'.",
+)
+
+
+def _add_oracle(
+    metrics: dict[str, Any], out_dir: Path, profile: Any, sc: Any, seed: int | None
+) -> None:
+    """Fly the oracle on the flight's scenario and add its figures to ``metrics.json``."""
+    from sitl.lab.oracle import oracle_flight
+
+    oracle = oracle_flight(profile, sc, seed=seed)
+    mae, ref = metrics["mae_deg_s"], oracle["mae_deg_s"]
+    feasible = True
+    if metrics["crashed"]:
+        feasible = not oracle_flight(profile, sc, seed=seed, collective=True)["crashed"]
+    metrics["oracle"] = {
+        "mae_deg_s": ref,
+        "crashed": oracle["crashed"],
+        "ratio": {a: round(mae[a] / ref[a], 3) if ref[a] else None for a in ref},
+        "feasible": feasible,
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    r = metrics["oracle"]["ratio"]
+    click.echo(
+        f"oracle: MAE roll {ref['roll']} pitch {ref['pitch']} yaw {ref['yaw']} deg/s; flight "
+        f"over oracle {r['roll']} / {r['pitch']} / {r['yaw']}"
+        + ("" if feasible else "; infeasible: the oracle with the collective crashes too")
+    )
 
 
 def _controller_profile_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -138,6 +173,7 @@ def _split_list(values: tuple[str, ...]) -> list[str]:
 )
 @_link_opt
 @_progress_opt
+@_oracle_opt
 def simulate(
     profile_path: Path,
     controller_path: Path | None,
@@ -147,6 +183,7 @@ def simulate(
     out_dir: Path,
     link: LinkSpec | None,
     progress: bool,
+    oracle: bool,
 ) -> None:
     """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
     _need_lab_extras()
@@ -181,6 +218,8 @@ def simulate(
         f"{metrics['wall_time_s']:.1f} s; MAE roll {mae['roll']} pitch {mae['pitch']} "
         f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
     )
+    if oracle:
+        _add_oracle(metrics, out_dir, profile, sc, seed)
 
 
 @click.command("fly")
@@ -221,6 +260,7 @@ def simulate(
 )
 @_link_opt
 @_progress_opt
+@_oracle_opt
 def fly(
     profile_path: Path,
     controller_path: Path | None,
@@ -234,6 +274,7 @@ def fly(
     compare_passthrough: bool,
     link: LinkSpec | None,
     progress: bool,
+    oracle: bool,
 ) -> None:
     """Fly a scenario: the SITL (lockstep) and the companion as two processes over UDP.
 
@@ -316,6 +357,9 @@ def fly(
             f"pass-through: MAE roll {ptm['roll']} pitch {ptm['pitch']} yaw {ptm['yaw']} deg/s"
             f"{' (ended by a failsafe)' if metrics['passthrough']['failsafe_events'] else ''}"
         )
+    if oracle:
+        flown = sc if duration is None else sc.model_copy(update={"duration_s": duration})
+        _add_oracle(metrics, out_dir, profile, flown, seed)
     if flight.companion_rc != 0:
         sys.exit(1)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import json
 import math
 import sys
 from pathlib import Path
@@ -219,3 +220,30 @@ def test_the_collective_law(
     assert got == pytest.approx(want)
     # The braking distance: 4 m/s at 4 m/s^2 takes 2 m, plus the margin.
     assert math.isclose(COLLECTIVE_MARGIN_M + 4.0**2 / (2 * 4.0), 3.0)
+
+
+def test_simulate_oracle_adds_the_oracles_figures_to_metrics_json(tmp_path: Path) -> None:
+    """``companion simulate --oracle``: metrics.json gains the oracle's MAE on the same
+    flight, the flight's ratio to it, and the feasibility verdict (a flight that flew
+    is feasible); the figures are the oracle flight's own."""
+    from click.testing import CliRunner
+
+    from companion.cli import cli
+
+    text = (ROOT / "sitl" / "scenarios" / "paper-acro.yaml").read_text(encoding="utf-8")
+    scenario = tmp_path / "short.yaml"
+    scenario.write_text(text.replace("name: paper-acro", "name: short") + "duration_s: 6.0\n")
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["simulate", "--profile", "vehicle_profiles/x500.yaml",
+                                   "--scenario", str(scenario), "--out", str(out),
+                                   "--no-progress", "--oracle"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((out / "metrics.json").read_text(encoding="utf-8"))
+    oracle = metrics["oracle"]
+    want = oracle_flight(_profile("x500"), load_scenario(str(scenario)))
+    assert oracle["mae_deg_s"] == want["mae_deg_s"] and oracle["crashed"] is False
+    for axis in AXES:
+        ratio = metrics["mae_deg_s"][axis] / want["mae_deg_s"][axis]
+        assert oracle["ratio"][axis] == pytest.approx(ratio, abs=1e-3)
+    assert oracle["feasible"] is True
+    assert "oracle: MAE roll" in res.output
