@@ -26,9 +26,10 @@ controller
 Outputs (:func:`write_outputs`): ``campaign.json`` (``meta`` and ``records``,
 one record per flight: ``profile``, ``damage``, ``gust_sigma_m_s``, ``seed``,
 ``controller``, ``controller_kind``, ``mae_deg_s`` per axis, ``crashed``,
-``crashed_at_s``, ``saturation_any``), ``summary.md`` (median and 90th
-percentile MAE per controller and axis, crash counts) and ``mae.png`` (box
-plots of the per-axis MAE by controller).
+``crashed_at_s``, ``saturation_any``, ``feasible``), ``summary.md`` (median and
+90th percentile MAE per controller and axis, crash counts on feasible cases and
+infeasible flights) and ``mae.png`` (box plots of the per-axis MAE by
+controller).
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ __all__ = [
     "build_grid",
     "damaged_profile",
     "fly_one",
+    "oracle_crashes",
     "plot_mae",
     "run_campaign",
     "summary_markdown",
@@ -189,21 +191,53 @@ def fly_one(spec: FlightSpec) -> dict[str, Any]:
     }
 
 
+def _case(spec: FlightSpec) -> tuple[str, float, float, int]:
+    """The case a flight belongs to: everything but the controller."""
+    return (spec.profile_name, spec.damage, spec.gust_sigma_m_s, spec.seed)
+
+
+def oracle_crashes(spec: FlightSpec) -> bool:
+    """Whether the oracle that may also set the collective (sitl.lab.oracle) crashes
+    in ``spec``'s case: if it does, no controller could have flown it (a top-level
+    function, for the Pool)."""
+    from sitl.lab.oracle import oracle_flight
+
+    crashed: bool = oracle_flight(spec.profile, spec.scenario, seed=spec.seed, collective=True)[
+        "crashed"
+    ]
+    return crashed
+
+
+def _map(fn: Any, items: Sequence[Any], workers: int, desc: str, progress: bool) -> list[Any]:
+    """``fn`` over ``items`` on ``workers`` processes, in order, with a tqdm bar."""
+    from tqdm import tqdm
+
+    if workers <= 1 or len(items) <= 1:
+        return [fn(x) for x in tqdm(items, desc=desc, unit="flight", disable=not progress)]
+    with multiprocessing.Pool(min(workers, len(items))) as pool:
+        it = pool.imap(fn, items, chunksize=1)
+        return list(tqdm(it, total=len(items), desc=desc, unit="flight", disable=not progress))
+
+
 def run_campaign(
     specs: Sequence[FlightSpec], *, workers: int = 2, progress: bool = True
 ) -> list[dict[str, Any]]:
-    """Fly every spec on ``workers`` processes with a tqdm bar; records in spec order."""
-    from tqdm import tqdm
+    """Fly every spec on ``workers`` processes with a tqdm bar; records in spec order.
 
-    records: list[dict[str, Any]] = []
-    if workers <= 1:
-        for s in tqdm(specs, desc="campaign", unit="flight", disable=not progress):
-            records.append(fly_one(s))
-        return records
-    with multiprocessing.Pool(workers) as pool:
-        it = pool.imap(fly_one, specs, chunksize=1)
-        for r in tqdm(it, total=len(specs), desc="campaign", unit="flight", disable=not progress):
-            records.append(r)
+    Then, for each case (a vehicle, its damage, the gust and the seed) where any
+    controller crashed, the oracle that may also set the collective flies it: each
+    record's ``feasible`` is False when that oracle crashes too (the case is beyond
+    any controller, reported apart and left out of the crash counts), True
+    otherwise."""
+    records: list[dict[str, Any]] = _map(fly_one, specs, workers, "campaign", progress)
+    crashed: dict[tuple[str, float, float, int], FlightSpec] = {}
+    for spec, rec in zip(specs, records):
+        if rec["crashed"]:
+            crashed.setdefault(_case(spec), spec)
+    verdicts = _map(oracle_crashes, list(crashed.values()), workers, "oracle", progress)
+    infeasible = {case for case, bad in zip(crashed, verdicts) if bad}
+    for spec, rec in zip(specs, records):
+        rec["feasible"] = _case(spec) not in infeasible
     return records
 
 
@@ -228,9 +262,9 @@ def summary_markdown(records: list[dict[str, Any]], meta: dict[str, Any]) -> str
         "Per-axis rate MAE (deg/s, pilot command against measured rate while airborne; "
         "crashed flights included up to the crash):",
         "",
-        "| controller | kind | flights | crashes | roll median | roll p90 | pitch median "
-        "| pitch p90 | yaw median | yaw p90 |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| controller | kind | flights | crashes | infeasible | roll median | roll p90 "
+        "| pitch median | pitch p90 | yaw median | yaw p90 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for c in controllers:
         rs = [r for r in records if r["controller"] == c]
@@ -238,13 +272,23 @@ def summary_markdown(records: list[dict[str, Any]], meta: dict[str, Any]) -> str
         for a in AXES:
             med, p90, _ = _stats(rs, a)
             cells += [f"{med:.1f}", f"{p90:.1f}"]
-        crashes = sum(r["crashed"] for r in rs)
+        crashes = sum(r["crashed"] and r.get("feasible", True) for r in rs)
+        infeasible = sum(not r.get("feasible", True) for r in rs)
         lines.append(
-            f"| {c} | {rs[0]['controller_kind']} | {len(rs)} | {crashes} | "
+            f"| {c} | {rs[0]['controller_kind']} | {len(rs)} | {crashes} | {infeasible} | "
             + " | ".join(cells)
             + " |"
         )
-    lines += ["", "Crashes by profile and damage (crashed / flown):", ""]
+    lines += [
+        "",
+        "Crashes count feasible cases only. A case (vehicle, damage, gust, seed) is "
+        "infeasible when the oracle that knows the plant and may also set the collective "
+        "(sitl/lab/oracle.py) crashes in it too; its flights are counted under infeasible, "
+        "whatever they did.",
+        "",
+        "Crashes by profile and damage (crashed / flown, infeasible cases included):",
+        "",
+    ]
     profiles = list(dict.fromkeys(r["profile"] for r in records))
     damages = list(dict.fromkeys(r["damage"] for r in records))
     lines.append("| profile | damage | " + " | ".join(controllers) + " |")
