@@ -128,12 +128,20 @@ def _run_case(job: tuple[EnvelopeSetup, EnvelopeCase]) -> dict[str, Any]:
         "pid_default": _test_flight(case.profile, setup.pid_default, setup.test, None),
     }
     mae = {c: flights[c]["mae_deg_s"] for c in CONTROLLERS}
+    feasible = True
+    if any(f["crashed"] for f in flights.values()):
+        # Could any controller have flown it? The oracle that knows the plant and
+        # may also set the collective (sitl.lab.oracle) is the judge.
+        from sitl.lab.oracle import oracle_flight
+
+        feasible = not oracle_flight(case.profile, setup.test, collective=True)["crashed"]
     return {
         "vehicle": case.vehicle,
         "case": case.case,
         "vehicle_info": case.info,
         "peak_accel_flown_rad_s2": list(peak_angular_accel_rad_s2(case.profile)),
         "flights": flights,
+        "feasible": feasible,
         "ratio_mfc_tuned": {a: _ratio(mae["mfc"][a], mae["pid_tuned"][a]) for a in AXES},
         "ratio_mfc_default": {a: _ratio(mae["mfc"][a], mae["pid_default"][a]) for a in AXES},
         "tuned_gains": dict(result.params),
@@ -171,7 +179,9 @@ def run_envelope(
         One record per case, in case order: ``vehicle``, ``case``,
         ``vehicle_info``, ``peak_accel_flown_rad_s2``, ``flights`` (per
         controller of :data:`CONTROLLERS`: ``mae_deg_s`` per axis, ``crashed``,
-        ``crashed_at_s``, ``sim_time_s``), ``ratio_mfc_tuned`` and
+        ``crashed_at_s``, ``sim_time_s``), ``feasible`` (False when a controller
+        crashed and the oracle that may also set the collective crashes too:
+        no controller could fly the case), ``ratio_mfc_tuned`` and
         ``ratio_mfc_default`` per axis (None when undefined), ``tuned_gains``
         (:data:`sitl.lab.pidtune.PARAMS`) and ``tune`` (flights, training
         objective before and after, deg/s).

@@ -75,8 +75,11 @@ def summary_markdown(
     ]
     a, i = v["all"], v["intact"]
     lines += [
-        f"| MFC never crashes | {_met(a['no_mfc_crash'])} ({a['mfc_crashes']} crashed of "
-        f"{a['cases']}) | {_met(i['no_mfc_crash'])} ({i['mfc_crashes']} of {i['cases']}) |",
+        f"| MFC never crashes on a feasible case | {_met(a['no_mfc_crash'])} "
+        f"({a['mfc_crashes']} crashed of {a['cases'] - a['infeasible']}) | "
+        f"{_met(i['no_mfc_crash'])} ({i['mfc_crashes']} of {i['cases'] - i['infeasible']}) |",
+        f"| infeasible cases (the oracle with the collective crashes too) | "
+        f"{a['infeasible']} of {a['cases']} | {i['infeasible']} of {i['cases']} |",
         f"| MFC / tuned PID MAE <= {RATIO_TARGET:g} on every axis | "
         f"{_met(a['ratio_within_target'])} ({a['ratio_failures']} case-axes fail) | "
         f"{_met(i['ratio_within_target'])} ({i['ratio_failures']} fail) |",
@@ -89,15 +92,13 @@ def summary_markdown(
         + ".",
         "",
     ]
-    all_crashed = [
-        f"{r['vehicle']} / {r['case']}"
-        for r in records
-        if all(r["flights"][c]["crashed"] for c in CONTROLLERS)
-    ]
-    if all_crashed:
+    infeasible = [f"{r['vehicle']} / {r['case']}" for r in records if not r.get("feasible", True)]
+    if infeasible:
         lines += [
-            "Every controller crashed on: " + ", ".join(all_crashed) + " (probably beyond "
-            "the vehicle's authority; still counted as an MFC crash above).",
+            "Infeasible (the oracle that knows the plant and may also set the collective, "
+            "sitl/lab/oracle.py, crashes too; left out of the targets): "
+            + ", ".join(infeasible)
+            + ".",
             "",
         ]
     lines += [

@@ -45,12 +45,17 @@ def worst_ratio(rec: dict[str, Any], key: str = "ratio_mfc_tuned") -> float:
 def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The three targets, met or not, over all cases and over intact vehicles only.
 
+    The targets are judged on feasible cases: an infeasible one (``feasible``
+    False: the oracle that may also set the collective crashed there too) is
+    beyond any controller and is counted apart (``infeasible``).
+
     Returns
     -------
     dict
-        ``crashes`` (per controller), ``worst_ratio_mfc_tuned`` per axis (with
-        the case), and for ``all`` and ``intact``: ``no_mfc_crash``,
-        ``ratio_within_target``, ``better_than_default`` (bools) with the number
+        ``crashes`` (per controller, every case), ``worst_ratio_mfc_tuned`` per
+        axis (with the case), and for ``all`` and ``intact``: ``cases``,
+        ``infeasible``, ``no_mfc_crash``, ``ratio_within_target``,
+        ``better_than_default`` (bools, over the feasible cases) with the number
         of failing (case, axis) pairs.
     """
     out: dict[str, Any] = {
@@ -67,14 +72,16 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
             v, name, case = max(ranked)
             out["worst_ratio_mfc_tuned"][a] = {"ratio": v, "vehicle": name, "case": case}
     for scope in ("all", "intact"):
-        rs = [r for r in records if scope == "all" or r["case"] == "intact"]
+        scoped = [r for r in records if scope == "all" or r["case"] == "intact"]
+        rs = [r for r in scoped if r.get("feasible", True)]
         fail_tuned = sum(
             not _beats(r, "pid_tuned", a, RATIO_TARGET, False) for r in rs for a in AXES
         )
         fail_default = sum(not _beats(r, "pid_default", a, 1.0, True) for r in rs for a in AXES)
         mfc_crashes = sum(r["flights"]["mfc"]["crashed"] for r in rs)
         out[scope] = {
-            "cases": len(rs),
+            "cases": len(scoped),
+            "infeasible": len(scoped) - len(rs),
             "no_mfc_crash": mfc_crashes == 0,
             "mfc_crashes": mfc_crashes,
             "ratio_within_target": fail_tuned == 0,

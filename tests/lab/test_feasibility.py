@@ -68,3 +68,37 @@ def _meta() -> dict[str, object]:
     return {"scenario": "mixed", "duration_s": 11.0, "profiles": ["heavy-weak", "x500"],
             "damages": [0.6, 1.0], "gusts_m_s": [0.0], "seeds": [1], "workers": 1,
             "wall_time_s": 0.0}  # fmt: skip
+
+
+def _envelope_record(vehicle: str, case: str, crashed: dict[str, bool], feasible: bool) -> dict:
+    ratio = {a: (0.9 if not crashed["mfc"] else None) for a in ("roll", "pitch", "yaw")}
+    return {
+        "vehicle": vehicle,
+        "case": case,
+        "feasible": feasible,
+        "flights": {c: {"crashed": crashed[c], "crashed_at_s": 9.4 if crashed[c] else None,
+                        "mae_deg_s": {a: 10.0 for a in ("roll", "pitch", "yaw")}}
+                    for c in ("mfc", "pid_tuned", "pid_default")},
+        "ratio_mfc_tuned": ratio,
+        "ratio_mfc_default": {a: 0.8 if not crashed["mfc"] else None for a in ratio},
+    }  # fmt: skip
+
+
+def test_the_envelope_targets_leave_infeasible_cases_out_and_count_them() -> None:
+    from sitl.lab.envelope_verdicts import verdicts
+
+    fine = {"mfc": False, "pid_tuned": False, "pid_default": False}
+    every = {"mfc": True, "pid_tuned": True, "pid_default": True}
+    records = [
+        _envelope_record("a", "intact", fine, True),
+        _envelope_record("a", "motor60", every, False),
+    ]
+    v = verdicts(records)
+    assert v["all"]["no_mfc_crash"] and v["all"]["ratio_within_target"]
+    assert (v["all"]["cases"], v["all"]["infeasible"], v["all"]["mfc_crashes"]) == (2, 1, 0)
+    assert v["crashes"]["mfc"] == 1  # every crash is still counted as such
+    # The same crash on a feasible case fails the target.
+    records[1]["feasible"] = True
+    v = verdicts(records)
+    assert not v["all"]["no_mfc_crash"] and v["all"]["mfc_crashes"] == 1
+    assert v["all"]["infeasible"] == 0
