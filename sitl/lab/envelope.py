@@ -207,7 +207,13 @@ def run_envelope(
 
 
 def _scenario_meta(sc: Scenario) -> dict[str, Any]:
-    return {"name": sc.name, "seed": sc.seed, "duration_s": sc.duration_s, "pilot": sc.pilot}
+    return {
+        "name": sc.name,
+        "seed": sc.seed,
+        "duration_s": sc.duration_s,
+        "pilot": sc.pilot,
+        "link": sc.link.describe(),
+    }
 
 
 def envelope_meta(

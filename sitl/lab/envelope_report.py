@@ -63,7 +63,9 @@ def summary_markdown(
         f"{len(meta['damaged_vehicles'])} vehicles, PID retuned on each damaged plant). "
         f"PID tuned on `{tr['name']}` (seed {tr['seed']}, {tr['duration_s']} s), "
         f"{meta['tune_budget']} flights per case, search seed {meta['tune_seed']}; every "
-        f"controller then flies `{te['name']}` (seed {te['seed']}, {te['duration_s']} s). "
+        f"controller then flies `{te['name']}` (seed {te['seed']}, {te['duration_s']} s)"
+        + (f", every flight through the `{te['link']}` link" if te.get("link") else "")
+        + ". "
         f"MFC is `{_shown(meta.get('mfc_controller', 'the shipped file'))}`, given the profile of "
         f"{meta['mfc_controller_profile']}, never retuned. "
         f"{meta.get('workers', '?')} workers, {meta.get('wall_time_s', float('nan')):.0f} s wall.",
