@@ -3,8 +3,6 @@ in the nav, and the generated reference pages match the code."""
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import os
 import subprocess
 import sys
@@ -15,21 +13,16 @@ from typing import Any
 import pytest
 import yaml
 
+from tests.file_module import load_file_module
+
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = ROOT / "docs"
 GENERATOR = ROOT / "scripts" / "docs_reference.py"
 
 
-@functools.cache
 def _generator() -> ModuleType:
     """``scripts/docs_reference.py`` as a module (scripts/ is not a package)."""
-    name = "docs_reference"
-    spec = importlib.util.spec_from_file_location(name, GENERATOR)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_file_module(GENERATOR)
 
 
 def _nav_pages(nav: Any) -> list[str]:

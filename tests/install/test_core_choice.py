@@ -6,8 +6,6 @@ tests/control/test_compiled.py (``MFC_COMPILE=1``, in place)."""
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import json
 import sys
 import sysconfig
@@ -17,19 +15,14 @@ from types import ModuleType
 import pytest
 
 from companion.control._compiled import CORE_RECORD, describe_core
+from tests.file_module import load_file_module
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@functools.cache
 def _mfc_compile() -> ModuleType:
-    name = "mfc_compile"
-    spec = importlib.util.spec_from_file_location(name, ROOT / "_build" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    """``_build/mfc_compile.py``: what the build decides on this machine."""
+    return load_file_module(ROOT / "_build" / "mfc_compile.py")
 
 
 @pytest.fixture

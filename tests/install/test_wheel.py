@@ -13,8 +13,6 @@ One module-scoped build and install; how long each step took goes to stderr
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import json
 import os
 import shutil
@@ -31,6 +29,8 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+
+from tests.file_module import load_file_module
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -50,16 +50,9 @@ segments:
 """
 
 
-@functools.cache
 def _mfc_compile() -> ModuleType:
     """``_build/mfc_compile.py``: what the build decides on this machine."""
-    name = "mfc_compile"
-    spec = importlib.util.spec_from_file_location(name, ROOT / "_build" / f"{name}.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_file_module(ROOT / "_build" / "mfc_compile.py")
 
 
 def _clean_env(**extra: str) -> dict[str, str]:

@@ -9,12 +9,9 @@ come from. Every figure is the flights' own: the MAE against the filtered gyro.
 from __future__ import annotations
 
 import functools
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -33,6 +30,7 @@ from sitl.lab.oracle import (
 from sitl.lab.report import compute_metrics
 from sitl.lab.simulate import FlightRecord, simulate_flight
 from sitl.scenario import Scenario, load_scenario
+from tests.file_module import load_file_module
 
 ROOT = Path(__file__).resolve().parents[2]
 SLICE_S = 17.0
@@ -45,17 +43,7 @@ on this slice the oracle is 1 % (roll) and 10 % (pitch) above it, on the full fl
 6 % and 5 %."""
 
 
-def _script() -> ModuleType:
-    path = ROOT / "scripts" / "reproduce_paper.py"
-    spec = importlib.util.spec_from_file_location("reproduce_paper", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look the module up while the class is made
-    spec.loader.exec_module(module)
-    return module
-
-
-rp = _script()
+rp = load_file_module(ROOT / "scripts" / "reproduce_paper.py")
 
 
 def _profile(name: str) -> VehicleProfile:

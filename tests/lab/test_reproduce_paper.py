@@ -2,30 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
+
+from tests.file_module import load_file_module
 
 ROOT = Path(__file__).resolve().parents[2]
 DT = 0.004
 
 
-def _script() -> ModuleType:
-    path = ROOT / "scripts" / "reproduce_paper.py"
-    spec = importlib.util.spec_from_file_location("reproduce_paper", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look the module up while the class is made
-    spec.loader.exec_module(module)
-    return module
-
-
-rp = _script()
+rp = load_file_module(ROOT / "scripts" / "reproduce_paper.py")
 
 
 def _mae_deg_s(ref: np.ndarray, w: np.ndarray) -> float:

@@ -30,13 +30,6 @@ def profile() -> VehicleProfile:
     return load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
 
 
-@pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
 def open_face(
     profile: VehicleProfile, client: Client, firmware: FirmwareVersion | None = None
 ) -> ArduPilotFace:

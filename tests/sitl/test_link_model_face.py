@@ -27,13 +27,6 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.sock.close()
-
-
-@pytest.fixture
 def face(client: Client) -> Iterator[Px4Face]:
     profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
     f = Px4Face(

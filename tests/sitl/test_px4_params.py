@@ -44,13 +44,6 @@ def profile() -> VehicleProfile:
     return load_profile(F450)
 
 
-@pytest.fixture
-def client() -> Iterator[Client]:
-    c = Client()
-    yield c
-    c.close()
-
-
 def open_face(
     profile: VehicleProfile, client: Client, firmware: FirmwareVersion | None = None
 ) -> Px4Face:
