@@ -183,10 +183,18 @@ def start_run(log_dir: Path, heartbeat_timeout_s: float) -> subprocess.Popen[str
 
 
 def wait_locked(log_dir: Path, proc: subprocess.Popen[str], timeout_s: float = 30.0) -> None:
-    """Until ``proc`` has written its pid into the lock (it holds the folder)."""
+    """Until ``proc`` has written its pid into the lock (it holds the folder) and
+    opened its records (after the lock: a loaded machine can show the lock alone)."""
     deadline = time.monotonic() + timeout_s
     lock = log_dir / LOCK_FILE
-    while not (lock.exists() and lock.read_text().strip() == str(proc.pid)):
+
+    def ready() -> bool:
+        if not (lock.exists() and lock.read_text().strip() == str(proc.pid)):
+            return False
+        files = [log_dir / name for name in RECORD_FILES]
+        return all(f.exists() for f in files) and (log_dir / "control.bin").stat().st_size > 0
+
+    while not ready():
         assert proc.poll() is None, proc.communicate()[1]
         assert time.monotonic() < deadline, "the first run never took the lock"
         time.sleep(0.05)

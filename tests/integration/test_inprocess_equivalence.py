@@ -29,6 +29,12 @@ from sitl.scenario import load_scenario
 
 pytestmark = pytest.mark.integration
 
+PATIENT = ("--lockstep-timeout", "3")
+"""The lockstep SITL waits this long (wall clock) for each setpoint: a companion
+stalled past the default 0.5 s by a loaded machine (a parallel compile) would let
+the plant step without its command, and the flights would part ways for a reason
+that is not the link's."""
+
 ROOT = Path(__file__).resolve().parents[2]
 RATE_HZ = 250  # the F450's IMU
 
@@ -40,7 +46,7 @@ def test_same_scenario_same_seed_same_flight_both_ways(tmp_path: Path) -> None:
     # other way and the flights part (with the delay-identifying controller: at 7.3 s).
     # 6 s holds the exact comparison; the MAE bound below is the long-run check.
     duration = 6.0
-    flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration)
+    flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration, sitl_args=PATIENT)
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     mav_rec = merge_logs(flight)
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration})
@@ -78,7 +84,9 @@ def test_through_a_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     profile = ROOT / "vehicle_profiles" / "f450.yaml"
     duration = 3.0
     link = parse_link(LINK)
-    flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration, link=link)
+    flight = fly_mavlink(
+        profile, "paper-acro", tmp_path, duration_s=duration, link=link, sitl_args=PATIENT
+    )
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     mav_rec = merge_logs(flight)
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration, "link": link})
@@ -104,7 +112,9 @@ def test_through_a_uart_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     profile = ROOT / "vehicle_profiles" / "f450.yaml"
     duration = 3.0
     link = parse_link("uart")
-    flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration, link=link)
+    flight = fly_mavlink(
+        profile, "paper-acro", tmp_path, duration_s=duration, link=link, sitl_args=PATIENT
+    )
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     a = merge_logs(flight).columns
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration, "link": link})
