@@ -16,7 +16,9 @@ __all__ = [
     "CASES",
     "CONTROLLERS",
     "ENVELOPE_TEST_SCENARIO",
+    "P90_TARGET",
     "RATIO_TARGET",
+    "WORST_TARGET",
     "EnvelopeCase",
     "EnvelopeSetup",
     "envelope_cases",
@@ -35,6 +37,12 @@ CONTROLLERS: tuple[str, ...] = ("mfc", "pid_tuned", "pid_default")
 
 RATIO_TARGET = 1.25
 """Target: MFC MAE over the tuned PID's MAE, on every vehicle, case and axis."""
+
+WORST_TARGET = 1.1
+"""#13's target: the worst feasible case's worst-axis MFC / tuned PID ratio."""
+
+P90_TARGET = 1.0
+"""#13's target: the 90th percentile of the feasible cases' worst-axis ratio."""
 
 ENVELOPE_TEST_SCENARIO = "envelope-test"
 """The held-out test flight of this campaign (never trained on)."""

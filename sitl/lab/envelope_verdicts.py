@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from companion.control import AXES
-from sitl.lab.envelope_setup import CONTROLLERS, RATIO_TARGET
+from sitl.lab.envelope_setup import CONTROLLERS, P90_TARGET, RATIO_TARGET, WORST_TARGET
 
 __all__ = [
     "REGION_FIELDS",
@@ -56,7 +56,10 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         axis (with the case), and for ``all`` and ``intact``: ``cases``,
         ``infeasible``, ``no_mfc_crash``, ``ratio_within_target``,
         ``better_than_default`` (bools, over the feasible cases) with the number
-        of failing (case, axis) pairs.
+        of failing (case, axis) pairs; ``worst_case_ratio`` and
+        ``p90_worst_axis_ratio`` (the worst axis per feasible case over the tuned
+        PID, inf where MFC crashed) against #13's ``worst_within_target``
+        (<= :data:`WORST_TARGET`) and ``p90_within_target`` (<= :data:`P90_TARGET`).
     """
     out: dict[str, Any] = {
         "crashes": {c: sum(r["flights"][c]["crashed"] for r in records) for c in CONTROLLERS},
@@ -79,6 +82,9 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         )
         fail_default = sum(not _beats(r, "pid_default", a, 1.0, True) for r in rs for a in AXES)
         mfc_crashes = sum(r["flights"]["mfc"]["crashed"] for r in rs)
+        worst = sorted(worst_ratio(r) for r in rs)
+        worst_case = worst[-1] if worst else math.nan
+        p90 = float(np.percentile(worst, 90)) if worst else math.nan
         out[scope] = {
             "cases": len(scoped),
             "infeasible": len(scoped) - len(rs),
@@ -88,6 +94,10 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
             "ratio_failures": fail_tuned,
             "better_than_default": fail_default == 0,
             "default_failures": fail_default,
+            "worst_case_ratio": worst_case,
+            "p90_worst_axis_ratio": p90,
+            "worst_within_target": worst_case <= WORST_TARGET,
+            "p90_within_target": p90 <= P90_TARGET,
         }
     return out
 

@@ -153,6 +153,8 @@ def test_records_and_output_files(
         for a in AXES:
             m, t = r["flights"]["mfc"]["mae_deg_s"][a], r["flights"]["pid_tuned"]["mae_deg_s"][a]
             assert r["ratio_mfc_tuned"][a] == pytest.approx(m / t, rel=1e-3)
+            o = r["oracle"]["mae_deg_s"][a]  # the limit, flown on the same test flight
+            assert r["ratio_mfc_oracle"][a] == pytest.approx(m / o, rel=1e-3)
     meta = envelope_meta(
         corner_cases, corner_setup, wall_time_s=0.0, workers=2,
         mfc_controller=str(Path(DEFAULT_CONTROLLER).resolve()),
@@ -174,7 +176,8 @@ def test_records_and_output_files(
     assert "ratio.png" in summary and worst[0].name in summary
     # The summary is kept in docs/: the shipped file is named from the checkout's root.
     assert "MFC is `companion/data/mfc_default.yaml`" in summary
-    assert summary.count("met**") == 6  # three targets, two scopes
+    assert summary.count("met**") == 10  # five targets, two scopes
+    assert "## Ratio MFC / oracle per axis" in summary
     for r in corner_records:
         assert f"| {r['vehicle']} | intact |" in summary
 
