@@ -16,6 +16,13 @@ shipped files, loaded as they are; nothing is tuned here:
 * the Tarot-tuned PID: ``companion/data/pid_tarot_tuned.yaml``, made by
   ``sitl/lab/pidtune.py`` on ``train-acro`` (never on ``paper-acro``), flown on
   the Tarot and then, unchanged, on the F450 (IV-D);
+* the scoreboard: on each paper vehicle, a PID tuned on that very vehicle by the
+  same tuner on ``train-acro`` (``pid_f450_tuned.yaml``, ``pid_f450_cut_props_tuned.yaml``;
+  the Tarot's is the Tarot-tuned one) and the oracle (:mod:`sitl.lab.oracle`: the
+  plant and its true state known), flown on the same scenario and measured the
+  same way; MFC's MAE over each, per axis, leads ``results.md``. Where any
+  controller crashed, the oracle that may also set the collective judges whether
+  the case was feasible at all;
 * as context: PX4's default PID on each vehicle, and the tuned PID on the
   cut-prop F450.
 
@@ -58,12 +65,26 @@ CONTROLLERS = {
     "mfc": "mfc_default.yaml",
     "pid_tuned": "pid_tarot_tuned.yaml",
     "pid_px4": "pid_px4_default.yaml",
+    "pid_f450_tuned": "pid_f450_tuned.yaml",
+    "pid_cut_tuned": "pid_f450_cut_props_tuned.yaml",
 }
+"""The controller files flown (in ``companion/data``); ``"oracle"`` is flown too, from
+:mod:`sitl.lab.oracle`, with no file."""
 CONTROLLER_LABEL = {
     "mfc": "MFC (shipped set)",
     "pid_tuned": "PID tuned on Tarot",
     "pid_px4": "PID, PX4 defaults",
+    "pid_f450_tuned": "PID tuned on F450",
+    "pid_cut_tuned": "PID tuned on cut props",
+    "oracle": "oracle (knows the plant)",
 }
+PAPER_VEHICLES = ("f450", "f450_cut_props", "tarot650")
+OWN_PID = {"f450": "pid_f450_tuned", "f450_cut_props": "pid_cut_tuned", "tarot650": "pid_tuned"}
+"""Per paper vehicle, the PID tuned on it (``sitl/lab/pidtune.py`` on ``train-acro``)."""
+TARGET_OVER_ORACLE = 1.15
+"""#13's target: MFC's MAE within 1.15x of the oracle's, per vehicle and axis."""
+TARGET_OVER_OWN_PID = 1.0
+"""#13's target: MFC no worse than the PID tuned on the very vehicle."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +121,13 @@ FLIGHTS = (
     Flight("f450_cut_props_pid_px4", "f450_cut_props", "pid_px4", "context", "-", "-"),
     Flight("tarot650_pid_px4", "tarot650", "pid_px4", "context", "-", "-"),
     Flight("f450_cut_props_pid_tuned", "f450_cut_props", "pid_tuned", "context", "-", "-"),
+    Flight("f450_pid_f450_tuned", "f450", "pid_f450_tuned", "scoreboard", "-", "-"),
+    Flight(
+        "f450_cut_props_pid_cut_tuned", "f450_cut_props", "pid_cut_tuned", "scoreboard", "-", "-",
+    ),
+    Flight("f450_oracle", "f450", "oracle", "scoreboard", "-", "-"),
+    Flight("f450_cut_props_oracle", "f450_cut_props", "oracle", "scoreboard", "-", "-"),
+    Flight("tarot650_oracle", "tarot650", "oracle", "scoreboard", "-", "-"),
 )  # fmt: skip
 
 
@@ -331,10 +359,71 @@ def through_gyro_filter(rates: Any, weight: float) -> Any:
     return out
 
 
-MOTION_KEYS = ("acceleration_floor_deg_s", "ideal_tracker_deg_s", "ideal_tracker_measured_deg_s")
+def command_acting(t_s: Any, link: Any, seed: int) -> Any:
+    """Per IMU sample ``j`` (times ``t_s``), the index of the newest sample whose
+    command acts by ``t_s[j]`` through ``link`` (a :class:`sitl.link_model.LinkSpec`),
+    -1 before the first: each sample goes up, its command comes down, and the
+    autopilot acts on it at its first IMU sample at or after the arrival, as
+    :func:`sitl.lab.simulate.simulate_flight` flies it (the same seeded draws: the
+    link's generator is keyed per stream). The ideal link acts at once (``j``)."""
+    import bisect
+
+    import numpy as np
+
+    from sitl.link_model import (
+        DOWN,
+        ID_HIGHRES_IMU,
+        ID_SET_ACTUATOR_CONTROL_TARGET,
+        UP,
+        LinkModel,
+    )
+
+    t = np.asarray(t_s, dtype=float)
+    if link.ideal:
+        return np.arange(t.size)
+    model = LinkModel(link, seed)
+    acts = np.full(t.size, -1)
+    times = t.tolist()
+    for k, tk in enumerate(times):
+        for a in model.arrivals(UP, ID_HIGHRES_IMU, tk)[:1]:
+            for b in model.arrivals(DOWN, ID_SET_ACTUATOR_CONTROL_TARGET, a)[:1]:
+                j = bisect.bisect_left(times, b - 1e-12)
+                if j < t.size:
+                    acts[j] = max(acts[j], k)
+    return np.maximum.accumulate(acts)
 
 
-def motion_limits(record: Any, profile: Any, filter_weight: float) -> dict[str, dict[str, float]]:
+def ideal_tracker_through_link_deg_s(
+    t_s: Any, ref_rad_s: Any, limits: tuple[float, float], tau_s: float, weight: float,
+    acting: Any, airborne: Any,
+) -> float:  # fmt: skip
+    """:func:`ideal_tracker_deg_s` measured as the flights are (through the gyro
+    filter of ``weight``), when what moves the motors at sample ``j`` can know the
+    stick only up to sample ``acting[j]`` (:func:`command_acting`): a controller
+    that knows the plant and predicts it perfectly still answers each stick move
+    one round trip late. The error is against the reference as flown."""
+    import numpy as np
+
+    ref = np.asarray(ref_rad_s, dtype=float)
+    acting = np.asarray(acting)
+    known = np.where(acting >= 0, ref[np.maximum(acting, 0)], ref[0])
+    w = ideal_tracker_rates(t_s, known, *limits, tau_s)
+    y = through_gyro_filter(w, weight)
+    air = np.asarray(airborne, dtype=bool)
+    return _mae_deg_s(ref[air], y[air])
+
+
+MOTION_KEYS = (
+    "acceleration_floor_deg_s",
+    "ideal_tracker_deg_s",
+    "ideal_tracker_measured_deg_s",
+    "ideal_tracker_link_deg_s",
+)
+
+
+def motion_limits(
+    record: Any, profile: Any, filter_weight: float, link: Any = None, seed: int = 0
+) -> dict[str, dict[str, float]]:
     """Roll and pitch of one flight (airborne samples) against the vehicle's limits.
 
     ``acceleration_floor_deg_s``: :func:`acceleration_floor_deg_s` with the
@@ -345,6 +434,8 @@ def motion_limits(record: Any, profile: Any, filter_weight: float) -> dict[str, 
     gyro reports them, through its first-stage filter of weight
     ``filter_weight`` (:func:`through_gyro_filter`): on the footing of the
     flight's MAE, which is against the measured rate.
+    ``ideal_tracker_link_deg_s`` (a flight through a companion ``link``, seeded
+    by ``seed``): the same, one round trip late (:func:`ideal_tracker_through_link_deg_s`).
     Yaw is left out: a rotor's spin-up reaction gives yaw far more than its
     steady peak for a moment, so a bound from the steady figure would not hold.
     """
@@ -358,7 +449,12 @@ def motion_limits(record: Any, profile: Any, filter_weight: float) -> dict[str, 
     ref = np.asarray(c["ref_rad_s"])[air]
     limits = angular_accel_limits_rad_s2(profile)
     tau = min(profile.physics.motor_tau_up_s, profile.physics.motor_tau_down_s)
-    out: dict[str, dict[str, float]] = {key: {} for key in MOTION_KEYS}
+    through = link is not None and not link.ideal
+    out: dict[str, dict[str, float]] = {
+        key: {} for key in MOTION_KEYS if through or key != "ideal_tracker_link_deg_s"
+    }
+    if through:
+        acting = command_acting(np.asarray(c["t_s"]), link, seed)
     for i, a in enumerate(AXES[:2]):
         r = ref[:, i]
         w = ideal_tracker_rates(t, r, *limits[i], tau)
@@ -366,39 +462,140 @@ def motion_limits(record: Any, profile: Any, filter_weight: float) -> dict[str, 
         out["acceleration_floor_deg_s"][a] = round(acceleration_floor_deg_s(t, r, *limits[i]), 2)
         out["ideal_tracker_deg_s"][a] = round(_mae_deg_s(r, w), 2)
         out["ideal_tracker_measured_deg_s"][a] = round(_mae_deg_s(r, y), 2)
+        if through:
+            late = ideal_tracker_through_link_deg_s(
+                c["t_s"], np.asarray(c["ref_rad_s"])[:, i], limits[i], tau, filter_weight,
+                acting, air,
+            )  # fmt: skip
+            out["ideal_tracker_link_deg_s"][a] = round(late, 2)
     return out
 
 
-def _fly(job: tuple[Flight, float | None, str]) -> dict[str, Any]:
+def _fly(job: tuple[Flight, float | None, str, str | None]) -> dict[str, Any]:
     """Fly one flight, write its report folder, return its metrics (runs in a worker)."""
     from companion.config import load_controller
     from companion.profile import load_profile
     from sitl.lab.report import write_report
     from sitl.lab.simulate import simulate_flight
-    from sitl.scenario import load_scenario
 
-    flight, duration_s, out = job
+    flight, duration_s, out, link_text = job
     profile_path = PROFILE_DIR / f"{flight.profile}.yaml"
-    ctrl_path = DATA_DIR / CONTROLLERS[flight.controller]
-    sc = load_scenario(SCENARIO)
-    if duration_s is not None:
-        sc = sc.model_copy(update={"duration_s": duration_s})
+    sc = _scenario(duration_s, link_text)
     profile = load_profile(profile_path)
-    record = simulate_flight(profile, load_controller(ctrl_path), sc)
+    if flight.controller == "oracle":
+        from sitl.lab.oracle import fly_oracle
+
+        record = fly_oracle(profile, sc)
+        shown = "oracle (sitl/lab/oracle.py)"
+    else:
+        ctrl_path = DATA_DIR / CONTROLLERS[flight.controller]
+        record = simulate_flight(profile, load_controller(ctrl_path), sc)
+        shown = str(ctrl_path.relative_to(ROOT) if ctrl_path.is_relative_to(ROOT) else ctrl_path)
     metrics = write_report(
         record,
         Path(out) / flight.name,
-        controller_path=str(
-            ctrl_path.relative_to(ROOT) if ctrl_path.is_relative_to(ROOT) else ctrl_path
-        ),
+        controller_path=shown,
         profile_path=str(profile_path.relative_to(ROOT)),
         scenario_desc=sc.description.strip(),
     )
     metrics["after_fast_changes"] = transient_split(record)
     if flight.role == "paper" and flight.controller == "mfc":
         weight = sc.imu_model(profile).first_stage_filter_weight
-        metrics.update(motion_limits(record, profile, weight))
+        metrics.update(motion_limits(record, profile, weight, sc.link, sc.seed))
     return metrics
+
+
+def _ratio(num: float | None, den: float | None) -> float | None:
+    if num is None or den is None or den <= 0.0:
+        return None
+    return round(num / den, 3)
+
+
+def scoreboard(
+    flights: dict[str, dict[str, Any]], feasible: dict[str, bool]
+) -> dict[str, dict[str, Any]]:
+    """Per paper vehicle and axis: MFC's MAE, the oracle's and the PID's tuned on that
+    vehicle, MFC's ratio to each, whether each target is met, and whether the case is
+    feasible (``feasible[vehicle]``: False when the oracle with the collective crashed)."""
+    board: dict[str, dict[str, Any]] = {}
+    for p in PAPER_VEHICLES:
+        mfc = flights[f"{p}_mfc"]
+        oracle = flights[f"{p}_oracle"]
+        own = flights[f"{p}_{OWN_PID[p]}"]
+        axes = {}
+        for a in AXES:
+            m, o, q = mfc["mae_deg_s"][a], oracle["mae_deg_s"][a], own["mae_deg_s"][a]
+            over_oracle, over_pid = _ratio(m, o), _ratio(m, q)
+            axes[a] = {
+                "mfc": m,
+                "oracle": o,
+                "mfc_over_oracle": over_oracle,
+                "pid_own": q,
+                "mfc_over_pid_own": over_pid,
+                "within_oracle_target": over_oracle is not None
+                and over_oracle <= TARGET_OVER_ORACLE
+                and not mfc["crashed"],
+                "within_pid_target": over_pid is not None
+                and over_pid <= TARGET_OVER_OWN_PID
+                and not mfc["crashed"],
+            }
+        board[p] = {
+            "pid_own": OWN_PID[p],
+            "feasible": feasible[p],
+            "crashed": {"mfc": mfc["crashed"], "oracle": oracle["crashed"],
+                        "pid_own": own["crashed"]},
+            "axes": axes,
+        }  # fmt: skip
+    return board
+
+
+def _scoreboard_lines(board: dict[str, dict[str, Any]]) -> list[str]:
+    """The scoreboard's table and its two verdicts, for ``results.md``."""
+
+    def cell(v: float | None, fmt: str = ".1f") -> str:
+        return "-" if v is None else format(v, fmt)
+
+    lines = [
+        "| vehicle | axis | MFC | oracle | MFC / oracle | PID tuned on it | MFC / that PID "
+        "| feasible |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    misses: dict[str, list[str]] = {"within_oracle_target": [], "within_pid_target": []}
+    for p, row in board.items():
+        for a, x in row["axes"].items():
+            lines.append(
+                f"| {p} | {a} | {cell(x['mfc'])} | {cell(x['oracle'])} | "
+                f"{cell(x['mfc_over_oracle'], '.2f')} | {cell(x['pid_own'])} | "
+                f"{cell(x['mfc_over_pid_own'], '.2f')} | {'yes' if row['feasible'] else 'no'} |"
+            )
+            for key, bad in misses.items():
+                if not x[key]:
+                    bad.append(f"{p} {a}")
+    n = sum(len(row["axes"]) for row in board.values())
+    lines.append("")
+    for key, what in (
+        ("within_oracle_target", f"MFC within {TARGET_OVER_ORACLE:g}x of the oracle's MAE"),
+        ("within_pid_target", "MFC no worse than the PID tuned on the vehicle"),
+    ):
+        bad = misses[key]
+        lines.append(
+            f"- {what}: {n - len(bad)} of {n} vehicle-axes"
+            + (f"; not on {', '.join(bad)}." if bad else ".")
+        )
+    return lines
+
+
+def _scenario(duration_s: float | None, link_text: str | None) -> Any:
+    """``paper-acro``, cut to ``duration_s`` and through the named link when given."""
+    from sitl.link_model import parse_link
+    from sitl.scenario import load_scenario
+
+    sc = load_scenario(SCENARIO)
+    if duration_s is not None:
+        sc = sc.model_copy(update={"duration_s": duration_s})
+    if link_text is not None:
+        sc = sc.model_copy(update={"link": parse_link(link_text)})
+    return sc
 
 
 def _mean(mae: dict[str, float | None]) -> float:
@@ -668,6 +865,39 @@ def _roll_pitch_against_flown(
     return "; ".join(parts)
 
 
+def _link_lines(result: dict[str, Any]) -> list[str]:
+    """Through a companion link: what the round trip alone costs a tracker that knows
+    the plant (roll and pitch), beside what it cost MFC."""
+    fl = result["flights"]
+    rows = [
+        f
+        for f in fl.values()
+        if f["role"] == "paper" and f["controller"] == "mfc" and "ideal_tracker_link_deg_s" in f
+    ]
+    if not rows:
+        return []
+    lines = [
+        f"## Through the link: `{result['link']}`",
+        "",
+        "Every flight went through this companion link. The ideal tracker (a controller "
+        "that knows the plant, brakes on its time-optimal curve, and is read through the "
+        "gyro filter) answers each stick move one round trip late through it: the cost of "
+        "the delay alone (roll / pitch, deg/s):",
+        "",
+        "| vehicle | ideal tracker, no delay | through the link | ratio | MFC through the link |",
+        "|---|---|---|---|---|",
+    ]
+    rp = AXES[:2]
+    for f in rows:
+        now, late = f["ideal_tracker_measured_deg_s"], f["ideal_tracker_link_deg_s"]
+        ratio = " / ".join(f"{late[a] / now[a]:.2f}" if now[a] else "-" for a in rp)
+        lines.append(
+            f"| {f['profile']} | {_fmt_mae(now, rp)} | {_fmt_mae(late, rp)} | {ratio} | "
+            f"{_fmt_mae(f['mae_deg_s'], rp)} |"
+        )
+    return [*lines, ""]
+
+
 def write_markdown(result: dict[str, Any], path: Path) -> None:
     """``results.md``: the table, the paper's figures beside it, and the comparison."""
     fl = result["flights"]
@@ -689,6 +919,23 @@ def write_markdown(result: dict[str, Any], path: Path) -> None:
             f"- `{k}`: `{v['path']}` (sha256 {v['sha256'][:12]})"
             for k, v in result["controllers"].items()
         ],
+        "",
+        "## Scoreboard",
+        "",
+        "Per paper vehicle and axis, MFC's rate MAE (deg/s, pilot's command against the "
+        "measured rate, while airborne) against the oracle's (a controller that knows the "
+        "plant and sees its true state, flown through the same mixer, motors and gyro; "
+        "`sitl/lab/oracle.py`) and against a PID tuned on that very vehicle by "
+        "`sitl/lab/pidtune.py` on `train-acro`. A ratio below 1 beats the reference: the "
+        "oracle tracks the true rate, the figures are read from the filtered gyro, so a law "
+        "closing its loop on the gyro can score below it. A case is infeasible when the "
+        "oracle that may also set the collective crashes in it (flown only where a "
+        "controller crashed).",
+        "",
+        *_scoreboard_lines(result["scoreboard"]),
+        "",
+        *_link_lines(result),
+        "## The paper's flights",
         "",
         "Per-axis rate MAE in deg/s (pilot's command against the measured rate, while airborne), "
         "fraction of airborne time with any axis saturated, crash, and the MAE (roll / pitch "
@@ -742,6 +989,19 @@ def write_markdown(result: dict[str, Any], path: Path) -> None:
     path.write_text("\n".join(lines), encoding="utf-8")
 
 
+def _feasible(profile: str, flights: dict[str, dict[str, Any]], sc: Any) -> bool:
+    """False when a controller crashed on ``profile`` and the oracle that may also set
+    the collective crashes too (the case is beyond any controller); flown only then."""
+    if not any(f["crashed"] for f in flights.values() if f["profile"] == profile):
+        return True
+    from companion.profile import load_profile
+    from sitl.lab.oracle import oracle_flight
+
+    plant = load_profile(PROFILE_DIR / f"{profile}.yaml")
+    crashed: bool = oracle_flight(plant, sc, collective=True)["crashed"]
+    return not crashed
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -750,7 +1010,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help=f"fly only the first {QUICK_S:g} s")
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--link",
+        default=None,
+        help="fly every flight through this companion link (a profile of "
+        "sitl/link_model.py such as uart or usb-serial, or fields such as delay_ms=10) "
+        "[default: the scenario's, the ideal link]",
+    )
     args = ap.parse_args(argv)
+    if args.link is not None:
+        from sitl.link_model import parse_link
+
+        try:
+            parse_link(args.link)
+        except ValueError as exc:
+            ap.error(f"--link: {exc}")
     if args.workers < 1:
         ap.error(f"--workers: expected 1 or more, got {args.workers}")
     from companion.options import out_dir_problem
@@ -766,14 +1040,13 @@ def main(argv: list[str] | None = None) -> int:
     from tqdm import tqdm
 
     from companion.profile import load_profile
-    from sitl.scenario import load_scenario
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     duration = QUICK_S if args.quick else None
-    sc = load_scenario(SCENARIO)
+    sc = _scenario(None, args.link)
     t0 = time.perf_counter()
-    jobs = [(f, duration, str(out)) for f in FLIGHTS]
+    jobs = [(f, duration, str(out), args.link) for f in FLIGHTS]
     bar = tqdm(total=len(jobs), desc="paper flights", unit="flight", disable=args.no_progress)
     if args.workers > 1:
         with multiprocessing.Pool(args.workers) as pool:
@@ -812,10 +1085,9 @@ def main(argv: list[str] | None = None) -> int:
         for key in MOTION_KEYS:
             if key in m:
                 flights[f.name][key] = m[key]
-    gains = {
-        p: input_gains(load_profile(PROFILE_DIR / f"{p}.yaml"))
-        for p in ("f450", "f450_cut_props", "tarot650")
-    }
+    gains = {p: input_gains(load_profile(PROFILE_DIR / f"{p}.yaml")) for p in PAPER_VEHICLES}
+    flown = _scenario(duration, args.link)
+    feasible = {p: _feasible(p, flights, flown) for p in PAPER_VEHICLES}
     ctrl = {}
     for k, fname in CONTROLLERS.items():
         p = DATA_DIR / fname
@@ -834,13 +1106,16 @@ def main(argv: list[str] | None = None) -> int:
             "f450_cut_props_mfc_mae_below_deg_s": 20.0,
             "pid_moved_to_f450": "degrades",
         },
+        "scoreboard": scoreboard(flights, feasible),
         "flights": flights,
         "claims": assess(flights, gains),
         "why": _why(flights, gains),
         "input_gains": gains,
+        "link": sc.link.describe(),
         "command": "python scripts/reproduce_paper.py --out "
         + str(out)
-        + (" --quick" if args.quick else ""),
+        + (" --quick" if args.quick else "")
+        + (f" --link {args.link}" if args.link else ""),
         "workers": args.workers,
         "wall_time_s": round(wall, 1),
         "versions": versions(),
@@ -854,6 +1129,14 @@ def main(argv: list[str] | None = None) -> int:
         m = rec["mae_deg_s"]
         vals = " ".join("     -" if m[a] is None else f"{m[a]:6.1f}" for a in AXES)
         print(f"{name:<26} {vals}  {'yes' if rec['crashed'] else 'no'}")
+    print(f"\n{'vehicle':<16} {'axis':<6} {'MFC':>6} {'oracle':>6} {'ratio':>6} "
+          f"{'own PID':>7} {'ratio':>6}  feasible")  # fmt: skip
+    for p, row in result["scoreboard"].items():
+        for a, x in row["axes"].items():
+            cells = [x["mfc"], x["oracle"], x["mfc_over_oracle"], x["pid_own"],
+                     x["mfc_over_pid_own"]]  # fmt: skip
+            vals = " ".join("     -" if v is None else f"{v:6.2f}" for v in cells)
+            print(f"{p:<16} {a:<6} {vals}  {'yes' if row['feasible'] else 'no'}")
     for c in result["claims"]:
         print(f"[{'ok' if c['holds'] else 'NO'}] {c['section']}: {c['paper']}")
     print(f"wrote {out / 'results.md'} and {out / 'results.json'} in {wall:.0f} s")

@@ -78,12 +78,14 @@ def test_written_file_loads_back_with_its_provenance(tuned: tuple, tmp_path: Pat
     assert "# made by a test" in text and f"budget: {BUDGET}" in text
 
 
-def test_shipped_tarot_pid_records_how_it_was_made() -> None:
-    path = ROOT / "companion" / "data" / "pid_tarot_tuned.yaml"
+@pytest.mark.parametrize("name", ["pid_tarot_tuned", "pid_f450_tuned", "pid_f450_cut_props_tuned"])
+def test_shipped_tuned_pids_record_how_they_were_made(name: str) -> None:
+    path = ROOT / "companion" / "data" / f"{name}.yaml"
     cfg = load_controller(path)
     assert isinstance(cfg, PidConfig)
     text = path.read_text(encoding="utf-8")
-    for needle in ("python -m sitl.lab.pidtune", "--scenario train-acro", "budget:", "seed:"):
+    for needle in ("python -m sitl.lab.pidtune", "--scenario train-acro", "budget:", "seed:",
+                   f"--out companion/data/{name}.yaml"):  # fmt: skip
         assert needle in text
     assert "paper-acro (the test flight) was never flown" in text
     # Roll and pitch share their gains; yaw is a PI, as the tuner searches them.

@@ -121,3 +121,72 @@ def test_a_filtered_ideal_lags_a_step() -> None:
     ref = np.where(np.arange(n) < 50, 0.0, 10.0)
     w = rp.ideal_tracker_rates(t, ref, accel, accel, tau)
     assert _mae_deg_s(ref, rp.through_gyro_filter(w, 0.3)) > _mae_deg_s(ref, w)
+
+
+def _flight(profile: str, mae: tuple[float, float, float], crashed: bool = False) -> dict:  # type: ignore[type-arg]
+    return {"profile": profile, "crashed": crashed, "mae_deg_s": dict(zip(rp.AXES, mae))}
+
+
+def _paper_flights(mfc_crash: bool = False) -> dict:  # type: ignore[type-arg]
+    flights = {}
+    for p in rp.PAPER_VEHICLES:
+        flights[f"{p}_mfc"] = _flight(p, (6.0, 5.0, 8.0), crashed=mfc_crash and p == "f450")
+        flights[f"{p}_oracle"] = _flight(p, (5.0, 5.0, 10.0))
+        flights[f"{p}_{rp.OWN_PID[p]}"] = _flight(p, (6.0, 4.0, 8.0))
+    return flights
+
+
+def test_scoreboard_ratios_and_targets() -> None:
+    board = rp.scoreboard(_paper_flights(), {p: True for p in rp.PAPER_VEHICLES})
+    assert set(board) == set(rp.PAPER_VEHICLES)
+    roll, pitch, yaw = (board["tarot650"]["axes"][a] for a in rp.AXES)
+    assert board["tarot650"]["pid_own"] == "pid_tuned"  # the Tarot's own is the Tarot-tuned
+    assert roll["mfc_over_oracle"] == 1.2 and not roll["within_oracle_target"]  # > 1.15
+    assert roll["mfc_over_pid_own"] == 1.0 and roll["within_pid_target"]  # equal is no worse
+    assert pitch["mfc_over_oracle"] == 1.0 and pitch["within_oracle_target"]
+    assert pitch["mfc_over_pid_own"] == 1.25 and not pitch["within_pid_target"]
+    assert yaw["mfc_over_oracle"] == 0.8 and yaw["within_oracle_target"]
+    lines = "\n".join(rp._scoreboard_lines(board))
+    assert "MFC within 1.15x of the oracle's MAE: 6 of 9 vehicle-axes" in lines
+    assert "MFC no worse than the PID tuned on the vehicle: 6 of 9 vehicle-axes" in lines
+    assert "not on f450 roll, f450_cut_props roll, tarot650 roll" in lines
+
+
+def test_a_crash_meets_no_target_and_infeasible_is_shown() -> None:
+    board = rp.scoreboard(_paper_flights(mfc_crash=True), {"f450": False, "f450_cut_props": True,
+                                                          "tarot650": True})  # fmt: skip
+    assert board["f450"]["crashed"]["mfc"] and not board["f450"]["feasible"]
+    assert not any(x["within_oracle_target"] for x in board["f450"]["axes"].values())
+    assert "| f450 | yaw | 8.0 | 10.0 | 0.80 | 8.0 | 1.00 | no |" in rp._scoreboard_lines(board)
+
+
+def test_a_command_acts_at_the_first_sample_after_its_round_trip() -> None:
+    from sitl.link_model import parse_link
+
+    t = np.arange(50) * DT
+    assert list(rp.command_acting(t, parse_link("ideal"), 1)) == list(range(50))
+    # 2 ms each way: back exactly at the next sample; 3 ms each way: two samples late.
+    for delay_ms, late in ((2.0, 1), (3.0, 2)):
+        acting = rp.command_acting(t, parse_link(f"delay_ms={delay_ms}"), 1)
+        assert list(acting[:late]) == [-1] * late
+        assert list(acting[late:]) == list(range(50 - late))
+
+
+def test_the_ideal_tracker_loses_to_the_round_trip() -> None:
+    """One round trip late, a tracker that knows the plant still answers each stick
+    step late: more error, growing with the delay, and none on the ideal link."""
+    from sitl.link_model import parse_link
+
+    n = 800
+    t = np.arange(n) * DT
+    ref = np.repeat(np.random.default_rng(4).uniform(-8.0, 8.0, n // 80), 80)
+    air = np.ones(n, dtype=bool)
+    lim, tau, w = (150.0, 150.0), 0.03, 0.6
+
+    def late(link: str) -> float:
+        acting = rp.command_acting(t, parse_link(link), 1)
+        return float(rp.ideal_tracker_through_link_deg_s(t, ref, lim, tau, w, acting, air))
+
+    now = rp._mae_deg_s(ref, rp.through_gyro_filter(rp.ideal_tracker_rates(t, ref, *lim, tau), w))
+    assert late("ideal") == pytest.approx(now)
+    assert now < late("delay_ms=2") < late("delay_ms=6") < late("delay_ms=10")

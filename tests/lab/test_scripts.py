@@ -22,7 +22,7 @@ PAPER_FLIGHTS = {
 }
 
 
-@pytest.mark.slow  # about 8 s: nine 15 s flights and their plots
+@pytest.mark.slow  # about 12 s: fourteen 15 s flights and their plots
 def test_reproduce_paper_quick(tmp_path: Path) -> None:
     out = tmp_path / "paper"
     proc = subprocess.run(
@@ -55,6 +55,25 @@ def test_reproduce_paper_quick(tmp_path: Path) -> None:
             assert floor[a] <= measured[a], (name, a, floor, measured)
     assert {c["id"] for c in doc["claims"]} >= {"f450_under_10", "pid_degrades_when_moved"}
     assert all(c["holds"] in (True, False, None) for c in doc["claims"])
+    for p, row in doc["scoreboard"].items():  # each vehicle against its limit and its own PID
+        assert isinstance(row["feasible"], bool)
+        for a in AXES:
+            x = row["axes"][a]
+            assert x["oracle"] == doc["flights"][f"{p}_oracle"]["mae_deg_s"][a]
+            assert x["mfc_over_oracle"] == pytest.approx(x["mfc"] / x["oracle"], abs=1e-3)
+            assert x["mfc_over_pid_own"] == pytest.approx(x["mfc"] / x["pid_own"], abs=1e-3)
+    assert set(doc["scoreboard"]) == {"f450", "f450_cut_props", "tarot650"}
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "| flight |" in md and "f450_pid_tuned" in md
+    assert md.index("## Scoreboard") < md.index("## The paper's flights") < md.index("| flight |")
     assert doc["controllers"]["pid_tuned"]["path"].endswith("pid_tarot_tuned.yaml")
+
+
+def test_reproduce_paper_refuses_an_unknown_link(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "reproduce_paper.py"), "--quick", "--out",
+         str(tmp_path / "paper"), "--link", "carrier-pigeon"],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "--link" in proc.stderr and "carrier-pigeon" in proc.stderr
+    assert not (tmp_path / "paper").exists()  # nothing half-started
