@@ -84,7 +84,8 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         mfc_crashes = sum(r["flights"]["mfc"]["crashed"] for r in rs)
         worst = sorted(worst_ratio(r) for r in rs)
         worst_case = worst[-1] if worst else math.nan
-        p90 = float(np.percentile(worst, 90)) if worst else math.nan
+        # "higher": a case's value, never an interpolation (an MFC crash is inf).
+        p90 = float(np.percentile(worst, 90, method="higher")) if worst else math.nan
         out[scope] = {
             "cases": len(scoped),
             "infeasible": len(scoped) - len(rs),
