@@ -34,6 +34,18 @@
     ``physics_rt_factor`` (simulated seconds per wall second, 1 kHz physics,
     one vehicle, no MAVLink), ``batch_vehicle_steps_per_s`` (N = 1000) and,
     when RotorPy is importable, ``rotorpy_rt_factor`` from the same run.
+``campaign``
+    Flights per second of one 48-flight campaign grid (4 profiles x 2 damage x
+    1 gust x 3 seeds x 2 controllers, ``duration_s`` of train-acro each) on a
+    ``multiprocessing.Pool`` of 2 (the runner campaigns had before Dask, kept
+    here as the baseline), then on the Dask executor (``sitl.lab.executor``)
+    with a LocalCluster of 1 and of 2 workers: ``*_flights_per_s`` (cluster
+    start included), ``*_startup_s``, ``localcluster_2_over_pool``,
+    ``records_identical`` (the three runs' records, wall times aside),
+    ``flight_cost_s`` (median wall time of one flight on a worker) and
+    ``flight_cost_s_per_sim_s``; ``envelope_estimate``: hours for a
+    10,000-vehicle envelope study on N workers, from that cost and the flights
+    each vehicle takes (stated in it). ``--quick``: 4 flights of 2 s.
 """
 
 from __future__ import annotations
@@ -153,11 +165,104 @@ def bench_loop(quick: bool) -> dict[str, Any]:
     return run_loop_bench(seconds=5.0 if quick else 60.0, profile=f450)
 
 
+def _campaign_grid(quick: bool) -> tuple[list[Any], float]:
+    """The benchmark's grid and its flight duration (s)."""
+    from companion.config import load_controller
+    from companion.profile import load_profile
+    from sitl.lab.campaign import build_grid
+    from sitl.scenario import load_scenario
+
+    root = Path(__file__).resolve().parents[1]
+    names = ["f450", "tarot650"] if quick else ["f450", "f450_cut_props", "tarot650", "x500"]
+    profiles = {n: load_profile(root / "vehicle_profiles" / f"{n}.yaml", simulated=True)
+                for n in names}  # fmt: skip
+    controllers = {
+        "mfc_default": load_controller(root / "companion/data/mfc_default.yaml"),
+        "pid_tarot_tuned": load_controller(root / "companion/data/pid_tarot_tuned.yaml"),
+    }
+    duration_s = 2.0 if quick else 10.0
+    specs = build_grid(
+        profiles, controllers, load_scenario("train-acro"),
+        damages=(1.0,) if quick else (1.0, 0.8), gusts_m_s=(1.0,),
+        seeds=(1000,) if quick else (1000, 1001, 1002), duration_s=duration_s,
+    )  # fmt: skip
+    return specs, duration_s
+
+
+def _pool_campaign(specs: list[Any], workers: int) -> list[dict[str, Any]]:
+    """The baseline: the campaign's flights on a ``multiprocessing.Pool``, in order."""
+    import multiprocessing
+
+    from sitl.lab.campaign import fly_one
+
+    with multiprocessing.Pool(workers) as pool:
+        return list(pool.imap(fly_one, specs, chunksize=1))
+
+
+def bench_campaign(quick: bool) -> dict[str, Any]:
+    from sitl.lab.campaign import fly_one
+    from sitl.lab.executor import Executor
+
+    specs, duration_s = _campaign_grid(quick)
+    n = len(specs)
+    out: dict[str, Any] = {"flights": n, "duration_s": duration_s, "scenario": "train-acro"}
+    runs: dict[str, list[dict[str, Any]]] = {}
+    t0 = time.perf_counter()
+    runs["pool_2"] = _pool_campaign(specs, 2)
+    out["pool_2_flights_per_s"] = round(n / (time.perf_counter() - t0), 3)
+    for workers in (1, 2):
+        name = f"localcluster_{workers}"
+        t0 = time.perf_counter()
+        with Executor(workers=workers) as ex:
+            t1 = time.perf_counter()
+            outcomes = ex.run(fly_one, specs, progress=False)
+        runs[name] = [o.value for o in outcomes]
+        out[f"{name}_flights_per_s"] = round(n / (time.perf_counter() - t0), 3)
+        out[f"{name}_startup_s"] = round(t1 - t0, 2)
+    out["localcluster_2_over_pool"] = round(
+        out["localcluster_2_flights_per_s"] / out["pool_2_flights_per_s"], 3
+    )
+    drop = ("wall_time_s",)
+    same = [[{k: v for k, v in r.items() if k not in drop} for r in rs] for rs in runs.values()]
+    out["records_identical"] = all(s == same[0] for s in same)
+    cost = statistics.median(r["wall_time_s"] for r in runs["localcluster_1"])
+    out["flight_cost_s"] = round(cost, 3)
+    out["flight_cost_s_per_sim_s"] = round(cost / duration_s, 4)
+    out["envelope_estimate"] = _envelope_estimate(cost / duration_s)
+    return out
+
+
+def _envelope_estimate(cost_per_sim_s: float) -> dict[str, Any]:
+    """Hours for a 10,000-vehicle envelope study (one case each) on N workers."""
+    # companion envelope, per vehicle and case: the PID tuned with --tune-budget 40
+    # flights of train-acro (35 s), then three test flights of envelope-test (30 s:
+    # MFC, tuned PID, PX4's default PID) and one oracle flight (30 s). Left out: the
+    # collective oracle flown where a controller crashed, the worst cases' re-flights
+    # and the damage variants' extra cases.
+    vehicles, train = 10_000, (40, 35.0)
+    test, oracle = (3, 30.0), (1, 30.0)
+    sim_s = train[0] * train[1] + test[0] * test[1] + oracle[0] * oracle[1]
+    hours = {
+        f"workers_{w}": round(vehicles * sim_s * cost_per_sim_s / w / 3600.0, 1)
+        for w in (2, 16, 64, 256)
+    }
+    return {
+        "vehicles": vehicles,
+        "flights_per_vehicle": train[0] + test[0] + oracle[0],
+        "assumption": "per vehicle (one case): 40 PID-tuning flights of train-acro (35 s), "
+        "3 test flights of envelope-test (30 s) and 1 oracle flight (30 s), each at the "
+        "cost per simulated second measured here (the oracle's own cost is not measured); "
+        "workers scale linearly (one case per worker at a time, 10,000 cases)",
+        "sim_s_per_vehicle": sim_s,
+        "hours": hours,
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("which", choices=["control", "sitl", "loop"])
+    parser.add_argument("which", choices=["control", "sitl", "loop", "campaign"])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--quick", action="store_true", help="fewer iterations (smoke test)")
     args = parser.parse_args(argv)
@@ -165,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
         result = bench_control(20_000 if args.quick else 200_000)
     elif args.which == "loop":
         result = bench_loop(args.quick)
+    elif args.which == "campaign":
+        result = bench_campaign(args.quick)
     else:
         result = bench_sitl()
     if args.json:

@@ -1,7 +1,8 @@
 """The product imports nothing from the simulator or the lab, nor their libraries.
 
-Each check runs in a fresh interpreter in which ``sitl``, matplotlib and tqdm
-cannot be imported, as on a companion computer's install.
+Each check runs in a fresh interpreter in which ``sitl`` and the lab's libraries
+(matplotlib, tqdm, Dask, pyarrow, pandas) cannot be imported, as on a companion
+computer's install.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 import companion
 
 ROOT = Path(__file__).resolve().parents[1]
-LAB_ONLY = ("sitl", "matplotlib", "tqdm")
+LAB_ONLY = ("sitl", "matplotlib", "tqdm", "distributed", "dask", "pyarrow", "pandas")
 
 _BLOCK = textwrap.dedent(
     f"""

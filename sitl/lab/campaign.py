@@ -1,9 +1,12 @@
 """Campaigns: many in-process flights over a grid, in parallel, summarised.
 
 The grid is profiles x damage severity x wind gust sigma x seeds x controllers.
-Every flight runs :func:`sitl.lab.simulate.simulate_flight` (no MAVLink) in a
-``multiprocessing.Pool``; each is deterministic, so the records do not depend
-on the number of workers or on the order flights finish in.
+Every flight runs :func:`sitl.lab.simulate.simulate_flight` (no MAVLink) on a
+Dask cluster (:mod:`sitl.lab.executor`: local worker processes, or a running
+cluster's); each is deterministic, so the records do not depend on the workers,
+where they run or the order flights finish in. Each finished flight is stored
+in the output folder as it completes (:mod:`sitl.lab.campaign_store`), so a
+killed run resumes where it stopped.
 
 Grid axes
 ---------
@@ -23,31 +26,37 @@ seed
 controller
     A controller file, flown unchanged on every vehicle.
 
-Outputs (:func:`write_outputs`): ``campaign.json`` (``meta`` and ``records``,
-one record per flight: ``profile``, ``damage``, ``gust_sigma_m_s``, ``seed``,
-``controller``, ``controller_kind``, ``mae_deg_s`` per axis, ``crashed``,
-``crashed_at_s``, ``saturation_any``, ``feasible``), ``summary.md`` (median and
-90th percentile MAE per controller and axis, crash counts on feasible cases and
+Outputs (:func:`write_outputs`): ``flights.parquet`` (one row per flight; the
+schema is in :mod:`sitl.lab.table`), and from it ``campaign.json`` (``meta``
+and ``records``, one record per flight in grid order: ``profile``, ``damage``,
+``gust_sigma_m_s``, ``seed``, ``controller``, ``controller_kind``, ``mae_deg_s``
+per axis, ``crashed``, ``crashed_at_s``, ``saturation_any``, ``sim_time_s``,
+``feasible``, then ``flight_id``, ``scenario``, ``duration_s``, ``rms_deg_s``
+per axis, ``error`` and ``wall_time_s``), ``summary.md`` (median and 90th
+percentile MAE per controller and axis, crash counts on feasible cases and
 infeasible flights) and ``mae.png`` (box plots of the per-axis MAE by
-controller).
+controller). A flight that raised is a record with its ``error``, ``crashed``
+null and no figures; the campaign goes on.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import multiprocessing
-from collections.abc import Sequence
+import os
+import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from companion.config import MfcConfig, PidConfig
 from companion.control import AXES
 from companion.profile import MotorDamage, VehicleProfile
+from sitl.lab.campaign_report import CAMPAIGN_FILES, plot_mae, summary_markdown, write_outputs
 from sitl.scenario import Scenario
+
+if TYPE_CHECKING:
+    from sitl.lab.campaign_store import CampaignStore
+    from sitl.lab.executor import Executor
 
 __all__ = [
     "CAMPAIGN_FILES",
@@ -55,6 +64,7 @@ __all__ = [
     "build_grid",
     "damaged_profile",
     "fly_one",
+    "iter_grid",
     "oracle_crashes",
     "plot_mae",
     "run_campaign",
@@ -63,9 +73,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-
-CAMPAIGN_FILES = ("campaign.json", "summary.md", "mae.png")
-"""What :func:`write_outputs` writes into its folder."""
 
 
 @dataclass(frozen=True)
@@ -130,7 +137,7 @@ def damaged_profile(profile: VehicleProfile, efficiency: float, motor: int = 0) 
     return VehicleProfile.model_validate(copy.model_dump())
 
 
-def build_grid(
+def iter_grid(
     profiles: dict[str, VehicleProfile],
     controllers: dict[str, MfcConfig | PidConfig],
     scenario: Scenario,
@@ -139,15 +146,12 @@ def build_grid(
     gusts_m_s: Sequence[float] = (0.0, 2.0),
     seeds: Sequence[int] = (1000, 1001, 1002),
     duration_s: float | None = None,
-) -> list[FlightSpec]:
-    """Every combination, in a fixed order (profile, damage, gust, seed, controller).
-
-    ``duration_s`` flies only the first seconds of the scenario.
-    """
+) -> Iterator[FlightSpec]:
+    """Every combination, in a fixed order (profile, damage, gust, seed, controller),
+    one at a time; see :func:`build_grid`."""
     base = (
         scenario if duration_s is None else scenario.model_copy(update={"duration_s": duration_s})
     )
-    specs = []
     for pname, prof in profiles.items():
         for dmg in damages:
             vehicle = damaged_profile(prof, dmg)
@@ -160,22 +164,42 @@ def build_grid(
                 sc = base.model_copy(update={"wind": wind})
                 for seed in seeds:
                     for cname, cfg in controllers.items():
-                        specs.append(
-                            FlightSpec(
-                                pname, vehicle, float(dmg), float(gust), int(seed), cname, cfg, sc
-                            )
+                        yield FlightSpec(
+                            pname, vehicle, float(dmg), float(gust), int(seed), cname, cfg, sc
                         )
-    return specs
 
 
-def fly_one(spec: FlightSpec) -> dict[str, Any]:
-    """Fly one spec and return its record (a top-level function, for the Pool)."""
-    from sitl.lab.report import compute_metrics
-    from sitl.lab.simulate import simulate_flight
+def build_grid(
+    profiles: dict[str, VehicleProfile],
+    controllers: dict[str, MfcConfig | PidConfig],
+    scenario: Scenario,
+    *,
+    damages: Sequence[float] = (1.0, 0.8, 0.6),
+    gusts_m_s: Sequence[float] = (0.0, 2.0),
+    seeds: Sequence[int] = (1000, 1001, 1002),
+    duration_s: float | None = None,
+) -> list[FlightSpec]:
+    """Every combination, in a fixed order (profile, damage, gust, seed, controller).
 
-    m = compute_metrics(
-        simulate_flight(spec.profile, spec.controller, spec.scenario, seed=spec.seed)
-    )
+    ``duration_s`` flies only the first seconds of the scenario. The specs share
+    their profile, controller and scenario objects, so a long grid is cheap.
+    """
+    grid = iter_grid(
+        profiles, controllers, scenario, damages=damages, gusts_m_s=gusts_m_s, seeds=seeds,
+        duration_s=duration_s,
+    )  # fmt: skip
+    return list(grid)
+
+
+def _versions() -> dict[str, str]:
+    """The versions that shape a flight, on the process that flies it."""
+    from sitl.lab.report import versions
+
+    v = versions()
+    return {"mfc_companion": v["mfc-companion"], "python": v["python"], "numpy": v["numpy"]}
+
+
+def _spec_fields(spec: FlightSpec) -> dict[str, Any]:
     return {
         "profile": spec.profile_name,
         "damage": spec.damage,
@@ -183,23 +207,61 @@ def fly_one(spec: FlightSpec) -> dict[str, Any]:
         "seed": spec.seed,
         "controller": spec.controller_name,
         "controller_kind": spec.controller.kind,
+        "scenario": spec.scenario.name,
+        "duration_s": spec.scenario.duration_s,
+    }
+
+
+def fly_one(spec: FlightSpec) -> dict[str, Any]:
+    """Fly one spec and return its record (a top-level function, for the workers).
+
+    The record: the spec's fields (:data:`sitl.lab.table.SPEC_COLUMNS`),
+    ``mae_deg_s`` and ``rms_deg_s`` per axis, ``crashed``, ``crashed_at_s``,
+    ``saturation_any``, ``sim_time_s``, ``error`` (None), ``wall_time_s`` (of
+    this flight) and the worker's ``versions``.
+    """
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
+
+    t0 = time.perf_counter()
+    m = compute_metrics(
+        simulate_flight(spec.profile, spec.controller, spec.scenario, seed=spec.seed)
+    )
+    return {
+        **_spec_fields(spec),
         "mae_deg_s": m["mae_deg_s"],
+        "rms_deg_s": m["rms_deg_s"],
         "crashed": m["crashed"],
         "crashed_at_s": m["crashed_at_s"],
         "saturation_any": m["saturation_fraction"]["any"],
         "sim_time_s": m["sim_time_s"],
+        "error": None,
+        "wall_time_s": round(time.perf_counter() - t0, 3),
+        "versions": _versions(),
     }
 
 
-def _case(spec: FlightSpec) -> tuple[str, float, float, int]:
-    """The case a flight belongs to: everything but the controller."""
-    return (spec.profile_name, spec.damage, spec.gust_sigma_m_s, spec.seed)
+def _failed_record(spec: FlightSpec, error: str) -> dict[str, Any]:
+    """The record of a flight that raised (or whose task was lost): no figures."""
+    none = {a: None for a in AXES}
+    return {
+        **_spec_fields(spec),
+        "mae_deg_s": none,
+        "rms_deg_s": none,
+        "crashed": None,
+        "crashed_at_s": None,
+        "saturation_any": None,
+        "sim_time_s": None,
+        "error": error,
+        "wall_time_s": None,
+        "versions": {},
+    }
 
 
 def oracle_crashes(spec: FlightSpec) -> bool:
     """Whether the oracle that may also set the collective (sitl.lab.oracle) crashes
     in ``spec``'s case: if it does, no controller could have flown it (a top-level
-    function, for the Pool)."""
+    function, for the workers)."""
     from sitl.lab.oracle import oracle_flight
 
     crashed: bool = oracle_flight(spec.profile, spec.scenario, seed=spec.seed, collective=True)[
@@ -208,168 +270,105 @@ def oracle_crashes(spec: FlightSpec) -> bool:
     return crashed
 
 
-def _map(fn: Any, items: Sequence[Any], workers: int, desc: str, progress: bool) -> list[Any]:
-    """``fn`` over ``items`` on ``workers`` processes, in order, with a tqdm bar."""
-    from tqdm import tqdm
-
-    if workers <= 1 or len(items) <= 1:
-        return [fn(x) for x in tqdm(items, desc=desc, unit="flight", disable=not progress)]
-    with multiprocessing.Pool(min(workers, len(items))) as pool:
-        it = pool.imap(fn, items, chunksize=1)
-        return list(tqdm(it, total=len(items), desc=desc, unit="flight", disable=not progress))
+def _is_crash(record: dict[str, Any]) -> bool:
+    return record.get("crashed") is True
 
 
 def run_campaign(
-    specs: Sequence[FlightSpec], *, workers: int = 2, progress: bool = True
+    specs: Sequence[FlightSpec],
+    *,
+    workers: int | None = 2,
+    progress: bool = True,
+    scheduler: str | None = None,
+    executor: Executor | None = None,
+    store: CampaignStore | None = None,
 ) -> list[dict[str, Any]]:
-    """Fly every spec on ``workers`` processes with a tqdm bar; records in spec order.
+    """Fly every spec on a Dask cluster with a tqdm bar; records in spec order.
 
     Then, for each case (a vehicle, its damage, the gust and the seed) where any
     controller crashed, the oracle that may also set the collective flies it: each
     record's ``feasible`` is False when that oracle crashes too (the case is beyond
-    any controller, reported apart and left out of the crash counts), True
-    otherwise."""
-    records: list[dict[str, Any]] = _map(fly_one, specs, workers, "campaign", progress)
-    crashed: dict[tuple[str, float, float, int], FlightSpec] = {}
-    for spec, rec in zip(specs, records):
-        if rec["crashed"]:
-            crashed.setdefault(_case(spec), spec)
-    verdicts = _map(oracle_crashes, list(crashed.values()), workers, "oracle", progress)
-    infeasible = {case for case, bad in zip(crashed, verdicts) if bad}
-    for spec, rec in zip(specs, records):
-        rec["feasible"] = _case(spec) not in infeasible
+    any controller, reported apart and left out of the crash counts), None when
+    its flight raised, True otherwise.
+
+    Parameters
+    ----------
+    specs
+        The grid (:func:`build_grid`).
+    workers, scheduler
+        The cluster when ``executor`` is None (:class:`sitl.lab.executor.Executor`):
+        ``workers`` local processes (at most one per flight; None: one per core),
+        or the running cluster at ``scheduler``.
+    executor
+        An open executor to run on (its cluster is reused, not closed).
+    progress
+        Show the bars (flights, then oracle cases).
+    store
+        Where each flight's record and each case's verdict is written as it
+        completes; those already there are not flown again. None keeps them in
+        memory only.
+
+    Returns
+    -------
+    list of dict
+        :func:`fly_one`'s records (or a failed flight's), each with its
+        ``flight_id`` and ``feasible``.
+    """
+    from sitl.lab.campaign_store import case_ids, flight_ids
+    from sitl.lab.executor import Executor, TaskOutcome
+
+    specs = list(specs)
+    if executor is None:
+        n = min(workers or os.cpu_count() or 1, max(1, len(specs)))
+        with Executor(scheduler, n) as ex:
+            return run_campaign(specs, progress=progress, executor=ex, store=store)
+    ids = flight_ids(specs)
+    flown: dict[str, dict[str, Any]] = store.flights(ids) if store else {}
+    todo: list[int] = []  # indices of the specs to fly, each flight id once
+    seen = set(flown)
+    for i, fid in enumerate(ids):
+        if fid not in seen:
+            seen.add(fid)
+            todo.append(i)
+
+    def keep_flight(o: TaskOutcome) -> None:
+        i = todo[o.index]
+        rec = o.value if o.ok else _failed_record(specs[i], str(o.error))
+        rec = {**rec, "flight_id": ids[i]}
+        if store:
+            store.save_flight(ids[i], rec)
+        flown[ids[i]] = rec
+
+    if todo:
+        executor.run(
+            fly_one, (specs[i] for i in todo), on_result=keep_flight, total=len(todo),
+            tally=lambda r: "crashed" if _is_crash(r) else None,
+            desc="campaign", unit="flight", progress=progress,
+        )  # fmt: skip
+    cids = case_ids(specs)
+    crashed: dict[str, FlightSpec] = {}
+    for spec, fid, cid in zip(specs, ids, cids):
+        if _is_crash(flown[fid]):
+            crashed.setdefault(cid, spec)
+    judged: dict[str, dict[str, Any]] = store.verdicts(crashed) if store else {}
+    to_judge = [cid for cid in crashed if cid not in judged]
+
+    def keep_verdict(o: TaskOutcome) -> None:
+        cid = to_judge[o.index]
+        verdict = {"case_id": cid, "oracle_crashed": o.value, "error": o.error}
+        if store:
+            store.save_verdict(cid, verdict)
+        judged[cid] = verdict
+
+    if to_judge:
+        executor.run(
+            oracle_crashes, (crashed[c] for c in to_judge), on_result=keep_verdict,
+            total=len(to_judge), tally=lambda bad: "infeasible" if bad else None,
+            desc="oracle", unit="case", progress=progress,
+        )  # fmt: skip
+    records = []
+    for fid, cid in zip(ids, cids):
+        v = judged.get(cid)
+        feasible = True if v is None else None if v["error"] else not v["oracle_crashed"]
+        records.append({**flown[fid], "feasible": feasible})
     return records
-
-
-def _stats(records: list[dict[str, Any]], axis: str) -> tuple[float, float, int]:
-    vals = [r["mae_deg_s"][axis] for r in records if r["mae_deg_s"][axis] is not None]
-    if not vals:
-        return float("nan"), float("nan"), 0
-    return float(np.median(vals)), float(np.percentile(vals, 90)), len(vals)
-
-
-def summary_markdown(records: list[dict[str, Any]], meta: dict[str, Any]) -> str:
-    """The ``summary.md`` text: per controller and axis, median and p90 MAE, crashes."""
-    controllers = list(dict.fromkeys(r["controller"] for r in records))
-    lines = [
-        "# Campaign summary",
-        "",
-        f"{len(records)} flights: scenario `{meta['scenario']}` (first {meta['duration_s']} s), "
-        f"profiles {', '.join(meta['profiles'])}; motor 1 efficiency {meta['damages']}; "
-        f"gust sigma {meta['gusts_m_s']} m/s; seeds {meta['seeds']}; "
-        f"{meta['workers']} workers, {meta['wall_time_s']:.0f} s wall.",
-        "",
-        "Per-axis rate MAE (deg/s, pilot command against measured rate while airborne; "
-        "crashed flights included up to the crash):",
-        "",
-        "| controller | kind | flights | crashes | infeasible | roll median | roll p90 "
-        "| pitch median | pitch p90 | yaw median | yaw p90 |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for c in controllers:
-        rs = [r for r in records if r["controller"] == c]
-        cells = []
-        for a in AXES:
-            med, p90, _ = _stats(rs, a)
-            cells += [f"{med:.1f}", f"{p90:.1f}"]
-        crashes = sum(r["crashed"] and r.get("feasible", True) for r in rs)
-        infeasible = sum(not r.get("feasible", True) for r in rs)
-        lines.append(
-            f"| {c} | {rs[0]['controller_kind']} | {len(rs)} | {crashes} | {infeasible} | "
-            + " | ".join(cells)
-            + " |"
-        )
-    lines += [
-        "",
-        "Crashes count feasible cases only. A case (vehicle, damage, gust, seed) is "
-        "infeasible when the oracle that knows the plant and may also set the collective "
-        "(sitl/lab/oracle.py) crashes in it too; its flights are counted under infeasible, "
-        "whatever they did.",
-        "",
-        "Crashes by profile and damage (crashed / flown, infeasible cases included):",
-        "",
-    ]
-    profiles = list(dict.fromkeys(r["profile"] for r in records))
-    damages = list(dict.fromkeys(r["damage"] for r in records))
-    lines.append("| profile | damage | " + " | ".join(controllers) + " |")
-    lines.append("|---|---|" + "---|" * len(controllers))
-    for p in profiles:
-        for d in damages:
-            cells = []
-            for c in controllers:
-                rs = [
-                    r for r in records if (r["profile"], r["damage"], r["controller"]) == (p, d, c)
-                ]
-                cells.append(f"{sum(r['crashed'] for r in rs)}/{len(rs)}")
-            lines.append(f"| {p} | {d:g} | " + " | ".join(cells) + " |")
-    lines += ["", "Median worst-axis MAE by profile (deg/s):", ""]
-    lines.append("| profile | " + " | ".join(controllers) + " |")
-    lines.append("|---|" + "---|" * len(controllers))
-    for p in profiles:
-        cells = []
-        for c in controllers:
-            worst = [
-                max(v for v in r["mae_deg_s"].values() if v is not None)
-                for r in records
-                if r["profile"] == p and r["controller"] == c and r["mae_deg_s"]["roll"] is not None
-            ]
-            cells.append(f"{np.median(worst):.1f}" if worst else "-")
-        lines.append(f"| {p} | " + " | ".join(cells) + " |")
-    lines += ["", "![MAE distributions](mae.png)", ""]
-    return "\n".join(lines)
-
-
-def plot_mae(records: list[dict[str, Any]], path: Path) -> Path:
-    """Box plots of per-axis MAE for each controller (one panel per axis)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    controllers = list(dict.fromkeys(r["controller"] for r in records))
-    fig, axs = plt.subplots(1, 3, figsize=(12, 4.5), sharey=False)
-    for ax, a in zip(axs, AXES, strict=True):
-        data = [
-            [
-                r["mae_deg_s"][a]
-                for r in records
-                if r["controller"] == c and r["mae_deg_s"][a] is not None
-            ]
-            for c in controllers
-        ]
-        ax.boxplot(data, whis=(5, 95), showfliers=True)
-        ax.set_xticks(range(1, len(controllers) + 1), controllers, rotation=15, fontsize=8)
-        for i, c in enumerate(controllers, start=1):
-            crashed = [
-                r["mae_deg_s"][a]
-                for r in records
-                if r["controller"] == c and r["crashed"] and r["mae_deg_s"][a] is not None
-            ]
-            ax.plot([i] * len(crashed), crashed, "x", color="tab:red")
-        ax.set_title(f"{a} rate MAE")
-        ax.set_ylabel("deg/s")
-        ax.grid(alpha=0.3, axis="y")
-    fig.suptitle(f"MAE distribution over {len(records)} flights (whiskers 5-95 %, x = crashed)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def write_outputs(
-    records: list[dict[str, Any]], out_dir: str | Path, meta: dict[str, Any]
-) -> dict[str, Path]:
-    """Write ``campaign.json``, ``summary.md`` and ``mae.png`` into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {
-        "json": out / "campaign.json",
-        "summary": out / "summary.md",
-        "plot": out / "mae.png",
-    }
-    paths["json"].write_text(
-        json.dumps({"meta": meta, "records": records}, indent=1) + "\n", encoding="utf-8"
-    )
-    paths["summary"].write_text(summary_markdown(records, meta), encoding="utf-8")
-    plot_mae(records, paths["plot"])
-    return paths

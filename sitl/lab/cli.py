@@ -6,7 +6,8 @@ they need the ``lab`` extra (matplotlib for the plots, tqdm for progress).
 Their flags, exit codes and ``metrics.json`` keys are contracts: extend them,
 never rename. None overwrites an earlier run: what an earlier run wrote into
 ``--out`` is moved into ``earlier-<UTC time>/`` in it (after the arguments are
-checked, before the work starts).
+checked, before the work starts); ``campaign`` resumes an unfinished run of the
+same grid instead.
 """
 
 from __future__ import annotations
@@ -47,11 +48,12 @@ __all__ = ["campaign", "envelope", "fly", "simulate"]
 _log = logging.getLogger("companion")
 
 _LAB_EXTRAS = ("matplotlib", "tqdm")
+_CAMPAIGN_EXTRAS = ("distributed", "pyarrow")
 
 
-def _need_lab_extras() -> None:
+def _need_lab_extras(more: tuple[str, ...] = ()) -> None:
     """Fail with the install command when the lab's libraries are missing."""
-    missing = [m for m in _LAB_EXTRAS if importlib.util.find_spec(m) is None]
+    missing = [m for m in (*_LAB_EXTRAS, *more) if importlib.util.find_spec(m) is None]
     if missing:
         raise click.ClickException(
             f"the lab needs {', '.join(missing)}: pip install 'mfc-companion[lab]'"
@@ -151,6 +153,23 @@ def _controller_profile_opt(help_: str) -> Callable[[Callable[..., Any]], Callab
 
 def _split_list(values: tuple[str, ...]) -> list[str]:
     return [v.strip() for item in values for v in item.split(",") if v.strip()]
+
+
+def _parse_scheduler(ctx: click.Context, param: click.Parameter, value: str | None) -> Any:
+    """``tcp://HOST:PORT`` (or ``tls://``); a bare ``HOST:PORT`` means tcp."""
+    if value is None:
+        return None
+    from urllib.parse import urlsplit
+
+    address = value.strip() if "://" in value else f"tcp://{value.strip()}"
+    try:
+        parts = urlsplit(address)
+        port = parts.port
+    except ValueError:
+        port = None
+    if parts.scheme not in ("tcp", "tls") or not parts.hostname or port is None or parts.path:
+        raise click.BadParameter(f"expected a scheduler address tcp://HOST:PORT, got {value!r}")
+    return address
 
 
 @click.command("simulate")
@@ -372,8 +391,10 @@ def fly(
     callback=usable_out_dir,
     default=Path("runs/campaign"),
     show_default=True,
-    help="Folder for campaign.json, summary.md and mae.png (an earlier run's are moved "
-    "into earlier-<UTC time>/ in it first).",
+    help="Folder for flights/ (one record per flight, written as it lands), "
+    "flights.parquet, campaign.json, summary.md and mae.png. An unfinished run of the same "
+    "grid there is resumed; a finished run's or another grid's outputs are moved into "
+    "earlier-<UTC time>/ in it first.",
 )
 @click.option(
     "--profiles",
@@ -408,7 +429,17 @@ def fly(
     "--workers",
     type=click.IntRange(min=1),
     default=None,
-    help="Parallel flights [default: os.cpu_count()].",
+    help="Parallel flights: local worker processes [default: os.cpu_count()]; with "
+    "--scheduler, the cluster's workers fly instead.",
+)
+@click.option(
+    "--scheduler",
+    metavar="TCP_ADDRESS",
+    default=None,
+    callback=_parse_scheduler,
+    help="Fly on a running Dask cluster (dask scheduler, dask worker with this project "
+    "installed): its scheduler's address, tcp://HOST:8786 [default: worker processes on "
+    "this machine].",
 )
 @click.option(
     "--duration",
@@ -436,6 +467,7 @@ def campaign(
     seeds: int,
     seed_base: int,
     workers: int | None,
+    scheduler: str | None,
     duration: float,
     scenario: str,
     link: LinkSpec | None,
@@ -445,14 +477,23 @@ def campaign(
 
     Default: 4 profiles x 3 damage x 2 gusts x 3 seeds x 2 controllers = 144 flights of
     20 s. For 200+ flights, e.g. --seeds 5 (240 flights) or --seeds 10 --duration 35
-    (480 full train-acro flights).
+    (480 full train-acro flights). Flights run on Dask: worker processes here, or a
+    cluster's with --scheduler. Killed, the same command resumes (docs/campaigns.md).
     """
-    _need_lab_extras()
+    _need_lab_extras(_CAMPAIGN_EXTRAS)
     from importlib.resources import files
 
     from companion.config import DEFAULT_CONTROLLER, load_controller
     from companion.profile import load_profile
     from sitl.lab.campaign import CAMPAIGN_FILES, build_grid, run_campaign, write_outputs
+    from sitl.lab.campaign_store import (
+        RUN_FILES,
+        CampaignStore,
+        can_resume,
+        flight_ids,
+        grid_digest,
+    )
+    from sitl.lab.executor import Executor
     from sitl.scenario import load_scenario
 
     root = Path(__file__).resolve().parents[2]
@@ -510,11 +551,28 @@ def campaign(
         )  # fmt: skip
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
-    keep_earlier(f"--out {out_dir}", out_dir, CAMPAIGN_FILES)
-    n_workers = workers or os.cpu_count() or 1
-    _log.info("campaign: %d flights on %d workers", len(specs), n_workers)
+    ids = flight_ids(specs)
+    grid = grid_digest(ids)
     t0 = time.perf_counter()
-    records = run_campaign(specs, workers=n_workers, progress=progress)
+    n_workers = min(workers or os.cpu_count() or 1, len(specs))
+    with contextlib.ExitStack() as stack:
+        try:
+            executor = stack.enter_context(Executor(scheduler, n_workers))
+        except ValueError as exc:
+            raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
+        if scheduler is not None:
+            n_workers = executor.threads()
+            click.echo(f"--scheduler {scheduler}: dashboard {executor.dashboard_link}", err=True)
+        store = CampaignStore(out_dir)
+        if can_resume(out_dir, grid):
+            done = len(store.flights(ids))
+            click.echo(f"resuming: {done} of {len(specs)} flights done", err=True)
+        else:
+            keep_earlier(f"--out {out_dir}", out_dir, (*CAMPAIGN_FILES, *RUN_FILES))
+            done = 0
+        store.start(grid, len(specs))
+        _log.info("campaign: %d flights on %d workers", len(specs) - done, n_workers)
+        records = run_campaign(specs, progress=progress, executor=executor, store=store)
     meta = {
         "scenario": sc.name,
         "duration_s": duration,
@@ -524,14 +582,19 @@ def campaign(
         "gusts_m_s": gust_list,
         "seeds": seed_list,
         "workers": n_workers,
+        "scheduler": scheduler or "local",
         "flights": len(records),
+        "flown_this_run": len(specs) - done,
+        "resumed_flights": done,
         "wall_time_s": round(time.perf_counter() - t0, 1),
     }
     paths = write_outputs(records, out_dir, meta)
-    crashes = sum(r["crashed"] for r in records)
+    crashes = sum(r["crashed"] is True for r in records)
+    errors = sum(r["error"] is not None for r in records)
     click.echo(
-        f"{len(records)} flights ({crashes} crashed) in {meta['wall_time_s']:.0f} s; "
-        f"summary: {paths['summary']}"
+        f"{len(records)} flights ({crashes} crashed"
+        + (f", {errors} raised" if errors else "")
+        + f") in {meta['wall_time_s']:.0f} s; summary: {paths['summary']}"
     )
 
 

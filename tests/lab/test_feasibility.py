@@ -48,18 +48,22 @@ def test_a_crash_the_collective_oracle_also_suffers_is_infeasible() -> None:
     assert "| mfc | mfc | 2 | 0 | 1 |" in summary, summary
 
 
-def test_a_crash_the_oracle_flies_through_is_a_crash(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_crash_the_oracle_flies_through_is_a_crash(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
     """The same crashed flight, with an oracle that flies the case (the verdict
     replaced): the flight counts as a crash on a feasible case."""
-    asked: list[str] = []
+    asked = tmp_path / "asked"  # the oracle runs on a worker process: it tells by file
 
     def flies(spec: FlightSpec) -> bool:
-        asked.append(spec.profile_name)
+        with asked.open("a", encoding="utf-8") as f:
+            f.write(spec.profile_name + "\n")
         return False
 
     monkeypatch.setattr(campaign, "oracle_crashes", flies)
     records = run_campaign([_heavy_weak_motor60(), _x500()], workers=1, progress=False)
-    assert asked == ["heavy-weak"]  # only cases where a controller crashed are judged
+    # only cases where a controller crashed are judged
+    assert asked.read_text(encoding="utf-8").split() == ["heavy-weak"]
     assert [r["feasible"] for r in records] == [True, True]
     assert "| mfc | mfc | 2 | 1 | 0 |" in summary_markdown(records, _meta())
 

@@ -1,0 +1,214 @@
+"""A campaign's folder as it runs: one file per finished flight, so a run resumes.
+
+Layout in ``--out``
+-------------------
+``campaign-run.json``
+    The manifest, written when a run starts: the grid's digest and size.
+``flights/<flight id>.json``
+    One flight's record, written (atomically: a temporary file, then
+    ``os.replace``) in the client as the flight completes.
+``oracle/<case id>.json``
+    One case's feasibility verdict (whether the oracle that may also set the
+    collective crashes in it), stored the same way.
+
+Identities
+----------
+A flight's id is a digest of everything that decides it: the profile's name and
+content (damage included), the damage, gust and seed, the controller's name and
+content, the scenario's content (wind, duration, link included) and the
+duration. A changed configuration gives new ids, so a stale record is never
+reused. A case's id is the same without the controller. The grid's digest is
+that of its flight ids in order.
+
+Resuming
+--------
+A run may resume a folder whose manifest names the same grid and that has no
+``campaign.json`` yet (:func:`can_resume`): the flights whose records exist are
+not flown again, except those that raised (their records keep the ``error``
+until a run flies them). A finished run, or another grid's, is moved aside instead
+(the command's ``earlier-<UTC time>/``). Records are written by the one client
+process, so a flight is stored once; one in flight when the client died is
+flown again by the next run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import logging
+import os
+import uuid
+from collections.abc import Iterable, Iterator, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sitl.lab.campaign import FlightSpec
+
+__all__ = [
+    "FLIGHTS_DIR",
+    "MANIFEST",
+    "ORACLE_DIR",
+    "RUN_FILES",
+    "CampaignStore",
+    "can_resume",
+    "case_ids",
+    "flight_ids",
+    "grid_digest",
+    "replacing",
+    "write_json_atomic",
+]
+
+_log = logging.getLogger(__name__)
+
+MANIFEST = "campaign-run.json"
+FLIGHTS_DIR = "flights"
+ORACLE_DIR = "oracle"
+RUN_FILES = (MANIFEST, FLIGHTS_DIR, ORACLE_DIR)
+"""What a run keeps in its folder besides the final outputs."""
+FINISHED_MARK = "campaign.json"
+"""The final output written last: present, the run is finished."""
+
+
+@contextlib.contextmanager
+def replacing(path: Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write; it replaces ``path`` (``os.replace``)
+    when the block ends without error, and is removed otherwise: ``path`` is whole
+    or absent, never half written."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    """``obj`` as indented JSON at ``path``, whole or not at all (:func:`replacing`)."""
+    with replacing(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1) + "\n", encoding="utf-8")
+
+
+def _digest(obj: Any) -> str:
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+class _Contents:
+    """Digests of the pydantic models a grid shares, each computed once."""
+
+    def __init__(self) -> None:
+        self._seen: dict[int, tuple[Any, str]] = {}
+
+    def __call__(self, model: Any) -> str:
+        hit = self._seen.get(id(model))
+        if hit is None or hit[0] is not model:
+            hit = (model, _digest(model.model_dump(mode="json")))
+            self._seen[id(model)] = hit
+        return hit[1]
+
+
+def _case_key(spec: FlightSpec, contents: _Contents) -> dict[str, Any]:
+    return {
+        "profile": spec.profile_name,
+        "profile_content": contents(spec.profile),
+        "damage": spec.damage,
+        "gust_sigma_m_s": spec.gust_sigma_m_s,
+        "seed": spec.seed,
+        "scenario_content": contents(spec.scenario),
+        "duration_s": spec.scenario.duration_s,
+    }
+
+
+def flight_ids(specs: Iterable[FlightSpec]) -> list[str]:
+    """Each spec's flight id (20 hex digits), in order."""
+    contents = _Contents()
+    return [
+        _digest(
+            {
+                **_case_key(s, contents),
+                "controller": s.controller_name,
+                "controller_content": contents(s.controller),
+            }
+        )[:20]
+        for s in specs
+    ]
+
+
+def case_ids(specs: Iterable[FlightSpec]) -> list[str]:
+    """Each spec's case id (its flight's id without the controller), in order."""
+    contents = _Contents()
+    return [_digest(_case_key(s, contents))[:20] for s in specs]
+
+
+def grid_digest(ids: Sequence[str]) -> str:
+    """The grid's identity: a digest of its flight ids in order."""
+    return hashlib.sha256("\n".join(ids).encode("ascii")).hexdigest()[:20]
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        _log.warning("%s: unreadable (%s); it is redone", path, exc)
+        return None
+
+
+def can_resume(folder: Path, grid: str) -> bool:
+    """Whether ``folder`` holds an unfinished run of the grid ``grid`` (module docstring)."""
+    manifest = _read_json(folder / MANIFEST)
+    return (
+        isinstance(manifest, dict)
+        and manifest.get("grid") == grid
+        and not (folder / FINISHED_MARK).exists()
+    )
+
+
+class CampaignStore:
+    """The per-flight and per-case records of one run in ``folder`` (module docstring)."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+
+    def start(self, grid: str, flights: int) -> None:
+        """Write the manifest (kept as it is when resuming the same grid)."""
+        if can_resume(self.folder, grid):
+            return
+        started = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+        write_json_atomic(
+            self.folder / MANIFEST, {"grid": grid, "flights": flights, "started_utc": started}
+        )
+
+    def _load(self, sub: str, ids: Iterable[str]) -> dict[str, Any]:
+        """The stored records among ``ids`` that have no ``error``, by id."""
+        d = self.folder / sub
+        if not d.is_dir():
+            return {}
+        out = {}
+        for i in ids:
+            rec = _read_json(d / f"{i}.json")
+            if isinstance(rec, dict) and rec.get("error") is None:
+                out[i] = rec
+        return out
+
+    def flights(self, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+        """The finished flights among ``ids``, by flight id. One that raised (its
+        record has an ``error``) is not finished: a resumed run flies it again."""
+        return self._load(FLIGHTS_DIR, ids)
+
+    def save_flight(self, flight_id: str, record: dict[str, Any]) -> None:
+        write_json_atomic(self.folder / FLIGHTS_DIR / f"{flight_id}.json", record)
+
+    def verdicts(self, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+        """The stored oracle verdicts among ``ids``, by case id (as for flights, one
+        whose oracle flight raised is asked again)."""
+        return self._load(ORACLE_DIR, ids)
+
+    def save_verdict(self, case_id: str, verdict: dict[str, Any]) -> None:
+        write_json_atomic(self.folder / ORACLE_DIR / f"{case_id}.json", verdict)
