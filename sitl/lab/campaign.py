@@ -32,7 +32,8 @@ and ``records``, one record per flight in grid order: ``profile``, ``damage``,
 ``gust_sigma_m_s``, ``seed``, ``controller``, ``controller_kind``, ``mae_deg_s``
 per axis, ``crashed``, ``crashed_at_s``, ``saturation_any``, ``sim_time_s``,
 ``feasible``, then ``flight_id``, ``scenario``, ``duration_s``, ``rms_deg_s``
-per axis, ``error`` and ``wall_time_s``), ``summary.md`` (median and 90th
+per axis, ``error``, ``wall_time_s`` and ``oracle_mae_deg_s`` per axis: the
+oracle's MAE in the flight's case, the limit it is read against), ``summary.md`` (median and 90th
 percentile MAE per controller and axis, crash counts on feasible cases and
 infeasible flights) and ``mae.png`` (box plots of the per-axis MAE by
 controller). A flight that raised is a record with its ``error``, ``crashed``
@@ -66,6 +67,7 @@ __all__ = [
     "fly_one",
     "iter_grid",
     "oracle_crashes",
+    "oracle_limit",
     "plot_mae",
     "run_campaign",
     "summary_markdown",
@@ -270,6 +272,17 @@ def oracle_crashes(spec: FlightSpec) -> bool:
     return crashed
 
 
+def oracle_limit(spec: FlightSpec) -> dict[str, Any]:
+    """The oracle's flight in ``spec``'s case (:mod:`sitl.lab.oracle`: a law that knows
+    the plant and sees its true state, the pilot's collective): its MAE per axis,
+    the limit the case's flights are read against (a top-level function, for the
+    workers)."""
+    from sitl.lab.oracle import oracle_flight
+
+    m = oracle_flight(spec.profile, spec.scenario, seed=spec.seed)
+    return {"mae_deg_s": m["mae_deg_s"], "crashed": m["crashed"]}
+
+
 def _is_crash(record: dict[str, Any]) -> bool:
     return record.get("crashed") is True
 
@@ -282,6 +295,7 @@ def run_campaign(
     scheduler: str | None = None,
     executor: Executor | None = None,
     store: CampaignStore | None = None,
+    oracle: bool = True,
 ) -> list[dict[str, Any]]:
     """Fly every spec on a Dask cluster with a tqdm bar; records in spec order.
 
@@ -307,6 +321,10 @@ def run_campaign(
         Where each flight's record and each case's verdict is written as it
         completes; those already there are not flown again. None keeps them in
         memory only.
+    oracle
+        Also fly the oracle once per case (:func:`oracle_limit`): each record's
+        ``oracle_mae_deg_s`` is its MAE per axis (None when not flown or when
+        its flight raised).
 
     Returns
     -------
@@ -321,7 +339,7 @@ def run_campaign(
     if executor is None:
         n = min(workers or os.cpu_count() or 1, max(1, len(specs)))
         with Executor(scheduler, n) as ex:
-            return run_campaign(specs, progress=progress, executor=ex, store=store)
+            return run_campaign(specs, progress=progress, executor=ex, store=store, oracle=oracle)
     ids = flight_ids(specs)
     flown: dict[str, dict[str, Any]] = store.flights(ids) if store else {}
     todo: list[int] = []  # indices of the specs to fly, each flight id once
@@ -366,9 +384,43 @@ def run_campaign(
             total=len(to_judge), tally=lambda bad: "infeasible" if bad else None,
             desc="oracle", unit="case", progress=progress,
         )  # fmt: skip
+    limits = _limits(specs, cids, executor, store, progress) if oracle else {}
     records = []
     for fid, cid in zip(ids, cids):
         v = judged.get(cid)
         feasible = True if v is None else None if v["error"] else not v["oracle_crashed"]
-        records.append({**flown[fid], "feasible": feasible})
+        lim = limits.get(cid)
+        mae = lim["mae_deg_s"] if lim and not lim.get("error") else None
+        records.append({**flown[fid], "feasible": feasible, "oracle_mae_deg_s": mae})
     return records
+
+
+def _limits(
+    specs: Sequence[FlightSpec],
+    cids: Sequence[str],
+    executor: Executor,
+    store: CampaignStore | None,
+    progress: bool,
+) -> dict[str, dict[str, Any]]:
+    """The oracle's flight in every case, by case id (stored as each completes)."""
+    from sitl.lab.executor import TaskOutcome
+
+    first: dict[str, FlightSpec] = {}
+    for spec, cid in zip(specs, cids):
+        first.setdefault(cid, spec)
+    limits: dict[str, dict[str, Any]] = store.limits(first) if store else {}
+    to_fly = [cid for cid in first if cid not in limits]
+
+    def keep(o: TaskOutcome) -> None:
+        cid = to_fly[o.index]
+        limit = {"case_id": cid, **(o.value or {}), "error": o.error}
+        if store:
+            store.save_limit(cid, limit)
+        limits[cid] = limit
+
+    if to_fly:
+        executor.run(
+            oracle_limit, (first[c] for c in to_fly), on_result=keep, total=len(to_fly),
+            desc="oracle limit", unit="case", progress=progress,
+        )  # fmt: skip
+    return limits

@@ -96,8 +96,70 @@ def summary_markdown(records: list[dict[str, Any]], meta: dict[str, Any]) -> str
             ]
             cells.append(f"{np.median(worst):.1f}" if worst else "-")
         lines.append(f"| {p} | " + " | ".join(cells) + " |")
+    lines += _against_the_limit(records, profiles, controllers)
     lines += ["", "![MAE distributions](mae.png)", ""]
     return "\n".join(lines)
+
+
+def _median(vals: list[float]) -> str:
+    return f"{np.median(vals):.2f}" if vals else "-"
+
+
+def _against_the_limit(
+    records: list[dict[str, Any]], profiles: list[str], controllers: list[str]
+) -> list[str]:
+    """Per profile and axis: the oracle's median MAE, each controller's median MAE
+    and its median ratio to the oracle in the same case, and the first MFC
+    controller's median ratio to each PID in the same flight's case (#13)."""
+    if not any(r.get("oracle_mae_deg_s") for r in records):
+        return []
+    kind = {r["controller"]: r["controller_kind"] for r in records}
+    mfc = next((c for c in controllers if kind[c] == "mfc"), None)
+    pids = [c for c in controllers if kind[c] == "pid"] if mfc else []
+    head = ["profile", "axis", "oracle"]
+    for c in controllers:
+        head += [c, f"{c} / oracle"]
+    head += [f"{mfc} / {p}" for p in pids]
+    lines = [
+        "",
+        "## Against the limit",
+        "",
+        "Medians over each profile's flights (all damages, gusts and seeds; crashed and "
+        "raised flights left out) of the MAE (deg/s) and of the per-case ratio to the "
+        "oracle that knows the plant (sitl/lab/oracle.py; below 1, the controller scored "
+        "better on the measured rate) and, for MFC, to each PID flown in the same case:",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+
+    def flown(r: dict[str, Any]) -> bool:
+        return r["crashed"] is False and r["mae_deg_s"]["roll"] is not None
+
+    case_keys = ("profile", "damage", "gust_sigma_m_s", "seed")
+    by_case = {(tuple(r[k] for k in case_keys), r["controller"]): r for r in records if flown(r)}
+    for p in profiles:
+        rs = [r for r in records if r["profile"] == p and flown(r)]
+        for a in AXES:
+            limit = [r["oracle_mae_deg_s"][a] for r in rs if r.get("oracle_mae_deg_s")]
+            cells = [p, a, _median(limit)]
+            for c in controllers:
+                own = [r for r in rs if r["controller"] == c]
+                ratios = [
+                    r["mae_deg_s"][a] / r["oracle_mae_deg_s"][a]
+                    for r in own
+                    if r.get("oracle_mae_deg_s") and r["oracle_mae_deg_s"][a]
+                ]
+                cells += [_median([r["mae_deg_s"][a] for r in own]), _median(ratios)]
+            for pid in pids:
+                ratios = []
+                for r in rs:
+                    other = by_case.get((tuple(r[k] for k in case_keys), pid))
+                    if r["controller"] == mfc and other and other["mae_deg_s"][a]:
+                        ratios.append(r["mae_deg_s"][a] / other["mae_deg_s"][a])
+                cells.append(_median(ratios))
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def plot_mae(records: list[dict[str, Any]], path: Path) -> Path:

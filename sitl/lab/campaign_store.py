@@ -10,6 +10,9 @@ Layout in ``--out``
 ``oracle/<case id>.json``
     One case's feasibility verdict (whether the oracle that may also set the
     collective crashes in it), stored the same way.
+``limit/<case id>.json``
+    One case's oracle flight (its MAE per axis: the limit the case's flights are
+    read against), stored the same way.
 
 Identities
 ----------
@@ -49,6 +52,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "FLIGHTS_DIR",
+    "LIMIT_DIR",
     "MANIFEST",
     "ORACLE_DIR",
     "RUN_FILES",
@@ -66,7 +70,8 @@ _log = logging.getLogger(__name__)
 MANIFEST = "campaign-run.json"
 FLIGHTS_DIR = "flights"
 ORACLE_DIR = "oracle"
-RUN_FILES = (MANIFEST, FLIGHTS_DIR, ORACLE_DIR)
+LIMIT_DIR = "limit"
+RUN_FILES = (MANIFEST, FLIGHTS_DIR, ORACLE_DIR, LIMIT_DIR)
 """What a run keeps in its folder besides the final outputs."""
 FINISHED_MARK = "campaign.json"
 """The final output written last: present, the run is finished."""
@@ -212,3 +217,11 @@ class CampaignStore:
 
     def save_verdict(self, case_id: str, verdict: dict[str, Any]) -> None:
         write_json_atomic(self.folder / ORACLE_DIR / f"{case_id}.json", verdict)
+
+    def limits(self, ids: Iterable[str]) -> dict[str, dict[str, Any]]:
+        """The stored oracle flights among ``ids``, by case id (one that raised is
+        flown again)."""
+        return self._load(LIMIT_DIR, ids)
+
+    def save_limit(self, case_id: str, limit: dict[str, Any]) -> None:
+        write_json_atomic(self.folder / LIMIT_DIR / f"{case_id}.json", limit)

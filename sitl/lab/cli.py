@@ -456,6 +456,14 @@ def fly(
     "a new flight of the kind both controllers were tuned for; paper-acro is the fixed test "
     "programme (reproduced by scripts/reproduce_paper.py).",
 )
+@click.option(
+    "--oracle/--no-oracle",
+    default=True,
+    show_default=True,
+    help="Also fly the oracle (sitl/lab/oracle.py: a law that knows the plant) once per "
+    "case: the limit each flight is read against (oracle_mae_* columns, ratios in "
+    "summary.md).",
+)
 @_link_opt
 @_progress_opt
 def campaign(
@@ -470,6 +478,7 @@ def campaign(
     scheduler: str | None,
     duration: float,
     scenario: str,
+    oracle: bool,
     link: LinkSpec | None,
     progress: bool,
 ) -> None:
@@ -572,7 +581,9 @@ def campaign(
             done = 0
         store.start(grid, len(specs))
         _log.info("campaign: %d flights on %d workers", len(specs) - done, n_workers)
-        records = run_campaign(specs, progress=progress, executor=executor, store=store)
+        records = run_campaign(
+            specs, progress=progress, executor=executor, store=store, oracle=oracle
+        )
     meta = {
         "scenario": sc.name,
         "duration_s": duration,
@@ -586,6 +597,7 @@ def campaign(
         "flights": len(records),
         "flown_this_run": len(specs) - done,
         "resumed_flights": done,
+        "oracle": oracle,
         "wall_time_s": round(time.perf_counter() - t0, 1),
     }
     paths = write_outputs(records, out_dir, meta)

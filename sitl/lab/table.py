@@ -34,6 +34,9 @@ wall_time_s              float64   the flight's wall time on its worker, s
 mfc_companion_version    string    versions on the worker that flew it
 python_version           string
 numpy_version            string
+oracle_mae_roll_deg_s    float64   the oracle's MAE in this flight's case (the
+oracle_mae_pitch_deg_s   float64   limit, sitl/lab/oracle.py); null when not
+oracle_mae_yaw_deg_s     float64   flown (``--no-oracle``) or when it raised
 ======================== ========= ==============================================
 
 ``campaign.json``'s records, ``summary.md`` and ``mae.png`` are computed from this
@@ -86,8 +89,9 @@ FLIGHTS_SCHEMA = pa.schema(
         pa.field("sim_time_s", pa.float64()),
         pa.field("wall_time_s", pa.float64()),
         *(pa.field(f"{v}_version", pa.string()) for v in _VERSIONS),
+        *(pa.field(f"oracle_mae_{a}_deg_s", pa.float64()) for a in AXES),
     ],
-    metadata={"schema": "mfc-companion campaign flights, version 1"},
+    metadata={"schema": "mfc-companion campaign flights, version 2"},
 )
 """The columns of ``flights.parquet`` (module docstring)."""
 
@@ -104,6 +108,7 @@ def _row(rec: dict[str, Any]) -> dict[str, Any]:
         **{k: rec.get(k) for k in ("saturation_any", "crashed", "crashed_at_s", "feasible")},
         **{k: rec.get(k) for k in ("error", "sim_time_s", "wall_time_s")},
         **{f"{v}_version": versions.get(v) for v in _VERSIONS},
+        **{f"oracle_mae_{a}_deg_s": (rec.get("oracle_mae_deg_s") or {}).get(a) for a in AXES},
     }
 
 
@@ -126,6 +131,11 @@ def to_records(table: pa.Table) -> list[dict[str, Any]]:
                 **{k: row[k] for k in ("scenario", "duration_s")},
                 "rms_deg_s": {a: row[f"rms_{a}_deg_s"] for a in AXES},
                 **{k: row[k] for k in ("error", "wall_time_s")},
+                "oracle_mae_deg_s": (
+                    None
+                    if row["oracle_mae_roll_deg_s"] is None
+                    else {a: row[f"oracle_mae_{a}_deg_s"] for a in AXES}
+                ),
             }
         )
     return out

@@ -60,6 +60,28 @@ def test_outputs_exist_and_records_are_consistent(two_runs: tuple) -> None:  # t
     assert "mae.png" in summary
 
 
+def test_every_flight_is_read_against_the_oracle_in_its_case(two_runs: tuple) -> None:  # type: ignore[type-arg]
+    from sitl.lab.oracle import oracle_flight
+    from sitl.scenario import load_scenario
+
+    out, doc, _ = two_runs
+    recs = doc["records"]
+    by_profile = {r["profile"]: r["oracle_mae_deg_s"] for r in recs}
+    for r in recs:  # one oracle flight per case, shared by the case's controllers
+        assert r["oracle_mae_deg_s"] == by_profile[r["profile"]]
+        assert all(v is not None and v > 0 for v in r["oracle_mae_deg_s"].values())
+    # The stored limit is the oracle's own flight of that case.
+    tarot = damaged_profile(load_profile(ROOT / "vehicle_profiles" / "tarot650.yaml"), 0.8)
+    sc = load_scenario("train-acro")
+    wind = type(sc.wind).model_validate({**sc.wind.model_dump(), "gust_sigma_m_s": 1.0})
+    sc = sc.model_copy(update={"duration_s": 5.0, "wind": wind})
+    assert oracle_flight(tarot, sc, seed=1000)["mae_deg_s"] == by_profile["tarot650"]
+    summary = (out / "summary.md").read_text(encoding="utf-8")
+    assert "## Against the limit" in summary
+    assert "| mfc_default / pid_tarot_tuned |" in summary
+    assert summary.count("| tarot650 | ") >= 3  # a row per axis
+
+
 def test_same_seed_same_mae(two_runs: tuple) -> None:  # type: ignore[type-arg]
     _, doc_a, doc_b = two_runs
     assert [r["mae_deg_s"] for r in doc_a["records"]] == [r["mae_deg_s"] for r in doc_b["records"]]
