@@ -165,30 +165,48 @@ def _read_json(path: Path) -> Any:
         return None
 
 
-def can_resume(folder: Path, grid: str) -> bool:
-    """Whether ``folder`` holds an unfinished run of the grid ``grid`` (module docstring)."""
-    manifest = _read_json(folder / MANIFEST)
-    return (
-        isinstance(manifest, dict)
-        and manifest.get("grid") == grid
-        and not (folder / FINISHED_MARK).exists()
-    )
+def can_resume(
+    folder: Path, grid: str, manifest: str = MANIFEST, finished: str = FINISHED_MARK
+) -> bool:
+    """Whether ``folder`` holds an unfinished run of the grid ``grid`` (module docstring):
+    its ``manifest`` names ``grid`` and its ``finished`` output is not there yet."""
+    doc = _read_json(folder / manifest)
+    return isinstance(doc, dict) and doc.get("grid") == grid and not (folder / finished).exists()
 
 
 class CampaignStore:
-    """The per-flight and per-case records of one run in ``folder`` (module docstring)."""
+    """The per-flight and per-case records of one run in ``folder`` (module docstring).
 
-    def __init__(self, folder: str | Path) -> None:
+    ``manifest`` and ``finished`` name the run's manifest and the output written
+    last (a campaign's by default; the envelope keeps its own)."""
+
+    def __init__(
+        self, folder: str | Path, manifest: str = MANIFEST, finished: str = FINISHED_MARK
+    ) -> None:
         self.folder = Path(folder)
+        self.manifest = manifest
+        self.finished = finished
+
+    def can_resume(self, grid: str) -> bool:
+        """Whether the folder holds an unfinished run of ``grid``."""
+        return can_resume(self.folder, grid, self.manifest, self.finished)
 
     def start(self, grid: str, flights: int) -> None:
         """Write the manifest (kept as it is when resuming the same grid)."""
-        if can_resume(self.folder, grid):
+        if self.can_resume(grid):
             return
         started = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
         write_json_atomic(
-            self.folder / MANIFEST, {"grid": grid, "flights": flights, "started_utc": started}
+            self.folder / self.manifest, {"grid": grid, "flights": flights, "started_utc": started}
         )
+
+    def load(self, sub: str, ids: Iterable[str]) -> dict[str, Any]:
+        """The stored records in ``sub/`` among ``ids`` that have no ``error``, by id."""
+        return self._load(sub, ids)
+
+    def save(self, sub: str, key: str, record: dict[str, Any]) -> None:
+        """Store ``record`` as ``sub/<key>.json``, whole or not at all."""
+        write_json_atomic(self.folder / sub / f"{key}.json", record)
 
     def _load(self, sub: str, ids: Iterable[str]) -> dict[str, Any]:
         """The stored records among ``ids`` that have no ``error``, by id."""

@@ -172,6 +172,29 @@ def _parse_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     return address
 
 
+_scheduler_opt = click.option(
+    "--scheduler",
+    metavar="TCP_ADDRESS",
+    default=None,
+    callback=_parse_scheduler,
+    help="Fly on a running Dask cluster (dask scheduler, dask worker with this project "
+    "installed): its scheduler's address, tcp://HOST:8786 [default: worker processes on "
+    "this machine].",
+)
+
+
+def _check_scheduler(scheduler: str) -> None:
+    """Refuse ``--scheduler`` (exit 2) when no Dask scheduler answers there, before
+    anything is moved or written."""
+    from sitl.lab.executor import Executor
+
+    try:
+        with Executor(scheduler) as ex:
+            click.echo(f"--scheduler {scheduler}: dashboard {ex.dashboard_link}", err=True)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--scheduler") from exc
+
+
 @click.command("simulate")
 @profile_opt
 @controller_opt
@@ -432,15 +455,7 @@ def fly(
     help="Parallel flights: local worker processes [default: os.cpu_count()]; with "
     "--scheduler, the cluster's workers fly instead.",
 )
-@click.option(
-    "--scheduler",
-    metavar="TCP_ADDRESS",
-    default=None,
-    callback=_parse_scheduler,
-    help="Fly on a running Dask cluster (dask scheduler, dask worker with this project "
-    "installed): its scheduler's address, tcp://HOST:8786 [default: worker processes on "
-    "this machine].",
-)
+@_scheduler_opt
 @click.option(
     "--duration",
     type=Finite(min=0.0, min_open=True),
@@ -690,6 +705,7 @@ def campaign(
     default=None,
     help="Parallel cases [default: os.cpu_count()].",
 )
+@_scheduler_opt
 @_link_opt
 @_progress_opt
 def envelope(
@@ -706,6 +722,7 @@ def envelope(
     controller_profile: Path,
     worst_k: int,
     workers: int | None,
+    scheduler: str | None,
     link: LinkSpec | None,
     progress: bool,
 ) -> None:
@@ -744,11 +761,26 @@ def envelope(
         fail_config(exc)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from exc
-    keep_earlier(f"--out {out_dir}", out_dir, ENVELOPE_FILES)
+    from sitl.lab.campaign_store import CampaignStore, grid_digest
+    from sitl.lab.envelope import CASES_DIR, RUN_MANIFEST, case_ids
+
+    if scheduler is not None:
+        _check_scheduler(scheduler)
+    ids = case_ids(cases, setup)
+    grid = grid_digest(ids)
+    store = CampaignStore(out_dir, manifest=RUN_MANIFEST, finished="envelope.json")
+    if store.can_resume(grid):
+        done = len(store.load(CASES_DIR, ids))
+        click.echo(f"resuming: {done} of {len(cases)} cases done", err=True)
+    else:
+        keep_earlier(f"--out {out_dir}", out_dir, (*ENVELOPE_FILES, RUN_MANIFEST, CASES_DIR))
+    store.start(grid, len(cases))
     n_workers = workers or os.cpu_count() or 1
     _log.info("envelope: %d cases on %d workers", len(cases), n_workers)
     t0 = time.perf_counter()
-    records = run_envelope(cases, setup, workers=n_workers, progress=progress)
+    records = run_envelope(
+        cases, setup, workers=n_workers, progress=progress, scheduler=scheduler, store=store
+    )
     meta = envelope_meta(
         cases,
         setup,

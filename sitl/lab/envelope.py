@@ -8,7 +8,7 @@ from the envelope generator (:mod:`sitl.envelope`: named corners plus a Latin
 hypercube over mass, arm length, thrust-to-weight and motor time constant),
 optionally with damage variants (``motor60``, ``imbalance``, ``cg10``).
 
-Per vehicle and case (one ``multiprocessing.Pool`` job each)
+Per vehicle and case (one task each on the lab's Dask executor)
 ------------------------------------------------------------
 1. **Tune** the PID on the *training* scenario (default ``train-acro``) with
    the vehicle's own profile: :func:`sitl.lab.pidtune.tune_pid` from PX4's
@@ -67,11 +67,11 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing
+import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from companion.config import MfcConfig, PidConfig
 from companion.control import AXES
@@ -88,7 +88,18 @@ from sitl.lab.envelope_verdicts import verdicts, worst_cases
 from sitl.lab.pidtune import tune_pid
 from sitl.scenario import Scenario
 
-__all__ = ["ENVELOPE_FILES", "envelope_meta", "run_envelope", "write_envelope_outputs"]
+if TYPE_CHECKING:
+    from sitl.lab.campaign_store import CampaignStore
+
+__all__ = [
+    "CASES_DIR",
+    "ENVELOPE_FILES",
+    "RUN_MANIFEST",
+    "case_ids",
+    "envelope_meta",
+    "run_envelope",
+    "write_envelope_outputs",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -168,14 +179,52 @@ def _run_case(job: tuple[EnvelopeSetup, EnvelopeCase]) -> dict[str, Any]:
     }
 
 
+RUN_MANIFEST = "envelope-run.json"
+"""The manifest of an envelope run in its folder (the cases' digest)."""
+CASES_DIR = "cases"
+"""Where each finished case's record is stored as it completes."""
+
+
+def case_ids(cases: Sequence[EnvelopeCase], setup: EnvelopeSetup) -> list[str]:
+    """Each case's id: a digest of the case (vehicle, case, plant) and of the setup
+    (controllers, scenarios, budget, seed): a changed input never reuses a record."""
+    from sitl.lab.campaign_store import _digest
+
+    common = _digest(
+        {
+            "mfc": setup.mfc.model_dump(mode="json"),
+            "pid_default": setup.pid_default.model_dump(mode="json"),
+            "controller_profile": setup.controller_profile.model_dump(mode="json"),
+            "train": setup.train.model_dump(mode="json"),
+            "test": setup.test.model_dump(mode="json"),
+            "tune_budget": setup.tune_budget,
+            "seed": setup.seed,
+        }
+    )
+    return [
+        _digest(
+            {
+                "setup": common,
+                "vehicle": c.vehicle,
+                "case": c.case,
+                "profile": c.profile.model_dump(mode="json"),
+            }
+        )[:20]
+        for c in cases
+    ]
+
+
 def run_envelope(
     cases: Sequence[EnvelopeCase],
     setup: EnvelopeSetup,
     *,
-    workers: int = 1,
+    workers: int | None = 1,
     progress: bool = True,
+    scheduler: str | None = None,
+    store: CampaignStore | None = None,
 ) -> list[dict[str, Any]]:
-    """Tune and fly every case, ``workers`` cases at a time, with a tqdm bar on stderr.
+    """Tune and fly every case on a Dask cluster (:mod:`sitl.lab.executor`), with a
+    tqdm bar on stderr.
 
     Parameters
     ----------
@@ -183,10 +232,15 @@ def run_envelope(
         From :func:`envelope_cases`.
     setup
         Controllers, scenarios, tuning budget and seed.
-    workers
-        Parallel cases (processes); 1 runs in this process.
+    workers, scheduler
+        ``workers`` local worker processes (at most one per case), or the running
+        cluster at ``scheduler``.
     progress
         Show the bar.
+    store
+        Each finished case's record is written there as it completes
+        (``cases/<case id>.json``, :func:`case_ids`); cases already there are not
+        flown again. None keeps them in memory only.
 
     Returns
     -------
@@ -203,24 +257,31 @@ def run_envelope(
         (:data:`sitl.lab.pidtune.PARAMS`) and ``tune`` (flights, training
         objective before and after, deg/s).
     """
-    from tqdm import tqdm
+    from sitl.lab.executor import Executor, TaskOutcome
 
-    jobs = [(setup, c) for c in cases]
-    bar = tqdm(total=len(jobs), desc="envelope", unit="case", disable=not progress)
-    records: list[dict[str, Any]] = []
-    try:
-        if workers <= 1:
-            for j in jobs:
-                records.append(_run_case(j))
-                bar.update(1)
-        else:
-            with multiprocessing.Pool(workers) as pool:
-                for r in pool.imap(_run_case, jobs, chunksize=1):
-                    records.append(r)
-                    bar.update(1)
-    finally:
-        bar.close()
-    return records
+    ids = case_ids(cases, setup)
+    done: dict[str, dict[str, Any]] = store.load(CASES_DIR, ids) if store else {}
+    todo = [i for i, cid in enumerate(ids) if cid not in done]
+
+    def keep(o: TaskOutcome) -> None:
+        i = todo[o.index]
+        if not o.ok:  # a case is many flights: one that raised stops the campaign
+            raise RuntimeError(f"envelope case {cases[i].vehicle} / {cases[i].case}: {o.error}")
+        if store:
+            store.save(CASES_DIR, ids[i], o.value)
+        done[ids[i]] = o.value
+
+    if todo:
+        n = min(workers or os.cpu_count() or 1, len(todo))
+        with Executor(scheduler, n) as ex:
+            if scheduler is not None:
+                _log.info("envelope on %s: dashboard %s", scheduler, ex.dashboard_link)
+            ex.run(
+                _run_case, ((setup, cases[i]) for i in todo), on_result=keep, total=len(todo),
+                tally=lambda r: "mfc crashed" if r["flights"]["mfc"]["crashed"] else None,
+                desc="envelope", unit="case", progress=progress,
+            )  # fmt: skip
+    return [done[cid] for cid in ids]
 
 
 def _scenario_meta(sc: Scenario) -> dict[str, Any]:

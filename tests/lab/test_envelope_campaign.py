@@ -232,3 +232,24 @@ def test_cli_corners_only(tmp_path: Path) -> None:
     assert (out / "ratio.png").exists() and len(list(out.glob("worst-*.png"))) == 1
     bad = CliRunner().invoke(cli, [*args[:3], "--train-scenario", "envelope-test"])
     assert bad.exit_code != 0 and "test flight" in bad.output
+
+
+def test_a_killed_envelope_resumes_without_reflying_finished_cases(tmp_path: Path) -> None:
+    from sitl.lab.campaign_store import CampaignStore, grid_digest
+    from sitl.lab.envelope import CASES_DIR, RUN_MANIFEST, case_ids
+
+    setup = _short(load_setup(tune_budget=2, seed=2), 2.0, 3.0)
+    cases = envelope_cases(corners_only=True, damage=False)[:3]
+    store = CampaignStore(tmp_path, manifest=RUN_MANIFEST, finished="envelope.json")
+    store.start(grid_digest(case_ids(cases, setup)), len(cases))
+    first = run_envelope(cases, setup, workers=2, progress=False, store=store)
+    files = sorted((tmp_path / CASES_DIR).glob("*.json"))
+    assert len(files) == 3
+    # As if killed before the last case landed: its record is missing.
+    lost = tmp_path / CASES_DIR / f"{case_ids(cases, setup)[2]}.json"
+    lost.unlink()
+    kept = {p: p.stat().st_mtime_ns for p in files if p != lost}
+    assert store.can_resume(grid_digest(case_ids(cases, setup)))
+    again = run_envelope(cases, setup, workers=2, progress=False, store=store)
+    assert again == first and lost.exists()
+    assert {p: p.stat().st_mtime_ns for p in kept} == kept  # not flown again
