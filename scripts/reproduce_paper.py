@@ -39,7 +39,6 @@ import hashlib
 import json
 import logging
 import math
-import multiprocessing
 import os
 import sys
 import time
@@ -1011,6 +1010,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1))
     ap.add_argument("--no-progress", action="store_true")
     ap.add_argument(
+        "--scheduler",
+        default=None,
+        help="fly on a running Dask cluster at this address (tcp://HOST:8786) "
+        "[default: --workers processes on this machine]",
+    )
+    ap.add_argument(
         "--link",
         default=None,
         help="fly every flight through this companion link (a profile of "
@@ -1037,9 +1042,8 @@ def main(argv: list[str] | None = None) -> int:
     # Each worker logs its flight's crash; keep the console for the bar and the summary.
     logging.getLogger("sitl").setLevel(logging.WARNING)
 
-    from tqdm import tqdm
-
     from companion.profile import load_profile
+    from sitl.lab.executor import run_tasks
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -1047,19 +1051,18 @@ def main(argv: list[str] | None = None) -> int:
     sc = _scenario(None, args.link)
     t0 = time.perf_counter()
     jobs = [(f, duration, str(out), args.link) for f in FLIGHTS]
-    bar = tqdm(total=len(jobs), desc="paper flights", unit="flight", disable=args.no_progress)
-    if args.workers > 1:
-        with multiprocessing.Pool(args.workers) as pool:
-            metrics = []
-            for m in pool.imap(_fly, jobs, chunksize=1):
-                metrics.append(m)
-                bar.update(1)
-    else:
-        metrics = []
-        for j in jobs:
-            metrics.append(_fly(j))
-            bar.update(1)
-    bar.close()
+    try:
+        outcomes = run_tasks(
+            _fly, jobs, scheduler=args.scheduler, workers=args.workers, desc="paper flights",
+            unit="flight", progress=not args.no_progress,
+        )  # fmt: skip
+    except ValueError as exc:  # no scheduler answered
+        ap.error(f"--scheduler: {exc}")
+    failed = [f"{FLIGHTS[o.index].name}: {o.error}" for o in outcomes if not o.ok]
+    if failed:
+        print("flights that raised:\n" + "\n".join(failed), file=sys.stderr)
+        return 1
+    metrics = [o.value for o in outcomes]
     wall = time.perf_counter() - t0
 
     flights: dict[str, dict[str, Any]] = {}
