@@ -19,6 +19,9 @@ from __future__ import annotations
 
 import math
 
+# The product's own (companion may not import sitl; sitl shares these with it).
+from companion.control.quaternion import quat_conj, quat_mul
+
 __all__ = [
     "Quat",
     "Vec3",
@@ -39,34 +42,6 @@ __all__ = [
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
-
-
-def quat_mul(a: Quat, b: Quat) -> Quat:
-    """Hamilton product ``a ⊗ b`` (apply ``b`` first, then ``a``, as rotations).
-
-    Parameters
-    ----------
-    a, b : tuple of 4 float
-        Quaternions ``(w, x, y, z)``.
-
-    Returns
-    -------
-    tuple of 4 float
-        ``(aw bw - a·b, aw b + bw a + a × b)``.
-    """
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def quat_conj(q: Quat) -> Quat:
-    """Conjugate ``(w, -x, -y, -z)``: the inverse rotation of a unit quaternion."""
-    return (q[0], -q[1], -q[2], -q[3])
 
 
 def normalise(q: Quat) -> Quat:
