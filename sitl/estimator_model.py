@@ -1,0 +1,284 @@
+r"""What the autopilot's estimator streams: the truth with an EKF's errors, lag and rate.
+
+The outer loops fly on ``ATTITUDE_QUATERNION`` and ``LOCAL_POSITION_NED``, not on
+the true state. This model turns the plant's state into those two streams:
+
+* each stream is sampled on its own fixed grid (attitude at the IMU rate,
+  position and velocity at 50 Hz), stamped with the time it was taken, and handed
+  out ``latency_s`` later (as :class:`sitl.imu.Imu` does);
+* each sample is the truth plus an error. The errors of an EKF are not white:
+  they are the slowly wandering residuals of the sensors it fuses (a GPS's
+  multipath, a baro's drift, an accelerometer's bias in the tilt). Each error
+  component is a first-order Gauss-Markov process (a discrete Ornstein-Uhlenbeck
+  process, exact at any step),
+
+  .. math::
+
+      e_{k+1} = a\,e_k + \sigma\sqrt{1 - a^2}\,n_k, \qquad a = e^{-\Delta t/\tau},
+      \qquad e_0 \sim \mathcal N(0, \sigma^2),
+
+  stationary from the first sample, with standard deviation :math:`\sigma` and
+  correlation time :math:`\tau`.
+
+The attitude error is a small rotation in the world (NED) frame, its vector
+:math:`(e_N, e_E, e_D)` (rad): the first two tilt the estimate, the third turns
+its heading; :math:`q_{est} = \exp(e/2) \otimes q_{true}`. Position and velocity
+errors are added per NED axis. They are independent processes (a real EKF's
+position error is partly the integral of its velocity error; not modelled).
+
+The figures (:data:`EKF_GPS`), per component, 1 sigma:
+
+================  =========  ========  ==================================================
+what              sigma      tau       where from
+================  =========  ========  ==================================================
+roll, pitch       0.5 deg    1 s       EKF2/EKF3 tilt accuracy in hover with a good IMU:
+                                       a few tenths of a degree (estimate, the brief's 0.5)
+heading           1.5 deg    5 s       magnetometer-aided heading, worse than tilt
+                                       (estimate; PX4 ``EKF2_HEAD_NOISE`` 0.3 rad is the
+                                       measurement noise, the fused heading is far better)
+north, east       0.1 m      2 s       GPS-fused position, mid of 0.05-0.2 m (estimate;
+                                       ``EKF2_GPS_P_NOISE`` 0.5 m bounds the raw fix)
+down              0.15 m     2 s       baro-fused height: worse than horizontal (estimate)
+velocity N, E, D  0.07 m/s   1 s       GPS Doppler velocity, fused: 0.05-0.1 m/s (estimate;
+                                       ``EKF2_GPS_V_NOISE`` 0.3 m/s bounds the raw one).
+                                       The EKF's velocity is the integrated accelerometer
+                                       pulled slowly to the GPS: its error wanders over
+                                       about a second, it does not jump (estimate)
+================  =========  ========  ==================================================
+
+Rates and lags: attitude at the IMU rate (``ATTITUDE_QUATERNION`` is IMU-based in
+the SITL's faces; a companion may ask it at that rate), 10 ms late (the output
+predictor is current, so this is the stream and the link); position and velocity
+at 50 Hz (``MAV_CMD_SET_MESSAGE_INTERVAL``; the PX4 face's default is 10 Hz),
+30 ms late (the output predictor's residual lag behind the GPS's 110 ms
+``EKF2_GPS_DELAY``, plus the stream). All estimates, stated as such; the PX4
+parameter values are its defaults as recalled, not re-checked here.
+
+Seeding: :func:`estimator_seed_sequence` gives a stream independent of the
+plant's, the IMU's, the wind's, the pilot's and the link's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.control.quaternion import quat_mul
+from sitl.physics import VehicleState
+
+__all__ = [
+    "EKF_GPS",
+    "PERFECT",
+    "AttitudeEstimate",
+    "EstimatorModel",
+    "EstimatorSpec",
+    "GaussMarkov",
+    "PositionEstimate",
+    "estimator_seed_sequence",
+    "rotation_vector_quat",
+]
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+_SEED_CHILD = 5
+"""The estimator's spawn key under a flight seed (the link's is 4: sitl.link_model)."""
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """The estimator's errors, rates and lags (module docstring: the figures)."""
+
+    attitude_sigma_rad: Vec3 = (math.radians(0.5), math.radians(0.5), math.radians(1.5))
+    """Attitude error, 1 sigma, about north, east, down (tilt, tilt, heading), rad."""
+    attitude_tau_s: Vec3 = (1.0, 1.0, 5.0)
+    position_sigma_m: Vec3 = (0.1, 0.1, 0.15)
+    position_tau_s: Vec3 = (2.0, 2.0, 2.0)
+    velocity_sigma_m_s: Vec3 = (0.07, 0.07, 0.07)
+    velocity_tau_s: Vec3 = (1.0, 1.0, 1.0)
+    attitude_rate_hz: float | None = None
+    """``None``: at the IMU rate (one estimate per IMU sample, the caller's rate)."""
+    attitude_latency_s: float = 0.010
+    position_rate_hz: float = 50.0
+    position_latency_s: float = 0.030
+
+    def __post_init__(self) -> None:
+        for name, sig, tau in (
+            ("attitude", self.attitude_sigma_rad, self.attitude_tau_s),
+            ("position", self.position_sigma_m, self.position_tau_s),
+            ("velocity", self.velocity_sigma_m_s, self.velocity_tau_s),
+        ):
+            if not all(s >= 0.0 and math.isfinite(s) for s in sig):
+                raise ValueError(f"{name} sigma: expected finite values >= 0, got {sig!r}")
+            if not all(t > 0.0 and math.isfinite(t) for t in tau):
+                raise ValueError(f"{name}_tau_s: expected finite values > 0 s, got {tau!r}")
+        for name in ("attitude_latency_s", "position_latency_s"):
+            v = getattr(self, name)
+            if not (0.0 <= v <= 1.0):
+                raise ValueError(f"{name}: expected 0-1 s, got {v!r}")
+        for name in ("attitude_rate_hz", "position_rate_hz"):
+            v = getattr(self, name)
+            if v is not None and not (0.0 < v <= 10000.0):
+                raise ValueError(f"{name}: expected 0-10000 Hz, got {v!r}")
+
+
+EKF_GPS = EstimatorSpec()
+"""An EKF with GPS, baro and magnetometer (module docstring)."""
+
+PERFECT = EstimatorSpec(
+    attitude_sigma_rad=(0.0, 0.0, 0.0),
+    position_sigma_m=(0.0, 0.0, 0.0),
+    velocity_sigma_m_s=(0.0, 0.0, 0.0),
+    attitude_latency_s=0.0,
+    position_latency_s=0.0,
+)
+"""The truth, at 50 Hz for position (for comparisons)."""
+
+
+def estimator_seed_sequence(seed: int) -> np.random.SeedSequence:
+    """The estimator's seed sequence for a flight seed."""
+    return np.random.SeedSequence(seed, spawn_key=(_SEED_CHILD,))
+
+
+class GaussMarkov:
+    """Three independent first-order Gauss-Markov processes (module docstring).
+
+    ``step(dt_s)`` advances them and returns the new values; the first call
+    returns the stationary draw ``e_0``.
+    """
+
+    def __init__(self, sigma: Vec3, tau_s: Vec3, rng: np.random.Generator) -> None:
+        self._sigma = sigma
+        self._tau = tau_s
+        self._rng = rng
+        self._e: list[float] | None = None
+        self._dt = -1.0
+        self._a = (0.0, 0.0, 0.0)
+        self._b = (0.0, 0.0, 0.0)
+
+    def step(self, dt_s: float) -> Vec3:
+        n = self._rng.standard_normal(3)
+        s = self._sigma
+        if self._e is None:
+            e = [s[i] * float(n[i]) for i in range(3)]
+        else:
+            if dt_s != self._dt:
+                self._dt = dt_s
+                a = tuple(math.exp(-dt_s / t) for t in self._tau)
+                self._a = (a[0], a[1], a[2])
+                b = tuple(s[i] * math.sqrt(1.0 - a[i] * a[i]) for i in range(3))
+                self._b = (b[0], b[1], b[2])
+            p = self._e
+            e = [self._a[i] * p[i] + self._b[i] * float(n[i]) for i in range(3)]
+        self._e = e
+        return (e[0], e[1], e[2])
+
+
+def rotation_vector_quat(v: Vec3) -> Quat:
+    """The unit quaternion of rotation vector ``v`` (axis times angle, rad): ``exp(v/2)``."""
+    angle = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    if angle < 1e-12:
+        return (1.0, 0.5 * v[0], 0.5 * v[1], 0.5 * v[2])
+    s = math.sin(0.5 * angle) / angle
+    return (math.cos(0.5 * angle), s * v[0], s * v[1], s * v[2])
+
+
+@dataclass(frozen=True)
+class AttitudeEstimate:
+    """One ``ATTITUDE_QUATERNION`` as the model streams it."""
+
+    time_s: float
+    """When the state it estimates was (s), not when delivered."""
+    q_wxyz: Quat
+
+
+@dataclass(frozen=True)
+class PositionEstimate:
+    """One ``LOCAL_POSITION_NED`` as the model streams it."""
+
+    time_s: float
+    position_ned_m: Vec3
+    velocity_ned_m_s: Vec3
+
+
+class EstimatorModel:
+    """The truth to the estimator's two streams (module docstring).
+
+    Parameters
+    ----------
+    spec
+        Errors, rates, lags.
+    rng
+        Source of every error (:func:`estimator_seed_sequence`).
+    dt_s
+        The physics step between calls to :meth:`update`, s.
+    imu_rate_hz
+        The IMU's rate: the attitude stream's when ``spec.attitude_rate_hz`` is None.
+    """
+
+    def __init__(
+        self, spec: EstimatorSpec, *, rng: np.random.Generator, dt_s: float, imu_rate_hz: float
+    ) -> None:
+        if not (dt_s > 0.0 and math.isfinite(dt_s)):
+            raise ValueError(f"dt_s: expected a finite step > 0 s, got {dt_s!r}")
+        self.spec = spec
+        att_rate = spec.attitude_rate_hz if spec.attitude_rate_hz is not None else imu_rate_hz
+        self.attitude_period_s = 1.0 / att_rate
+        self.position_period_s = 1.0 / spec.position_rate_hz
+        # One generator each, so the attitude rate does not shift the position's numbers.
+        r_att, r_pos, r_vel = rng.spawn(3)
+        self._att_err = GaussMarkov(spec.attitude_sigma_rad, spec.attitude_tau_s, r_att)
+        self._pos_err = GaussMarkov(spec.position_sigma_m, spec.position_tau_s, r_pos)
+        self._vel_err = GaussMarkov(spec.velocity_sigma_m_s, spec.velocity_tau_s, r_vel)
+        self._eps_s = 0.5 * dt_s
+        self._next_att: float | None = None
+        self._next_pos: float | None = None
+        self._att_q: deque[AttitudeEstimate] = deque()
+        self._pos_q: deque[PositionEstimate] = deque()
+        self.attitude: AttitudeEstimate | None = None
+        """The newest attitude estimate delivered (None before the first)."""
+        self.position: PositionEstimate | None = None
+        """The newest position estimate delivered (None before the first)."""
+
+    def _due(self, t_s: float, nxt: float | None, period: float) -> tuple[bool, float | None]:
+        if nxt is not None and t_s < nxt - self._eps_s:
+            return False, nxt
+        new = (t_s if nxt is None else nxt) + period
+        while new <= t_s + self._eps_s:
+            new += period
+        return True, new
+
+    def update(self, state: VehicleState) -> tuple[bool, bool]:
+        """Feed the true state; returns whether a new attitude / position estimate
+        was delivered (then in :attr:`attitude` / :attr:`position`)."""
+        t = state.t_s
+        sp = self.spec
+        due, self._next_att = self._due(t, self._next_att, self.attitude_period_s)
+        if due:
+            e = self._att_err.step(self.attitude_period_s)
+            q = quat_mul(rotation_vector_quat(e), state.q_wxyz)
+            self._att_q.append(AttitudeEstimate(t, q))
+        due, self._next_pos = self._due(t, self._next_pos, self.position_period_s)
+        if due:
+            ep = self._pos_err.step(self.position_period_s)
+            ev = self._vel_err.step(self.position_period_s)
+            p, v = state.pos_ned_m, state.vel_ned_m_s
+            self._pos_q.append(
+                PositionEstimate(
+                    t,
+                    (p[0] + ep[0], p[1] + ep[1], p[2] + ep[2]),
+                    (v[0] + ev[0], v[1] + ev[1], v[2] + ev[2]),
+                )
+            )
+        new_att = new_pos = False
+        aq, pq = self._att_q, self._pos_q
+        while aq and aq[0].time_s + sp.attitude_latency_s <= t + self._eps_s:
+            self.attitude = aq.popleft()
+            new_att = True
+        while pq and pq[0].time_s + sp.position_latency_s <= t + self._eps_s:
+            self.position = pq.popleft()
+            new_pos = True
+        return new_att, new_pos

@@ -1,0 +1,682 @@
+r"""Fly the outer loops (attitude, vertical, horizontal) on the rate loop, in process.
+
+Issue #12, step two. The loop is :func:`sitl.lab.simulate.simulate_flight`'s on
+its ideal link (no link model here), with the pilot replaced by the outer loops:
+
+* the plant (:class:`sitl.physics.Quadrotor`, the scenario's wind) and the IMU as
+  there, from the same seed streams (:func:`sitl.lab.simulate.scenario_streams`);
+* the autopilot's estimator (:mod:`sitl.estimator_model`): the outer loops see
+  ``ATTITUDE_QUATERNION`` at the IMU rate and ``LOCAL_POSITION_NED`` at 50 Hz,
+  with an EKF's errors and lags, never the true state;
+* on each IMU sample: the outer loops (setpoint to body-rate reference and
+  collective), then the shipped rate controller through the same
+  :class:`companion.step.SampleStep` as ``companion run`` (built by
+  :func:`companion.config.build_controller`: the rate law is not re-implemented);
+  the gated actuator controls, mixed, are held until the next sample;
+* the landed state reaches the companion at :data:`companion.step.LANDED_STATE_RATE_HZ`
+  (``on_ground`` for the rate loop and the vertical loop).
+
+The loop is copied from ``simulate_flight`` rather than hooked into it (that file is
+not changed): the ideal-link branch only, about 30 lines.
+
+Take-off. The vehicle starts on the ground, disarmed until the first estimates
+arrive. It then engages with the outer loops reset at the idle collective
+(``reset(thrust=0)``, clamped to ``thrust_min``) and the default hover prior (0.3,
+not the vehicle's), and asks a 1 m/s climb: on its legs the vehicle does not
+move, so the vertical iP raises its collective until it lifts off (the loop's
+design, ``docs/research/outer.md``). While the companion is told the vehicle is
+landed, only the vertical loop runs: the rate loop is asked level and no rates,
+the attitude and horizontal loops are held reset (as PX4 holds its integrators on
+the ground). A vehicle on its legs cannot turn: left running, the attitude loop's
+output and the rate loop's torque grow on any attitude error until the mixer cuts
+the collective (to 0.525 on the X500), and a vehicle hovering above that never
+lifts off (seen on the X500 and the cut-prop F450 before this was done). After
+lift-off the altitude
+setpoint ramps at 1 m/s to the hold altitude, with the climb rate as feedforward.
+The scenario's own setpoints start at :attr:`OuterScenario.start_s`.
+
+Modes and scenarios (:data:`SCENARIOS`; Python definitions: the YAML
+:class:`sitl.scenario.Scenario` needs a pilot and has no setpoints):
+
+* ``angle``: stick-like attitude doublets (roll, pitch, then a heading turn) with
+  the altitude held by the vertical loop: the attitude loop alone with the vertical
+  loop's collective (PX4's "altitude" mode; no horizontal loop);
+* ``altitude``: altitude steps, position held;
+* ``position``: position hold in the paper's gusty wind; a 10 m square at 2 m/s
+  (moving position setpoint with the velocity as feedforward).
+
+Metrics (:func:`outer_metrics`), from the true state against the setpoints, over
+the scored part (from :attr:`OuterScenario.score_from_s`, less the first
+:attr:`OuterScenario.step_settle_s` after each altitude step): horizontal and
+vertical position RMS error (m), the same against the estimate, attitude MAE
+(deg: roll and pitch against what the attitude loop was asked; heading
+separately), the time the rate loop's mixer saturated an axis, the time the
+collective sat at a bound, and the crash (the plant's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.config import MfcConfig, PidConfig, build_controller, load_controller
+from companion.control.attitude import AttitudeSetpoint
+from companion.control.horizontal import HorizontalSetpoint
+from companion.control.outer import DEFAULT_OUTER_GAINS, OuterController, OuterGains, OuterSetpoint
+from companion.control.vertical import VerticalSetpoint
+from companion.profile import VehicleProfile, load_profile
+from companion.step import LANDED_STATE_RATE_HZ, SampleStep
+from sitl.estimator_model import (
+    EKF_GPS,
+    PERFECT,
+    EstimatorModel,
+    EstimatorSpec,
+    estimator_seed_sequence,
+)
+from sitl.frames import quat_to_euler_rad
+from sitl.imu import Imu
+from sitl.lab.simulate import scenario_streams
+from sitl.physics import Quadrotor
+from sitl.rotors import hover_motor_command
+from sitl.scenario import ImuOverride, WindSpec
+from sitl.wind import Wind
+
+__all__ = [
+    "MODES",
+    "PAPER_IMU",
+    "PAPER_WIND",
+    "SCENARIOS",
+    "VIBRATION_IMU",
+    "OuterFlight",
+    "OuterScenario",
+    "main",
+    "outer_metrics",
+    "simulate_outer_flight",
+]
+
+MODES = ("angle", "altitude", "position")
+
+PAPER_WIND = WindSpec(steady_ned_m_s=(2.0, 0.0, 0.0), gust_sigma_m_s=1.2, gust_length_m=30.0)
+"""``sitl/scenarios/paper-acro.yaml``'s wind: 2 m/s from the south, gusts sigma 1.2 m/s."""
+
+PAPER_IMU = ImuOverride(
+    rate_hz=250.0, gyro_noise_density_rad_s_sqrt_hz=1.0e-3, first_stage_filter_weight=0.3
+)
+"""``paper-acro.yaml``'s gyro: the paper's 250 Hz, vibration noise, its first-stage filter.
+Not the default here: the outer loops limit-cycle behind it (``docs/research/outer.md``,
+step two)."""
+
+VIBRATION_IMU = ImuOverride(gyro_noise_density_rad_s_sqrt_hz=1.0e-3)
+"""``hover-gusts.yaml``'s gyro: the profile's (1 kHz, unfiltered) with a small
+multirotor's vibration noise (about 1.8 deg/s RMS at 1 kHz) in place of the
+datasheet floor."""
+
+TAKEOFF_CLIMB_M_S = 1.0
+"""Climb rate asked on the ground and along the take-off ramp, m/s."""
+
+
+@dataclass(frozen=True)
+class Setpoints:
+    """What the scenario asks at one time: for :class:`OuterController` (position,
+    altitude modes) or the attitude loop with an altitude (angle mode)."""
+
+    up_m: float
+    climb_m_s: float = 0.0
+    position_ne_m: tuple[float, float] = (0.0, 0.0)
+    velocity_ne_m_s: tuple[float, float] = (0.0, 0.0)
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+
+
+def _hold(up_m: float) -> Callable[[float], Setpoints]:
+    return lambda _t: Setpoints(up_m)
+
+
+def _altitude_steps(
+    base_m: float, steps: Sequence[tuple[float, float]]
+) -> Callable[[float], Setpoints]:
+    """(time after start, altitude) pairs; ``base_m`` before the first."""
+
+    def sp(t: float) -> Setpoints:
+        up = base_m
+        for t_step, a in steps:
+            if t >= t_step:
+                up = a
+        return Setpoints(up)
+
+    return sp
+
+
+def _square(up_m: float, side_m: float, speed_m_s: float) -> Callable[[float], Setpoints]:
+    """Around a square from the origin, north, east, south, west, at a constant
+    speed (position setpoint moving, the velocity as feedforward); then hold."""
+    corners = ((0.0, 0.0), (side_m, 0.0), (side_m, side_m), (0.0, side_m), (0.0, 0.0))
+    leg_s = side_m / speed_m_s
+
+    def sp(t: float) -> Setpoints:
+        if t < 0.0 or t >= 4 * leg_s:
+            return Setpoints(up_m)
+        i = int(t // leg_s)
+        f = (t - i * leg_s) / leg_s
+        (n0, e0), (n1, e1) = corners[i], corners[i + 1]
+        vel = ((n1 - n0) / leg_s, (e1 - e0) / leg_s)
+        return Setpoints(up_m, position_ne_m=(n0 + f * (n1 - n0), e0 + f * (e1 - e0)),
+                         velocity_ne_m_s=vel)  # fmt: skip
+
+    return sp
+
+
+def _angle_sticks(up_m: float) -> Callable[[float], Setpoints]:
+    """Stick-like attitude doublets (symmetric, so the drift they cause cancels):
+    roll 15 deg right then left, pitch 15 deg down then up, a faster 25 deg roll
+    doublet, then a 90 deg heading turn and back; 1.5 s holds between."""
+    d15, d25 = math.radians(15.0), math.radians(25.0)
+    seq = (  # (duration s, roll, pitch, yaw)
+        (2.0, 0.0, 0.0, 0.0), (1.5, d15, 0.0, 0.0), (1.5, -d15, 0.0, 0.0),
+        (2.0, 0.0, 0.0, 0.0), (1.5, 0.0, -d15, 0.0), (1.5, 0.0, d15, 0.0),
+        (2.0, 0.0, 0.0, 0.0), (0.8, d25, 0.0, 0.0), (0.8, -d25, 0.0, 0.0),
+        (2.0, 0.0, 0.0, 0.0), (3.0, 0.0, 0.0, math.pi / 2), (3.0, 0.0, 0.0, 0.0),
+    )  # fmt: skip
+
+    def sp(t: float) -> Setpoints:
+        t0 = 0.0
+        for dur, r, p, y in seq:
+            if t < t0 + dur:
+                return Setpoints(up_m, roll_rad=r, pitch_rad=p, yaw_rad=y)
+            t0 += dur
+        return Setpoints(up_m)
+
+    return sp
+
+
+@dataclass(frozen=True)
+class OuterScenario:
+    """One outer-loop flight: what is asked, in what air, with which sensors."""
+
+    name: str
+    mode: str
+    description: str
+    duration_s: float
+    setpoints: Callable[[float], Setpoints] = field(repr=False)
+    """Setpoints against the time after :attr:`start_s`."""
+    hold_up_m: float = 5.0
+    """The take-off altitude (and the scenario's first)."""
+    start_s: float = 10.0
+    """When the scenario's own setpoints start (take-off before)."""
+    score_from_s: float = 14.0
+    """Metrics from this time on (flight time, s)."""
+    wind: WindSpec = PAPER_WIND
+    imu: ImuOverride = VIBRATION_IMU
+    estimator: EstimatorSpec = EKF_GPS
+    seed: int = 20200318
+    physics_dt_s: float = 0.001
+    step_times_s: tuple[float, ...] = ()
+    """Altitude steps (times after :attr:`start_s`): reach times are measured."""
+    step_settle_s: float = 5.0
+    """After each step, this long is left out of the position RMS (the hold part)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {self.mode!r}")
+        if not (self.score_from_s < self.duration_s):
+            raise ValueError("score_from_s: must be before the end of the flight")
+
+    def with_duration(self, duration_s: float) -> OuterScenario:
+        """The same scenario, shorter or longer (scoring kept where it was, or at
+        the last third when that is past the end)."""
+        score = self.score_from_s
+        if score >= duration_s:
+            score = duration_s * 2.0 / 3.0
+        return dataclasses.replace(self, duration_s=duration_s, score_from_s=score)
+
+
+_STEPS = ((0.0, 8.0), (10.0, 4.0), (20.0, 6.0))
+
+SCENARIOS: dict[str, OuterScenario] = {
+    s.name: s
+    for s in (
+        OuterScenario(
+            "angle-sticks", "angle",
+            "Attitude doublets (roll, pitch 15 and 25 deg, a 90 deg heading turn) at 5 m, "
+            "altitude held, in the paper's gusty wind.",
+            40.0, _angle_sticks(5.0), score_from_s=10.0,
+        ),
+        OuterScenario(
+            "altitude-steps", "altitude",
+            "Altitude 5 -> 8 -> 4 -> 6 m, 10 s apart, position held, in the paper's gusty wind.",
+            40.0, _altitude_steps(5.0, _STEPS), score_from_s=10.0,
+            step_times_s=tuple(t for t, _ in _STEPS),
+        ),
+        OuterScenario(
+            "position-hold", "position",
+            "Position hold at 5 m in the paper's gusty wind (2 m/s from the south, "
+            "gusts sigma 1.2 m/s).",
+            40.0, _hold(5.0),
+        ),
+        OuterScenario(
+            "square", "position",
+            "A 10 m square at 2 m/s (north, east, south, west) at 5 m, then a hold, "
+            "in the paper's gusty wind.",
+            40.0, _square(5.0, 10.0, 2.0), score_from_s=10.0,
+        ),
+    )
+}  # fmt: skip
+"""The bundled outer-loop scenarios, by name."""
+
+DEFAULT_SCENARIO = {
+    "angle": "angle-sticks",
+    "altitude": "altitude-steps",
+    "position": "position-hold",
+}
+
+
+@dataclass
+class OuterFlight:
+    """Per-IMU-sample columns of one flight, and what describes it (``meta``).
+
+    Columns: ``t_s``; ``pos_ned_m`` (n, 3) true; ``est_pos_ned_m`` (n, 3) the
+    estimate the loops flew on; ``euler_rad`` (n, 3) true;
+    ``sp_pos_ne_m`` (n, 2); ``sp_up_m``; ``sp_att_rad`` (n, 3) what the attitude
+    loop was asked (roll, pitch, heading); ``thrust`` collective asked of the rate
+    loop; ``thrust_applied`` the mixer's; ``rate_ref_rad_s``, ``gyro_rad_s``,
+    ``torque`` (n, 3) the rate loop's reference, measurement and realised torque;
+    ``hover_thrust`` the vertical loop's estimate; ``rate_sat`` any rate-loop axis
+    saturated; ``thrust_sat``; ``tilt_limited``; ``airborne``.
+    """
+
+    columns: dict[str, np.ndarray]
+    meta: dict[str, Any]
+
+
+def simulate_outer_flight(
+    plant: VehicleProfile,
+    rate_controller_cfg: MfcConfig | PidConfig,
+    scenario: OuterScenario,
+    *,
+    seed: int | None = None,
+    gains: OuterGains = DEFAULT_OUTER_GAINS,
+    duration_s: float | None = None,
+) -> OuterFlight:
+    """Fly ``scenario`` on ``plant``: the outer loops on the rate controller built
+    from ``rate_controller_cfg`` (module docstring).
+
+    Parameters
+    ----------
+    plant
+        The vehicle (its physics, and the profile the rate controller is given).
+    rate_controller_cfg
+        The rate loop (``companion.config.load_controller()``: the shipped one).
+    scenario
+        Mode, setpoints, duration, wind, IMU, estimator.
+    seed
+        Overrides ``scenario.seed``; everything random derives from it.
+    gains
+        The outer loops' gains (one set for every vehicle).
+    duration_s
+        Overrides the scenario's duration (flight time, s).
+    """
+    seed = scenario.seed if seed is None else seed
+    duration = scenario.duration_s if duration_s is None else duration_s
+    dt = scenario.physics_dt_s
+    rngs = scenario_streams(seed)
+    wind = Wind(scenario.wind.config(), rng=rngs["wind"])
+    quad = Quadrotor(plant, rng=rngs["plant"], dt_s=dt, test_stand=False, wind=wind)
+    imu = Imu(scenario.imu.apply(plant.physics.imu), rng=rngs["imu"], dt_s=dt)
+    est = EstimatorModel(
+        scenario.estimator,
+        rng=np.random.default_rng(estimator_seed_sequence(seed)),
+        dt_s=dt,
+        imu_rate_hz=imu.model.rate_hz,
+    )
+    controller = build_controller(rate_controller_cfg, plant)
+    step = SampleStep(controller, plant, output="actuator")
+    outer = OuterController(gains)
+    vert, att = outer.vertical, outer.attitude
+    angle_mode = scenario.mode == "angle"
+
+    n_motors = plant.n_motors
+    motors: tuple[float, ...] = (0.0,) * n_motors
+    landed_period = 1.0 / LANDED_STATE_RATE_HZ
+    next_landed = 0.0
+    on_ground = quad.state.landed
+    engaged = False
+    prev_sample_t: float | None = None
+    lift_off_t: float | None = None
+    applied: float | None = None
+
+    names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_up_m",
+             "sp_att_rad", "thrust", "thrust_applied", "rate_ref_rad_s", "gyro_rad_s", "torque",
+             "hover_thrust", "rate_sat", "thrust_sat", "tilt_limited", "airborne")  # fmt: skip
+    cols: dict[str, list[Any]] = {k: [] for k in names}
+
+    def setpoints(t: float) -> tuple[Setpoints, bool]:
+        """The setpoints at flight time ``t``, and whether the altitude is held
+        (False on the ground: a climb rate only)."""
+        if t >= scenario.start_s:
+            return scenario.setpoints(t - scenario.start_s), True
+        hold = scenario.hold_up_m
+        if lift_off_t is None:
+            return Setpoints(hold, climb_m_s=TAKEOFF_CLIMB_M_S), False
+        up = TAKEOFF_CLIMB_M_S * (t - lift_off_t)
+        if up >= hold:
+            return Setpoints(hold), True
+        return Setpoints(up, climb_m_s=TAKEOFF_CLIMB_M_S), True
+
+    def on_sample(t: float, gyro: tuple[float, float, float]) -> tuple[float, ...]:
+        nonlocal prev_sample_t, engaged, lift_off_t, applied
+        a, p = est.attitude, est.position
+        if a is None or p is None:
+            return (0.0,) * n_motors  # disarmed until the estimator streams
+        if not engaged:
+            engaged = True
+            outer.reset(thrust=0.0)
+            applied = None
+        sample_dt = t - prev_sample_t if prev_sample_t is not None else 0.0
+        prev_sample_t = t
+        if lift_off_t is None and not on_ground:
+            lift_off_t = t
+        sp, hold_alt = setpoints(t)
+        vsp = VerticalSetpoint(sp.climb_m_s, sp.up_m if hold_alt else None)
+        q = a.q_wxyz
+        tilt_limited = False
+        if on_ground or angle_mode:
+            cos_tilt = 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
+            thrust = vert.update(
+                sample_dt, p.position_ned_m[2], p.velocity_ned_m_s[2], vsp,
+                cos_tilt=cos_tilt, applied=applied,
+            )  # fmt: skip
+        if on_ground:
+            # On its legs the vehicle cannot turn: an attitude error would stay, and
+            # the attitude loop's output (and the rate loop's torque) would grow until
+            # the mixer cut the collective the vertical loop is raising. Level, no
+            # rates, the attitude and horizontal loops held reset (PX4 holds its
+            # integrators while landed).
+            outer.attitude.reset()
+            outer.horizontal.reset()
+            att_sp = AttitudeSetpoint(0.0, 0.0, sp.yaw_rad)
+            rate_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        elif angle_mode:
+            att_sp = AttitudeSetpoint(sp.roll_rad, sp.pitch_rad, sp.yaw_rad)
+            rate_ref = att.update(sample_dt, q, gyro, att_sp)
+        else:
+            hsp = HorizontalSetpoint(sp.velocity_ne_m_s, sp.position_ne_m)
+            o = outer.update(
+                sample_dt, q, gyro, p.position_ned_m, p.velocity_ned_m_s,
+                OuterSetpoint(hsp, vsp, sp.yaw_rad), applied_thrust=applied,
+            )  # fmt: skip
+            rate_ref, thrust = o.rate_ref_frd_rad_s, o.thrust
+            att_sp = o.attitude_setpoint
+            tilt_limited = o.tilt_limited
+        out = step.sample(sample_dt, gyro, rate_ref, thrust)
+        (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, thrust)
+        sent = (
+            controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
+            if replaced
+            else out.motors
+        )
+        applied = out.thrust
+        step.learn()
+        st = quad.state
+        cols["t_s"].append(t)
+        cols["pos_ned_m"].append(st.pos_ned_m)
+        cols["est_pos_ned_m"].append(p.position_ned_m)
+        cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
+        cols["sp_pos_ne_m"].append(sp.position_ne_m)
+        cols["sp_up_m"].append(sp.up_m if hold_alt else math.nan)
+        yaw_sp = att_sp.yaw_rad if att_sp.yaw_rad is not None else math.nan
+        cols["sp_att_rad"].append((att_sp.roll_rad, att_sp.pitch_rad, yaw_sp))
+        cols["thrust"].append(thrust)
+        cols["thrust_applied"].append(out.thrust)
+        cols["rate_ref_rad_s"].append(rate_ref)
+        cols["gyro_rad_s"].append(gyro)
+        cols["torque"].append(out.torque)
+        cols["hover_thrust"].append(vert.hover_thrust)
+        cols["rate_sat"].append(any(out.saturated_axes))
+        cols["thrust_sat"].append(vert.saturated)
+        cols["tilt_limited"].append(tilt_limited)
+        cols["airborne"].append(not st.landed)
+        return sent
+
+    wall0 = time.perf_counter()
+    crashed_at: float | None = None
+    n_steps = round(duration / dt)
+    for _ in range(n_steps):
+        t = quad.t_s
+        st = quad.state
+        est.update(st)
+        sample = imu.update(t, st.rate_frd_rad_s, st.specific_force_frd_m_s2)
+        if sample is not None:
+            motors = on_sample(sample.time_s, sample.gyro_frd_rad_s)
+            if sample.time_s >= next_landed - 1e-12:
+                on_ground = st.landed
+                controller.on_ground = on_ground
+                vert.on_ground = on_ground
+                next_landed += landed_period
+        quad.step(motors)
+        if quad.crashed:
+            crashed_at = quad.t_s
+            break
+    wall = time.perf_counter() - wall0
+    columns = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
+    for k in ("rate_sat", "thrust_sat", "tilt_limited", "airborne"):
+        columns[k] = columns[k].astype(bool)
+    meta: dict[str, Any] = {
+        "profile": plant.name,
+        "scenario": scenario.name,
+        "mode": scenario.mode,
+        "seed": seed,
+        "duration_s": duration,
+        "sim_time_s": quad.t_s,
+        "wall_time_s": wall,
+        "crashed": quad.crashed,
+        "crashed_at_s": crashed_at,
+        "lift_off_s": lift_off_t,
+        "imu_rate_hz": imu.model.rate_hz,
+        "hover_motor_command": hover_motor_command(plant),
+        "hover_thrust_estimate": vert.hover_thrust,
+        "outer_nonfinite_events": att.nonfinite_events
+        + vert.nonfinite_events
+        + outer.horizontal.nonfinite_events,
+        "rate_nonfinite_events": controller.nonfinite_events,
+    }
+    return OuterFlight(columns, meta)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any]:
+    """The flight's figures over its scored part (module docstring).
+
+    ``pos_rms_h_m`` (None in angle mode: nothing holds the position),
+    ``pos_rms_v_m``, ``pos_max_h_m`` (the true position against the setpoint);
+    ``est_rms_h_m``, ``est_rms_v_m`` (the estimate flown on against the setpoint:
+    the loops' own error, without the estimator's); ``att_mae_deg`` (roll and pitch, mean of
+    both), ``yaw_mae_deg``, ``rate_sat_s``, ``thrust_sat_s``, ``tilt_limited_s``,
+    ``crashed``, ``crashed_at_s``; for altitude steps ``step_reach_s``: per step,
+    the time after it to come within 10 % of its size of the new altitude
+    (None: never).
+    """
+    c, m = flight.columns, flight.meta
+    t = c["t_s"]
+    out: dict[str, Any] = {
+        "profile": m["profile"], "scenario": m["scenario"], "mode": m["mode"],
+        "seed": m["seed"], "crashed": bool(m["crashed"]), "crashed_at_s": m["crashed_at_s"],
+        "lift_off_s": m["lift_off_s"], "hover_thrust_estimate": m["hover_thrust_estimate"],
+        "hover_motor_command": m["hover_motor_command"],
+    }  # fmt: skip
+    sel = t >= scenario.score_from_s
+    for ts in scenario.step_times_s:
+        t0 = scenario.start_s + ts
+        sel &= ~((t >= t0) & (t < t0 + scenario.step_settle_s))
+    if len(t) < 2 or not sel.any():
+        for k in ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "est_rms_h_m", "est_rms_v_m"):
+            out[k] = None
+        for k in ("att_mae_deg", "yaw_mae_deg"):
+            out[k] = None
+        out.update(rate_sat_s=None, thrust_sat_s=None, tilt_limited_s=None, step_reach_s=None)
+        return out
+    dt_s = float(np.median(np.diff(t)))
+    pos = c["pos_ned_m"][sel]
+    dn = pos[:, 0] - c["sp_pos_ne_m"][sel, 0]
+    de = pos[:, 1] - c["sp_pos_ne_m"][sel, 1]
+    dv = -pos[:, 2] - c["sp_up_m"][sel]
+    h = np.hypot(dn, de)
+    angle = m["mode"] == "angle"
+    out["pos_rms_h_m"] = None if angle else float(np.sqrt(np.mean(h * h)))
+    out["pos_max_h_m"] = None if angle else float(h.max())
+    out["pos_rms_v_m"] = float(np.sqrt(np.nanmean(dv * dv)))
+    # The loops' own error: the estimate they flew on against the setpoint.
+    est = c["est_pos_ned_m"][sel]
+    en = est[:, 0] - c["sp_pos_ne_m"][sel, 0]
+    ee = est[:, 1] - c["sp_pos_ne_m"][sel, 1]
+    ev = -est[:, 2] - c["sp_up_m"][sel]
+    out["est_rms_h_m"] = None if angle else float(np.sqrt(np.mean(en * en + ee * ee)))
+    out["est_rms_v_m"] = float(np.sqrt(np.nanmean(ev * ev)))
+    e = c["euler_rad"][sel]
+    sp = c["sp_att_rad"][sel]
+    err = np.abs(_wrap(e - sp))
+    out["att_mae_deg"] = float(np.degrees(np.mean(err[:, :2])))
+    out["yaw_mae_deg"] = float(np.degrees(np.nanmean(err[:, 2])))
+    out["rate_sat_s"] = float(c["rate_sat"][sel].sum() * dt_s)
+    out["thrust_sat_s"] = float(c["thrust_sat"][sel].sum() * dt_s)
+    out["tilt_limited_s"] = float(c["tilt_limited"][sel].sum() * dt_s)
+    reach: list[float | None] = []
+    up = -c["pos_ned_m"][:, 2]
+    for ts in scenario.step_times_s:
+        t0 = scenario.start_s + ts
+        i0 = int(np.searchsorted(t, t0))
+        if i0 >= len(t):
+            reach.append(None)
+            continue
+        target = c["sp_up_m"][i0]
+        size = abs(target - c["sp_up_m"][max(i0 - 1, 0)]) or abs(target - up[i0])
+        within = np.nonzero(np.abs(up[i0:] - target) <= 0.1 * size)[0]
+        reach.append(float(t[i0 + within[0]] - t0) if len(within) else None)
+    out["step_reach_s"] = reach or None
+    return out
+
+
+_ROOT = Path(__file__).resolve().parents[2]
+TABLE_PROFILES = ("f450", "f450_cut_props", "tarot650", "x500")
+
+
+def _profile(name: str) -> VehicleProfile:
+    p = Path(name)
+    if not (p.suffix in (".yaml", ".yml") or p.exists()):
+        for base in (Path("vehicle_profiles"), _ROOT / "vehicle_profiles"):
+            if (base / f"{name}.yaml").exists():
+                p = base / f"{name}.yaml"
+                break
+    return load_profile(p, simulated=True)
+
+
+def _fmt(x: Any, spec: str = ".2f") -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
+    """The vehicle x scenario table (markdown) from :func:`outer_metrics` rows."""
+    lines = [
+        "| vehicle | scenario | pos RMS h, m | pos RMS v, m | pos max h, m | vs estimate h / v, m "
+        "| att MAE, deg | yaw MAE, deg | rate sat, s | thrust sat, s | step reach, s "
+        "| hover est. | crash |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        reach = r.get("step_reach_s")
+        reach_s = "-" if not reach else " / ".join(_fmt(x, ".1f") for x in reach)
+        crash = f"at {r['crashed_at_s']:.1f} s" if r["crashed"] else "no"
+        lines.append(
+            f"| {r['profile']} | {r['scenario']} | {_fmt(r['pos_rms_h_m'])} "
+            f"| {_fmt(r['pos_rms_v_m'])} | {_fmt(r['pos_max_h_m'])} "
+            f"| {_fmt(r['est_rms_h_m'])} / {_fmt(r['est_rms_v_m'])} | {_fmt(r['att_mae_deg'])} "
+            f"| {_fmt(r['yaw_mae_deg'])} | {_fmt(r['rate_sat_s'], '.1f')} "
+            f"| {_fmt(r['thrust_sat_s'], '.1f')} | {reach_s} "
+            f"| {_fmt(r['hover_thrust_estimate'], '.3f')} | {crash} |"
+        )
+    return "\n".join(lines)
+
+
+def _variant(sc: OuterScenario, args: argparse.Namespace) -> OuterScenario:
+    if args.paper_imu:
+        sc = dataclasses.replace(sc, imu=PAPER_IMU)
+    if args.perfect_estimator:
+        sc = dataclasses.replace(sc, estimator=PERFECT)
+    return sc
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m sitl.lab.outer_flight``: one flight's metrics as JSON, or
+    (``--table``) every bundled scenario on the paper's four vehicles as markdown."""
+    ap = argparse.ArgumentParser(
+        prog="python -m sitl.lab.outer_flight", description=__doc__.split("\n")[0]
+    )
+    ap.add_argument("--profile", default="f450", help="a vehicle_profiles name or a profile path")
+    ap.add_argument(
+        "--mode", choices=MODES, default=None, help="default: position (or the scenario's)"
+    )
+    ap.add_argument(
+        "--scenario",
+        choices=sorted(SCENARIOS),
+        default=None,
+        help="default: the mode's (angle-sticks, altitude-steps, position-hold)",
+    )
+    ap.add_argument("--duration", type=float, default=None, help="flight time, s")
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--controller", default=None, help="rate-loop config (default: shipped)")
+    ap.add_argument(
+        "--table",
+        action="store_true",
+        help="all scenarios on f450, f450_cut_props, tarot650, x500 (markdown)",
+    )
+    ap.add_argument(
+        "--paper-imu",
+        action="store_true",
+        help="fly behind paper-acro's gyro (250 Hz, first-stage filter 0.3) instead",
+    )
+    ap.add_argument(
+        "--perfect-estimator",
+        action="store_true",
+        help="fly on the true state (at the estimator's rates, no errors, no lag)",
+    )
+    args = ap.parse_args(argv)
+    cfg = load_controller(args.controller) if args.controller else load_controller()
+    if args.table:
+        rows = []
+        for prof in TABLE_PROFILES:
+            plant = _profile(prof)
+            for sc in SCENARIOS.values():
+                s = sc if args.duration is None else sc.with_duration(args.duration)
+                s = _variant(s, args)
+                fl = simulate_outer_flight(plant, cfg, s, seed=args.seed)
+                rows.append(outer_metrics(fl, s))
+        sys.stdout.write(table_markdown(rows) + "\n")
+        return 0
+    sc = SCENARIOS[args.scenario or DEFAULT_SCENARIO[args.mode or "position"]]
+    if args.mode is not None and sc.mode != args.mode:
+        ap.error(f"--scenario {sc.name} is a {sc.mode} scenario, not {args.mode}")
+    if args.duration is not None:
+        sc = sc.with_duration(args.duration)
+    sc = _variant(sc, args)
+    fl = simulate_outer_flight(_profile(args.profile), cfg, sc, seed=args.seed)
+    res = outer_metrics(fl, sc)
+    res["wall_time_s"] = fl.meta["wall_time_s"]
+    sys.stdout.write(json.dumps(res, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

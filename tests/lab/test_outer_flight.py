@@ -1,0 +1,239 @@
+"""The outer loops flown in the lab (sitl/lab/outer_flight.py) and the estimator model
+(sitl/estimator_model.py) they fly on.
+
+Flights are short (8-20 s of the bundled scenarios) to keep this file well under
+30 s on a loaded 2-core machine; the full-length figures are in
+``docs/research/outer.md`` ("Flown in the lab").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.config import MfcConfig, PidConfig, load_controller
+from companion.control.quaternion import quat_conj, quat_log, quat_mul
+from companion.profile import VehicleProfile, load_profile
+from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
+from sitl.frames import euler_to_quat
+from sitl.lab.outer_flight import SCENARIOS, main, outer_metrics, simulate_outer_flight
+from sitl.physics import VehicleState
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@functools.cache
+def _f450() -> VehicleProfile:
+    return load_profile(ROOT / "vehicle_profiles" / "f450.yaml", simulated=True)
+
+
+@functools.cache
+def _rate_cfg() -> MfcConfig | PidConfig:
+    return load_controller()
+
+
+# --- the estimator model ---------------------------------------------------------------
+
+STATS_T_S = 1500.0
+STATS_DT_S = 0.02
+STATS_TOLERANCE = 0.15
+"""Relative, on each component's sample standard deviation. For a Gauss-Markov
+process observed over T, the sample variance has a relative standard error of
+about sqrt(2 tau / T), so the standard deviation about sqrt(tau / (2 T)): 4.1 % for
+the slowest (heading, tau 5 s) over 1500 s, 1.8 % for tau 1 s. 15 % is over three
+and a half standard errors for every component: a wrong sigma (or a sigma applied
+per step instead of stationary: smaller by a factor of up to 10) fails; seeded,
+the run is fixed anyway."""
+
+
+def _truth(t_s: float, q: tuple[float, float, float, float]) -> VehicleState:
+    return VehicleState(
+        t_s, (1.0, -2.0, -5.0), (0.5, 0.0, -0.2), q, (0.0, 0.0, 0.0), (), (0.0, 0.0, -9.8),
+        False, False,
+    )  # fmt: skip
+
+
+def _estimator_errors(
+    spec: EstimatorSpec, seed: int, t_end_s: float = STATS_T_S, dt_s: float = STATS_DT_S
+) -> tuple[np.ndarray, ...]:
+    """Run the model against a still truth (tilted, turned) on a ``dt_s`` grid; the
+    errors of every delivered estimate, and the delivery times against the stamps."""
+    q_true = euler_to_quat(0.2, -0.1, 1.0)
+    est = EstimatorModel(
+        spec,
+        rng=np.random.default_rng(estimator_seed_sequence(seed)),
+        dt_s=dt_s,
+        imu_rate_hz=1.0 / dt_s,
+    )
+    att, pos, vel, lag_att, lag_pos = [], [], [], [], []
+    for k in range(round(t_end_s / dt_s)):
+        t = k * dt_s
+        new_att, new_pos = est.update(_truth(t, q_true))
+        if new_att and est.attitude is not None:
+            # The error rotation, in the world frame: q_est = exp(e/2) q_true.
+            err = quat_mul(est.attitude.q_wxyz, quat_conj(q_true))
+            att.append(quat_log(err))
+            lag_att.append(t - est.attitude.time_s)
+        if new_pos and est.position is not None:
+            pos.append(np.subtract(est.position.position_ned_m, (1.0, -2.0, -5.0)))
+            vel.append(np.subtract(est.position.velocity_ned_m_s, (0.5, 0.0, -0.2)))
+            lag_pos.append(t - est.position.time_s)
+    return tuple(np.asarray(x) for x in (att, pos, vel, lag_att, lag_pos))
+
+
+def test_estimator_noise_matches_its_documented_figures() -> None:
+    """Each error component's spread is the documented sigma (within STATS_TOLERANCE),
+    zero mean. (Latencies on this 20 ms grid: whole steps, so the 10 and 30 ms of
+    the figures are not asked here; the next test flies them on 1 ms.)"""
+    spec = dataclasses.replace(EKF_GPS, attitude_latency_s=0.02, position_latency_s=0.04)
+    att, pos, vel, _, _ = _estimator_errors(spec, seed=12)
+    for name, err, sigma, tau in (
+        ("attitude", att, spec.attitude_sigma_rad, spec.attitude_tau_s),
+        ("position", pos, spec.position_sigma_m, spec.position_tau_s),
+        ("velocity", vel, spec.velocity_sigma_m_s, spec.velocity_tau_s),
+    ):
+        np.testing.assert_allclose(err.std(axis=0), sigma, rtol=STATS_TOLERANCE, err_msg=name)
+        # The mean of a Gauss-Markov process over T has a standard error of
+        # sigma sqrt(2 tau / T): allow 4 of them.
+        bound = 4.0 * np.asarray(sigma) * np.sqrt(2.0 * np.asarray(tau) / STATS_T_S)
+        assert np.all(np.abs(err.mean(axis=0)) < bound), name
+    # One position estimate per 20 ms, none lost.
+    assert len(pos) == pytest.approx(STATS_T_S * spec.position_rate_hz, abs=3)
+
+
+def test_estimator_rates_and_latencies_on_the_physics_step() -> None:
+    """On the lab's 1 ms step: attitude at the IMU rate (here 250 Hz) 10 ms late,
+    position and velocity at 50 Hz 30 ms late."""
+    q = euler_to_quat(0.0, 0.0, 0.0)
+    est = EstimatorModel(EKF_GPS, rng=np.random.default_rng(1), dt_s=0.001, imu_rate_hz=250.0)
+    n_att = n_pos = 0
+    for k in range(2000):
+        t = k * 0.001
+        new_att, new_pos = est.update(_truth(t, q))
+        if new_att and est.attitude is not None:
+            n_att += 1
+            assert t - est.attitude.time_s == pytest.approx(0.010, abs=1e-9)
+        if new_pos and est.position is not None:
+            n_pos += 1
+            assert t - est.position.time_s == pytest.approx(0.030, abs=1e-9)
+    assert n_att == pytest.approx(2.0 * 250.0, abs=3)
+    assert n_pos == pytest.approx(2.0 * 50.0, abs=2)
+
+
+def test_estimator_is_seeded_and_perfect_is_the_truth() -> None:
+    a = _estimator_errors(EKF_GPS, seed=3, t_end_s=20.0)
+    b = _estimator_errors(EKF_GPS, seed=3, t_end_s=20.0)
+    for x, y in zip(a, b, strict=True):
+        assert np.array_equal(x, y)
+    c = _estimator_errors(EKF_GPS, seed=4, t_end_s=20.0)
+    assert not np.array_equal(a[1], c[1])
+    zero = EstimatorSpec(
+        attitude_sigma_rad=(0.0, 0.0, 0.0),
+        position_sigma_m=(0.0, 0.0, 0.0),
+        velocity_sigma_m_s=(0.0, 0.0, 0.0),
+    )
+    att, pos, vel, _, _ = _estimator_errors(zero, seed=3, t_end_s=20.0)
+    assert np.abs(att).max() < 1e-12
+    assert np.abs(pos).max() < 1e-12
+    assert np.abs(vel).max() < 1e-12
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"position_sigma_m": (-0.1, 0.1, 0.1)},
+        {"velocity_tau_s": (0.0, 1.0, 1.0)},
+        {"position_latency_s": 2.0},
+        {"position_rate_hz": 0.0},
+    ],
+)
+def test_estimator_spec_rejects_bad_figures(bad: dict[str, object]) -> None:
+    with pytest.raises(ValueError):
+        EstimatorSpec(**bad)  # type: ignore[arg-type]
+
+
+# --- flights ---------------------------------------------------------------------------
+
+
+def test_same_seed_same_flight_bit_for_bit() -> None:
+    sc = SCENARIOS["position-hold"].with_duration(6.0)
+    a = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=5)
+    b = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=5)
+    assert a.columns.keys() == b.columns.keys()
+    for k in a.columns:
+        assert np.array_equal(a.columns[k], b.columns[k], equal_nan=True), k
+    ma, mb = outer_metrics(a, sc), outer_metrics(b, sc)
+    assert json.dumps(ma, sort_keys=True) == json.dumps(mb, sort_keys=True)
+    c = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=6)
+    assert not np.array_equal(a.columns["pos_ned_m"], c.columns["pos_ned_m"])
+
+
+POSITION_HOLD_S = 20.0
+POSITION_RMS_BOUND_M = 0.4
+ALTITUDE_RMS_BOUND_M = 0.5
+"""Measured over 14-20 s, seed 20200318: 0.20 m horizontal RMS (max 0.24 m), 0.18 m
+vertical RMS, with ``python -m sitl.lab.outer_flight --profile f450 --mode position
+--duration 20`` (the scenario's seed). The bounds are twice the horizontal and
+near three times the vertical figure: regression checks, not specifications
+(nearly all of it is the estimate's own 0.1 m / 0.15 m errors: on the true state
+the same 40 s hold gives 0.016 m). A limit cycle (tens of degrees of tilt) or a
+loop that does not hold gives metres."""
+
+
+def test_f450_holds_position_in_the_papers_gusty_wind() -> None:
+    sc = SCENARIOS["position-hold"].with_duration(POSITION_HOLD_S)
+    fl = simulate_outer_flight(_f450(), _rate_cfg(), sc)
+    m = outer_metrics(fl, sc)
+    assert not m["crashed"]
+    assert m["lift_off_s"] is not None and m["lift_off_s"] < 3.0
+    assert m["pos_rms_h_m"] < POSITION_RMS_BOUND_M
+    assert m["pos_rms_v_m"] < ALTITUDE_RMS_BOUND_M
+    # It really took off and climbed to the hold altitude (5 m).
+    assert -fl.columns["pos_ned_m"][-1, 2] == pytest.approx(5.0, abs=0.5)
+
+
+STEP_REACH_BOUND_S = 6.0
+"""Measured 4.3 s for the 5 -> 8 m step (within 10 % of its 3 m, seed 20200318):
+``python -m sitl.lab.outer_flight --profile f450 --mode altitude --duration 18``.
+The altitude loop's 0.6 1/s is a 1.7 s time constant: ln(10) x 1.7 = 3.8 s to
+10 % on an ideal climb-rate loop, plus that loop's own lag."""
+
+
+def test_f450_altitude_step_reaches_the_new_altitude_in_time() -> None:
+    sc = SCENARIOS["altitude-steps"].with_duration(18.0)
+    fl = simulate_outer_flight(_f450(), _rate_cfg(), sc)
+    m = outer_metrics(fl, sc)
+    assert not m["crashed"]
+    reach = m["step_reach_s"][0]
+    assert reach is not None and reach < STEP_REACH_BOUND_S
+    t = fl.columns["t_s"]
+    up = -fl.columns["pos_ned_m"][:, 2]
+    assert np.all(np.abs(up[t > 17.0] - 8.0) < 0.4)
+
+
+def test_entry_prints_metrics_as_json(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--profile", "f450", "--mode", "angle", "--duration", "3", "--seed", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["mode"] == "angle"
+    assert out["crashed"] is False
+    assert out["pos_rms_h_m"] is None  # nothing holds the position in angle mode
+
+
+def test_a_vehicle_hovering_near_0_7_lifts_off() -> None:
+    """The X500 hovers at 0.69: with the attitude loop left running on the ground it
+    never lifted off (the mixer cut the collective to 0.525 for the torques an
+    attitude error on its legs asked); held level with no rates while landed, it
+    does (measured: lift-off at 2.0 s, ``python -m sitl.lab.outer_flight --profile
+    x500 --duration 6 --seed 1``)."""
+    x500 = load_profile(ROOT / "vehicle_profiles" / "x500.yaml", simulated=True)
+    sc = SCENARIOS["position-hold"].with_duration(6.0)
+    fl = simulate_outer_flight(x500, _rate_cfg(), sc, seed=1)
+    m = outer_metrics(fl, sc)
+    assert not m["crashed"]
+    assert m["lift_off_s"] is not None and m["lift_off_s"] < 3.0
+    assert -fl.columns["pos_ned_m"][-1, 2] > 1.5
