@@ -112,7 +112,7 @@ class AttitudeGains:
     yaw_weight: float = 0.4
     rate_max_roll_pitch_rad_s: float = math.radians(220.0)
     rate_max_yaw_rad_s: float = math.radians(150.0)
-    window_s: float = 0.02
+    window_s: float = 0.1
     inner_lag_s: float = 0.08
 
     def __post_init__(self) -> None:
