@@ -152,8 +152,10 @@ def _run_case(job: tuple[EnvelopeSetup, EnvelopeCase]) -> dict[str, Any]:
 
     # The limit: the oracle that knows the plant and sees its true state, on the
     # same test flight (sitl.lab.oracle).
-    om = oracle_flight(case.profile, setup.test)
-    oracle = {k: om[k] for k in ("mae_deg_s", "crashed", "crashed_at_s", "sim_time_s")}
+    oracle: dict[str, Any] | None = None
+    if setup.oracle:
+        om = oracle_flight(case.profile, setup.test)
+        oracle = {k: om[k] for k in ("mae_deg_s", "crashed", "crashed_at_s", "sim_time_s")}
     feasible = True
     if any(f["crashed"] for f in flights.values()):
         # Could any controller have flown it? The oracle that may also set the
@@ -169,7 +171,11 @@ def _run_case(job: tuple[EnvelopeSetup, EnvelopeCase]) -> dict[str, Any]:
         "ratio_mfc_tuned": {a: _ratio(mae["mfc"][a], mae["pid_tuned"][a]) for a in AXES},
         "ratio_mfc_default": {a: _ratio(mae["mfc"][a], mae["pid_default"][a]) for a in AXES},
         "oracle": oracle,
-        "ratio_mfc_oracle": {a: _ratio(mae["mfc"][a], oracle["mae_deg_s"][a]) for a in AXES},
+        "ratio_mfc_oracle": (
+            None
+            if oracle is None
+            else {a: _ratio(mae["mfc"][a], oracle["mae_deg_s"][a]) for a in AXES}
+        ),
         "tuned_gains": dict(result.params),
         "tune": {
             "flights": result.flights,
@@ -199,6 +205,7 @@ def case_ids(cases: Sequence[EnvelopeCase], setup: EnvelopeSetup) -> list[str]:
             "test": setup.test.model_dump(mode="json"),
             "tune_budget": setup.tune_budget,
             "seed": setup.seed,
+            "oracle": setup.oracle,
         }
     )
     return [

@@ -92,6 +92,10 @@ class EnvelopeSetup:
         Flights per tuning run, the start point's included.
     seed
         Seeds every tuning search.
+    oracle
+        Also fly the oracle on the test scenario (the limit each case is read
+        against; the campaign's default). Off, a record's ``oracle`` and
+        ``ratio_mfc_oracle`` are None.
     """
 
     mfc: MfcConfig
@@ -101,6 +105,7 @@ class EnvelopeSetup:
     test: Scenario
     tune_budget: int = 40
     seed: int = 1
+    oracle: bool = True
 
     def __post_init__(self) -> None:
         held_out = TEST_SCENARIOS | {ENVELOPE_TEST_SCENARIO, self.test.name}
