@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 
 # The product's own (companion may not import sitl; sitl shares these with it).
-from companion.control.quaternion import quat_conj, quat_mul
+from companion.control.quaternion import euler_to_quat, quat_conj, quat_mul
 
 __all__ = [
     "Quat",
@@ -106,19 +106,6 @@ def quat_to_euler_rad(q: Quat) -> Vec3:
     pitch = math.asin(max(-1.0, min(1.0, s)))
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return (roll, pitch, yaw)
-
-
-def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Quat:
-    """Unit quaternion of the ZYX sequence: ``q = q_z(yaw) ⊗ q_y(pitch) ⊗ q_x(roll)``."""
-    cr, sr = math.cos(0.5 * roll_rad), math.sin(0.5 * roll_rad)
-    cp, sp = math.cos(0.5 * pitch_rad), math.sin(0.5 * pitch_rad)
-    cy, sy = math.cos(0.5 * yaw_rad), math.sin(0.5 * yaw_rad)
-    return (
-        cr * cp * cy + sr * sp * sy,
-        sr * cp * cy - cr * sp * sy,
-        cr * sp * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp * cy,
-    )
 
 
 def tilt_rad(q: Quat) -> float:
