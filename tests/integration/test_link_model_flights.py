@@ -73,8 +73,10 @@ def test_a_5_ms_link_hands_each_command_over_10_ms_after_its_sample(tmp_path: Pa
     summary = flight.sitl_summary
     assert summary["link"] == "custom (5+-0 ms up, 5+-0 ms down)"
     age = summary["setpoint_age_ms"]
-    # Sample at t, at the companion at t + 5 ms, its command back at t + 10 ms.
-    assert age["n"] == duration_s * RATE_HZ
+    # Sample at t, at the companion at t + 5 ms, its command back at t + 10 ms: every
+    # one. How many the engaged second holds varies by a few samples at its edges
+    # (250 on a quiet machine, 255 seen in a fresh-clone CI run under load).
+    assert abs(age["n"] - duration_s * RATE_HZ) <= 0.05 * duration_s * RATE_HZ, age
     assert age["mean"] == pytest.approx(10.0, abs=1e-6)
     assert age["max"] == pytest.approx(10.0, abs=1e-6)
     assert _timeouts_before_the_end(flight) == []
