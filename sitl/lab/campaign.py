@@ -45,7 +45,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -62,6 +62,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CAMPAIGN_FILES",
     "FlightSpec",
+    "Grid",
     "build_grid",
     "damaged_profile",
     "fly_one",
@@ -169,6 +170,33 @@ def iter_grid(
                         yield FlightSpec(
                             pname, vehicle, float(dmg), float(gust), int(seed), cname, cfg, sc
                         )
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A campaign's grid, expanded lazily: each iteration builds its specs one at a
+    time (:func:`iter_grid`), in the same order, and ``len`` is the product of the
+    axes' lengths. A grid of a million seeds holds its axes, not its flights."""
+
+    profiles: dict[str, VehicleProfile]
+    controllers: dict[str, MfcConfig | PidConfig]
+    scenario: Scenario
+    damages: Sequence[float] = (1.0, 0.8, 0.6)
+    gusts_m_s: Sequence[float] = (0.0, 2.0)
+    seeds: Sequence[int] = (1000, 1001, 1002)
+    duration_s: float | None = None
+
+    def __iter__(self) -> Iterator[FlightSpec]:
+        return iter_grid(
+            self.profiles, self.controllers, self.scenario, damages=self.damages,
+            gusts_m_s=self.gusts_m_s, seeds=self.seeds, duration_s=self.duration_s,
+        )  # fmt: skip
+
+    def __len__(self) -> int:
+        return (
+            len(self.profiles) * len(self.damages) * len(self.gusts_m_s) * len(self.seeds)
+            * len(self.controllers)
+        )  # fmt: skip
 
 
 def build_grid(
@@ -283,12 +311,24 @@ def oracle_limit(spec: FlightSpec) -> dict[str, Any]:
     return {"mae_deg_s": m["mae_deg_s"], "crashed": m["crashed"]}
 
 
+def _first_unseen(
+    specs: Iterable[FlightSpec], keys: Iterable[str], seen: set[str], sent: list[str]
+) -> Iterator[FlightSpec]:
+    """The first spec of each key not in ``seen``, lazily; each one's key is appended
+    to ``sent`` as it is handed out (so an outcome's index names its key)."""
+    for spec, key in zip(specs, keys):
+        if key not in seen:
+            seen.add(key)
+            sent.append(key)
+            yield spec
+
+
 def _is_crash(record: dict[str, Any]) -> bool:
     return record.get("crashed") is True
 
 
 def run_campaign(
-    specs: Sequence[FlightSpec],
+    specs: Grid | Sequence[FlightSpec],
     *,
     workers: int | None = 2,
     progress: bool = True,
@@ -308,7 +348,9 @@ def run_campaign(
     Parameters
     ----------
     specs
-        The grid (:func:`build_grid`).
+        The grid: a :class:`Grid` (expanded lazily, a few passes over it) or a
+        list (:func:`build_grid`). Specs are handed to the workers as they free
+        up; only their ids and the records are kept.
     workers, scheduler
         The cluster when ``executor`` is None (:class:`sitl.lab.executor.Executor`):
         ``workers`` local processes (at most one per flight; None: one per core),
@@ -335,31 +377,27 @@ def run_campaign(
     from sitl.lab.campaign_store import case_ids, flight_ids
     from sitl.lab.executor import Executor, TaskOutcome
 
-    specs = list(specs)
     if executor is None:
         n = min(workers or os.cpu_count() or 1, max(1, len(specs)))
         with Executor(scheduler, n) as ex:
             return run_campaign(specs, progress=progress, executor=ex, store=store, oracle=oracle)
     ids = flight_ids(specs)
     flown: dict[str, dict[str, Any]] = store.flights(ids) if store else {}
-    todo: list[int] = []  # indices of the specs to fly, each flight id once
-    seen = set(flown)
-    for i, fid in enumerate(ids):
-        if fid not in seen:
-            seen.add(fid)
-            todo.append(i)
+    sent: list[str] = []  # the flight id of each spec handed out, in order
 
     def keep_flight(o: TaskOutcome) -> None:
-        i = todo[o.index]
-        rec = o.value if o.ok else _failed_record(specs[i], str(o.error))
-        rec = {**rec, "flight_id": ids[i]}
+        fid = sent[o.index]
+        rec = o.value if o.ok else _failed_record(o.item, str(o.error))
+        rec = {**rec, "flight_id": fid}
         if store:
-            store.save_flight(ids[i], rec)
-        flown[ids[i]] = rec
+            store.save_flight(fid, rec)
+        flown[fid] = rec
 
-    if todo:
+    n_todo = len(set(ids) - set(flown))
+    if n_todo:
         executor.run(
-            fly_one, (specs[i] for i in todo), on_result=keep_flight, total=len(todo),
+            fly_one, _first_unseen(specs, ids, set(flown), sent), on_result=keep_flight,
+            total=n_todo, collect=False,
             tally=lambda r: "crashed" if _is_crash(r) else None,
             desc="campaign", unit="flight", progress=progress,
         )  # fmt: skip
@@ -396,31 +434,31 @@ def run_campaign(
 
 
 def _limits(
-    specs: Sequence[FlightSpec],
+    specs: Grid | Sequence[FlightSpec],
     cids: Sequence[str],
     executor: Executor,
     store: CampaignStore | None,
     progress: bool,
 ) -> dict[str, dict[str, Any]]:
-    """The oracle's flight in every case, by case id (stored as each completes)."""
+    """The oracle's flight in every case, by case id (stored as each completes; the
+    grid is walked lazily, the first spec of each case flown)."""
     from sitl.lab.executor import TaskOutcome
 
-    first: dict[str, FlightSpec] = {}
-    for spec, cid in zip(specs, cids):
-        first.setdefault(cid, spec)
-    limits: dict[str, dict[str, Any]] = store.limits(first) if store else {}
-    to_fly = [cid for cid in first if cid not in limits]
+    limits: dict[str, dict[str, Any]] = store.limits(dict.fromkeys(cids)) if store else {}
+    sent: list[str] = []  # the case id of each spec handed out, in order
 
     def keep(o: TaskOutcome) -> None:
-        cid = to_fly[o.index]
+        cid = sent[o.index]
         limit = {"case_id": cid, **(o.value or {}), "error": o.error}
         if store:
             store.save_limit(cid, limit)
         limits[cid] = limit
 
-    if to_fly:
+    n_todo = len(set(cids) - set(limits))
+    if n_todo:
         executor.run(
-            oracle_limit, (first[c] for c in to_fly), on_result=keep, total=len(to_fly),
+            oracle_limit, _first_unseen(specs, cids, set(limits), sent), on_result=keep,
+            total=n_todo, collect=False,
             desc="oracle limit", unit="case", progress=progress,
         )  # fmt: skip
     return limits

@@ -205,6 +205,7 @@ class Executor:
         unit: str = "task",
         total: int | None = None,
         progress: bool = True,
+        collect: bool = True,
     ) -> list[TaskOutcome]:
         """``fn`` over ``items`` on the cluster; the outcomes in item order.
 
@@ -223,6 +224,10 @@ class Executor:
         desc, unit, total, progress
             The tqdm bar (on stderr): its label, unit, length (default:
             ``len(items)`` when it has one) and whether it shows.
+        collect
+            Return the outcomes; False returns an empty list and keeps none (each
+            is handed to ``on_result`` only), so a long batch holds only the
+            tasks in flight.
         """
         from tqdm import tqdm
 
@@ -255,7 +260,8 @@ class Executor:
                 i, item = in_flight.pop(fut)
                 outcome = self._outcome(fut, i, item)
                 fut.release()
-                done.append(outcome)
+                if collect:
+                    done.append(outcome)
                 if outcome.ok:
                     label = tally(outcome.value) if tally else None
                     if label:
