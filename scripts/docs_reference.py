@@ -409,6 +409,7 @@ def _config_files() -> list[tuple[str, str, str, list[tuple[str, type[BaseModel]
     """(section id, title, introduction, roots) of each kind of configuration file."""
     from companion.config import MfcConfig, PidConfig
     from companion.profile import VehicleProfile
+    from sitl.lab.campaign_file import CampaignFile
     from sitl.scenario import Scenario
 
     return [
@@ -437,6 +438,15 @@ def _config_files() -> list[tuple[str, str, str, list[tuple[str, type[BaseModel]
             "pilot, the air, the sensors, the link and the seed. Loaded by "
             "`sitl.scenario.load_scenario`.",
             [("", Scenario)],
+        ),
+        (
+            "campaign",
+            "Campaign file",
+            "The grid of a campaign (`companion campaign --grid FILE`, "
+            "[Campaigns](../campaigns.md)): every key optional, the defaults the command's "
+            "own. Profiles, controllers and a scenario file it names are read relative to "
+            "its folder. Loaded by `sitl.lab.campaign_file.load_campaign_file`.",
+            [("", CampaignFile)],
         ),
     ]
 

@@ -406,6 +406,13 @@ def fly(
         sys.exit(1)
 
 
+_GRID_OPTIONS = (
+    "profiles", "controllers", "damage", "gusts", "seeds", "seed_base", "duration", "scenario",
+    "oracle", "link",
+)  # fmt: skip
+"""The campaign's options a ``--grid`` file holds instead."""
+
+
 @click.command("campaign")
 @click.option(
     "--out",
@@ -480,8 +487,20 @@ def fly(
     "summary.md).",
 )
 @_link_opt
+@click.option(
+    "--grid",
+    "grid_file",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="A campaign file (YAML, docs/campaigns.md) that holds the whole grid: profiles, "
+    "controllers, damage, gust sigmas, seeds, scenario, duration, oracle and link; the "
+    "options for those are then not given. Flights are built as workers free up, so a "
+    "grid of a million flights costs its axes in memory.",
+)
 @_progress_opt
+@click.pass_context
 def campaign(
+    ctx: click.Context,
     out_dir: Path,
     profiles: tuple[str, ...],
     controllers: tuple[str, ...],
@@ -491,25 +510,31 @@ def campaign(
     seed_base: int,
     workers: int | None,
     scheduler: str | None,
-    duration: float,
+    duration: float | None,
     scenario: str,
     oracle: bool,
     link: LinkSpec | None,
+    grid_file: Path | None,
     progress: bool,
 ) -> None:
     """Fly a grid (profiles x damage x gusts x seeds x controllers) in parallel, in process.
 
     Default: 4 profiles x 3 damage x 2 gusts x 3 seeds x 2 controllers = 144 flights of
     20 s. For 200+ flights, e.g. --seeds 5 (240 flights) or --seeds 10 --duration 35
-    (480 full train-acro flights). Flights run on Dask: worker processes here, or a
-    cluster's with --scheduler. Killed, the same command resumes (docs/campaigns.md).
+    (480 full train-acro flights), or a campaign file (--grid FILE) for thousands.
+    Flights run on Dask: worker processes here, or a cluster's with --scheduler.
+    Killed, the same command resumes (docs/campaigns.md).
     """
     _need_lab_extras(_CAMPAIGN_EXTRAS)
-    from importlib.resources import files
-
     from companion.config import DEFAULT_CONTROLLER, load_controller
     from companion.profile import load_profile
-    from sitl.lab.campaign import CAMPAIGN_FILES, build_grid, run_campaign, write_outputs
+    from sitl.lab.campaign import CAMPAIGN_FILES, Grid, run_campaign, write_outputs
+    from sitl.lab.campaign_file import (
+        MAX_FLIGHTS,
+        load_campaign_file,
+        resolve_controller,
+        resolve_profile,
+    )
     from sitl.lab.campaign_store import (
         RUN_FILES,
         CampaignStore,
@@ -518,47 +543,66 @@ def campaign(
         grid_digest,
     )
     from sitl.lab.executor import Executor
+    from sitl.link_model import parse_link
     from sitl.scenario import load_scenario
 
     root = Path(__file__).resolve().parents[2]
-
-    def profile_file(name: str) -> Path:
-        p = Path(name)
-        if p.suffix in (".yaml", ".yml") or p.exists():
-            return p
-        for base in (Path("vehicle_profiles"), root / "vehicle_profiles"):
-            if (base / f"{name}.yaml").exists():
-                return base / f"{name}.yaml"
-        return Path("vehicle_profiles") / f"{name}.yaml"
-
-    try:
-        damages = [float(x) for x in _split_list((damage,))]
-        gust_list = [float(x) for x in _split_list((gusts,))]
-    except ValueError as exc:
-        raise click.BadParameter(f"expected comma-separated numbers: {exc}") from exc
-    if not damages or not gust_list:
-        raise click.BadParameter("--damage and --gusts need at least one value each")
-    if not all(0.0 < d <= 1.0 for d in damages):
-        raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
-    if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
-        raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
-    prof_names, ctrl_names = _split_list(profiles), _split_list(controllers)
-    for flag, given, names in (
-        ("--profiles", profiles, prof_names),
-        ("--controllers", controllers, ctrl_names),
-    ):
-        if given and not names:
-            raise click.BadParameter(f"{flag}: expected names or files, got {list(given)!r}")
+    base: Path | None = None
+    seed_list: range | list[int]
+    if grid_file is not None:
+        given = [
+            f"--{name.replace('_', '-')}"
+            for name in _GRID_OPTIONS
+            if ctx.get_parameter_source(name) == ParameterSource.COMMANDLINE
+        ]
+        if given:
+            raise click.BadParameter(
+                f"{grid_file} holds the grid: drop {', '.join(given)}", param_hint="--grid"
+            )
+        try:
+            cf = load_campaign_file(grid_file)
+        except ConfigError as exc:
+            fail_config(exc)
+        base = grid_file.parent
+        prof_names, ctrl_names = list(cf.profiles or ()), list(cf.controllers or ())
+        damages, gust_list, seed_list = cf.damage, cf.gust_sigma_m_s, cf.seed_values()
+        duration, oracle = cf.duration_s, cf.oracle
+        scenario = str(base / cf.scenario) if (base / cf.scenario).is_file() else cf.scenario
+        link = parse_link(cf.link) if cf.link else None
+    else:
+        try:
+            damages = [float(x) for x in _split_list((damage,))]
+            gust_list = [float(x) for x in _split_list((gusts,))]
+        except ValueError as exc:
+            raise click.BadParameter(f"expected comma-separated numbers: {exc}") from exc
+        if not damages or not gust_list:
+            raise click.BadParameter("--damage and --gusts need at least one value each")
+        if not all(0.0 < d <= 1.0 for d in damages):
+            raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
+        if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
+            raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
+        prof_names, ctrl_names = _split_list(profiles), _split_list(controllers)
+        for flag, given_raw, names in (
+            ("--profiles", profiles, prof_names),
+            ("--controllers", controllers, ctrl_names),
+        ):
+            if given_raw and not names:
+                raise click.BadParameter(
+                    f"{flag}: expected names or files, got {list(given_raw)!r}"
+                )
+        seed_list = range(seed_base, seed_base + seeds)
     if not prof_names:
         local = Path("vehicle_profiles")
         prof_dir = local if local.is_dir() else root / "vehicle_profiles"
-        prof_names = [str(p) for p in sorted(prof_dir.glob("*.yaml"))]
-    ctrl_files = ctrl_names or [
+        prof_names = [str(p.resolve()) for p in sorted(prof_dir.glob("*.yaml"))]
+    ctrl_files = [resolve_controller(c, base) for c in ctrl_names] or [
         str(DEFAULT_CONTROLLER),
-        str(files("companion") / "data" / "pid_tarot_tuned.yaml"),
+        resolve_controller("pid_tarot_tuned"),
     ]
     try:
-        prof = {Path(n).stem: load_profile(profile_file(n), simulated=True) for n in prof_names}
+        prof = {
+            Path(n).stem: load_profile(resolve_profile(n, base), simulated=True) for n in prof_names
+        }
         ctrl = {Path(c).stem: load_controller(c) for c in ctrl_files}
         sc = load_scenario(scenario)
     except ConfigError as exc:
@@ -567,14 +611,15 @@ def campaign(
         sc = sc.model_copy(update={"link": link})
     if len(ctrl) != len(ctrl_files) or len(prof) != len(prof_names):
         raise click.BadParameter("two profiles or two controllers share a file name")
-    seed_list = list(range(seed_base, seed_base + seeds))
-    try:
-        specs = build_grid(
-            prof, ctrl, sc, damages=damages, gusts_m_s=gust_list, seeds=seed_list,
-            duration_s=duration,
-        )  # fmt: skip
-    except ValueError as exc:
-        raise click.BadParameter(str(exc)) from exc
+    specs = Grid(
+        prof, ctrl, sc, damages=damages, gusts_m_s=gust_list, seeds=seed_list,
+        duration_s=duration,
+    )  # fmt: skip
+    if len(specs) > MAX_FLIGHTS:
+        raise click.BadParameter(
+            f"the grid is {len(specs):,} flights, over {MAX_FLIGHTS:,}",
+            param_hint="--grid" if grid_file else "--seeds",
+        )
     ids = flight_ids(specs)
     grid = grid_digest(ids)
     t0 = time.perf_counter()
@@ -606,7 +651,8 @@ def campaign(
         "controllers": {k: str(c) for k, c in zip(ctrl, ctrl_files, strict=True)},
         "damages": damages,
         "gusts_m_s": gust_list,
-        "seeds": seed_list,
+        "seeds": list(seed_list),
+        "grid_file": str(grid_file) if grid_file else None,
         "workers": n_workers,
         "scheduler": scheduler or "local",
         "flights": len(records),
