@@ -68,6 +68,9 @@ class PilotCommand(NamedTuple):
     """Collective, [0, 1]."""
     valid: bool
     """False when any mapped channel was missing or out of range."""
+    deflection: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Roll, pitch and yaw sticks, each in [-1, 1] past the deadband (above centre
+    positive): what a self-levelling mode scales to angles."""
 
 
 @dataclass(frozen=True)
@@ -106,10 +109,11 @@ class StickMap:
                 v = 1000.0 if k == 2 else 1500.0  # centre sticks, throttle off
             vals.append(v)
         roll_us, pitch_us, thr_us, yaw_us = vals
+        x = (self._deflection(roll_us), self._deflection(pitch_us), self._deflection(yaw_us))
         rates = (
-            self.roll.rate_deg_s(self._deflection(roll_us)) * _DEG,
-            self.pitch.rate_deg_s(self._deflection(pitch_us)) * _DEG,
-            self.yaw.rate_deg_s(self._deflection(yaw_us)) * _DEG,
+            self.roll.rate_deg_s(x[0]) * _DEG,
+            self.pitch.rate_deg_s(x[1]) * _DEG,
+            self.yaw.rate_deg_s(x[2]) * _DEG,
         )
         thrust = min(1.0, max(0.0, (thr_us - 1000.0) / 1000.0))
-        return PilotCommand(rates, thrust, valid)
+        return PilotCommand(rates, thrust, valid, x)

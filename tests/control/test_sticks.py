@@ -104,7 +104,7 @@ def test_invalid_channel_centres_and_flags(bad: float, channel: int) -> None:
 
 def test_all_invalid_is_centre_sticks_zero_throttle() -> None:
     cmd = StickMap().map([65535.0, 0.0, math.nan, 65535.0])
-    assert cmd == ((0.0, 0.0, 0.0), 0.0, False)
+    assert cmd == ((0.0, 0.0, 0.0), 0.0, False, (0.0, 0.0, 0.0))
 
 
 def test_missing_channels() -> None:
@@ -112,7 +112,7 @@ def test_missing_channels() -> None:
     assert not cmd.valid
     assert cmd.thrust == 0.0
     assert cmd.rate_rad_s == pytest.approx((0.6 * 720 * DEG, 0.0, 0.0))
-    assert StickMap().map([]) == ((0.0, 0.0, 0.0), 0.0, False)
+    assert StickMap().map([]) == ((0.0, 0.0, 0.0), 0.0, False, (0.0, 0.0, 0.0))
 
 
 def test_custom_channel_map() -> None:
@@ -124,3 +124,12 @@ def test_custom_channel_map() -> None:
     assert cmd.rate_rad_s == pytest.approx((720 * DEG, -720 * DEG, 180 * DEG))
     # Mapped beyond the channels present: invalid.
     assert not StickMap(channels=(1, 2, 3, 16)).map([1500.0] * 8).valid
+
+
+def test_the_deflections_are_the_sticks_past_the_deadband() -> None:
+    sm = StickMap(deadband_us=20.0)
+    # AETR: roll, pitch, throttle, yaw.
+    assert StickMap().map([2000, 1250, 1500, 1600]).deflection == pytest.approx((1.0, -0.5, 0.2))
+    assert sm.map([1510, 2000, 1500, 1000]).deflection == pytest.approx((0.0, 1.0, -1.0))
+    assert sm.map([1760, 1500, 1500, 1500]).deflection[0] == pytest.approx(240 / 480)
+    assert StickMap().map([1750, 1500, 1500, 1500]).deflection[0] == pytest.approx(0.5)

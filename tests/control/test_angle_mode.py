@@ -1,0 +1,72 @@
+"""The angle mode's sticks to attitude setpoint, against analytic answers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from companion.control.angle_mode import MAX_TILT_DEG, AngleMode, stick_tilt_rad
+from companion.control.attitude import AttitudeLoop, AttitudeSetpoint
+
+MAX = math.radians(MAX_TILT_DEG)
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("x", "expected"),
+    [
+        ((0.0, 0.0), (0.0, 0.0)),
+        ((1.0, 0.0), (MAX, 0.0)),
+        ((0.0, -0.5), (0.0, -0.5 * MAX)),
+        ((1.0, 1.0), (MAX / math.sqrt(2.0), MAX / math.sqrt(2.0))),  # a diagonal: no further
+        ((0.6, 0.6), (0.6 * MAX, 0.6 * MAX)),  # inside the circle: as asked
+        ((math.nan, 1.0), (0.0, 0.0)),
+    ],
+)
+def test_sticks_are_a_tilt_at_most_the_maximum(
+    x: tuple[float, float], expected: tuple[float, float]
+) -> None:
+    assert stick_tilt_rad(*x, MAX) == pytest.approx(expected)
+
+
+def test_the_reference_is_the_attitude_loops_for_the_sticks_setpoint() -> None:
+    mode, loop = AngleMode(), AttitudeLoop()
+    for k in range(5):
+        got = mode.reference(0.004, LEVEL, (0.0, 0.0, 0.0), (0.5, 0.0, 0.3), 0.2, on_ground=False)
+        want = loop.update(
+            0.004, LEVEL, (0.0, 0.0, 0.0), AttitudeSetpoint(0.5 * MAX, 0.0, None, 0.2)
+        )
+        assert got == want, k
+    assert mode.setpoint == AttitudeSetpoint(0.5 * MAX, 0.0, None, 0.2)
+    # The first sample: K_P times the error (4 1/s), the yaw rate as feedforward.
+    first = AngleMode().reference(
+        0.004, LEVEL, (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 0.0, on_ground=False
+    )
+    assert first[0] == pytest.approx(4.0 * 0.5 * MAX)
+
+
+def test_on_the_ground_no_rates_and_nothing_learnt() -> None:
+    mode = AngleMode()
+    tilted = (math.cos(0.1), math.sin(0.1), 0.0, 0.0)
+    for _ in range(50):
+        assert mode.reference(
+            0.004, tilted, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 1.0, on_ground=True
+        ) == (
+            0.0,
+            0.0,
+            0.0,
+        )
+    assert mode.loop.f_hat == (0.0, 0.0, 0.0)
+
+
+def test_a_non_finite_stick_or_yaw_rate_is_centred() -> None:
+    mode = AngleMode()
+    mode.reference(0.004, LEVEL, (0.0, 0.0, 0.0), (math.inf, 0.0, 0.0), math.nan, on_ground=False)
+    assert mode.setpoint == AttitudeSetpoint(0.0, 0.0, None, 0.0)
+
+
+@pytest.mark.parametrize("deg", [0.0, -1.0, 61.0, math.nan])
+def test_a_tilt_beyond_sense_is_refused(deg: float) -> None:
+    with pytest.raises(ValueError, match="max_tilt_deg"):
+        AngleMode(max_tilt_deg=deg)
