@@ -56,6 +56,7 @@ import asyncio
 import contextlib
 import gc
 import logging
+import math
 import os
 import signal
 import time
@@ -108,6 +109,7 @@ _log = logging.getLogger("companion.app")
 
 # MAVLink numbers used here (common.xml).
 _MSG_ATTITUDE = 30
+_MSG_ATTITUDE_QUATERNION = 31
 _MSG_LOCAL_POSITION_NED = 32
 _MSG_RC_CHANNELS = 65
 _MSG_HIGHRES_IMU = 105
@@ -130,6 +132,10 @@ class RunOptions:
     profile_path: str = ""
     controller_path: str = ""
     output: Literal["actuator", "rates"] = "actuator"
+    mode: Literal["rates", "angle"] = "rates"
+    """What the sticks ask: body rates, or (``angle``) roll and pitch angles and a
+    yaw rate, flown by the attitude loop on the autopilot's estimate
+    (:mod:`companion.control.angle_mode`)."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     imu_source: Literal["auto", "highres_imu", "attitude"] = "auto"
     """"auto": the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE)."""
@@ -245,6 +251,7 @@ class Companion(SamplePath):
             "commands_gated": self.n_commands_gated,
             "sample_errors": self.n_sample_errors,
             "rc_invalid": self.n_rc_invalid,
+            "estimate_invalid": self.n_estimate_invalid,
             "events": self._events_file.count,
             "event_errors": self.n_event_errors,
             "task_failures": self.n_task_failures,
@@ -583,6 +590,12 @@ class Companion(SamplePath):
                 "thresholds beyond their bounds (--beyond-bounds): "
                 + "; ".join(opts.failsafe.bounds_lifted),
             )
+        if self.angle is not None:
+            self._event(
+                "mode",
+                f"angle: sticks to roll and pitch up to {math.degrees(self.angle.max_tilt_rad):g} "
+                "deg and a yaw rate, on the autopilot's ATTITUDE_QUATERNION",
+            )
         on_raw = self._tlog.write if self._tlog is not None else None
         self.link = MavlinkLink(
             transport,
@@ -602,6 +615,12 @@ class Companion(SamplePath):
             ("time_boot_ms", "rollspeed", "pitchspeed", "yawspeed"),
             self._on_attitude,
         )
+        if self.angle is not None:
+            self.link.add_fast_handler(
+                _MSG_ATTITUDE_QUATERNION,
+                ("time_boot_ms", "q1", "q2", "q3", "q4"),
+                self._on_attitude_quaternion,
+            )
         # RC_CHANNELS often shares the IMU sample's datagram: keep it short too.
         self.link.add_fast_handler(_MSG_RC_CHANNELS, _RC_FIELDS, self._on_rc)
         loop = asyncio.get_running_loop()
@@ -769,6 +788,18 @@ class Companion(SamplePath):
             raise EngageError(
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
             )
+        if self.angle is not None:
+            # The angle mode flies on the autopilot's attitude estimate: as often as the IMU.
+            hz = self.imu_rate_hz
+            res = await self.link.command_long(
+                _CMD_SET_MESSAGE_INTERVAL, _MSG_ATTITUDE_QUATERNION, 1e6 / hz
+            )
+            if res != _RESULT_ACCEPTED:
+                raise EngageError(
+                    f"the autopilot refused ATTITUDE_QUATERNION at {hz:g} Hz (MAV_RESULT "
+                    f"{res}): --mode angle flies on it"
+                )
+            self._event("estimate_stream", f"ATTITUDE_QUATERNION at {hz:g} Hz")
         # The landed state stops identification on the ground (MfcController.on_ground).
         await self._request_best_effort(
             "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,

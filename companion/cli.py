@@ -306,6 +306,15 @@ def preflight(
 @profile_opt
 @controller_opt
 @output_opt
+@click.option(
+    "--mode",
+    type=click.Choice(["rates", "angle"]),
+    default="rates",
+    show_default=True,
+    help="What the sticks ask. rates: body rates (acro). angle: roll and pitch angles up "
+    "to 35 deg (self-levelling) and a yaw rate, flown by the attitude loop on the "
+    "autopilot's attitude estimate (ATTITUDE_QUATERNION; stale: failsafe).",
+)
 @_engage_opt
 @_engage_channel_opt
 @click.option(
@@ -423,6 +432,12 @@ def preflight(
     "Failsafe when engaged and no valid RC for this long.",
 )
 @_failsafe_opt(
+    "--stale-estimate-s",
+    "stale_estimate_s",
+    "With --mode angle: failsafe when engaged and no valid attitude estimate for this "
+    "long of IMU time.",
+)
+@_failsafe_opt(
     "--envelope-time-s",
     "envelope_time_s",
     "How long a rate beyond the profile's limit, or the averaging time of the "
@@ -469,6 +484,7 @@ def run(
     profile_path: Path,
     controller_path: Path | None,
     output: str,
+    mode: str,
     engage: str,
     engage_channel: int,
     rates_full_scale_deg_s: float,
@@ -488,6 +504,7 @@ def run(
     on_record_error: str,
     invalid_imu_s: float,
     rc_timeout_s: float,
+    stale_estimate_s: float,
     envelope_time_s: float,
     autopilot_sysid: int | None,
     autopilot_compid: int | None,
@@ -511,6 +528,10 @@ def run(
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
         if reference_path is not None:
+            if mode != "rates":
+                raise ValueError(
+                    f"--reference: scripts body rates, needs --mode rates (got --mode {mode})"
+                )
             from companion.reference import load_reference
 
             reference = load_reference(reference_path)
@@ -537,6 +558,7 @@ def run(
             "--invalid-imu-s": invalid_imu_s,
             "--link-timeout-s": link_timeout_s,
             "--rc-timeout-s": rc_timeout_s,
+            "--stale-estimate-s": stale_estimate_s,
             "--envelope-time-s": envelope_time_s,
             "--envelope-error-deg-s": envelope_error_deg_s,
             "--hand-back-watch-s": hand_back_watch_s,
@@ -559,6 +581,7 @@ def run(
         profile_path=str(Path(profile_path).resolve()),
         controller_path=str(Path(ctrl_path).resolve()),
         output=output,  # type: ignore[arg-type]
+        mode=mode,  # type: ignore[arg-type]
         engage=engage,  # type: ignore[arg-type]
         imu_source=imu_source,  # type: ignore[arg-type]
         loop_rate_hz=rate_hz,
@@ -580,6 +603,7 @@ def run(
             on_record_error=on_record_error,  # type: ignore[arg-type]
             invalid_imu_s=invalid_imu_s,
             rc_timeout_s=rc_timeout_s,
+            stale_estimate_s=stale_estimate_s,
             envelope_time_s=envelope_time_s,
             tracking_error_max_deg_s=envelope_error_deg_s,
             on_failsafe=on_failsafe,  # type: ignore[arg-type]

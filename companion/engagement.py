@@ -70,6 +70,10 @@ class Engagement:
 
         def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]: ...
 
+        def _reset_laws(self) -> None: ...
+
+        def _not_ready_to_engage(self) -> str | None: ...
+
     async def _engage_offboard(self, *, arm: bool) -> None:
         """Stream setpoints, switch to the stack's engage mode, arm if asked.
 
@@ -80,8 +84,15 @@ class Engagement:
         """
         assert self.stack is not None
         stack = self.stack
+        why = self._not_ready_to_engage()
+        if why is not None:
+            self._event("engage_failed", why)
+            if self.opts.engage == "auto":
+                self._exit_code = EXIT_ERROR
+                self._stop.set()
+            return
         self.commanding = True
-        self.controller.reset()
+        self._reset_laws()
         await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
         try:
             p2, p3 = stack.engage_mode

@@ -276,6 +276,10 @@ class FakeAutopilot:
         self.imu_sent.append(time_boot_ms)
         self.mav.attitude_send(time_boot_ms, 0.0, 0.0, 0.0, *rates)
 
+    def attitude_quaternion(self, time_boot_ms: int, q_wxyz: tuple[float, ...]) -> None:
+        """ATTITUDE_QUATERNION: the estimator's attitude (body rates zero)."""
+        self.mav.attitude_quaternion_send(time_boot_ms, *q_wxyz, 0.0, 0.0, 0.0)
+
     def rc(
         self, ch5_us: int = 1000, *, sticks: tuple[int, int, int, int] = (1500, 1500, 1500, 1500)
     ) -> None:
