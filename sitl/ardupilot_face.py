@@ -190,6 +190,10 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
     highres_temperature_c = 45.0
     # SET_ACTUATOR_CONTROL_TARGET is ignored, as ArduPilot does: not waited for.
     lockstep_setpoints = frozenset(("SET_ATTITUDE_TARGET",))
+    # A message due with nothing to send (LOCAL_POSITION_NED before the AHRS has a
+    # position) counts as sent: GCS_MAVLINK::try_send_message returns true after
+    # send_local_position() returned without sending.
+    holds_unsent_slots = False
 
     def __init__(
         self,

@@ -226,6 +226,13 @@ def cli(verbose: int) -> None:
     "hold modes refused.",
 )
 @click.option(
+    "--true-state",
+    is_flag=True,
+    help="Stream the true attitude, position and velocity (ATTITUDE, ATTITUDE_QUATERNION, "
+    "LOCAL_POSITION_NED) at every step instead of the estimator model's output "
+    "(sitl.estimator_model EKF_GPS: an EKF's errors, lag and rate).",
+)
+@click.option(
     "--link",
     "link",
     default=None,
@@ -259,11 +266,13 @@ def run(
     ap_params: tuple[str, ...],
     no_position: bool,
     no_rc: bool,
+    true_state: bool,
     signing_key: Path | None,
     link: LinkSpec | None,
     firmware: FirmwareVersion | None,
 ) -> None:
     """Run one simulated flight."""
+    from sitl.estimator_model import EKF_GPS
     from sitl.mavlink_link import parse_endpoint
     from sitl.runner import RunConfig, Runner
 
@@ -329,6 +338,7 @@ def run(
             position=not no_position,
             rc=not no_rc,
             link=LINK_PROFILES["ideal"] if link is None else link,
+            estimator=None if true_state else EKF_GPS,
             **extra,
         )
         runner = Runner(profile, config, profile_name=str(profile_path))

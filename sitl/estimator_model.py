@@ -282,3 +282,23 @@ class EstimatorModel:
             self.position = pq.popleft()
             new_pos = True
         return new_att, new_pos
+
+    def begin(self, state: VehicleState) -> None:
+        """Start the streams on ``state``: its first samples, taken now, are
+        delivered at once (no lag) in :attr:`attitude` and :attr:`position`.
+
+        For a model started afresh while the vehicle sits still (the SITL's, at a
+        flight's start on arming): its stream goes on without a gap, and without
+        the previous model's last estimate, so what follows depends only on the
+        seed and the state, not on when the flight started. Call it instead of
+        the first :meth:`update`; later samples keep their lag.
+        """
+        if self._next_att is not None or self._next_pos is not None:
+            raise RuntimeError("begin() starts a new model: call it before any update()")
+        self.update(state)
+        if self._att_q:
+            self.attitude = self._att_q.pop()
+            self._att_q.clear()
+        if self._pos_q:
+            self.position = self._pos_q.pop()
+            self._pos_q.clear()

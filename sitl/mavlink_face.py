@@ -29,6 +29,30 @@ EXTENDED_SYS_STATE and HOME_POSITION. Each face has its own stream table and
 defaults. Through a modelled link, what was sent then goes to the socket as the
 link delivers it (:meth:`~sitl.mavlink_link.MavlinkLink.flush`, at the end of
 :meth:`MavlinkFace.publish`).
+
+The estimate, not the truth (``sitl.estimator_model``)
+------------------------------------------------------
+ATTITUDE's roll, pitch and yaw, ATTITUDE_QUATERNION's ``q`` and
+LOCAL_POSITION_NED's position and velocity are the autopilot's estimate
+(:class:`VehicleSnapshot` ``est_*``, which the runner fills from its
+:class:`~sitl.estimator_model.EstimatorModel`: errors, lag and rate of an EKF),
+as both stacks send them: PX4's ``ATTITUDE`` / ``ATTITUDE_QUATERNION`` streams
+from ``vehicle_attitude`` (EKF2's output) and LOCAL_POSITION_NED from
+``vehicle_local_position``; ArduPilot's from its AHRS (EKF3). The body rates in
+ATTITUDE and ATTITUDE_QUATERNION stay the gyro's (PX4 ``vehicle_angular_velocity``,
+ArduPilot ``ahrs.get_gyro()``: the filtered gyro, not an estimate).
+
+Before the first estimate: LOCAL_POSITION_NED is not sent (PX4's stream
+``send()`` sends only a ``vehicle_local_position`` with ``xy_valid`` and
+``v_xy_valid``, ArduPilot's only when the AHRS has a position and a velocity);
+a PX4 stream that had nothing to send keeps its slot and goes out as soon as it
+has (``MavlinkStream::update`` advances the schedule only when ``send()`` sent:
+:attr:`MavlinkFace.holds_unsent_slots`), ArduPilot's slot passes. ATTITUDE and
+ATTITUDE_QUATERNION go out with the identity (level, heading north) until the
+first attitude estimate, one attitude lag (10 ms) after start: they are IMU-based
+streams the lockstep clock may run on and whose body rates a client may fly on
+(ArduPilot's ATTITUDE), so they must not pause; an EKF at rest before it has
+aligned reports about that (ArduPilot's AHRS always sends, from DCM at first).
 """
 
 from __future__ import annotations
@@ -128,7 +152,13 @@ class VehicleSnapshot:
 
     Attributes are simulation-time and state values in SI units (FRD body, NED
     world); ``gyro``/``accel`` are the latest IMU sample, ``q_wxyz`` and
-    ``euler_rad`` the attitude, ``sticks_us`` the RC channels (None without RC).
+    ``euler_rad`` the true attitude, ``pos_ned_m`` / ``vel_ned_m_s`` the true
+    position and velocity, ``sticks_us`` the RC channels (None without RC).
+
+    ``est_*`` are the autopilot's newest estimate, what the streams carry: the
+    attitude (``est_q_wxyz``, ``est_euler_rad``, taken at ``est_att_t_s``) and the
+    position and velocity (``est_pos_ned_m``, ``est_vel_ned_m_s``, taken at
+    ``est_pos_t_s``); None before the first.
     """
 
     t_s: float = 0.0
@@ -140,6 +170,16 @@ class VehicleSnapshot:
     pos_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     vel_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     sticks_us: tuple[int, ...] | None = None
+    est_att_t_s: float | None = None
+    est_q_wxyz: tuple[float, float, float, float] | None = None
+    est_euler_rad: tuple[float, float, float] | None = None
+    est_pos_t_s: float | None = None
+    est_pos_ned_m: tuple[float, float, float] | None = None
+    est_vel_ned_m_s: tuple[float, float, float] | None = None
+
+
+_IDENTITY_Q = (1.0, 0.0, 0.0, 0.0)
+_LEVEL_EULER = (0.0, 0.0, 0.0)
 
 
 class MavlinkFace(MavlinkLink, ABC, Generic[P]):
@@ -185,6 +225,10 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     """What ``MAV_CMD_REQUEST_MESSAGE`` may ask for."""
     highres_temperature_c: ClassVar[float] = 0.0
     """HIGHRES_IMU ``temperature``."""
+    holds_unsent_slots: ClassVar[bool] = True
+    """A stream due with nothing to send (LOCAL_POSITION_NED without a valid
+    estimate) keeps its slot and goes out as soon as it has something, as PX4's
+    ``MavlinkStream::update`` does; False: the slot passes (ArduPilot)."""
     lockstep_setpoints: frozenset[str] = frozenset(
         ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
     )
@@ -480,6 +524,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             ID_EXTENDED_SYS_STATE,
             ID_HOME_POSITION,
         ):
+            if self.holds_unsent_slots and not self._has_data(msg_id):
+                continue
             if st.due(msg_id, t_s):
                 self._send_one(msg_id)
         if linked:
@@ -499,6 +545,13 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     def _body_rates(self) -> tuple[float, float, float]:
         """The body rates HIGHRES_IMU and ATTITUDE carry: the IMU's gyro here."""
         return self.snapshot.gyro_frd_rad_s
+
+    def _has_data(self, msg_id: int) -> bool:
+        """Whether ``msg_id`` has something to send: LOCAL_POSITION_NED only while
+        the position estimate is valid and there is one (both stacks)."""
+        if msg_id == ID_LOCAL_POSITION_NED:
+            return self.autopilot.position_valid and self.snapshot.est_pos_ned_m is not None
+        return True
 
     def _gyro(self) -> tuple[float, float, float]:
         """The IMU messages' gyro: :meth:`_body_rates`, NaN after an ``imu-nan`` fault."""
@@ -521,10 +574,14 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             )  # fmt: skip
             self.imu_messages_sent += 1
         elif msg_id == ID_ATTITUDE:
-            e, g = s.euler_rad, self._body_rates()
+            # The estimate's angles (identity before the first: module docstring),
+            # the gyro's rates; stamped with the IMU sample it goes out with.
+            e = s.est_euler_rad if s.est_euler_rad is not None else _LEVEL_EULER
+            g = self._body_rates()
             mav.attitude_send(round(s.imu_t_s * 1e3), e[0], e[1], e[2], g[0], g[1], g[2])
         elif msg_id == ID_ATTITUDE_QUATERNION:
-            q, g = s.q_wxyz, s.gyro_frd_rad_s
+            q = s.est_q_wxyz if s.est_q_wxyz is not None else _IDENTITY_Q
+            g = s.gyro_frd_rad_s
             mav.attitude_quaternion_send(
                 round(s.imu_t_s * 1e3), q[0], q[1], q[2], q[3], g[0], g[1], g[2]
             )
@@ -537,8 +594,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             mav.rc_channels_send(round(s.t_s * 1e3), n, *chans, 254 if n else 0)
         elif msg_id == ID_LOCAL_POSITION_NED:
             # PX4 and ArduPilot send it only while their position estimate is valid.
-            if ap.position_valid:
-                x, v = s.pos_ned_m, s.vel_ned_m_s
+            x, v = s.est_pos_ned_m, s.est_vel_ned_m_s
+            if ap.position_valid and x is not None and v is not None:
                 mav.local_position_ned_send(round(s.t_s * 1e3), x[0], x[1], x[2], v[0], v[1], v[2])
         elif msg_id == ID_SYS_STATUS:
             mav.sys_status_send(SENSORS, SENSORS, SENSORS, 0, 16800, -1, 100, 0, 0, 0, 0, 0, 0)

@@ -34,7 +34,9 @@ Streams and their defaults (change with ``MAV_CMD_SET_MESSAGE_INTERVAL``)
 HEARTBEAT 1 Hz, SYS_STATUS 1 Hz, EXTENDED_SYS_STATE 1 Hz, HOME_POSITION 0.2 Hz,
 LOCAL_POSITION_NED 10 Hz, RC_CHANNELS 10 Hz, and the IMU-based HIGHRES_IMU,
 ATTITUDE, ATTITUDE_QUATERNION at 50 Hz (never faster than the IMU). Interval
-requests faster than 1 kHz are DENIED.
+requests faster than 1 kHz are DENIED. The attitude and LOCAL_POSITION_NED are
+the estimator's (``sitl.mavlink_face``: "The estimate, not the truth"); a
+LOCAL_POSITION_NED due before the first position estimate goes out when it comes.
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ One step of the loop (physics ``dt_s`` = 1 ms)::
 
     read MAVLink (commands, setpoints)        face.poll
     IMU sample of the state at t              imu.update
+    the estimator's newest output             estimator.update (attitude, position)
     pilot sticks (RC frame every 10 ms)       pilot.sticks
     send what is due at t                     face.publish (HIGHRES_IMU, ATTITUDE, ...)
     lockstep: wait for the client's setpoint  face.wait_readable + poll
@@ -39,6 +40,24 @@ reached the socket; each such setpoint counts as sent when its sample arrived,
 and is handled when the link delivers it. The link's model starts again at the
 pilot's start (with ``pilot_from_arm``, at arming), as the wind, IMU and pilot
 streams do. With the ideal link (the default) nothing is queued.
+
+Estimator
+---------
+The faces stream what the autopilot estimates, not the true state: ATTITUDE,
+ATTITUDE_QUATERNION and LOCAL_POSITION_NED carry the newest output of an
+:class:`~sitl.estimator_model.EstimatorModel` (``estimator``, by default
+:data:`~sitl.estimator_model.EKF_GPS`: an EKF's errors, lag and rate), fed the
+true state every physics step and seeded from the run's seed through
+:func:`~sitl.estimator_model.estimator_seed_sequence`, a stream of its own: the
+plant, IMU, wind, pilot and link draw exactly what they drew before, so the
+flight (body rates, motors) is the same bit for bit. Like the wind, IMU and
+pilot streams it starts again at the pilot's start (with ``pilot_from_arm``, at
+arming), its first estimates then delivered at once
+(:meth:`~sitl.estimator_model.EstimatorModel.begin`: the vehicle sits still
+until then), so the estimates streamed after arming do not depend on when that was.
+``estimator=None`` (``sitl run --true-state``) streams the true state at every
+step instead, as before. The autopilot's own angle and climb-rate loops still
+fly on the truth. The log holds the true state.
 
 Autopilot, firmware and parameters
 ----------------------------------
@@ -83,6 +102,7 @@ import numpy as np
 
 from companion.profile import ImuModel, VehicleProfile
 from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
 from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
 from sitl.flight_log import LogWriter
 from sitl.frames import quat_to_euler_rad
@@ -178,6 +198,10 @@ class RunConfig:
     link
         The companion link (:mod:`sitl.link_model`): what it does to every frame
         sent and read; the ideal link by default.
+    estimator
+        What the autopilot's estimator streams (:mod:`sitl.estimator_model`):
+        ATTITUDE, ATTITUDE_QUATERNION and LOCAL_POSITION_NED carry its output;
+        None: the true state, at every step (``--true-state``).
     signing_key
         MAVLink 2 signing key (32 bytes): sign everything sent, accept only
         validly signed frames.
@@ -218,6 +242,7 @@ class RunConfig:
     position: bool = True
     rc: bool = True
     link: LinkSpec = LINK_PROFILES["ideal"]
+    estimator: EstimatorSpec | None = EKF_GPS
 
 
 @dataclass
@@ -319,6 +344,8 @@ class Runner:
         self._link_counts: dict[str, int] = {}
         self.link: LinkModel | None = None
         self._make_link()
+        self.estimator: EstimatorModel | None = None
+        self._make_estimator()
         self._outgoing: OutgoingFaults | None = None
         self.stop = threading.Event()
         self.duration_s = config.duration_s
@@ -482,6 +509,22 @@ class Runner:
         if cfg.pilot:
             self.pilot = make_pilot(cfg.pilot, rng=rng_pilot, free_flight=not cfg.test_stand)
 
+    def _make_estimator(self) -> None:
+        """The estimator's model from the run's seed, on a stream of its own
+        (:func:`~sitl.estimator_model.estimator_seed_sequence`): at start-up, and
+        again at the pilot's start (as :meth:`_make_streams`), so its errors do
+        not depend on how long the vehicle sat before arming. None: the truth."""
+        cfg = self.config
+        if cfg.estimator is None:
+            self.estimator = None
+            return
+        self.estimator = EstimatorModel(
+            cfg.estimator,
+            rng=np.random.default_rng(estimator_seed_sequence(cfg.seed)),
+            dt_s=cfg.dt_s,
+            imu_rate_hz=min(self.imu.model.rate_hz, 1.0 / cfg.dt_s),
+        )
+
     def _make_link(self, t_start_s: float | None = None) -> None:
         """The link's model from the run's seed: at start-up, and again at the pilot's
         start ``t_start_s`` (as :meth:`_make_streams`), so its draws do not depend
@@ -535,6 +578,8 @@ class Runner:
     def _loop(self, log: LogWriter, summary: RunSummary, wall0: float) -> Status:
         cfg = self.config
         quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
+        est = self.estimator
+        est_begin = False  # the estimator starts again: its first estimate at once
         snap = face.snapshot
         lockstep = cfg.clock == "lockstep"
         linked = not cfg.link.ideal
@@ -582,6 +627,9 @@ class Runner:
                 t_pilot0 = t
                 self._make_streams()
                 self._make_link(t)
+                self._make_estimator()
+                est = self.estimator
+                est_begin = True
                 face.reset_setpoint_age()
                 # The messages too: their schedules began when the client asked.
                 self.streams.rephase(t)
@@ -610,6 +658,27 @@ class Runner:
             snap.pos_ned_m = st.pos_ned_m
             snap.vel_ned_m_s = st.vel_ned_m_s
             snap.sticks_us = sticks
+            if est is None:
+                snap.est_att_t_s = snap.est_pos_t_s = t
+                snap.est_q_wxyz, snap.est_euler_rad = st.q_wxyz, euler
+                snap.est_pos_ned_m, snap.est_vel_ned_m_s = st.pos_ned_m, st.vel_ned_m_s
+            else:
+                if est_begin:
+                    est.begin(st)
+                    est_begin = False
+                    new_att = new_pos = True
+                else:
+                    new_att, new_pos = est.update(st)
+                if new_att and est.attitude is not None:
+                    a = est.attitude
+                    snap.est_att_t_s = a.time_s
+                    snap.est_q_wxyz = a.q_wxyz
+                    snap.est_euler_rad = quat_to_euler_rad(a.q_wxyz)
+                if new_pos and est.position is not None:
+                    p = est.position
+                    snap.est_pos_t_s = p.time_s
+                    snap.est_pos_ned_m = p.position_ned_m
+                    snap.est_vel_ned_m_s = p.velocity_ned_m_s
             if sample is not None:
                 snap.imu_t_s = sample.time_s
                 snap.gyro_frd_rad_s = sample.gyro_frd_rad_s
