@@ -1,0 +1,204 @@
+"""The altitude and position modes: sticks as climb rate and velocity, held when centred.
+
+``companion run --mode altitude|position``, as PX4's Altitude and Position modes
+behave for a pilot, flown by the model-free outer loops
+(:class:`companion.control.outer.OuterController`, one set of gains for every
+vehicle) on the autopilot's attitude and position estimates.
+
+Sticks (PX4's defaults, 1.14)
+-----------------------------
+* Throttle: a climb rate. The stick's deflection from centre,
+  :math:`x_t = 2 s - 1`, past a deadband of ``MPC_HOLD_DZ`` (0.1) and rescaled,
+  times ``MPC_Z_VEL_MAX_UP`` (3 m/s) up or ``MPC_Z_VEL_MAX_DN`` (1.5 m/s) down.
+  Inside the deadband the altitude where the stick came back is held.
+* Roll and pitch, ``altitude``: angles, as in angle mode
+  (:func:`companion.control.angle_mode.stick_tilt_rad`).
+* Roll and pitch, ``position``: a horizontal velocity in the heading's frame, the
+  two deflections one vector, past the deadband on its length and rescaled,
+  times ``MPC_VEL_MANUAL`` (10 m/s): roll right flies right; the pitch stick
+  above centre (nose up, as in rates mode) flies backwards. Inside the deadband
+  the position where the sticks came back is held.
+* Yaw: a yaw rate (the stick's rate curve); no heading is held.
+
+On the ground (the autopilot's landed state) only the vertical loop runs, on the
+throttle's climb rate and never an altitude to hold: the vehicle lifts off when
+the climb asked raises the collective enough, and sits at the lowest collective
+with the throttle down. The attitude and horizontal loops are held reset and ask
+for no rates (a vehicle on its legs cannot turn).
+
+Pure: no I/O, no clock. Stale or invalid estimates are the caller's (the app's
+failsafes).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+from companion.control.angle_mode import MAX_TILT_DEG, stick_tilt_rad
+from companion.control.attitude import AttitudeSetpoint
+from companion.control.horizontal import HorizontalSetpoint
+from companion.control.outer import DEFAULT_OUTER_GAINS, OuterController, OuterGains, OuterSetpoint
+from companion.control.quaternion import Quat, Vec3, normalise_or_none, yaw_rad
+from companion.control.vertical import VerticalSetpoint
+
+__all__ = [
+    "CLIMB_MAX_DOWN_M_S",
+    "CLIMB_MAX_UP_M_S",
+    "HOLD_DEADBAND",
+    "VELOCITY_MAX_M_S",
+    "HoldCommand",
+    "HoldMode",
+    "stick_climb_m_s",
+    "stick_velocity_ne_m_s",
+]
+
+HOLD_DEADBAND = 0.1
+"""Share of the stick's travel around centre that holds (PX4 ``MPC_HOLD_DZ``)."""
+CLIMB_MAX_UP_M_S = 3.0
+"""Full throttle's climb rate, m/s (PX4 ``MPC_Z_VEL_MAX_UP``)."""
+CLIMB_MAX_DOWN_M_S = 1.5
+"""Zero throttle's descent rate, m/s (PX4 ``MPC_Z_VEL_MAX_DN``)."""
+VELOCITY_MAX_M_S = 10.0
+"""Full stick's horizontal speed, m/s (PX4 ``MPC_VEL_MANUAL``)."""
+
+_ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+def _past_deadband(x: float) -> float:
+    """``x`` in [0, 1] less the deadband, rescaled to [0, 1]."""
+    return 0.0 if x <= HOLD_DEADBAND else min(1.0, (x - HOLD_DEADBAND) / (1.0 - HOLD_DEADBAND))
+
+
+def stick_climb_m_s(throttle: float) -> float | None:
+    """The climb rate (m/s, up) for a throttle stick in [0, 1]; None inside the
+    deadband around centre (hold), and for a non-finite stick."""
+    if not math.isfinite(throttle):
+        return None
+    x = 2.0 * min(1.0, max(0.0, throttle)) - 1.0
+    a = _past_deadband(abs(x))
+    if a == 0.0:
+        return None
+    return a * CLIMB_MAX_UP_M_S if x > 0.0 else -a * CLIMB_MAX_DOWN_M_S
+
+
+def stick_velocity_ne_m_s(
+    x_roll: float, x_pitch: float, heading_rad: float
+) -> tuple[float, float] | None:
+    """The horizontal velocity (north, east; m/s) for the roll and pitch sticks at
+    ``heading_rad``; None inside the deadband (hold), and for non-finite input."""
+    if not math.isfinite(x_roll + x_pitch + heading_rad):
+        return None
+    n = math.hypot(x_roll, x_pitch)
+    a = _past_deadband(n)
+    if a == 0.0:
+        return None
+    speed = a * VELOCITY_MAX_M_S / n
+    forward, right = -x_pitch * speed, x_roll * speed
+    c, s = math.cos(heading_rad), math.sin(heading_rad)
+    return (forward * c - right * s, forward * s + right * c)
+
+
+class HoldCommand(NamedTuple):
+    """One sample's output: what the rate loop flies."""
+
+    rate_ref_frd_rad_s: Vec3
+    """Body-rate reference, rad/s."""
+    thrust: float
+    """Collective, normalised (the vertical loop's, tilt-compensated)."""
+
+
+class HoldMode:
+    """Sticks and the estimates to the rate loop's reference and collective
+    (module docstring).
+
+    Parameters
+    ----------
+    position
+        True: position mode (the sticks are a velocity); False: altitude mode (angles).
+    gains
+        The outer loops' (:data:`DEFAULT_OUTER_GAINS`: one set for every vehicle).
+    """
+
+    def __init__(self, *, position: bool, gains: OuterGains = DEFAULT_OUTER_GAINS) -> None:
+        self.position = position
+        self.outer = OuterController(gains)
+        self.max_tilt_rad = math.radians(MAX_TILT_DEG)
+        self.setpoint = OuterSetpoint()
+        """The last setpoint flown."""
+        self._up_hold: float | None = None
+        self._ne_hold: tuple[float, float] | None = None
+
+    @property
+    def on_ground(self) -> bool:
+        return self.outer.vertical.on_ground
+
+    @on_ground.setter
+    def on_ground(self, value: bool) -> None:
+        self.outer.vertical.on_ground = value
+
+    def reset(self, thrust: float | None = None) -> None:
+        """Forget the loops' state and the holds; ``thrust``: the collective flying
+        as the loops take over (``None``: the hover estimate)."""
+        self.outer.reset(thrust=thrust)
+        self._up_hold = None
+        self._ne_hold = None
+
+    def update(
+        self,
+        dt_s: float,
+        q_wxyz: Quat,
+        gyro_frd_rad_s: Vec3,
+        position_ned_m: Vec3,
+        velocity_ned_m_s: Vec3,
+        deflection: tuple[float, float, float],
+        throttle: float,
+        yaw_rate_rad_s: float,
+        *,
+        applied_thrust: float | None = None,
+    ) -> HoldCommand:
+        """One sample (parameters as :meth:`OuterController.update`; ``deflection``,
+        ``throttle`` and ``yaw_rate_rad_s``: the pilot's sticks)."""
+        outer = self.outer
+        yaw_rate = yaw_rate_rad_s if math.isfinite(yaw_rate_rad_s) else 0.0
+        climb = stick_climb_m_s(throttle)
+        up_now = -position_ned_m[2]
+        if climb is not None or self.on_ground or not math.isfinite(up_now):
+            self._up_hold = None
+        elif self._up_hold is None:
+            self._up_hold = up_now  # the stick came back to centre: hold here
+        vsp = VerticalSetpoint(0.0 if climb is None else climb, self._up_hold)
+        q = normalise_or_none(q_wxyz)
+        cos_tilt = 1.0 if q is None else 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
+
+        if self.on_ground or not self.position:
+            self._ne_hold = None
+            thrust = outer.vertical.update(
+                dt_s, position_ned_m[2], velocity_ned_m_s[2], vsp, cos_tilt=cos_tilt,
+                applied=applied_thrust,
+            )  # fmt: skip
+            if self.on_ground:
+                outer.attitude.reset()
+                outer.horizontal.reset()
+                self.setpoint = OuterSetpoint(vertical=vsp)
+                return HoldCommand(_ZERO3, thrust)
+            roll, pitch = stick_tilt_rad(deflection[0], deflection[1], self.max_tilt_rad)
+            att_sp = AttitudeSetpoint(roll, pitch, None, yaw_rate)
+            self.setpoint = OuterSetpoint(vertical=vsp, yaw_rate_rad_s=yaw_rate)
+            rate_ref = outer.attitude.update(dt_s, q_wxyz, gyro_frd_rad_s, att_sp)
+            return HoldCommand(rate_ref, thrust)
+
+        heading = yaw_rad(q) if q is not None else math.nan
+        vel = stick_velocity_ne_m_s(deflection[0], deflection[1], heading)
+        ne_now = (position_ned_m[0], position_ned_m[1])
+        if vel is not None or not math.isfinite(ne_now[0] + ne_now[1]):
+            self._ne_hold = None
+        elif self._ne_hold is None:
+            self._ne_hold = ne_now  # the sticks came back to centre: hold here
+        hsp = HorizontalSetpoint((0.0, 0.0) if vel is None else vel, self._ne_hold)
+        self.setpoint = OuterSetpoint(hsp, vsp, None, yaw_rate)
+        o = outer.update(
+            dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
+            applied_thrust=applied_thrust,
+        )  # fmt: skip
+        return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)
