@@ -56,7 +56,6 @@ import asyncio
 import contextlib
 import gc
 import logging
-import math
 import os
 import signal
 import time
@@ -118,6 +117,18 @@ _RESULT_ACCEPTED = 0
 _RESULT_DENIED = 2
 _MSG_EXTENDED_SYS_STATE = 245
 _POSITION_RATE_HZ = 4.0
+_HOLD_POSITION_RATE_HZ = 50.0
+"""The position estimate's rate the altitude and position modes fly on."""
+_MODE_TEXT = {
+    "angle": "angle: sticks to roll and pitch up to 35 deg and a yaw rate, on the "
+    "autopilot's ATTITUDE_QUATERNION",
+    "altitude": "altitude: sticks to roll and pitch up to 35 deg, a climb rate (the "
+    "altitude held at mid-stick) and a yaw rate, on ATTITUDE_QUATERNION and "
+    "LOCAL_POSITION_NED",
+    "position": "position: sticks to a horizontal velocity and a climb rate (the position "
+    "and altitude held at mid-stick) and a yaw rate, on ATTITUDE_QUATERNION and "
+    "LOCAL_POSITION_NED",
+}
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 
@@ -132,10 +143,9 @@ class RunOptions:
     profile_path: str = ""
     controller_path: str = ""
     output: Literal["actuator", "rates"] = "actuator"
-    mode: Literal["rates", "angle"] = "rates"
-    """What the sticks ask: body rates, or (``angle``) roll and pitch angles and a
-    yaw rate, flown by the attitude loop on the autopilot's estimate
-    (:mod:`companion.control.angle_mode`)."""
+    mode: Literal["rates", "angle", "altitude", "position"] = "rates"
+    """What the sticks ask: body rates, or the outer loops on the autopilot's
+    estimates (:mod:`companion.modes`)."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     imu_source: Literal["auto", "highres_imu", "attitude"] = "auto"
     """"auto": the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE)."""
@@ -252,6 +262,7 @@ class Companion(SamplePath):
             "sample_errors": self.n_sample_errors,
             "rc_invalid": self.n_rc_invalid,
             "estimate_invalid": self.n_estimate_invalid,
+            "position_invalid": self.n_position_invalid,
             "events": self._events_file.count,
             "event_errors": self.n_event_errors,
             "task_failures": self.n_task_failures,
@@ -590,12 +601,8 @@ class Companion(SamplePath):
                 "thresholds beyond their bounds (--beyond-bounds): "
                 + "; ".join(opts.failsafe.bounds_lifted),
             )
-        if self.angle is not None:
-            self._event(
-                "mode",
-                f"angle: sticks to roll and pitch up to {math.degrees(self.angle.max_tilt_rad):g} "
-                "deg and a yaw rate, on the autopilot's ATTITUDE_QUATERNION",
-            )
+        if self.flight_mode != "rates":
+            self._event("mode", _MODE_TEXT[self.flight_mode])
         on_raw = self._tlog.write if self._tlog is not None else None
         self.link = MavlinkLink(
             transport,
@@ -615,7 +622,7 @@ class Companion(SamplePath):
             ("time_boot_ms", "rollspeed", "pitchspeed", "yawspeed"),
             self._on_attitude,
         )
-        if self.angle is not None:
+        if self.needs_attitude:
             self.link.add_fast_handler(
                 _MSG_ATTITUDE_QUATERNION,
                 ("time_boot_ms", "q1", "q2", "q3", "q4"),
@@ -788,8 +795,8 @@ class Companion(SamplePath):
             raise EngageError(
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
             )
-        if self.angle is not None:
-            # The angle mode flies on the autopilot's attitude estimate: as often as the IMU.
+        if self.needs_attitude:
+            # The outer loops fly on the autopilot's attitude estimate: as often as the IMU.
             hz = self.imu_rate_hz
             res = await self.link.command_long(
                 _CMD_SET_MESSAGE_INTERVAL, _MSG_ATTITUDE_QUATERNION, 1e6 / hz
@@ -797,9 +804,20 @@ class Companion(SamplePath):
             if res != _RESULT_ACCEPTED:
                 raise EngageError(
                     f"the autopilot refused ATTITUDE_QUATERNION at {hz:g} Hz (MAV_RESULT "
-                    f"{res}): --mode angle flies on it"
+                    f"{res}): --mode {self.flight_mode} flies on it"
                 )
             self._event("estimate_stream", f"ATTITUDE_QUATERNION at {hz:g} Hz")
+        if self.needs_position:
+            hz = _HOLD_POSITION_RATE_HZ
+            res = await self.link.command_long(
+                _CMD_SET_MESSAGE_INTERVAL, _MSG_LOCAL_POSITION_NED, 1e6 / hz
+            )
+            if res != _RESULT_ACCEPTED:
+                raise EngageError(
+                    f"the autopilot refused LOCAL_POSITION_NED at {hz:g} Hz (MAV_RESULT "
+                    f"{res}): --mode {self.flight_mode} flies on it"
+                )
+            self._event("estimate_stream", f"LOCAL_POSITION_NED at {hz:g} Hz")
         # The landed state stops identification on the ground (MfcController.on_ground).
         await self._request_best_effort(
             "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
@@ -807,10 +825,11 @@ class Companion(SamplePath):
             "identification is gated by the collective alone unless the autopilot sends it",
         )  # fmt: skip
         # Whether a position estimate exists decides the hand-back's hold.
-        await self._request_best_effort(
-            "position_refused", "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, _POSITION_RATE_HZ,
-            "a hand-back without RC lands unless the autopilot sends it",
-        )  # fmt: skip
+        if not self.needs_position:
+            await self._request_best_effort(
+                "position_refused", "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED,
+                _POSITION_RATE_HZ, "a hand-back without RC lands unless the autopilot sends it",
+            )  # fmt: skip
 
     async def _request_best_effort(
         self, kind: str, name: str, msg_id: int, hz: float, without: str

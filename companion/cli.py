@@ -308,12 +308,14 @@ def preflight(
 @output_opt
 @click.option(
     "--mode",
-    type=click.Choice(["rates", "angle"]),
+    type=click.Choice(["rates", "angle", "altitude", "position"]),
     default="rates",
     show_default=True,
     help="What the sticks ask. rates: body rates (acro). angle: roll and pitch angles up "
-    "to 35 deg (self-levelling) and a yaw rate, flown by the attitude loop on the "
-    "autopilot's attitude estimate (ATTITUDE_QUATERNION; stale: failsafe).",
+    "to 35 deg (self-levelling) and a yaw rate. altitude: as angle, the throttle a climb "
+    "rate (altitude held at mid-stick). position: the sticks a velocity, position and "
+    "altitude held at mid-stick. The outer loops fly on the autopilot's estimates "
+    "(ATTITUDE_QUATERNION, LOCAL_POSITION_NED; stale: failsafe).",
 )
 @_engage_opt
 @_engage_channel_opt
@@ -434,8 +436,14 @@ def preflight(
 @_failsafe_opt(
     "--stale-estimate-s",
     "stale_estimate_s",
-    "With --mode angle: failsafe when engaged and no valid attitude estimate for this "
-    "long of IMU time.",
+    "With --mode angle, altitude or position: failsafe when engaged and no valid attitude "
+    "estimate for this long of IMU time.",
+)
+@_failsafe_opt(
+    "--stale-position-s",
+    "stale_position_s",
+    "With --mode altitude or position: failsafe when engaged and no valid position "
+    "estimate for this long of IMU time.",
 )
 @_failsafe_opt(
     "--envelope-time-s",
@@ -505,6 +513,7 @@ def run(
     invalid_imu_s: float,
     rc_timeout_s: float,
     stale_estimate_s: float,
+    stale_position_s: float,
     envelope_time_s: float,
     autopilot_sysid: int | None,
     autopilot_compid: int | None,
@@ -559,6 +568,7 @@ def run(
             "--link-timeout-s": link_timeout_s,
             "--rc-timeout-s": rc_timeout_s,
             "--stale-estimate-s": stale_estimate_s,
+            "--stale-position-s": stale_position_s,
             "--envelope-time-s": envelope_time_s,
             "--envelope-error-deg-s": envelope_error_deg_s,
             "--hand-back-watch-s": hand_back_watch_s,
@@ -604,6 +614,7 @@ def run(
             invalid_imu_s=invalid_imu_s,
             rc_timeout_s=rc_timeout_s,
             stale_estimate_s=stale_estimate_s,
+            stale_position_s=stale_position_s,
             envelope_time_s=envelope_time_s,
             tracking_error_max_deg_s=envelope_error_deg_s,
             on_failsafe=on_failsafe,  # type: ignore[arg-type]

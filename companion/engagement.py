@@ -35,6 +35,8 @@ _POSITION_TIMEOUT_S = 1.0
 """A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
 ArduPilot only while their estimate is valid) is younger than this."""
 _WATCH_POLL_S = 0.05
+_ESTIMATES_WAIT_S = 1.0
+"""How long an engagement waits for the estimates its flight mode needs."""
 
 
 class Engagement:
@@ -84,7 +86,13 @@ class Engagement:
         """
         assert self.stack is not None
         stack = self.stack
+        # The estimates a flight mode needs may still be on their way (asked for
+        # at start-up, an --engage auto run engages at once): wait for them a while.
         why = self._not_ready_to_engage()
+        deadline = time.monotonic() + _ESTIMATES_WAIT_S
+        while why is not None and time.monotonic() < deadline and not self._stop.is_set():
+            await asyncio.sleep(0.02)
+            why = self._not_ready_to_engage()
         if why is not None:
             self._event("engage_failed", why)
             if self.opts.engage == "auto":

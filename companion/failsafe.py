@@ -38,6 +38,7 @@ THRESHOLD_MAX: dict[str, tuple[float, str]] = {
     "--link-timeout-s": (10.0, "ten lost 1 Hz heartbeats"),
     "--rc-timeout-s": (5.0, "PX4 acts on RC loss after 0.5 s, ArduPilot after 1 s"),
     "--stale-estimate-s": (0.5, "half a second levelled on an attitude nobody measured"),
+    "--stale-position-s": (1.0, "a second held on a position nobody measured"),
     "--envelope-time-s": (2.0, "at 720 deg/s, four turns before the envelope acts"),
     "--envelope-error-deg-s": (2000.0, "the usual gyro range: nothing beyond it is measured"),
     "--hand-back-watch-s": (30.0, "a safe mode not shown in 30 s is not coming"),
@@ -66,8 +67,11 @@ class FailsafeConfig:
     are not a lost link."""
     rc_timeout_s: float = 0.5
     stale_estimate_s: float = 0.1
-    """``--mode angle``: failsafe when engaged and no valid attitude estimate came for
-    this long of IMU time (PX4 and ArduPilot stream it with the IMU)."""
+    """``--mode angle|altitude|position``: failsafe when engaged and no valid attitude
+    estimate came for this long of IMU time (asked for at the IMU's rate)."""
+    stale_position_s: float = 0.3
+    """``--mode altitude|position``: failsafe when engaged and no valid position
+    estimate came for this long of IMU time (asked for at 50 Hz: 15 periods)."""
     tracking_error_max_deg_s: float = 300.0
     envelope_time_s: float = 0.5
     diverging_fraction_max: float = 0.8

@@ -18,10 +18,9 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from companion.config import build_stick_map
-from companion.control.angle_mode import AngleMode
-from companion.engagement import Engagement
 from companion.failsafe import SampleWatch
 from companion.link.timesync import LinkClock
+from companion.modes import ModePath
 from companion.step import NO_RATES, SampleStep, whole_us
 
 if TYPE_CHECKING:
@@ -51,7 +50,7 @@ AGES_KEPT = 1024
 """The last samples' ages kept for the link's figures (about 1 s at 1 kHz)."""
 
 
-class SamplePath(Engagement):
+class SamplePath(ModePath):
     """The per-sample path and its counters (mixed into the app)."""
 
     # What the app holds and these methods use.
@@ -104,16 +103,7 @@ class SamplePath(Engagement):
         self._ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._deflection: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._thrust = 0.0
-        # --mode angle: the attitude loop between the sticks and the rate loop, on
-        # the autopilot's attitude estimate (ATTITUDE_QUATERNION). Its age is the
-        # IMU time flown since it came, each sample adding its dt but at most two
-        # periods of the IMU stream: a gap in the stream (datagrams lost, the IMU's
-        # as well) is the stale-IMU watchdog's; IMU samples that keep coming without
-        # an estimate are the estimate's.
-        self.angle: AngleMode | None = AngleMode() if opts.mode == "angle" else None
-        self._att_q: tuple[float, float, float, float] | None = None
-        self._att_age_s = 0.0
-        self._stale_estimate_s = opts.failsafe.stale_estimate_s
+        self._init_modes(opts)
         self._switch_high = False
         self._switch_seen_low = False
         """The engage switch was seen low since start-up: until then, a switch
@@ -150,6 +140,7 @@ class SamplePath(Engagement):
             self._on_landed_state(int(msg.landed_state))
         elif mid == _MSG_LOCAL_POSITION_NED:
             self._pos_wall = time.perf_counter()
+            self._on_local_position(msg)
         elif mid == _MSG_TIMESYNC and msg.tc1 != 0:
             # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
             self.link_clock.reply(msg.tc1, msg.ts1, self.link.rx_perf_s)
@@ -162,6 +153,7 @@ class SamplePath(Engagement):
         on_ground = state == _LANDED_STATE_ON_GROUND
         if on_ground != self.controller.on_ground:
             self.controller.on_ground = on_ground
+            self._mode_on_ground(on_ground)
             self._event("landed_state", "on the ground" if on_ground else f"in the air ({state})")
 
     def _on_highres_imu(self, v: tuple[Any, ...]) -> None:
@@ -175,64 +167,6 @@ class SamplePath(Engagement):
         if self._imu_source == "attitude":
             t_ms, g0, g1, g2 = v
             self._on_imu(t_ms * 1e-3, (g0, g1, g2))
-
-    def _on_attitude_quaternion(self, v: tuple[Any, ...]) -> None:
-        """ATTITUDE_QUATERNION ``(time_boot_ms, q1, q2, q3, q4)``: the autopilot's
-        attitude estimate (``--mode angle``). One that is not finite or not near
-        unit norm is not an estimate: counted, and the last one ages on (the
-        stale-estimate failsafe follows if no good one comes)."""
-        q = (float(v[1]), float(v[2]), float(v[3]), float(v[4]))
-        n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
-        if not 0.81 <= n2 <= 1.21:  # |q| in [0.9, 1.1]; also False for NaN
-            self.n_estimate_invalid += 1
-            return
-        self._att_q = q
-        self._att_age_s = 0.0
-
-    def estimate_fresh(self) -> bool:
-        """Whether there is an attitude estimate, and it came within
-        ``stale_estimate_s`` of IMU time."""
-        return self._att_q is not None and self._att_age_s <= self._stale_estimate_s
-
-    def _angle_reference(
-        self, t_s: float, dt: float, gyro: tuple[float, float, float]
-    ) -> tuple[float, float, float]:
-        """``--mode angle``: the attitude loop's rate reference for this sample. Without
-        a fresh estimate: no rates (the rate loop holds the attitude it has), and
-        when engaged the stale-estimate failsafe."""
-        angle = self.angle
-        assert angle is not None
-        q = self._att_q
-        hz = self.imu_rate_hz
-        self._att_age_s += dt if hz is None or dt * hz <= 2.0 else 2.0 / hz
-        if q is None or self._att_age_s > self._stale_estimate_s:
-            if self.engaged or self.commanding:
-                age = "none yet" if q is None else f"the last {self._att_age_s:.3f} s ago"
-                self._failsafe(
-                    "failsafe_stale_estimate",
-                    f"no valid attitude estimate (ATTITUDE_QUATERNION) for "
-                    f"{self._stale_estimate_s} s of IMU time ({age})",
-                )
-            angle.reset()
-            return (0.0, 0.0, 0.0)
-        return angle.reference(
-            dt, q, gyro, self._deflection, self._ref[2], on_ground=self.controller.on_ground
-        )
-
-    def _not_ready_to_engage(self) -> str | None:
-        """Why the vehicle must not be engaged now, or None."""
-        if self.angle is not None and not self.estimate_fresh():
-            return (
-                "no fresh attitude estimate (ATTITUDE_QUATERNION): --mode angle flies on it; "
-                "is the autopilot's estimator running and the stream allowed?"
-            )
-        return None
-
-    def _reset_laws(self) -> None:
-        """Forget what the laws learnt: the rate law, and the attitude loop in angle mode."""
-        self.controller.reset()
-        if self.angle is not None:
-            self.angle.reset()
 
     def _on_imu(self, t_s: float, gyro: tuple[float, float, float]) -> None:
         # Everything before the command is what the sample needs: the timestamp and
@@ -322,7 +256,7 @@ class SamplePath(Engagement):
         if self.engaged or self.commanding:
             self._failsafe("failsafe_imu_clock", f"{detail} (autopilot reboot?)")
         self._reset_laws()
-        self._att_q = None  # the rebooted estimator starts afresh
+        self._forget_estimates()  # the rebooted estimator starts afresh
         self.watch.reset()
         self.watch.reset_invalid()
         self.n_imu_clock_resets += 1
@@ -365,10 +299,11 @@ class SamplePath(Engagement):
             ref, scripted_thrust = script.at(t_s - self._t_engaged)
             if scripted_thrust is not None:
                 thrust = scripted_thrust
-        elif self.angle is not None:
-            ref = self._angle_reference(t_s, dt, gyro)
+        elif self.flight_mode != "rates":
+            ref, thrust = self._mode_reference(dt, gyro, ref, thrust)
         step = self.step
         out = step.sample(dt, gyro, ref, thrust)
+        self._applied_thrust = out.thrust
         if step.gyro_valid:
             self.watch.valid_sample(dt)
         else:

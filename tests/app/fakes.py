@@ -252,9 +252,13 @@ class FakeAutopilot:
             mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY,
         )
 
-    def local_position(self) -> None:
+    def local_position(
+        self,
+        pos_ned: tuple[float, float, float] = (0.0, 0.0, -5.0),
+        vel_ned: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> None:
         """LOCAL_POSITION_NED: both stacks send it only while their estimate is valid."""
-        self.mav.local_position_ned_send(0, 0.0, 0.0, -5.0, 0.0, 0.0, 0.0)
+        self.mav.local_position_ned_send(0, *pos_ned, *vel_ned)
 
     def extended_sys_state(self, landed_state: int) -> None:
         self.mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, landed_state)

@@ -1,0 +1,196 @@
+"""Flight modes on the sample path: what the sticks ask, and the estimates it takes.
+
+A part of :class:`companion.app.Companion` (mixed in, below the sample path).
+``--mode rates`` (the default) needs nothing here: the sticks are the rate
+loop's reference. The other modes put the outer loops between the sticks and
+the rate loop, and fly on the autopilot's estimates:
+
+========== ==================================== =========================================
+mode       law (``companion/control``)          estimates
+========== ==================================== =========================================
+angle      :class:`~.angle_mode.AngleMode`      ``ATTITUDE_QUATERNION``
+altitude   :class:`~.hold_modes.HoldMode`       ``ATTITUDE_QUATERNION``, ``LOCAL_POSITION_NED``
+position   :class:`~.hold_modes.HoldMode`       ``ATTITUDE_QUATERNION``, ``LOCAL_POSITION_NED``
+========== ==================================== =========================================
+
+Each estimate's age is the IMU time flown since a valid one came: each sample
+adds its dt, but at most two periods of the IMU stream, so a gap in the whole
+stream (datagrams lost, the IMU's as well) is the stale-IMU watchdog's, while
+IMU samples that keep coming without an estimate are the estimate's. Beyond
+``stale_estimate_s`` (attitude) or ``stale_position_s`` (position), while engaged
+or engaging, it is a failsafe (``failsafe_stale_estimate``,
+``failsafe_stale_position``); without fresh estimates nothing engages. A
+quaternion that is not finite or not near unit norm, or a position or velocity
+that is not finite, is not an estimate: counted (``estimate_invalid``,
+``position_invalid``), and the last good one ages on.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+from companion.control.angle_mode import AngleMode
+from companion.control.hold_modes import HoldMode
+from companion.engagement import Engagement
+
+if TYPE_CHECKING:
+    from companion.app import RunOptions
+
+__all__ = ["ModePath"]
+
+Vec3 = tuple[float, float, float]
+
+_ZERO3: Vec3 = (0.0, 0.0, 0.0)
+
+
+class ModePath(Engagement):
+    """The flight mode's law and the estimates it flies on (mixed into the app)."""
+
+    imu_rate_hz: float | None
+    n_estimate_invalid: int
+    _deflection: tuple[float, float, float]
+    _thrust: float
+
+    def _init_modes(self, opts: RunOptions) -> None:
+        self.flight_mode = opts.mode
+        self.angle: AngleMode | None = AngleMode() if opts.mode == "angle" else None
+        self.hold: HoldMode | None = (
+            HoldMode(position=opts.mode == "position")
+            if opts.mode in ("altitude", "position")
+            else None
+        )
+        self.needs_attitude = opts.mode != "rates"
+        self.needs_position = self.hold is not None
+        self._stale_estimate_s = opts.failsafe.stale_estimate_s
+        self._stale_position_s = opts.failsafe.stale_position_s
+        self.n_position_invalid = 0
+        self._applied_thrust: float | None = None
+        self._forget_estimates()
+
+    def _forget_estimates(self) -> None:
+        self._att_q: tuple[float, float, float, float] | None = None
+        self._att_age_s = 0.0
+        self._pos: tuple[Vec3, Vec3] | None = None
+        self._pos_age_s = 0.0
+
+    # ------------------------------------------------------------ the estimates
+
+    def _on_attitude_quaternion(self, v: tuple[Any, ...]) -> None:
+        """ATTITUDE_QUATERNION ``(time_boot_ms, q1, q2, q3, q4)`` (a fast handler)."""
+        q = (float(v[1]), float(v[2]), float(v[3]), float(v[4]))
+        n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+        if not 0.81 <= n2 <= 1.21:  # |q| in [0.9, 1.1]; also False for NaN
+            self.n_estimate_invalid += 1
+            return
+        self._att_q = q
+        self._att_age_s = 0.0
+
+    def _on_local_position(self, msg: Any) -> None:
+        """LOCAL_POSITION_NED: position and velocity, NED."""
+        if not self.needs_position:
+            return
+        p = (float(msg.x), float(msg.y), float(msg.z))
+        v = (float(msg.vx), float(msg.vy), float(msg.vz))
+        if not math.isfinite(p[0] + p[1] + p[2] + v[0] + v[1] + v[2]):
+            self.n_position_invalid += 1
+            return
+        self._pos = (p, v)
+        self._pos_age_s = 0.0
+
+    def estimate_fresh(self) -> bool:
+        """Whether there is an attitude estimate that came within ``stale_estimate_s``."""
+        return self._att_q is not None and self._att_age_s <= self._stale_estimate_s
+
+    def position_fresh(self) -> bool:
+        """Whether there is a position estimate that came within ``stale_position_s``."""
+        return self._pos is not None and self._pos_age_s <= self._stale_position_s
+
+    def _age_estimates(self, dt: float) -> None:
+        hz = self.imu_rate_hz
+        step = dt if hz is None or dt * hz <= 2.0 else 2.0 / hz
+        self._att_age_s += step
+        self._pos_age_s += step
+
+    # ------------------------------------------------------------------ the laws
+
+    def _mode_reference(
+        self, dt: float, gyro: Vec3, ref: Vec3, thrust: float
+    ) -> tuple[Vec3, float]:
+        """This sample's rate reference and collective in the flight mode (``ref`` and
+        ``thrust``: the pilot's). Without fresh estimates: no rates and the pilot's
+        collective (the rate loop holds the attitude it has), and, engaged, a
+        failsafe."""
+        self._age_estimates(dt)
+        stale = self._stale_estimates()
+        if stale is not None:
+            if self.engaged or self.commanding:
+                self._failsafe(*stale)
+            self._reset_modes(thrust)
+            return _ZERO3, thrust
+        q = self._att_q
+        assert q is not None
+        on_ground = bool(self.controller.on_ground)
+        if self.angle is not None:
+            return self.angle.reference(
+                dt, q, gyro, self._deflection, ref[2], on_ground=on_ground
+            ), thrust
+        hold = self.hold
+        assert hold is not None and self._pos is not None
+        pos, vel = self._pos
+        cmd = hold.update(
+            dt, q, gyro, pos, vel, self._deflection, thrust, ref[2],
+            applied_thrust=self._applied_thrust,
+        )  # fmt: skip
+        return cmd.rate_ref_frd_rad_s, cmd.thrust
+
+    def _stale_estimates(self) -> tuple[str, str] | None:
+        """The failsafe an estimate's age calls for, or None."""
+        if self._att_q is None or self._att_age_s > self._stale_estimate_s:
+            age = "none yet" if self._att_q is None else f"the last {self._att_age_s:.3f} s ago"
+            return (
+                "failsafe_stale_estimate",
+                f"no valid attitude estimate (ATTITUDE_QUATERNION) for "
+                f"{self._stale_estimate_s} s of IMU time ({age})",
+            )
+        if self.needs_position and (self._pos is None or self._pos_age_s > self._stale_position_s):
+            age = "none yet" if self._pos is None else f"the last {self._pos_age_s:.3f} s ago"
+            return (
+                "failsafe_stale_position",
+                f"no valid position estimate (LOCAL_POSITION_NED) for "
+                f"{self._stale_position_s} s of IMU time ({age})",
+            )
+        return None
+
+    def _not_ready_to_engage(self) -> str | None:
+        """Why the vehicle must not be engaged now, or None."""
+        if self.needs_attitude and not self.estimate_fresh():
+            return (
+                f"no fresh attitude estimate (ATTITUDE_QUATERNION): --mode {self.flight_mode} "
+                "flies on it; is the autopilot's estimator running and the stream allowed?"
+            )
+        if self.needs_position and not self.position_fresh():
+            return (
+                f"no fresh position estimate (LOCAL_POSITION_NED): --mode {self.flight_mode} "
+                "flies on it; has the autopilot a position (GPS, flow) and the stream allowed?"
+            )
+        return None
+
+    def _reset_modes(self, thrust: float | None = None) -> None:
+        """Forget what the outer loops learnt. The hold modes take over at
+        ``thrust`` (the pilot's collective) in the air, at the lowest on the ground."""
+        if self.angle is not None:
+            self.angle.reset()
+        if self.hold is not None:
+            self.hold.reset(thrust=0.0 if self.controller.on_ground else thrust)
+            self._applied_thrust = None
+
+    def _reset_laws(self) -> None:
+        """Forget what the laws learnt: the rate law and the flight mode's loops."""
+        self.controller.reset()
+        self._reset_modes(self._thrust)
+
+    def _mode_on_ground(self, on_ground: bool) -> None:
+        """The autopilot's landed state changed."""
+        if self.hold is not None:
+            self.hold.on_ground = on_ground

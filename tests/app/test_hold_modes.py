@@ -1,0 +1,102 @@
+"""``companion run --mode altitude|position``: the outer loops on both estimates.
+
+The app tier (a fake autopilot over a MemoryTransport): both estimates are asked
+for, engagement waits for them, the hold flies the vertical loop's collective,
+and a stale position is a failsafe with a hand-back.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from companion.errors import EXIT_ERROR
+from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
+from tests.app.flight import Flight, Start, streams_requested
+
+MSG_ATTITUDE_QUATERNION = 31
+MSG_LOCAL_POSITION_NED = 32
+LEVEL = (1.0, 0.0, 0.0, 0.0)
+
+
+def estimates_and_imu(f: Flight, pos: tuple[float, float, float] | None = (0.0, 0.0, -5.0)) -> None:
+    """The estimates (the position every fourth sample, as at 62.5 Hz), then an IMU sample."""
+    f.fake.attitude_quaternion(f.t_ms, LEVEL)
+    if pos is not None and f.t_us // 4000 % 4 == 0:
+        f.fake.local_position(pos)
+    f.t_ms += 4
+    f.imu()
+
+
+async def engaged(start: Start, mode: str) -> Flight:
+    # The fake sends no position of its own (position=False): these tests stream it.
+    f = await start(engage="auto", output="rates", mode=mode, position=False)
+    await streams_requested(f)
+    await f.fake.wait_until(
+        lambda: (
+            {MSG_ATTITUDE_QUATERNION, MSG_LOCAL_POSITION_NED}
+            <= {int(m.param1) for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
+        ),
+        2.0,
+    )
+    rates = {int(m.param1): m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
+    assert rates[MSG_LOCAL_POSITION_NED] == pytest.approx(1e6 / 50.0)
+    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # throttle at mid-stick: hold
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=lambda: estimates_and_imu(f))
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=lambda: estimates_and_imu(f))
+    return f
+
+
+@pytest.mark.parametrize("mode", ["altitude", "position"])
+async def test_the_hold_takes_over_at_the_pilots_collective_and_pushes_up_below_it(
+    start: Start, mode: str
+) -> None:
+    f = await engaged(start, mode)
+    hold = f.companion.hold
+    assert hold is not None
+    n = len(f.fake.of_type("SET_ATTITUDE_TARGET"))
+    for _ in range(5):
+        estimates_and_imu(f)
+        await settle(2)
+    sent = f.fake.of_type("SET_ATTITUDE_TARGET")[n:]
+    assert sent[0].thrust == pytest.approx(0.5, abs=0.02)  # the pilot's throttle
+    assert hold.setpoint.vertical.up_m == pytest.approx(5.0)
+    for _ in range(60):  # the estimate says half a metre below the hold
+        estimates_and_imu(f, (0.0, 0.0, -4.5))
+        await settle(2)
+    assert f.fake.of_type("SET_ATTITUDE_TARGET")[-1].thrust > sent[0].thrust + 0.02
+    if mode == "position":
+        assert hold.setpoint.horizontal.position_ne_m == (0.0, 0.0)
+
+
+async def test_a_position_that_stops_is_a_failsafe(start: Start) -> None:
+    f = await engaged(start, "position")
+    await f.feed_until(
+        lambda: "failsafe_stale_position" in f.kinds(),
+        send=lambda: estimates_and_imu(f, None),
+        what="failsafe_stale_position",
+    )
+    await f.fake.wait_until(lambda: not f.companion.commanding, 1.0)
+
+
+async def test_no_position_no_engagement(start: Start) -> None:
+    f = await start(engage="auto", output="rates", mode="altitude", position=False)
+    await streams_requested(f)
+    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(
+        lambda: "engage_failed" in f.kinds(), send=lambda: estimates_and_imu(f, None)
+    )
+    assert "LOCAL_POSITION_NED" in f.details("engage_failed")[0]
+    assert await f.finish() == EXIT_ERROR
+    assert not f.fake.commands(CMD_ARM)
+
+
+async def test_a_non_finite_position_is_counted_and_not_flown(start: Start) -> None:
+    f = await engaged(start, "altitude")
+    nan = float("nan")
+    await f.feed_until(
+        lambda: "failsafe_stale_position" in f.kinds(),
+        send=lambda: estimates_and_imu(f, (0.0, nan, -5.0)),
+        what="failsafe_stale_position",
+    )
+    assert f.companion.counters["position_invalid"] >= 10

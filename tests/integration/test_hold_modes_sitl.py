@@ -1,0 +1,63 @@
+"""``companion run --mode position`` against the SITL as a separate process, over UDP.
+
+The pilot centres the roll, pitch and yaw sticks and works only the throttle
+(its own altitude hold towards 5 m); the wind blows 3 m/s with 2 m/s gusts. In
+position mode the companion takes off on the throttle's climb, then holds the
+position where it lifted off against the wind, on the SITL's estimates.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sitl.flight_log import read_log
+from sitl.lab.fly import fly_mavlink
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SCRIPT = """\
+duration_s: 14
+altitude_m: 5
+segments:
+  - {t_s: 0.0, rate_deg_s: [0, 0, 0]}
+"""
+SCENARIO = """\
+name: position-hold
+seed: 11
+pilot: {pilot}
+free_flight: true
+wind:
+  steady_ned_m_s: [3.0, 0.0, 0.0]
+  gust_sigma_m_s: 2.0
+  gust_length_m: 30.0
+"""
+
+
+def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> None:
+    sticks = tmp_path / "centred.yaml"
+    sticks.write_text(SCRIPT, encoding="utf-8")
+    scenario = tmp_path / "position-hold.yaml"
+    scenario.write_text(SCENARIO.format(pilot=sticks), encoding="utf-8")
+    flight = fly_mavlink(
+        ROOT / "vehicle_profiles" / "f450.yaml", str(scenario), tmp_path / "flight",
+        duration_s=13.0, companion_args=("--mode", "position"),
+    )  # fmt: skip
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    kinds = [e["kind"] for e in flight.companion_events]
+    assert not any(k.startswith("failsafe") for k in kinds), kinds
+    log = read_log(flight.sitl_log)
+    pos = log["pos_ned_m"]
+    t = log["t_s"]
+    airborne = pos[:, 2] < -0.5
+    assert airborne.any(), "never lifted off"
+    t_off = float(t[np.argmax(airborne)])
+    late = t > t_off + 5.0
+    assert late.sum() > 1000 and bool(airborne[late].all())
+    held = pos[late, :2] - pos[np.argmax(airborne), :2]
+    drift = np.hypot(held[:, 0], held[:, 1])
+    assert float(np.max(drift)) < 2.0, float(np.max(drift))
