@@ -69,7 +69,13 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import MfcConfig, PidConfig, build_controller, load_controller
+from companion.config import (
+    PID_DEFAULT_CONTROLLER,
+    MfcConfig,
+    PidConfig,
+    build_controller,
+    load_controller,
+)
 from companion.control.attitude import AttitudeSetpoint
 from companion.control.horizontal import HorizontalSetpoint
 from companion.control.outer import DEFAULT_OUTER_GAINS, OuterController, OuterGains, OuterSetpoint
@@ -85,6 +91,7 @@ from sitl.estimator_model import (
 )
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
+from sitl.lab.cascade_pid import PX4_DEFAULT_CASCADE, CascadeGains, CascadePid
 from sitl.lab.simulate import scenario_streams
 from sitl.physics import Quadrotor
 from sitl.rotors import hover_motor_command
@@ -93,6 +100,7 @@ from sitl.wind import Wind
 
 __all__ = [
     "MODES",
+    "OUTER_LAWS",
     "PAPER_IMU",
     "PAPER_WIND",
     "SCENARIOS",
@@ -105,6 +113,11 @@ __all__ = [
 ]
 
 MODES = ("angle", "altitude", "position")
+
+OUTER_LAWS = ("mfc", "px4")
+"""The outer loops :func:`simulate_outer_flight` can fly: the MFC cascade
+(:class:`companion.control.outer.OuterController`) or PX4's default cascaded
+baseline (:class:`sitl.lab.cascade_pid.CascadePid`)."""
 
 PAPER_WIND = WindSpec(steady_ned_m_s=(2.0, 0.0, 0.0), gust_sigma_m_s=1.2, gust_length_m=30.0)
 """``sitl/scenarios/paper-acro.yaml``'s wind: 2 m/s from the south, gusts sigma 1.2 m/s."""
@@ -307,6 +320,8 @@ def simulate_outer_flight(
     seed: int | None = None,
     gains: OuterGains = DEFAULT_OUTER_GAINS,
     duration_s: float | None = None,
+    outer_law: str = "mfc",
+    cascade_gains: CascadeGains = PX4_DEFAULT_CASCADE,
 ) -> OuterFlight:
     """Fly ``scenario`` on ``plant``: the outer loops on the rate controller built
     from ``rate_controller_cfg`` (module docstring).
@@ -325,7 +340,17 @@ def simulate_outer_flight(
         The outer loops' gains (one set for every vehicle).
     duration_s
         Overrides the scenario's duration (flight time, s).
+    outer_law
+        ``"mfc"`` (the MFC outer loops with ``gains``) or ``"px4"`` (PX4's default
+        cascade, :class:`sitl.lab.cascade_pid.CascadePid` with ``cascade_gains``),
+        flown the same way (take-off, ground handling, setpoints). The rate loop is
+        ``rate_controller_cfg`` either way: PX4's whole default cascade is
+        ``outer_law="px4"`` over ``load_controller(PID_DEFAULT_CONTROLLER)``.
+    cascade_gains
+        The baseline's parameters (PX4's defaults).
     """
+    if outer_law not in OUTER_LAWS:
+        raise ValueError(f"outer_law: expected one of {', '.join(OUTER_LAWS)}, got {outer_law!r}")
     seed = scenario.seed if seed is None else seed
     duration = scenario.duration_s if duration_s is None else duration_s
     dt = scenario.physics_dt_s
@@ -341,7 +366,9 @@ def simulate_outer_flight(
     )
     controller = build_controller(rate_controller_cfg, plant)
     step = SampleStep(controller, plant, output="actuator")
-    outer = OuterController(gains)
+    outer: OuterController | CascadePid = (
+        OuterController(gains) if outer_law == "mfc" else CascadePid(cascade_gains)
+    )
     vert, att = outer.vertical, outer.attitude
     angle_mode = scenario.mode == "angle"
 
@@ -475,6 +502,7 @@ def simulate_outer_flight(
         "profile": plant.name,
         "scenario": scenario.name,
         "mode": scenario.mode,
+        "outer_law": outer_law,
         "seed": seed,
         "duration_s": duration,
         "sim_time_s": quad.t_s,
@@ -610,6 +638,60 @@ def table_markdown(rows: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+_COMPARED = (
+    ("pos RMS h, m", "pos_rms_h_m", ".2f"),
+    ("pos RMS v, m", "pos_rms_v_m", ".2f"),
+    ("pos max h, m", "pos_max_h_m", ".2f"),
+    ("att MAE, deg", "att_mae_deg", ".2f"),
+    ("yaw MAE, deg", "yaw_mae_deg", ".2f"),
+    ("rate sat, s", "rate_sat_s", ".1f"),
+    ("thrust sat, s", "thrust_sat_s", ".1f"),
+    ("step reach (mean), s", "step_reach_mean_s", ".1f"),
+)
+
+
+def _step_reach_mean(r: dict[str, Any]) -> float | None:
+    reach = r.get("step_reach_s")
+    if not reach or any(x is None for x in reach):
+        return None
+    return float(sum(reach) / len(reach))
+
+
+def _ratio(a: float | None, b: float | None) -> str:
+    if a is None or b is None:
+        return "-"
+    if b == 0.0:
+        return "-" if a == 0.0 else "inf"
+    return format(a / b, ".2f")
+
+
+def comparison_markdown(
+    rows: Sequence[dict[str, Any]], baseline_rows: Sequence[dict[str, Any]]
+) -> str:
+    """MFC against the baseline, per vehicle, scenario and metric (markdown): each
+    cell ``MFC / baseline (MFC/baseline)``; a ratio below 1 is MFC better (every
+    metric here is an error, a time at a limit or a time to reach). The rows of
+    both lists are flown in the same order (vehicle, scenario)."""
+    head = " | ".join(name for name, _, _ in _COMPARED)
+    lines = [
+        f"| vehicle | scenario | {head} | crash MFC / baseline |",
+        "|---|---|" + "---|" * len(_COMPARED) + "---|",
+    ]
+    for r, b in zip(rows, baseline_rows, strict=True):
+        cells = []
+        for _, key, spec in _COMPARED:
+            if key == "step_reach_mean_s":
+                x, y = _step_reach_mean(r), _step_reach_mean(b)
+            else:
+                x, y = r[key], b[key]
+            cells.append(f"{_fmt(x, spec)} / {_fmt(y, spec)} ({_ratio(x, y)})")
+        crash = " / ".join(
+            f"at {m['crashed_at_s']:.1f} s" if m["crashed"] else "no" for m in (r, b)
+        )
+        lines.append(f"| {r['profile']} | {r['scenario']} | " + " | ".join(cells) + f" | {crash} |")
+    return "\n".join(lines)
+
+
 def _variant(sc: OuterScenario, args: argparse.Namespace) -> OuterScenario:
     if args.paper_imu:
         sc = dataclasses.replace(sc, imu=PAPER_IMU)
@@ -636,7 +718,36 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     ap.add_argument("--duration", type=float, default=None, help="flight time, s")
     ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--controller", default=None, help="rate-loop config (default: shipped)")
+    ap.add_argument(
+        "--controller",
+        default=None,
+        help="rate-loop config (default: the shipped MFC one; with --outer px4, "
+        "PX4's default rate PID, companion/data/pid_px4_default.yaml)",
+    )
+    ap.add_argument(
+        "--outer",
+        choices=OUTER_LAWS,
+        default="mfc",
+        help="the outer loops flown: mfc (default) or px4 (PX4's default cascade, "
+        "sitl/lab/cascade_pid.py)",
+    )
+    ap.add_argument(
+        "--baseline",
+        choices=("px4",),
+        default=None,
+        help="with --table: also fly PX4's default cascade (over --baseline-controller) "
+        "and print its table and the comparison (MFC / PX4 and their ratio)",
+    )
+    ap.add_argument(
+        "--baseline-controller",
+        default=None,
+        help="the baseline's rate-loop config (default: PX4's default rate PID)",
+    )
+    ap.add_argument(
+        "--profiles",
+        default=",".join(TABLE_PROFILES),
+        help="with --table: the vehicles, comma-separated (default: the paper's four)",
+    )
     ap.add_argument(
         "--table",
         action="store_true",
@@ -653,17 +764,42 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="fly on the true state (at the estimator's rates, no errors, no lag)",
     )
     args = ap.parse_args(argv)
-    cfg = load_controller(args.controller) if args.controller else load_controller()
+    if args.controller:
+        cfg = load_controller(args.controller)
+    elif args.outer == "px4":
+        cfg = load_controller(PID_DEFAULT_CONTROLLER)
+    else:
+        cfg = load_controller()
+    if args.baseline is not None and not args.table:
+        ap.error("--baseline needs --table")
     if args.table:
-        rows = []
-        for prof in TABLE_PROFILES:
+        base_cfg = load_controller(args.baseline_controller or PID_DEFAULT_CONTROLLER)
+        rows, base_rows = [], []
+        for prof in (p.strip() for p in args.profiles.split(",") if p.strip()):
             plant = _profile(prof)
             for sc in SCENARIOS.values():
                 s = sc if args.duration is None else sc.with_duration(args.duration)
                 s = _variant(s, args)
-                fl = simulate_outer_flight(plant, cfg, s, seed=args.seed)
+                fl = simulate_outer_flight(plant, cfg, s, seed=args.seed, outer_law=args.outer)
                 rows.append(outer_metrics(fl, s))
-        sys.stdout.write(table_markdown(rows) + "\n")
+                if args.baseline is not None:
+                    fl = simulate_outer_flight(
+                        plant, base_cfg, s, seed=args.seed, outer_law=args.baseline
+                    )
+                    base_rows.append(outer_metrics(fl, s))
+        if args.baseline is None:
+            sys.stdout.write(table_markdown(rows) + "\n")
+            return 0
+        rate = args.controller or ("pid_px4_default.yaml" if args.outer == "px4" else "shipped")
+        base_rate = args.baseline_controller or "pid_px4_default.yaml"
+        sys.stdout.write(
+            f"### {args.outer.upper()} outer loops, rate loop: {rate}\n\n"
+            f"{table_markdown(rows)}\n\n"
+            f"### Baseline: PX4 default cascade ({args.baseline}), rate loop: {base_rate}\n\n"
+            f"{table_markdown(base_rows)}\n\n"
+            f"### {args.outer.upper()} / baseline (ratio below 1: {args.outer.upper()} better)\n\n"
+            f"{comparison_markdown(rows, base_rows)}\n"
+        )
         return 0
     sc = SCENARIOS[args.scenario or DEFAULT_SCENARIO[args.mode or "position"]]
     if args.mode is not None and sc.mode != args.mode:
@@ -671,8 +807,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.duration is not None:
         sc = sc.with_duration(args.duration)
     sc = _variant(sc, args)
-    fl = simulate_outer_flight(_profile(args.profile), cfg, sc, seed=args.seed)
+    plant = _profile(args.profile)
+    fl = simulate_outer_flight(plant, cfg, sc, seed=args.seed, outer_law=args.outer)
     res = outer_metrics(fl, sc)
+    if args.outer != "mfc":
+        res["outer_law"] = args.outer
     res["wall_time_s"] = fl.meta["wall_time_s"]
     sys.stdout.write(json.dumps(res, indent=2) + "\n")
     return 0

@@ -237,3 +237,27 @@ def test_a_vehicle_hovering_near_0_7_lifts_off() -> None:
     assert not m["crashed"]
     assert m["lift_off_s"] is not None and m["lift_off_s"] < 3.0
     assert -fl.columns["pos_ned_m"][-1, 2] > 1.5
+
+
+# --- the baseline (PX4's default cascade, sitl/lab/cascade_pid.py) ----------------------
+
+
+def test_entry_flies_the_px4_baseline(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--outer", "px4", "--profile", "f450", "--duration", "3", "--seed", "1"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["outer_law"] == "px4"
+    assert out["crashed"] is False
+    assert out["lift_off_s"] is not None
+
+
+def test_table_with_the_baseline_prints_both_and_their_ratio(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    argv = ["--table", "--baseline", "px4", "--profiles", "f450", "--duration", "2", "--seed", "1"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "### MFC outer loops" in out and "### Baseline: PX4 default cascade" in out
+    assert "### MFC / baseline" in out
+    ratio_rows = out.split("### MFC / baseline")[1].strip().splitlines()[4:]
+    assert len(ratio_rows) == len(SCENARIOS)
+    assert all(r.startswith("| DJI F450 |") for r in ratio_rows)
