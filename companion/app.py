@@ -78,6 +78,7 @@ from companion.errors import (
 from companion.failsafe import FailsafeConfig
 from companion.handback import candidates
 from companion.link.timesync import LINK_RTT_SHOWN_MS, REQUEST_PERIOD_S
+from companion.mission import Mission
 from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
@@ -146,6 +147,9 @@ class RunOptions:
     mode: Literal["rates", "angle", "altitude", "position"] = "rates"
     """What the sticks ask: body rates, or the outer loops on the autopilot's
     estimates (:mod:`companion.modes`)."""
+    mission: Mission | None = None
+    """With ``mode="position"``: waypoints flown from where each engagement starts,
+    instead of the sticks (:mod:`companion.mission`)."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     imu_source: Literal["auto", "highres_imu", "attitude"] = "auto"
     """"auto": the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE)."""

@@ -433,6 +433,15 @@ def preflight(
     "rc_timeout_s",
     "Failsafe when engaged and no valid RC for this long.",
 )
+@click.option(
+    "--mission",
+    "mission_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="With --mode position: fly these waypoints (YAML: north_m, east_m, up_m from where "
+    "the vehicle engages, speed_m_s, hold_s; docs/flying.md) instead of the sticks; the "
+    "engage switch starts and aborts it.",
+)
 @_failsafe_opt(
     "--stale-estimate-s",
     "stale_estimate_s",
@@ -512,6 +521,7 @@ def run(
     on_record_error: str,
     invalid_imu_s: float,
     rc_timeout_s: float,
+    mission_path: Path | None,
     stale_estimate_s: float,
     stale_position_s: float,
     envelope_time_s: float,
@@ -533,7 +543,14 @@ def run(
     _warn_profile(profile, profile_path)
     # Check everything a run needs before anything is opened or sent.
     reference = None
+    mission = None
     try:
+        if mission_path is not None:
+            if mode != "position":
+                raise ValueError(f"--mission: needs --mode position (got --mode {mode})")
+            from companion.mission import load_mission
+
+            mission = load_mission(mission_path)
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
         if reference_path is not None:
@@ -592,6 +609,7 @@ def run(
         controller_path=str(Path(ctrl_path).resolve()),
         output=output,  # type: ignore[arg-type]
         mode=mode,  # type: ignore[arg-type]
+        mission=mission,
         engage=engage,  # type: ignore[arg-type]
         imu_source=imu_source,  # type: ignore[arg-type]
         loop_rate_hz=rate_hz,

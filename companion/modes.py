@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any
 from companion.control.angle_mode import AngleMode
 from companion.control.hold_modes import HoldMode
 from companion.engagement import Engagement
+from companion.mission import MissionPath
 
 if TYPE_CHECKING:
     from companion.app import RunOptions
@@ -66,6 +67,11 @@ class ModePath(Engagement):
         self._stale_position_s = opts.failsafe.stale_position_s
         self.n_position_invalid = 0
         self._applied_thrust: float | None = None
+        self.mission = opts.mission
+        self.mission_path: MissionPath | None = None
+        """The mission as flown from where this engagement started (None before)."""
+        self._mission_t = 0.0
+        self._mission_reached = 0
         self._forget_estimates()
 
     def _forget_estimates(self) -> None:
@@ -138,11 +144,46 @@ class ModePath(Engagement):
         hold = self.hold
         assert hold is not None and self._pos is not None
         pos, vel = self._pos
+        if self.mission is not None and (self.engaged or self.commanding):
+            cmd = self._fly_mission(dt, q, gyro, pos, vel)
+            return cmd.rate_ref_frd_rad_s, cmd.thrust
         cmd = hold.update(
             dt, q, gyro, pos, vel, self._deflection, thrust, ref[2],
             applied_thrust=self._applied_thrust,
         )  # fmt: skip
         return cmd.rate_ref_frd_rad_s, cmd.thrust
+
+    def _fly_mission(self, dt: float, q: Any, gyro: Vec3, pos: Vec3, vel: Vec3) -> Any:
+        """The mission's setpoint, from where this engagement started; its clock
+        runs while the vehicle is in the air."""
+        hold, mission = self.hold, self.mission
+        assert hold is not None and mission is not None
+        path = self.mission_path
+        if path is None:
+            path = self.mission_path = MissionPath(mission, pos)
+            self._mission_t = 0.0
+            self._mission_reached = 0
+            self._event(
+                "mission_started",
+                f"{len(mission.waypoints)} waypoints from N {pos[0]:.1f} E {pos[1]:.1f} "
+                f"D {pos[2]:.1f} m, {path.duration_s:.1f} s",
+            )
+        if not self.controller.on_ground:
+            self._mission_t += dt
+        t = self._mission_t
+        reached = path.waypoints_reached(t)
+        if reached > self._mission_reached:
+            self._mission_reached = reached
+            done = reached == len(mission.waypoints)
+            self._event(
+                "mission_waypoint",
+                f"{reached} of {len(mission.waypoints)}" + (": holding there" if done else ""),
+            )
+        take_off = path.target_at(t)[2] < pos[2] - 0.3  # the waypoint flown to is above
+        return hold.fly(
+            dt, q, gyro, pos, vel, path.at(t), take_off=take_off,
+            applied_thrust=self._applied_thrust,
+        )  # fmt: skip
 
     def _stale_estimates(self) -> tuple[str, str] | None:
         """The failsafe an estimate's age calls for, or None."""
@@ -184,6 +225,7 @@ class ModePath(Engagement):
         if self.hold is not None:
             self.hold.reset(thrust=0.0 if self.controller.on_ground else thrust)
             self._applied_thrust = None
+            self.mission_path = None  # an engagement starts the mission from where it is
 
     def _reset_laws(self) -> None:
         """Forget what the laws learnt: the rate law and the flight mode's loops."""

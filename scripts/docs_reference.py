@@ -408,6 +408,7 @@ def _model_section(model: _Model, section: str, level: int) -> list[str]:
 def _config_files() -> list[tuple[str, str, str, list[tuple[str, type[BaseModel]]]]]:
     """(section id, title, introduction, roots) of each kind of configuration file."""
     from companion.config import MfcConfig, PidConfig
+    from companion.mission import Mission
     from companion.profile import VehicleProfile
     from sitl.lab.campaign_file import CampaignFile
     from sitl.scenario import Scenario
@@ -438,6 +439,14 @@ def _config_files() -> list[tuple[str, str, str, list[tuple[str, type[BaseModel]
             "pilot, the air, the sensors, the link and the seed. Loaded by "
             "`sitl.scenario.load_scenario`.",
             [("", Scenario)],
+        ),
+        (
+            "mission",
+            "Mission file",
+            "Waypoints flown in position mode (`companion run --mode position --mission FILE`, "
+            "[flying](../flying.md#missions-mission)): north, east and up from where the vehicle "
+            "engages. Loaded by `companion.mission.load_mission`.",
+            [("", Mission)],
         ),
         (
             "campaign",

@@ -46,6 +46,7 @@ __all__ = [
     "CLIMB_MAX_DOWN_M_S",
     "CLIMB_MAX_UP_M_S",
     "HOLD_DEADBAND",
+    "TAKEOFF_CLIMB_M_S",
     "VELOCITY_MAX_M_S",
     "HoldCommand",
     "HoldMode",
@@ -97,6 +98,10 @@ def stick_velocity_ne_m_s(
     forward, right = -x_pitch * speed, x_roll * speed
     c, s = math.cos(heading_rad), math.sin(heading_rad)
     return (forward * c - right * s, forward * s + right * c)
+
+
+TAKEOFF_CLIMB_M_S = 1.0
+"""The climb asked on the ground when a given setpoint is above (:meth:`HoldMode.fly`)."""
 
 
 class HoldCommand(NamedTuple):
@@ -199,6 +204,44 @@ class HoldMode:
         self.setpoint = OuterSetpoint(hsp, vsp, None, yaw_rate)
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
+            applied_thrust=applied_thrust,
+        )  # fmt: skip
+        return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)
+
+    def fly(
+        self,
+        dt_s: float,
+        q_wxyz: Quat,
+        gyro_frd_rad_s: Vec3,
+        position_ned_m: Vec3,
+        velocity_ned_m_s: Vec3,
+        setpoint: OuterSetpoint,
+        *,
+        take_off: bool,
+        applied_thrust: float | None = None,
+    ) -> HoldCommand:
+        """Fly a given setpoint (a mission's) instead of the sticks.
+
+        On the ground only the vertical loop runs: a climb of
+        :data:`TAKEOFF_CLIMB_M_S` when ``take_off`` (the caller's: the waypoint
+        flown to is above), else the lowest collective (a descent asked)."""
+        outer = self.outer
+        self._up_hold = self._ne_hold = None
+        if self.on_ground:
+            vsp = VerticalSetpoint(TAKEOFF_CLIMB_M_S if take_off else -CLIMB_MAX_DOWN_M_S)
+            q = normalise_or_none(q_wxyz)
+            cos_tilt = 1.0 if q is None else 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
+            thrust = outer.vertical.update(
+                dt_s, position_ned_m[2], velocity_ned_m_s[2], vsp, cos_tilt=cos_tilt,
+                applied=applied_thrust,
+            )  # fmt: skip
+            outer.attitude.reset()
+            outer.horizontal.reset()
+            self.setpoint = OuterSetpoint(vertical=vsp)
+            return HoldCommand(_ZERO3, thrust)
+        self.setpoint = setpoint
+        o = outer.update(
+            dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, setpoint,
             applied_thrust=applied_thrust,
         )  # fmt: skip
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 
 from companion.errors import EXIT_ERROR
+from companion.mission import Mission, Waypoint
 from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import Flight, Start, streams_requested
 
@@ -27,9 +28,9 @@ def estimates_and_imu(f: Flight, pos: tuple[float, float, float] | None = (0.0, 
     f.imu()
 
 
-async def engaged(start: Start, mode: str) -> Flight:
+async def engaged(start: Start, mode: str, **opts: object) -> Flight:
     # The fake sends no position of its own (position=False): these tests stream it.
-    f = await start(engage="auto", output="rates", mode=mode, position=False)
+    f = await start(engage="auto", output="rates", mode=mode, position=False, **opts)
     await streams_requested(f)
     await f.fake.wait_until(
         lambda: (
@@ -100,3 +101,19 @@ async def test_a_non_finite_position_is_counted_and_not_flown(start: Start) -> N
         what="failsafe_stale_position",
     )
     assert f.companion.counters["position_invalid"] >= 10
+
+
+async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start) -> None:
+    mission = Mission(speed_m_s=2.0, waypoints=[Waypoint(north_m=1.0, east_m=0.0, up_m=0.0)])
+    f = await engaged(start, "position", mission=mission)
+    await f.feed_until(
+        lambda: "mission_waypoint" in f.kinds(), send=lambda: estimates_and_imu(f), what="waypoint"
+    )
+    assert f.details("mission_started")[0].startswith("1 waypoints from N 0.0 E 0.0 D -5.0 m")
+    assert f.details("mission_waypoint") == ["1 of 1: holding there"]
+    hold = f.companion.hold
+    assert hold is not None and f.companion.mission_path is not None
+    # 1 m at 2 m/s: reached after 0.5 s of IMU time flown in the air.
+    assert f.companion._mission_t == pytest.approx(0.5, abs=0.005)
+    assert hold.setpoint.horizontal.position_ne_m == pytest.approx((1.0, 0.0), abs=0.01)
+    assert hold.setpoint.vertical.up_m == pytest.approx(5.0)

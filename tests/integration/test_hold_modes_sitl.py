@@ -61,3 +61,40 @@ def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> N
     held = pos[late, :2] - pos[np.argmax(airborne), :2]
     drift = np.hypot(held[:, 0], held[:, 1])
     assert float(np.max(drift)) < 2.0, float(np.max(drift))
+
+
+MISSION = """\
+speed_m_s: 2.0
+waypoints:
+  - {north_m: 0, east_m: 0, up_m: 4, hold_s: 1}
+  - {north_m: 8, east_m: 0, up_m: 4}
+  - {north_m: 8, east_m: 8, up_m: 4}
+  - {north_m: 0, east_m: 8, up_m: 6, hold_s: 2}
+"""
+
+
+def test_a_mission_takes_off_and_visits_every_waypoint(tmp_path: Path) -> None:
+    mission = tmp_path / "square.yaml"
+    mission.write_text(MISSION, encoding="utf-8")
+    sticks = tmp_path / "centred.yaml"
+    sticks.write_text(SCRIPT.replace("duration_s: 14", "duration_s: 24"), encoding="utf-8")
+    scenario = tmp_path / "still.yaml"
+    scenario.write_text(f"name: still\nseed: 12\npilot: {sticks}\nfree_flight: true\n", "utf-8")
+    flight = fly_mavlink(
+        ROOT / "vehicle_profiles" / "x500.yaml", str(scenario), tmp_path / "flight",
+        duration_s=22.0, companion_args=("--mode", "position", "--mission", str(mission)),
+    )  # fmt: skip
+    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    events = flight.companion_events
+    kinds = [e["kind"] for e in events]
+    assert not any(k.startswith("failsafe") for k in kinds), kinds
+    assert [e["detail"] for e in events if e["kind"] == "mission_waypoint"][-1] == (
+        "4 of 4: holding there"
+    )
+    log = read_log(flight.sitl_log)
+    pos = log["pos_ned_m"]
+    start = pos[0]
+    for north, east, up in ((0, 0, 4), (8, 0, 4), (8, 8, 4), (0, 8, 6)):
+        wp = start + np.array([north, east, -up])
+        closest = float(np.min(np.linalg.norm(pos - wp, axis=1)))
+        assert closest < 1.0, ((north, east, up), closest)

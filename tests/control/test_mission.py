@@ -1,0 +1,82 @@
+"""A mission's path: its setpoints in time, against hand-computed answers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from companion.errors import ConfigError
+from companion.mission import Mission, MissionPath, Waypoint, load_mission
+
+
+def square(**first: float) -> Mission:
+    return Mission(
+        speed_m_s=2.0,
+        waypoints=[
+            Waypoint(north_m=0, east_m=0, up_m=5, **first),
+            Waypoint(north_m=10, east_m=0, up_m=5),
+            Waypoint(north_m=10, east_m=10, up_m=5, speed_m_s=5.0),
+            Waypoint(north_m=10, east_m=10, up_m=-1, speed_m_s=5.0),
+        ],
+    )
+
+
+def test_the_setpoint_moves_along_each_leg_at_its_speed_and_holds_at_waypoints() -> None:
+    path = MissionPath(square(hold_s=1.0), (100.0, 200.0, -3.0))  # from N 100, E 200, 3 m up
+    # Climb 5 m at 2 m/s: 2.5 s (under the 3 m/s climb limit).
+    sp = path.at(1.25)
+    assert sp.horizontal.position_ne_m == pytest.approx((100.0, 200.0))
+    assert sp.vertical.up_m == pytest.approx(3.0 + 2.5)
+    assert sp.vertical.climb_m_s == pytest.approx(2.0)
+    # Held at the first waypoint for 1 s: no velocity.
+    sp = path.at(3.0)
+    assert sp.vertical == (0.0, pytest.approx(8.0), 0.0)
+    assert sp.horizontal.velocity_ne_m_s == (0.0, 0.0)
+    # 10 m north at 2 m/s from t = 3.5: half way at 6.0 s.
+    sp = path.at(6.0)
+    assert sp.horizontal.position_ne_m == pytest.approx((105.0, 200.0))
+    assert sp.horizontal.velocity_ne_m_s == pytest.approx((2.0, 0.0))
+    # 10 m east at 5 m/s: 2 s; then down 6 m at 5 m/s, slowed to 1.5 m/s: 4 s.
+    assert path.arrivals_s == pytest.approx([2.5, 8.5, 10.5, 14.5])
+    sp = path.at(12.5)
+    assert sp.vertical.climb_m_s == pytest.approx(-1.5)
+    assert sp.vertical.up_m == pytest.approx(8.0 - 3.0)
+    assert path.duration_s == pytest.approx(14.5)
+
+
+def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
+    path = MissionPath(square(), (0.0, 0.0, 0.0))
+    for t in (path.duration_s, 1e6):
+        sp = path.at(t)
+        assert sp.horizontal == ((0.0, 0.0), pytest.approx((10.0, 10.0)), (0.0, 0.0))
+        assert sp.vertical == (0.0, pytest.approx(-1.0), 0.0)
+    assert [path.waypoints_reached(t) for t in (0.0, 2.5, 9.0, 100.0)] == [0, 1, 2, 4]
+    assert path.target_at(0.0) == pytest.approx((0.0, 0.0, -5.0))
+    assert path.target_at(9.0) == pytest.approx((10.0, 10.0, -5.0))
+    assert path.at(-1.0).vertical.up_m == pytest.approx(0.0)  # before the start: the start
+
+
+def test_a_waypoint_where_the_mission_starts_is_reached_at_once() -> None:
+    path = MissionPath(
+        Mission(waypoints=[Waypoint(north_m=0, east_m=0, up_m=0, hold_s=2)]), (1.0, 2.0, -3.0)
+    )
+    assert path.arrivals_s == [0.0] and path.duration_s == 2.0
+    assert path.at(1.0).horizontal.position_ne_m == (1.0, 2.0)
+
+
+def test_a_bad_mission_file_names_its_keys(tmp_path: Path) -> None:
+    f = tmp_path / "m.yaml"
+    f.write_text(
+        "speed_m_s: 0\nwaypoints:\n  - {north_m: 1, east_m: .nan, up_m: 2, hold_s: -1}\n"
+        "  - {north_m: 1, east_m: 0, up_m: 2, heading: 3}\n",
+        encoding="utf-8",
+    )
+    with pytest.raises(ConfigError) as err:
+        load_mission(f)
+    text = str(err.value)
+    for key in ("speed_m_s", "waypoints.0.east_m", "waypoints.0.hold_s", "waypoints.1.heading"):
+        assert key in text, text
+    f.write_text("waypoints: []\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match="waypoints"):
+        load_mission(f)
