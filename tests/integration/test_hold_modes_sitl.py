@@ -38,6 +38,10 @@ wind:
 """
 
 
+def engaged_end(events: list[dict[str, object]]) -> float:
+    return next(float(str(e["t_s"])) for e in events if e["kind"] == "duration")
+
+
 def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> None:
     sticks = tmp_path / "centred.yaml"
     sticks.write_text(SCRIPT, encoding="utf-8")
@@ -56,11 +60,14 @@ def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> N
     airborne = pos[:, 2] < -0.5
     assert airborne.any(), "never lifted off"
     t_off = float(t[np.argmax(airborne)])
-    late = t > t_off + 5.0
+    # Until the companion's run ended: after its hand-back the SITL's own mode flies.
+    end = engaged_end(flight.companion_events)
+    late = (t > t_off + 5.0) & (t <= end)
     assert late.sum() > 1000 and bool(airborne[late].all())
     held = pos[late, :2] - pos[np.argmax(airborne), :2]
     drift = np.hypot(held[:, 0], held[:, 1])
-    assert float(np.max(drift)) < 2.0, float(np.max(drift))
+    # Measured 0.45 m at most (scripts/position_hold.py, 30 s, the same wind).
+    assert float(np.max(drift)) < 1.0, float(np.max(drift))
 
 
 MISSION = """\
@@ -92,7 +99,7 @@ def test_a_mission_takes_off_and_visits_every_waypoint(tmp_path: Path) -> None:
         "4 of 4: holding there"
     )
     log = read_log(flight.sitl_log)
-    pos = log["pos_ned_m"]
+    pos = log["pos_ned_m"][log["t_s"] <= engaged_end(events)]
     start = pos[0]
     for north, east, up in ((0, 0, 4), (8, 0, 4), (8, 8, 4), (0, 8, 6)):
         wp = start + np.array([north, east, -up])
