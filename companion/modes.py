@@ -165,8 +165,9 @@ class ModePath(Engagement):
             self._mission_reached = 0
             self._event(
                 "mission_started",
-                f"{len(mission.waypoints)} waypoints from N {pos[0]:.1f} E {pos[1]:.1f} "
-                f"D {pos[2]:.1f} m, {path.duration_s:.1f} s",
+                # The lab reads the start back from this text (sitl/lab/outer_report.py).
+                f"{len(mission.waypoints)} waypoints from N {pos[0]:.2f} E {pos[1]:.2f} "
+                f"D {pos[2]:.2f} m, {path.duration_s:.1f} s",
             )
         if not self.controller.on_ground:
             self._mission_t += dt

@@ -142,6 +142,43 @@ def _add_oracle(
     )
 
 
+def _add_outer(
+    metrics: dict[str, Any], out_dir: Path, flight: Any, mode: str, mission: Any
+) -> None:
+    """The outer loops' figures into ``metrics.json`` (``outer``), ``path.png`` and a
+    section of ``report.md``."""
+    from sitl.lab.outer_report import outer_metrics, plot_path
+
+    outer = outer_metrics(flight, mode, mission)
+    metrics["outer"] = outer
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n", encoding="utf-8")
+    plot_path(flight, out_dir, mission, title=f"--mode {mode}")
+    lines = ["", f"## Outer loops: `--mode {mode}`", "",
+             f"Engaged {outer['engaged_s']} s, airborne {outer['airborne_s']} s."]  # fmt: skip
+    m = outer.get("mission")
+    if m is not None:
+        lines.append(f"Mission: {m['reached']} of {m['waypoints']} waypoints reached.")
+        pe = m.get("path_error_m")
+        if pe:
+            lines.append(
+                f"Path error (true position to the planned legs, airborne): RMS {pe['rms']} m "
+                f"(horizontal {pe['horizontal_rms']}, vertical {pe['vertical_rms']}), "
+                f"max {pe['max']} m."
+            )
+    lines += ["", "![path](path.png)", ""]
+    with (out_dir / "report.md").open("a", encoding="utf-8") as f:
+        f.write("\n".join(lines))
+    click.echo(
+        f"outer ({mode}): airborne {outer['airborne_s']} s"
+        + (
+            f"; mission {m['reached']}/{m['waypoints']} waypoints, path error RMS "
+            f"{m.get('path_error_m', {}).get('rms', '-')} m"
+            if m is not None
+            else ""
+        )
+    )
+
+
 def _controller_profile_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     return click.option(
         "--controller-profile",
@@ -300,6 +337,23 @@ def simulate(
     help="Rates output: fly the same scenario again sending the pilot's rates straight "
     "through (into OUT/passthrough) and report both.",
 )
+@click.option(
+    "--mode",
+    "flight_mode",
+    type=click.Choice(["rates", "angle", "altitude", "position"]),
+    default="rates",
+    show_default=True,
+    help="companion run --mode: what the pilot's sticks ask. Beyond rates, metrics.json "
+    "gains 'outer' and the report path.png.",
+)
+@click.option(
+    "--mission",
+    "mission_path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="With --mode position: companion run --mission FILE; metrics.json's outer.mission "
+    "gives the path error against its plan.",
+)
 @_link_opt
 @_progress_opt
 @_oracle_opt
@@ -314,6 +368,8 @@ def fly(
     out_dir: Path,
     autopilot: str,
     compare_passthrough: bool,
+    flight_mode: str,
+    mission_path: Path | None,
     link: LinkSpec | None,
     progress: bool,
     oracle: bool,
@@ -342,18 +398,32 @@ def fly(
     profile, _cfg, ctrl_path = load_inputs(
         profile_path, controller_path, flown_output, simulated=True
     )
+    if mission_path is not None and flight_mode != "position":
+        click.echo(f"error: --mission: needs --mode position (got --mode {flight_mode})",
+                   err=True)  # fmt: skip
+        sys.exit(EXIT_BAD_INPUT)
+    mission = None
     try:
         sc = load_scenario(scenario)
         if controller_profile:
             load_profile(controller_profile)
+        if mission_path is not None:
+            from companion.mission import load_mission
+
+            mission = load_mission(mission_path)
     except ConfigError as exc:
         fail_config(exc)
+    mode_args: tuple[str, ...] = () if flight_mode == "rates" else ("--mode", flight_mode)
+    if mission_path is not None:
+        mode_args += ("--mission", str(mission_path))
     if link is not None:
         sc = sc.model_copy(update={"link": link})
     meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,
             "controller_profile": str(controller_profile or profile_path),
             "link": sc.link.describe()}  # fmt: skip
-    keep_earlier(f"--out {out_dir}", out_dir, (*FLIGHT_FILES, *REPORT_FILES, "passthrough"))
+    keep_earlier(
+        f"--out {out_dir}", out_dir, (*FLIGHT_FILES, *REPORT_FILES, "passthrough", "path.png")
+    )
 
     def fly_once(
         label: str, out: Path, companion_args: tuple[str, ...] = ()
@@ -363,7 +433,7 @@ def fly(
             fl = fly_mavlink(
                 profile_path, scenario, out, controller_path=ctrl_path, output=output,
                 duration_s=duration, seed=seed, controller_profile_path=controller_profile,
-                autopilot=autopilot, companion_args=companion_args, progress=tick,
+                autopilot=autopilot, companion_args=(*mode_args, *companion_args), progress=tick,
                 link=sc.link,
             )  # fmt: skip
         if not fl.control_log.exists():
@@ -387,6 +457,8 @@ def fly(
         scenario_desc=sc.description.strip(),
         passthrough=baseline,
     )
+    if flight_mode != "rates":
+        _add_outer(metrics, out_dir, flight, flight_mode, mission)
     mae = metrics["mae_deg_s"]
     click.echo(
         f"{'CRASHED' if metrics['crashed'] else 'flew'} {metrics['sim_time_s']:.1f} s in "

@@ -109,7 +109,7 @@ async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start)
     await f.feed_until(
         lambda: "mission_waypoint" in f.kinds(), send=lambda: estimates_and_imu(f), what="waypoint"
     )
-    assert f.details("mission_started")[0].startswith("1 waypoints from N 0.0 E 0.0 D -5.0 m")
+    assert f.details("mission_started")[0].startswith("1 waypoints from N 0.00 E 0.00 D -5.00 m")
     assert f.details("mission_waypoint") == ["1 of 1: holding there"]
     hold = f.companion.hold
     assert hold is not None and f.companion.mission_path is not None

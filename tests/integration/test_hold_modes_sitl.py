@@ -8,11 +8,14 @@ position where it lifted off against the wind, on the SITL's estimates.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from companion.cli import cli
 from sitl.flight_log import read_log
 from sitl.lab.fly import fly_mavlink
 
@@ -80,25 +83,35 @@ waypoints:
 """
 
 
-def test_a_mission_takes_off_and_visits_every_waypoint(tmp_path: Path) -> None:
+def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> None:
+    """Through ``companion fly --mode position --mission``: the waypoints visited, the
+    path error against the plan in metrics.json, the plot of the path."""
     mission = tmp_path / "square.yaml"
     mission.write_text(MISSION, encoding="utf-8")
     sticks = tmp_path / "centred.yaml"
-    sticks.write_text(SCRIPT.replace("duration_s: 14", "duration_s: 24"), encoding="utf-8")
+    sticks.write_text(SCRIPT.replace("duration_s: 14", "duration_s: 26"), encoding="utf-8")
     scenario = tmp_path / "still.yaml"
     scenario.write_text(f"name: still\nseed: 12\npilot: {sticks}\nfree_flight: true\n", "utf-8")
-    flight = fly_mavlink(
-        ROOT / "vehicle_profiles" / "x500.yaml", str(scenario), tmp_path / "flight",
-        duration_s=22.0, companion_args=("--mode", "position", "--mission", str(mission)),
+    out = tmp_path / "fly"
+    run = CliRunner().invoke(
+        cli,
+        ["fly", "--profile", str(ROOT / "vehicle_profiles" / "x500.yaml"), "--scenario",
+         str(scenario), "--mode", "position", "--mission", str(mission), "--duration", "24",
+         "--out", str(out), "--no-progress"],
+        catch_exceptions=False,
     )  # fmt: skip
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
-    events = flight.companion_events
-    kinds = [e["kind"] for e in events]
-    assert not any(k.startswith("failsafe") for k in kinds), kinds
-    assert [e["detail"] for e in events if e["kind"] == "mission_waypoint"][-1] == (
-        "4 of 4: holding there"
-    )
-    log = read_log(flight.sitl_log)
+    assert run.exit_code == 0, run.output
+    outer = json.loads((out / "metrics.json").read_text(encoding="utf-8"))["outer"]
+    assert outer["mode"] == "position" and not outer["crashed"]
+    assert outer["mission"]["reached"] == outer["mission"]["waypoints"] == 4
+    # Measured 0.66 m RMS, 1.46 m at most (no acceleration feedforward at the corners).
+    err = outer["mission"]["path_error_m"]
+    assert err["rms"] < 1.0 and err["max"] < 2.5, err
+    assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "## Outer loops: `--mode position`" in (out / "report.md").read_text(encoding="utf-8")
+    events = [json.loads(x) for x in (out / "companion" / "events.jsonl").read_text().splitlines()]
+    assert not any(str(e["kind"]).startswith("failsafe") for e in events)
+    log = read_log(out / "sitl.npz")
     pos = log["pos_ned_m"][log["t_s"] <= engaged_end(events)]
     start = pos[0]
     for north, east, up in ((0, 0, 4), (8, 0, 4), (8, 8, 4), (0, 8, 6)):

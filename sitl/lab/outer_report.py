@@ -1,0 +1,153 @@
+"""The outer loops' figures of a MAVLink flight (``companion fly --mode ...``).
+
+From the SITL's log (the true position) over the companion's engaged time, and,
+with a mission, against its plan: the waypoints from where the mission started
+(the companion's ``mission_started`` event: its position estimate then).
+
+``metrics.json`` gains ``outer``: ``mode``, ``engaged_s``, ``airborne_s``,
+``crashed``, and with a mission ``mission``: ``waypoints``, ``reached`` (the
+companion's ``mission_waypoint`` events), and ``path_error_m``, the distance from
+the true position to the planned path (the straight legs between the start and
+the waypoints) while airborne: ``rms``, ``max``, ``horizontal_rms`` (to the legs
+seen from above), ``vertical_rms`` (from the planned height at the closest
+point). ``path.png`` draws the path flown against the plan.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.mission import Mission
+from sitl.flight_log import read_log
+from sitl.lab.fly import FlightProcesses
+
+__all__ = ["mission_plan", "outer_metrics", "plot_path", "segment_distances"]
+
+_ORIGIN = re.compile(r"from N (-?[\d.]+) E (-?[\d.]+) D (-?[\d.]+) m")
+
+
+def mission_plan(mission: Mission, events: list[dict[str, Any]]) -> np.ndarray | None:
+    """The planned points (start, then the waypoints), NED (n, 3); None without a
+    ``mission_started`` event."""
+    for e in events:
+        if e.get("kind") == "mission_started":
+            m = _ORIGIN.search(str(e.get("detail", "")))
+            if m is None:
+                return None
+            o = np.array([float(m.group(i)) for i in (1, 2, 3)])
+            wps = [o + np.array([w.north_m, w.east_m, -w.up_m]) for w in mission.waypoints]
+            return np.array([o, *wps])
+    return None
+
+
+def segment_distances(points: np.ndarray, plan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: the distance to the closest leg of ``plan`` and that closest
+    point on it (both for points (n, d) and a polyline (m, d), any d)."""
+    best = np.full(len(points), np.inf)
+    closest = np.zeros_like(points)
+    legs = list(itertools.pairwise(plan)) or [(plan[0], plan[0])]
+    for a, b in legs:
+        ab = b - a
+        den = float(ab @ ab)
+        s = np.zeros(len(points)) if den == 0.0 else np.clip((points - a) @ ab / den, 0.0, 1.0)
+        c = a + s[:, None] * ab
+        d = np.linalg.norm(points - c, axis=1)
+        better = d < best
+        best[better] = d[better]
+        closest[better] = c[better]
+    return best, closest
+
+
+def _engaged(flight: FlightProcesses) -> tuple[float, float] | None:
+    ev = flight.companion_events
+    t0 = next((float(e["t_s"]) for e in ev if e.get("kind") == "engaged"), None)
+    if t0 is None:
+        return None
+    ends = [float(e["t_s"]) for e in ev if e.get("kind") in ("duration", "signal")]
+    ends += [float(e["t_s"]) for e in ev if str(e.get("kind", "")).startswith("failsafe")]
+    return t0, min(ends) if ends else np.inf
+
+
+def outer_metrics(
+    flight: FlightProcesses, mode: str, mission: Mission | None = None
+) -> dict[str, Any]:
+    """``metrics["outer"]`` of a flight (module docstring)."""
+    log = read_log(flight.sitl_log)
+    t, pos = log["t_s"], log["pos_ned_m"]
+    span = _engaged(flight)
+    out: dict[str, Any] = {"mode": mode, "crashed": bool(log.summary.get("crashed", False))}
+    if span is None:
+        return {**out, "engaged_s": 0.0, "airborne_s": 0.0}
+    sel = (t >= span[0]) & (t <= span[1])
+    airborne = sel & (pos[:, 2] < -0.3)
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    out["engaged_s"] = round(float(sel.sum()) * dt, 2)
+    out["airborne_s"] = round(float(airborne.sum()) * dt, 2)
+    if mission is None:
+        return out
+    events = flight.companion_events
+    reached = [e for e in events if e.get("kind") == "mission_waypoint"]
+    m: dict[str, Any] = {
+        "waypoints": len(mission.waypoints),
+        "reached": int(str(reached[-1]["detail"]).split(" of ")[0]) if reached else 0,
+    }
+    plan = mission_plan(mission, events)
+    if plan is not None and airborne.any():
+        p = pos[airborne]
+        d3, c3 = segment_distances(p, plan)
+        dh, _ = segment_distances(p[:, :2], plan[:, :2])
+        dv = np.abs(p[:, 2] - c3[:, 2])
+        m["path_error_m"] = {
+            "rms": round(float(np.sqrt(np.mean(d3**2))), 3),
+            "max": round(float(d3.max()), 3),
+            "horizontal_rms": round(float(np.sqrt(np.mean(dh**2))), 3),
+            "vertical_rms": round(float(np.sqrt(np.mean(dv**2))), 3),
+        }
+    out["mission"] = m
+    return out
+
+
+def plot_path(
+    flight: FlightProcesses, out_dir: Path, mission: Mission | None = None, *, title: str = ""
+) -> Path:
+    """``path.png``: the path flown seen from above (east right, north up) and the
+    height in time, with the mission's plan when there is one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    log = read_log(flight.sitl_log)
+    t, pos = log["t_s"], log["pos_ned_m"]
+    span = _engaged(flight)
+    sel = np.ones(len(t), bool) if span is None else (t >= span[0]) & (t <= span[1])
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1.3]})
+    ax.plot(pos[sel, 1], pos[sel, 0], lw=1.2, label="flown (true position)")
+    az.plot(t[sel] - t[sel][0] if sel.any() else t, -pos[sel, 2], lw=1.2, label="flown")
+    plan = mission_plan(mission, flight.companion_events) if mission is not None else None
+    if plan is not None:
+        ax.plot(plan[:, 1], plan[:, 0], "k--", lw=1.0, label="plan")
+        ax.plot(plan[1:, 1], plan[1:, 0], "ko", ms=5)
+        for k, (n, e) in enumerate(plan[1:, :2], start=1):
+            ax.annotate(str(k), (e, n), textcoords="offset points", xytext=(5, 5))
+        for up in sorted(set(np.round(-plan[1:, 2], 2))):
+            az.axhline(up, color="k", ls=":", lw=0.8)
+    ax.set_xlabel("east, m")
+    ax.set_ylabel("north, m")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    az.set_xlabel("time engaged, s")
+    az.set_ylabel("height, m (up)")
+    az.grid(True, alpha=0.3)
+    fig.suptitle(title or "path")
+    fig.tight_layout()
+    path = Path(out_dir) / "path.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
