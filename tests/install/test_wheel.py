@@ -329,9 +329,12 @@ PURE_ONLY_TESTS = (
     "test_vertical.py",
     "test_horizontal.py",
     "test_outer.py",
+    "test_angle_mode.py",
+    "test_hold_modes.py",
+    "test_mission.py",
 )
-"""Control tests of modules the build does not compile (the outer loops, #12): the
-checkout's run covers them."""
+"""Control tests of modules the build does not compile (the outer loops and the flight
+modes, #12): the checkout's run covers them."""
 
 
 def test_the_control_tests_pass_on_the_compiled_core(installed: Installed) -> None:
