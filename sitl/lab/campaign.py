@@ -66,7 +66,6 @@ __all__ = [
     "build_grid",
     "damaged_profile",
     "fly_one",
-    "iter_grid",
     "oracle_crashes",
     "oracle_limit",
     "plot_mae",
@@ -140,43 +139,13 @@ def damaged_profile(profile: VehicleProfile, efficiency: float, motor: int = 0) 
     return VehicleProfile.model_validate(copy.model_dump())
 
 
-def iter_grid(
-    profiles: dict[str, VehicleProfile],
-    controllers: dict[str, MfcConfig | PidConfig],
-    scenario: Scenario,
-    *,
-    damages: Sequence[float] = (1.0, 0.8, 0.6),
-    gusts_m_s: Sequence[float] = (0.0, 2.0),
-    seeds: Sequence[int] = (1000, 1001, 1002),
-    duration_s: float | None = None,
-) -> Iterator[FlightSpec]:
-    """Every combination, in a fixed order (profile, damage, gust, seed, controller),
-    one at a time; see :func:`build_grid`."""
-    base = (
-        scenario if duration_s is None else scenario.model_copy(update={"duration_s": duration_s})
-    )
-    for pname, prof in profiles.items():
-        for dmg in damages:
-            vehicle = damaged_profile(prof, dmg)
-            for gust in gusts_m_s:
-                # Validated (model_copy is not): a bad gust is a ValueError here,
-                # not a failure inside a worker's flight.
-                wind = type(base.wind).model_validate(
-                    {**base.wind.model_dump(), "gust_sigma_m_s": float(gust)}
-                )
-                sc = base.model_copy(update={"wind": wind})
-                for seed in seeds:
-                    for cname, cfg in controllers.items():
-                        yield FlightSpec(
-                            pname, vehicle, float(dmg), float(gust), int(seed), cname, cfg, sc
-                        )
-
-
 @dataclass(frozen=True)
 class Grid:
     """A campaign's grid, expanded lazily: each iteration builds its specs one at a
-    time (:func:`iter_grid`), in the same order, and ``len`` is the product of the
-    axes' lengths. A grid of a million seeds holds its axes, not its flights."""
+    time, in a fixed order (profile, damage, gust, seed, controller), and ``len``
+    is the product of the axes' lengths. A grid of a million seeds holds its axes,
+    not its flights. ``duration_s`` flies only the first seconds of the scenario;
+    the specs share their profile, controller and scenario objects."""
 
     profiles: dict[str, VehicleProfile]
     controllers: dict[str, MfcConfig | PidConfig]
@@ -187,10 +156,25 @@ class Grid:
     duration_s: float | None = None
 
     def __iter__(self) -> Iterator[FlightSpec]:
-        return iter_grid(
-            self.profiles, self.controllers, self.scenario, damages=self.damages,
-            gusts_m_s=self.gusts_m_s, seeds=self.seeds, duration_s=self.duration_s,
-        )  # fmt: skip
+        base = self.scenario
+        if self.duration_s is not None:
+            base = base.model_copy(update={"duration_s": self.duration_s})
+        for pname, prof in self.profiles.items():
+            for dmg in self.damages:
+                vehicle = damaged_profile(prof, dmg)
+                for gust in self.gusts_m_s:
+                    # Validated (model_copy is not): a bad gust is a ValueError here,
+                    # not a failure inside a worker's flight.
+                    wind = type(base.wind).model_validate(
+                        {**base.wind.model_dump(), "gust_sigma_m_s": float(gust)}
+                    )
+                    sc = base.model_copy(update={"wind": wind})
+                    for seed in self.seeds:
+                        for cname, cfg in self.controllers.items():
+                            yield FlightSpec(
+                                pname, vehicle, float(dmg), float(gust), int(seed), cname, cfg,
+                                sc,
+                            )  # fmt: skip
 
     def __len__(self) -> int:
         return (
@@ -209,16 +193,8 @@ def build_grid(
     seeds: Sequence[int] = (1000, 1001, 1002),
     duration_s: float | None = None,
 ) -> list[FlightSpec]:
-    """Every combination, in a fixed order (profile, damage, gust, seed, controller).
-
-    ``duration_s`` flies only the first seconds of the scenario. The specs share
-    their profile, controller and scenario objects, so a long grid is cheap.
-    """
-    grid = iter_grid(
-        profiles, controllers, scenario, damages=damages, gusts_m_s=gusts_m_s, seeds=seeds,
-        duration_s=duration_s,
-    )  # fmt: skip
-    return list(grid)
+    """The :class:`Grid`'s specs, all built (a list)."""
+    return list(Grid(profiles, controllers, scenario, damages, gusts_m_s, seeds, duration_s))
 
 
 def _versions() -> dict[str, str]:
