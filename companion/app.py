@@ -822,12 +822,23 @@ class Companion(SamplePath):
                     f"{res}): --mode {self.flight_mode} flies on it"
                 )
             self._event("estimate_stream", f"LOCAL_POSITION_NED at {hz:g} Hz")
-        # The landed state stops identification on the ground (MfcController.on_ground).
-        await self._request_best_effort(
-            "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
-            LANDED_STATE_RATE_HZ,
-            "identification is gated by the collective alone unless the autopilot sends it",
-        )  # fmt: skip
+        # The landed state stops identification on the ground (MfcController.on_ground);
+        # the flight modes hold their loops on the ground by it: for them it is needed.
+        if self.needs_attitude:
+            res = await self.link.command_long(
+                _CMD_SET_MESSAGE_INTERVAL, _MSG_EXTENDED_SYS_STATE, 1e6 / LANDED_STATE_RATE_HZ
+            )
+            if res != _RESULT_ACCEPTED:
+                raise EngageError(
+                    f"the autopilot refused EXTENDED_SYS_STATE (MAV_RESULT {res}): --mode "
+                    f"{self.flight_mode} needs its landed state"
+                )
+        else:
+            await self._request_best_effort(
+                "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
+                LANDED_STATE_RATE_HZ,
+                "identification is gated by the collective alone unless the autopilot sends it",
+            )  # fmt: skip
         # Whether a position estimate exists decides the hand-back's hold.
         if not self.needs_position:
             await self._request_best_effort(

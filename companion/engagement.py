@@ -76,6 +76,10 @@ class Engagement:
 
         def _not_ready_to_engage(self) -> str | None: ...
 
+        def position_fresh(self) -> bool: ...
+
+    needs_position: bool
+
     async def _engage_offboard(self, *, arm: bool) -> None:
         """Stream setpoints, switch to the stack's engage mode, arm if asked.
 
@@ -91,6 +95,7 @@ class Engagement:
         why = self._not_ready_to_engage()
         deadline = time.monotonic() + _ESTIMATES_WAIT_S
         while why is not None and time.monotonic() < deadline and not self._stop.is_set():
+            # (The pilot's switch going low meanwhile cancels this task: _on_rc.)
             await asyncio.sleep(0.02)
             why = self._not_ready_to_engage()
         if why is not None:
@@ -201,9 +206,12 @@ class Engagement:
     def _conditions(self, *, rc_failsafe: bool) -> Conditions:
         now = time.perf_counter()
         rc, pos = self._rc_wall, self._pos_wall
+        position = pos is not None and now - pos <= _POSITION_TIMEOUT_S
+        if self.needs_position:  # the modes that fly on it judge it themselves
+            position = position and self.position_fresh()
         return Conditions(
             rc_valid=rc is not None and now - rc <= self.opts.failsafe.rc_timeout_s,
-            position_valid=pos is not None and now - pos <= _POSITION_TIMEOUT_S,
+            position_valid=position,
             rc_failsafe=rc_failsafe,
         )
 

@@ -37,6 +37,7 @@ from companion.mission import MissionPath
 
 if TYPE_CHECKING:
     from companion.app import RunOptions
+    from companion.step import SampleStep
 
 __all__ = ["ModePath"]
 
@@ -50,6 +51,7 @@ class ModePath(Engagement):
 
     imu_rate_hz: float | None
     n_estimate_invalid: int
+    step: SampleStep
     _deflection: tuple[float, float, float]
     _thrust: float
 
@@ -66,12 +68,18 @@ class ModePath(Engagement):
         self._stale_estimate_s = opts.failsafe.stale_estimate_s
         self._stale_position_s = opts.failsafe.stale_position_s
         self.n_position_invalid = 0
+        self.landed_state_seen = False
+        """An EXTENDED_SYS_STATE with a landed state came (the modes need it)."""
         self._applied_thrust: float | None = None
         self.mission = opts.mission
         self.mission_path: MissionPath | None = None
         """The mission as flown from where this engagement started (None before)."""
         self._mission_t = 0.0
         self._mission_reached = 0
+        self._mode_events: list[tuple[str, str]] = []
+        """Events of this sample, recorded after its command left (_flush_mode_events)."""
+        self._dt_typical = 0.0
+        """The IMU stream's sample period as it comes (a slow average, gaps bounded)."""
         self._forget_estimates()
 
     def _forget_estimates(self) -> None:
@@ -92,17 +100,18 @@ class ModePath(Engagement):
         self._att_q = q
         self._att_age_s = 0.0
 
-    def _on_local_position(self, msg: Any) -> None:
-        """LOCAL_POSITION_NED: position and velocity, NED."""
-        if not self.needs_position:
-            return
+    def _on_local_position(self, msg: Any) -> bool:
+        """LOCAL_POSITION_NED: position and velocity, NED; returns whether it was
+        finite (a position at all)."""
         p = (float(msg.x), float(msg.y), float(msg.z))
         v = (float(msg.vx), float(msg.vy), float(msg.vz))
         if not math.isfinite(p[0] + p[1] + p[2] + v[0] + v[1] + v[2]):
             self.n_position_invalid += 1
-            return
-        self._pos = (p, v)
-        self._pos_age_s = 0.0
+            return False
+        if self.needs_position:
+            self._pos = (p, v)
+            self._pos_age_s = 0.0
+        return True
 
     def estimate_fresh(self) -> bool:
         """Whether there is an attitude estimate that came within ``stale_estimate_s``."""
@@ -113,8 +122,19 @@ class ModePath(Engagement):
         return self._pos is not None and self._pos_age_s <= self._stale_position_s
 
     def _age_estimates(self, dt: float) -> None:
-        hz = self.imu_rate_hz
-        step = dt if hz is None or dt * hz <= 2.0 else 2.0 / hz
+        """Each sample ages the estimates by its dt, at most two typical periods of
+        the IMU stream as it really comes (module docstring). The typical period
+        follows the stream slowly (2 % a sample) and a gap moves it at most by
+        its own 4 periods' worth: an autopilot that sends 50 Hz when asked 400 Hz
+        is learnt within a second or two, one gap of a second is not."""
+        typ = self._dt_typical
+        if typ <= 0.0:
+            hz = self.imu_rate_hz
+            typ = 1.0 / hz if hz else dt
+        if dt > 0.0:
+            typ += 0.02 * (min(dt, 4.0 * typ) - typ)
+        self._dt_typical = typ
+        step = dt if dt <= 2.0 * typ else 2.0 * typ
         self._att_age_s += step
         self._pos_age_s += step
 
@@ -128,6 +148,11 @@ class ModePath(Engagement):
         collective (the rate loop holds the attitude it has), and, engaged, a
         failsafe."""
         self._age_estimates(dt)
+        # The loops learn from the gyro as the rate law does: not beyond its range.
+        lim = self.step.gyro_limit_rad_s
+        g0, g1, g2 = gyro
+        if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
+            gyro = (math.nan, math.nan, math.nan)
         stale = self._stale_estimates()
         if stale is not None:
             if self.engaged or self.commanding:
@@ -144,7 +169,7 @@ class ModePath(Engagement):
         hold = self.hold
         assert hold is not None and self._pos is not None
         pos, vel = self._pos
-        if self.mission is not None and (self.engaged or self.commanding):
+        if self.mission is not None and self.engaged:
             cmd = self._fly_mission(dt, q, gyro, pos, vel)
             return cmd.rate_ref_frd_rad_s, cmd.thrust
         cmd = hold.update(
@@ -163,12 +188,12 @@ class ModePath(Engagement):
             path = self.mission_path = MissionPath(mission, pos)
             self._mission_t = 0.0
             self._mission_reached = 0
-            self._event(
+            self._mode_events.append((
                 "mission_started",
                 # The lab reads the start back from this text (sitl/lab/outer_report.py).
                 f"{len(mission.waypoints)} waypoints from N {pos[0]:.2f} E {pos[1]:.2f} "
                 f"D {pos[2]:.2f} m, {path.duration_s:.1f} s",
-            )
+            ))  # fmt: skip
         if not self.controller.on_ground:
             self._mission_t += dt
         t = self._mission_t
@@ -176,10 +201,10 @@ class ModePath(Engagement):
         if reached > self._mission_reached:
             self._mission_reached = reached
             done = reached == len(mission.waypoints)
-            self._event(
+            self._mode_events.append((
                 "mission_waypoint",
                 f"{reached} of {len(mission.waypoints)}" + (": holding there" if done else ""),
-            )
+            ))  # fmt: skip
         take_off = path.target_at(t)[2] < pos[2] - 0.3  # the waypoint flown to is above
         return hold.fly(
             dt, q, gyro, pos, vel, path.at(t), take_off=take_off,
@@ -206,6 +231,11 @@ class ModePath(Engagement):
 
     def _not_ready_to_engage(self) -> str | None:
         """Why the vehicle must not be engaged now, or None."""
+        if self.needs_attitude and not self.landed_state_seen:
+            return (
+                f"no landed state (EXTENDED_SYS_STATE) yet: --mode {self.flight_mode} holds "
+                "its loops on the ground by it"
+            )
         if self.needs_attitude and not self.estimate_fresh():
             return (
                 f"no fresh attitude estimate (ATTITUDE_QUATERNION): --mode {self.flight_mode} "
@@ -232,6 +262,12 @@ class ModePath(Engagement):
         """Forget what the laws learnt: the rate law and the flight mode's loops."""
         self.controller.reset()
         self._reset_modes(self._thrust)
+
+    def _flush_mode_events(self) -> None:
+        """Record this sample's events (called once its command has left)."""
+        for kind, detail in self._mode_events:
+            self._event(kind, detail)
+        self._mode_events.clear()
 
     def _mode_on_ground(self, on_ground: bool) -> None:
         """The autopilot's landed state changed."""

@@ -44,6 +44,7 @@ _MSG_TIMESYNC = 111
 _MSG_EXTENDED_SYS_STATE = 245
 _MSG_STATUSTEXT = 253
 _BASE_MODE_ARMED = 128
+_LANDED_STATE_UNDEFINED = 0  # MAV_LANDED_STATE_UNDEFINED
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 
 AGES_KEPT = 1024
@@ -139,8 +140,9 @@ class SamplePath(ModePath):
         elif mid == _MSG_EXTENDED_SYS_STATE:
             self._on_landed_state(int(msg.landed_state))
         elif mid == _MSG_LOCAL_POSITION_NED:
-            self._pos_wall = time.perf_counter()
-            self._on_local_position(msg)
+            # A hand-back without RC holds with a valid position: a finite one.
+            if self._on_local_position(msg):
+                self._pos_wall = time.perf_counter()
         elif mid == _MSG_TIMESYNC and msg.tc1 != 0:
             # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
             self.link_clock.reply(msg.tc1, msg.ts1, self.link.rx_perf_s)
@@ -150,6 +152,8 @@ class SamplePath(ModePath):
 
         An autopilot that never sends it (or sends UNDEFINED) leaves the
         collective as the only gate, as before."""
+        if state != _LANDED_STATE_UNDEFINED:
+            self.landed_state_seen = True
         on_ground = state == _LANDED_STATE_ON_GROUND
         if on_ground != self.controller.on_ground:
             self.controller.on_ground = on_ground
@@ -303,7 +307,6 @@ class SamplePath(ModePath):
             ref, thrust = self._mode_reference(dt, gyro, ref, thrust)
         step = self.step
         out = step.sample(dt, gyro, ref, thrust)
-        self._applied_thrust = out.thrust
         if step.gyro_valid:
             self.watch.valid_sample(dt)
         else:
@@ -315,7 +318,11 @@ class SamplePath(ModePath):
         engaged = self.engaged  # as the command left (recorded so, whatever follows)
         if self.commanding:
             sent = self._send_output(t_s, out, ref, thrust)
+        else:
+            self._applied_thrust = None  # the outer loops learn only what was sent
         t_sent = time.perf_counter()
+        if self._mode_events:
+            self._flush_mode_events()
         # ---- the command has left: what follows is off the latency path
         age = t_sent + self.link_clock.offset_s - t_s  # NaN until the first TIMESYNC answer
         self.sample_ages_s[self._n_ages % AGES_KEPT] = age
@@ -359,12 +366,14 @@ class SamplePath(ModePath):
                 self._gated(replaced)
             r, p, y, t = controls
             self.link.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
+            self._applied_thrust = t
             self.n_commands += 1
             return NO_RATES
         sp, thrust_out, replaced = self.step.rates_command(out, ref, thrust)
         if replaced:
             self._gated(replaced)
         self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
+        self._applied_thrust = thrust_out
         self.n_commands += 1
         return sp
 
@@ -410,6 +419,11 @@ class SamplePath(ModePath):
             self._start_engage(arm=False)
         elif self._switch_high and (value < 1300 or value > 2200):
             self._switch_high = False
+            task = self._engage_task
+            if task is not None and not task.done() and not self.commanding:
+                # Still waiting for the flight mode's estimates: nothing was sent yet.
+                task.cancel()
+                self._event("rc_switch", f"ch{ch} low ({value} us): engagement abandoned")
             if self.engaged or self.commanding:
                 was = self._release()
                 self._event("rc_switch", f"ch{ch} low ({value} us): handing back")

@@ -16,7 +16,13 @@ from click.testing import CliRunner
 
 from companion.cli import cli
 from companion.errors import EXIT_BAD_INPUT, EXIT_ERROR
-from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
+from tests.app.fakes import (
+    CMD_ARM,
+    CMD_DO_SET_MODE,
+    CMD_SET_MESSAGE_INTERVAL,
+    PX4_OFFBOARD,
+    settle,
+)
 from tests.app.flight import LOOSE, PROFILE_PATH, Flight, Start, streams_requested
 
 MSG_ATTITUDE_QUATERNION = 31
@@ -46,6 +52,7 @@ async def engaged_in_angle_mode(start: Start, q: tuple[float, ...], **opts: obje
         ),
         2.0,
     )
+    f.fake.extended_sys_state(2)  # MAV_LANDED_STATE_IN_AIR
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(
         lambda: f.fake.commands(CMD_ARM), send=lambda: estimate_and_imu(f, q), what="ARM"
@@ -98,6 +105,7 @@ async def test_full_right_stick_on_a_level_vehicle_rolls_right(start: Start) -> 
 async def test_engagement_waits_for_an_estimate(start: Start) -> None:
     f = await start(engage="auto", output="rates", mode="angle")
     await streams_requested(f)
+    f.fake.extended_sys_state(2)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(lambda: "engage_failed" in f.kinds(), what="engage_failed")
     assert "ATTITUDE_QUATERNION" in f.details("engage_failed")[0]
@@ -161,3 +169,39 @@ def test_bad_angle_mode_options_are_refused(args: list[str], said: str) -> None:
     )
     assert r.exit_code == EXIT_BAD_INPUT, r.output
     assert said in r.output
+
+
+async def test_engagement_waits_for_the_landed_state(start: Start) -> None:
+    f = await start(engage="auto", output="rates", mode="angle")
+    await streams_requested(f)
+    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(
+        lambda: "engage_failed" in f.kinds(), send=lambda: estimate_and_imu(f, rolled(0.0))
+    )
+    assert "EXTENDED_SYS_STATE" in f.details("engage_failed")[0]
+    assert not f.fake.commands(CMD_ARM) and not f.fake.setpoints()
+
+
+async def test_the_switch_going_low_while_waiting_for_estimates_abandons_it(
+    start: Start,
+) -> None:
+    """Found in review: the engagement waited for its estimates past the pilot's
+    switch going low, then took the vehicle."""
+    f = await start(engage="rc-switch", output="rates", mode="angle", armed=True)
+    await streams_requested(f)
+    await f.fake.wait_until(lambda: f.companion.started_up, 2.0)
+    f.fake.extended_sys_state(2)
+    f.fake.rc(1000)
+    await settle()
+    f.fake.rc(2000)  # engage: no estimate yet, so it waits
+    for _ in range(5):
+        f.imu()
+        await settle(2)
+    f.fake.rc(1000)  # the pilot changes their mind
+    await settle(5)
+    for _ in range(100):  # the estimates come after all
+        estimate_and_imu(f, rolled(0.0))
+        await settle(2)
+    assert "engagement abandoned" in " ".join(f.details("rc_switch"))
+    assert not f.companion.commanding and not f.companion.engaged
+    assert not f.fake.commands(CMD_DO_SET_MODE) and not f.fake.setpoints()

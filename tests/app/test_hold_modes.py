@@ -41,6 +41,7 @@ async def engaged(start: Start, mode: str, **opts: object) -> Flight:
     )
     rates = {int(m.param1): m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
     assert rates[MSG_LOCAL_POSITION_NED] == pytest.approx(1e6 / 50.0)
+    f.fake.extended_sys_state(2)  # MAV_LANDED_STATE_IN_AIR
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # throttle at mid-stick: hold
     await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=lambda: estimates_and_imu(f))
     f.fake.set_state(PX4_OFFBOARD, armed=True)
@@ -70,7 +71,9 @@ async def test_the_hold_takes_over_at_the_pilots_collective_and_pushes_up_below_
         assert hold.setpoint.horizontal.position_ne_m == (0.0, 0.0)
 
 
-async def test_a_position_that_stops_is_a_failsafe(start: Start) -> None:
+async def test_a_position_that_stops_is_a_failsafe_and_no_position_mode_is_handed_back(
+    start: Start,
+) -> None:
     f = await engaged(start, "position")
     await f.feed_until(
         lambda: "failsafe_stale_position" in f.kinds(),
@@ -78,11 +81,15 @@ async def test_a_position_that_stops_is_a_failsafe(start: Start) -> None:
         what="failsafe_stale_position",
     )
     await f.fake.wait_until(lambda: not f.companion.commanding, 1.0)
+    await f.feed_until(lambda: "handed_back" in f.kinds(), what="handed_back")
+    # The position the failsafe gave up on is no position to hold on (found in review).
+    assert "POSCTL" not in f.details("handed_back")[0], f.details("handed_back")
 
 
 async def test_no_position_no_engagement(start: Start) -> None:
     f = await start(engage="auto", output="rates", mode="altitude", position=False)
     await streams_requested(f)
+    f.fake.extended_sys_state(2)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(
         lambda: "engage_failed" in f.kinds(), send=lambda: estimates_and_imu(f, None)
