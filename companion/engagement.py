@@ -79,6 +79,7 @@ class Engagement:
         def position_fresh(self) -> bool: ...
 
     needs_position: bool
+    mode_before_engaging: int | None
 
     async def _engage_offboard(self, *, arm: bool) -> None:
         """Stream setpoints, switch to the stack's engage mode, arm if asked.
@@ -104,6 +105,7 @@ class Engagement:
                 self._exit_code = EXIT_ERROR
                 self._stop.set()
             return
+        self.mode_before_engaging = self._ap_mode
         self.commanding = True
         self._reset_laws()
         await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)

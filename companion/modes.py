@@ -68,6 +68,8 @@ class ModePath(Engagement):
         self._stale_estimate_s = opts.failsafe.stale_estimate_s
         self._stale_position_s = opts.failsafe.stale_position_s
         self.n_position_invalid = 0
+        self.mode_before_engaging: int | None = None
+        """The autopilot's ``custom_mode`` as the last engagement began."""
         self.landed_state_seen = False
         """An EXTENDED_SYS_STATE with a landed state came (the modes need it)."""
         self._applied_thrust: float | None = None
@@ -249,12 +251,18 @@ class ModePath(Engagement):
         return None
 
     def _reset_modes(self, thrust: float | None = None) -> None:
-        """Forget what the outer loops learnt. The hold modes take over at
-        ``thrust`` (the pilot's collective) in the air, at the lowest on the ground."""
+        """Forget what the outer loops learnt. The hold modes take over at the lowest
+        collective on the ground; in the air at ``thrust`` (the pilot's throttle)
+        when the autopilot flew a mode whose throttle is the collective before the
+        engagement, else at their hover estimate (a mode holding altitude centres
+        the throttle stick whatever the vehicle needs)."""
         if self.angle is not None:
             self.angle.reset()
         if self.hold is not None:
-            self.hold.reset(thrust=0.0 if self.controller.on_ground else thrust)
+            stack, before = self.stack, self.mode_before_engaging
+            manual = stack is not None and before is not None and before in stack.throttle_modes
+            take_over = 0.0 if self.controller.on_ground else thrust if manual else None
+            self.hold.reset(thrust=take_over)
             self._applied_thrust = None
             self.mission_path = None  # an engagement starts the mission from where it is
 

@@ -430,10 +430,13 @@ class SamplePath(ModePath):
                 self._spawn(self._hand_back("pilot switched back", was_commanding=was), "hand-back")
 
     def _on_heartbeat(self, msg: Any) -> None:
-        if self.stack is None:
-            return  # not yet recognised (start-up)
         mode = int(msg.custom_mode)
         armed = bool(msg.base_mode & _BASE_MODE_ARMED)
+        if self.stack is None:
+            # Not yet recognised (start-up): only what it flies, for an engagement
+            # that follows at once (the mode it began from).
+            self._ap_mode, self._ap_armed = mode, armed
+            return
         offboard = self.stack.is_engage_mode(mode)
         was = self.engaged
         now = offboard and armed and self.commanding

@@ -67,6 +67,10 @@ class FlightStack:
     pilot_modes: frozenset[int] = frozenset()
     """``custom_mode`` values of every mode flown from the pilot's sticks (safe
     or not: ACRO too), for judging a mode the autopilot or the pilot chose."""
+    throttle_modes: frozenset[int] = frozenset()
+    """``custom_mode`` values of the modes whose throttle stick is the collective
+    (PX4 MANUAL, ACRO, STABILIZED; ArduPilot STABILIZE, ACRO): engaged from one,
+    the altitude and position modes take over at the pilot's throttle."""
     imu_message: str = "highres_imu"
     supports_actuator_output: bool = False
     max_imu_rate_hz: float = 1000.0
@@ -141,6 +145,7 @@ PX4 = FlightStack(
     auto_safe_modes=("posctl", "altctl", "hold", "land"),
     # MANUAL 1, ALTCTL 2, POSCTL 3, ACRO 5, STABILIZED 7 (main mode, bits 16-23)
     pilot_modes=frozenset(main << 16 for main in (1, 2, 3, 5, 7)),
+    throttle_modes=frozenset(main << 16 for main in (1, 5, 7)),
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
@@ -163,6 +168,7 @@ ARDUPILOT = FlightStack(
     auto_safe_modes=("alt_hold", "loiter", "land"),
     # STABILIZE 0, ACRO 1, ALT_HOLD 2, DRIFT 11, SPORT 13, POSHOLD 16
     pilot_modes=frozenset((0, 1, 2, 11, 13, 16)),
+    throttle_modes=frozenset((0, 1)),
     imu_message="attitude",
     supports_actuator_output=False,
     # ArduPilot denies intervals shorter than its loop period / 0.8 (~333 Hz at 400 Hz).

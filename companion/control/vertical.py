@@ -312,7 +312,10 @@ class VerticalLoop:
 
         Failure behaviour (:attr:`fault` set, :attr:`nonfinite_events` counted)
         -----------------------------------------------------------------------
-        * ``z`` or ``vz`` or ``dt_s`` non-finite (or ``dt_s <= 0``): the hover-thrust
+        * ``dt_s`` exactly 0 (a restart: the first sample after an engagement): the
+          last output (after :meth:`reset`, the collective it took over at), nothing
+          learnt, no fault;
+        * ``z`` or ``vz`` or ``dt_s`` non-finite (or ``dt_s < 0``): the hover-thrust
           estimate, tilt-compensated, and nothing learnt; the next valid sample
           starts a new finite difference;
         * setpoint non-finite: a climb-rate reference of zero (hold what altitude
@@ -328,6 +331,12 @@ class VerticalLoop:
         if applied is not None and not math.isfinite(applied):
             fault = True
             applied = None
+        if dt_s == 0.0 and math.isfinite(z_ned_m + vz_ned_m_s):
+            # A restart (the first sample after an engagement): nothing to learn from,
+            # and the collective the loop took over at, unchanged.
+            self._climb_prev = None
+            self.fault = False
+            return self._out
         if not (math.isfinite(dt_s + z_ned_m + vz_ned_m_s) and dt_s > 0.0):
             self.nonfinite_events += 1
             self.fault = True

@@ -124,3 +124,20 @@ async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start)
     assert f.companion._mission_t == pytest.approx(0.5, abs=0.005)
     assert hold.setpoint.horizontal.position_ne_m == pytest.approx((1.0, 0.0), abs=0.01)
     assert hold.setpoint.vertical.up_m == pytest.approx(5.0)
+
+
+async def test_from_a_mode_that_holds_altitude_the_hold_takes_over_at_its_hover_estimate(
+    start: Start,
+) -> None:
+    """PX4's ALTCTL centres the throttle stick whatever the vehicle needs: the stick is
+    no collective to take over at (found in review)."""
+    f = await engaged(start, "altitude", custom_mode=2 << 16)  # PX4 ALTCTL
+    hold = f.companion.hold
+    assert hold is not None
+    n = len(f.fake.of_type("SET_ATTITUDE_TARGET"))
+    for _ in range(3):
+        estimates_and_imu(f)
+        await settle(2)
+    first = f.fake.of_type("SET_ATTITUDE_TARGET")[n]
+    assert first.thrust == pytest.approx(hold.outer.vertical.gains.hover_thrust_initial, abs=0.02)
+    assert first.thrust < 0.45  # not the stick's 0.5
