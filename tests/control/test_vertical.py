@@ -266,3 +266,14 @@ def test_never_a_non_finite_or_unbounded_thrust(samples: list[tuple[float, ...]]
 def test_gains_validation_names_the_field(changes: dict[str, float], message: str) -> None:
     with pytest.raises(ValueError, match=message):
         VerticalGains(**changes)
+
+
+def test_the_restart_sample_keeps_the_collective_it_took_over_at() -> None:
+    """dt 0 marks the first sample after an engagement: no jump to the hover estimate."""
+    loop = VerticalLoop()
+    loop.reset(thrust=0.55)
+    out = loop.update(0.0, -5.0, 0.0, VerticalSetpoint(0.0, 5.0))
+    assert out == pytest.approx(0.55) and not loop.fault and loop.nonfinite_events == 0
+    assert loop.update(0.004, -5.0, 0.0, VerticalSetpoint(0.0, 5.0)) == pytest.approx(
+        0.55, abs=0.01
+    )
