@@ -106,8 +106,12 @@ class VerticalGains:
         Tilt beyond which the compensation stops growing, rad, in (0, pi/2).
     """
 
+    # kp_up_1_s 0.69 (was 0.6; docs/research/outer.md, "Tuning the one outer config"):
+    # the most the design rule sqrt(kp_climb / kp_up) / 2 >= 0.95 allows at 2.5. A
+    # higher climb gain would allow more, but overshoots a climb-rate step on a
+    # linear thrust curve (b / alpha = 1/2) beyond 5 % (8.7 % at 3.7).
     kp_climb_1_s: float = 2.5
-    kp_up_1_s: float = 0.6
+    kp_up_1_s: float = 0.69
     climb_max_m_s: float = 3.0
     descent_max_m_s: float = 1.5
     thrust_min: float = 0.12

@@ -198,10 +198,10 @@ def test_f450_holds_position_in_the_papers_gusty_wind() -> None:
 
 
 STEP_REACH_BOUND_S = 6.0
-"""Measured 4.3 s for the 5 -> 8 m step (within 10 % of its 3 m, seed 20200318):
+"""Measured 3.2 s for the 5 -> 8 m step (within 10 % of its 3 m, seed 20200318):
 ``python -m sitl.lab.outer_flight --profile f450 --mode altitude --duration 18``.
-The altitude loop's 0.6 1/s is a 1.7 s time constant: ln(10) x 1.7 = 3.8 s to
-10 % on an ideal climb-rate loop, plus that loop's own lag."""
+The altitude loop's 0.69 1/s is a 1.45 s time constant: ln(10) x 1.45 = 3.3 s to
+10 % on an ideal climb-rate loop (4.3 s measured with the former 0.6 1/s)."""
 
 
 def test_f450_altitude_step_reaches_the_new_altitude_in_time() -> None:
