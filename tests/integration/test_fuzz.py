@@ -1,7 +1,7 @@
 """Malformed MAVLink against the companion and the SITL in flight (``scripts/fuzz.py``).
 
 One short seeded run (a clean flight, then about 3000 cases of every default
-kind over two 5 s flights on the real-time clock; about 40 s of wall time) as a
+kind over two 3 s flights on the real-time clock; about 35 s of wall time) as a
 subprocess, the way a user runs it; its JSON report is the witness. The harness
 and the kinds are described in ``tests/fuzzing.py``.
 """
@@ -20,7 +20,7 @@ from tests.fuzzing import DEFAULT_KINDS, KINDS, StreamState, generate_cases
 
 ROOT = Path(__file__).resolve().parents[2]
 CASES = 3000
-SHORT_RUN = ("--json", "--seed", "1", "--cases", str(CASES), "--rate", "2000", "--duration", "5")
+SHORT_RUN = ("--json", "--seed", "1", "--cases", str(CASES), "--rate", "2000", "--duration", "3")
 
 
 @pytest.fixture(scope="module")

@@ -52,7 +52,7 @@ def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> N
     scenario.write_text(SCENARIO.format(pilot=sticks), encoding="utf-8")
     flight = fly_mavlink(
         ROOT / "vehicle_profiles" / "f450.yaml", str(scenario), tmp_path / "flight",
-        duration_s=13.0, companion_args=("--mode", "position"),
+        duration_s=10.0, companion_args=("--mode", "position"),
     )  # fmt: skip
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     kinds = [e["kind"] for e in flight.companion_events]

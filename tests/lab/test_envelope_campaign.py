@@ -58,10 +58,13 @@ def corner_setup() -> EnvelopeSetup:
     return dataclasses.replace(setup, oracle=False)
 
 
-CORNERS_FLOWN = ("tiny-fast", "tiny-slow-motor", "heavy-weak")
-"""Three of the five corners, for the suite's time: the two whose ratios sit nearest
+CORNERS_FLOWN = ("tiny-fast", "heavy-weak")
+"""Two of the five corners, for the suite's time: the one whose ratios sit nearest
 the target and the heavy, weak one, nearest a crash (each case flies the same
-whichever others fly with it; the full campaign flies all five)."""
+whichever others fly with it; the full campaign flies all five, and the last one,
+59 cases, is in docs/research/envelope.md and the #13 note: no crash on a
+feasible case). tiny-slow-motor, flown here until November 2026 for the suite's
+time, measured 0.86 / 0.97 / 0.35 and 0.94 of the default PID."""
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +90,7 @@ def _table(records: Records) -> str:
     )
 
 
-@pytest.mark.slow  # ~50 s on 2 cores: 3 corners x (25 tuning flights + 3 test flights)
+@pytest.mark.slow  # ~35 s on 2 cores: 2 corners x (25 tuning flights + 3 test flights)
 def test_no_crash_at_the_corners(corner_records: Records) -> None:
     assert [r["vehicle"] for r in corner_records] == list(CORNERS_FLOWN)
     crashed = [
@@ -115,9 +118,10 @@ def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) ->
     assert max(ratios) <= RATIO_TARGET, "MAE M/T/D: " + _table(corner_records)
 
 
-# A regression check (today's output): the median of the 9 corner ratios above, as
-# measured by this module's corner_records fixture (CORNERS_FLOWN, no damage, the PID
-# tuned with 25 flights on 15 s of train-acro, seed 1): 0.855
+# A regression check (today's output): the median (the upper middle of 6) of the
+# corner ratios above, as measured by this module's corner_records fixture
+# (CORNERS_FLOWN, no damage, the PID tuned with 25 flights on 15 s of train-acro,
+# seed 1): 0.86 (0.855 over the three corners flown before)
 #   pytest tests/lab/test_envelope_campaign.py -k median
 MEASURED_MEDIAN_RATIO = 0.86
 
