@@ -800,39 +800,21 @@ class Companion(SamplePath):
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
             )
         if self.needs_attitude:
-            # The outer loops fly on the autopilot's attitude estimate: as often as the IMU.
-            hz = self.imu_rate_hz
-            res = await self.link.command_long(
-                _CMD_SET_MESSAGE_INTERVAL, _MSG_ATTITUDE_QUATERNION, 1e6 / hz
+            # The outer loops fly on the autopilot's attitude estimate, as often as the IMU.
+            assert self.imu_rate_hz is not None
+            await self._request_for_mode(
+                "ATTITUDE_QUATERNION", _MSG_ATTITUDE_QUATERNION, self.imu_rate_hz, event=True
             )
-            if res != _RESULT_ACCEPTED:
-                raise EngageError(
-                    f"the autopilot refused ATTITUDE_QUATERNION at {hz:g} Hz (MAV_RESULT "
-                    f"{res}): --mode {self.flight_mode} flies on it"
-                )
-            self._event("estimate_stream", f"ATTITUDE_QUATERNION at {hz:g} Hz")
         if self.needs_position:
-            hz = _HOLD_POSITION_RATE_HZ
-            res = await self.link.command_long(
-                _CMD_SET_MESSAGE_INTERVAL, _MSG_LOCAL_POSITION_NED, 1e6 / hz
+            await self._request_for_mode(
+                "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, _HOLD_POSITION_RATE_HZ, event=True
             )
-            if res != _RESULT_ACCEPTED:
-                raise EngageError(
-                    f"the autopilot refused LOCAL_POSITION_NED at {hz:g} Hz (MAV_RESULT "
-                    f"{res}): --mode {self.flight_mode} flies on it"
-                )
-            self._event("estimate_stream", f"LOCAL_POSITION_NED at {hz:g} Hz")
         # The landed state stops identification on the ground (MfcController.on_ground);
         # the flight modes hold their loops on the ground by it: for them it is needed.
         if self.needs_attitude:
-            res = await self.link.command_long(
-                _CMD_SET_MESSAGE_INTERVAL, _MSG_EXTENDED_SYS_STATE, 1e6 / LANDED_STATE_RATE_HZ
+            await self._request_for_mode(
+                "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE, LANDED_STATE_RATE_HZ
             )
-            if res != _RESULT_ACCEPTED:
-                raise EngageError(
-                    f"the autopilot refused EXTENDED_SYS_STATE (MAV_RESULT {res}): --mode "
-                    f"{self.flight_mode} needs its landed state"
-                )
         else:
             await self._request_best_effort(
                 "landed_state_refused", "EXTENDED_SYS_STATE", _MSG_EXTENDED_SYS_STATE,
@@ -845,6 +827,20 @@ class Companion(SamplePath):
                 "position_refused", "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED,
                 _POSITION_RATE_HZ, "a hand-back without RC lands unless the autopilot sends it",
             )  # fmt: skip
+
+    async def _request_for_mode(
+        self, name: str, msg_id: int, hz: float, *, event: bool = False
+    ) -> None:
+        """Ask for a stream the flight mode cannot fly without: a refusal stops the
+        start-up (EngageError); ``event``: an ``estimate_stream`` event once granted."""
+        res = await self.link.command_long(_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+        if res != _RESULT_ACCEPTED:
+            raise EngageError(
+                f"the autopilot refused {name} at {hz:g} Hz (MAV_RESULT {res}): "
+                f"--mode {self.flight_mode} flies on it"
+            )
+        if event:
+            self._event("estimate_stream", f"{name} at {hz:g} Hz")
 
     async def _request_best_effort(
         self, kind: str, name: str, msg_id: int, hz: float, without: str
