@@ -444,7 +444,13 @@ class Autopilot(Personality[FlightMode]):
         self._check_offboard_loss(t_s)
         self._check_rc_loss(t_s)
         self._check_position(t_s)
-        dt_s = 0.004 if self._last_rate_t_s is None else t_s - self._last_rate_t_s
+        # In whole microseconds, as PX4's hrt_abstime: the difference of two large
+        # times would carry their rounding, and a flight would depend on when it began.
+        dt_s = (
+            0.004
+            if self._last_rate_t_s is None
+            else round((t_s - self._last_rate_t_s) * 1e6) * 1e-6
+        )
         self._last_rate_t_s = t_s
         dt_s = clip(dt_s, 0.000125, 0.02)
 

@@ -280,6 +280,11 @@ class Quadrotor:
         return self._t_s
 
     @property
+    def steps(self) -> int:
+        """Steps taken since the start: ``t_s == steps * dt_s``."""
+        return self._k
+
+    @property
     def landed(self) -> bool:
         """Resting on the ground."""
         return self._landed

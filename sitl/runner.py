@@ -596,35 +596,40 @@ class Runner:
 
         if pilot is not None and cfg.auto_arm:
             ap.arm(0.0)
-        t_pilot0: float | None = None if cfg.pilot_from_arm else 0.0
+        # The pilot's start as a physics step: times since then are counted in
+        # steps, so they are the same numbers whatever step arming fell on (an
+        # in-process flight's, which starts at 0), not differences of two rounded
+        # absolute times that miss a script's segment boundary by 1e-16 s.
+        k_pilot0: int | None = None if cfg.pilot_from_arm else 0
+        dt = quad.dt_s
         faults = sorted(cfg.faults, key=lambda f: f.t_s)
         pilot_duration = pilot.duration_s if pilot is not None else math.inf
 
         while not stop.is_set():
             t = quad.t_s
+            # Since the pilot's start (arming, with pilot_from_arm); 0 before it.
+            t_flight = 0.0 if k_pilot0 is None else (quad.steps - k_pilot0) * dt
             # With pilot_from_arm the flight's duration counts from arming, as the
             # pilot's timeline and the faults do; otherwise from the start.
-            t_flight = (
-                t if not cfg.pilot_from_arm else (t - t_pilot0 if t_pilot0 is not None else 0.0)
-            )
             if t_flight >= duration - 1e-9:
                 return "completed"
             # Fault times count from the pilot's start (arming, with --pilot-from-arm).
-            while faults and t_pilot0 is not None and t - t_pilot0 >= faults[0].t_s - 1e-9:
+            while faults and k_pilot0 is not None and t_flight >= faults[0].t_s - 1e-9:
                 self._inject(faults.pop(0), t, log)
 
             if (
                 cfg.pilot_from_arm
                 and self.config.duration_s is None
-                and t_pilot0 is not None
-                and t - t_pilot0 >= pilot_duration + PILOT_END_GRACE_S - 1e-9
+                and k_pilot0 is not None
+                and t_flight >= pilot_duration + PILOT_END_GRACE_S - 1e-9
             ):
                 return "completed"
             face.poll(t)
             # Armed at the start of this step (commands take effect only here in
             # lockstep): the flight's timeline starts now, whenever that was.
-            if t_pilot0 is None and ap.armed:
-                t_pilot0 = t
+            if k_pilot0 is None and ap.armed:
+                k_pilot0 = quad.steps
+                t_flight = 0.0
                 self._make_streams()
                 self._make_link(t)
                 self._make_estimator()
@@ -641,7 +646,7 @@ class Runner:
             if pilot is not None and t >= next_rc_s - 1e-9:
                 next_rc_s += cfg.rc_period_s
                 view = PilotView(
-                    t - t_pilot0 if t_pilot0 is not None else 0.0,
+                    t_flight,
                     euler[0],
                     euler[1],
                     euler[2],
