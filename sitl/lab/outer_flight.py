@@ -190,6 +190,29 @@ def _square(up_m: float, side_m: float, speed_m_s: float) -> Callable[[float], S
     return sp
 
 
+def _figure_eight(
+    up_m: float, size_m: float, speed_m_s: float, laps: int = 1
+) -> Callable[[float], Setpoints]:
+    """A figure eight (a lemniscate of Gerono) through the origin: north
+    ``size_m sin(w t)``, east ``size_m / 2 sin(2 w t)``, the velocity as
+    feedforward, ``speed_m_s`` its fastest (at the crossing: ``w = speed /
+    (size sqrt 2)``); ``laps`` times, then a hold."""
+    w = speed_m_s / (size_m * math.sqrt(2.0))
+    end_s = laps * 2.0 * math.pi / w
+
+    def sp(t: float) -> Setpoints:
+        if t < 0.0 or t >= end_s:
+            return Setpoints(up_m)
+        a = w * t
+        return Setpoints(
+            up_m,
+            position_ne_m=(size_m * math.sin(a), 0.5 * size_m * math.sin(2.0 * a)),
+            velocity_ne_m_s=(size_m * w * math.cos(a), size_m * w * math.cos(2.0 * a)),
+        )
+
+    return sp
+
+
 def _angle_sticks(up_m: float) -> Callable[[float], Setpoints]:
     """Stick-like attitude doublets (symmetric, so the drift they cause cancels):
     roll 15 deg right then left, pitch 15 deg down then up, a faster 25 deg roll
@@ -238,6 +261,9 @@ class OuterScenario:
     """Altitude steps (times after :attr:`start_s`): reach times are measured."""
     step_settle_s: float = 5.0
     """After each step, this long is left out of the position RMS (the hold part)."""
+    path: bool = False
+    """A path is flown: the path error (distance to the planned path, wherever along
+    it) is measured while the setpoint moves."""
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -281,7 +307,25 @@ SCENARIOS: dict[str, OuterScenario] = {
             "square", "position",
             "A 10 m square at 2 m/s (north, east, south, west) at 5 m, then a hold, "
             "in the paper's gusty wind.",
-            40.0, _square(5.0, 10.0, 2.0), score_from_s=10.0,
+            40.0, _square(5.0, 10.0, 2.0), score_from_s=10.0, path=True,
+        ),
+        OuterScenario(
+            "square-fast", "position",
+            "A 20 m square at 5 m/s (north, east, south, west) at 5 m, then a hold, "
+            "in the paper's gusty wind.",
+            40.0, _square(5.0, 20.0, 5.0), score_from_s=10.0, path=True,
+        ),
+        OuterScenario(
+            "figure-eight", "position",
+            "A figure eight 16 m by 8 m at up to 2 m/s (one lap, 36 s) at 5 m, "
+            "in the paper's gusty wind.",
+            50.0, _figure_eight(5.0, 8.0, 2.0), score_from_s=10.0, path=True,
+        ),
+        OuterScenario(
+            "figure-eight-fast", "position",
+            "A figure eight 16 m by 8 m at up to 5 m/s (two laps, 28 s) at 5 m, "
+            "in the paper's gusty wind.",
+            45.0, _figure_eight(5.0, 8.0, 5.0, laps=2), score_from_s=10.0, path=True,
         ),
     )
 }  # fmt: skip
@@ -300,7 +344,7 @@ class OuterFlight:
 
     Columns: ``t_s``; ``pos_ned_m`` (n, 3) true; ``est_pos_ned_m`` (n, 3) the
     estimate the loops flew on; ``euler_rad`` (n, 3) true;
-    ``sp_pos_ne_m`` (n, 2); ``sp_up_m``; ``sp_att_rad`` (n, 3) what the attitude
+    ``sp_pos_ne_m``, ``sp_vel_ne_m_s`` (n, 2); ``sp_up_m``; ``sp_att_rad`` (n, 3) what the attitude
     loop was asked (roll, pitch, heading); ``thrust`` collective asked of the rate
     loop; ``thrust_applied`` the mixer's; ``rate_ref_rad_s``, ``gyro_rad_s``,
     ``torque`` (n, 3) the rate loop's reference, measurement and realised torque;
@@ -382,7 +426,8 @@ def simulate_outer_flight(
     lift_off_t: float | None = None
     applied: float | None = None
 
-    names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_up_m",
+    names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
+             "sp_up_m",
              "sp_att_rad", "thrust", "thrust_applied", "rate_ref_rad_s", "gyro_rad_s", "torque",
              "hover_thrust", "rate_sat", "thrust_sat", "tilt_limited", "airborne")  # fmt: skip
     cols: dict[str, list[Any]] = {k: [] for k in names}
@@ -460,6 +505,7 @@ def simulate_outer_flight(
         cols["est_pos_ned_m"].append(p.position_ned_m)
         cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
         cols["sp_pos_ne_m"].append(sp.position_ne_m)
+        cols["sp_vel_ne_m_s"].append(sp.velocity_ne_m_s)
         cols["sp_up_m"].append(sp.up_m if hold_alt else math.nan)
         yaw_sp = att_sp.yaw_rad if att_sp.yaw_rad is not None else math.nan
         cols["sp_att_rad"].append((att_sp.roll_rad, att_sp.pitch_rad, yaw_sp))
@@ -552,7 +598,7 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     if len(t) < 2 or not sel.any():
         for k in ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "est_rms_h_m", "est_rms_v_m"):
             out[k] = None
-        for k in ("att_mae_deg", "yaw_mae_deg"):
+        for k in ("att_mae_deg", "yaw_mae_deg", "path_rms_m", "path_max_m"):
             out[k] = None
         out.update(rate_sat_s=None, thrust_sat_s=None, tilt_limited_s=None, step_reach_s=None)
         return out
@@ -594,6 +640,29 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
         within = np.nonzero(np.abs(up[i0:] - target) <= 0.1 * size)[0]
         reach.append(float(t[i0 + within[0]] - t0) if len(within) else None)
     out["step_reach_s"] = reach or None
+    out["path_rms_m"] = out["path_max_m"] = None
+    if scenario.path:
+        moving = sel & (np.hypot(*c["sp_vel_ne_m_s"].T) > 0.0)
+        if moving.sum() >= 2:
+            d = path_distance_m(c["pos_ned_m"][moving, :2], c["sp_pos_ne_m"][moving][::10])
+            out["path_rms_m"] = float(np.sqrt(np.mean(d * d)))
+            out["path_max_m"] = float(d.max())
+    return out
+
+
+def path_distance_m(points: np.ndarray, path: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """Horizontal distance of each of ``points`` (n, 2) to the polyline through
+    ``path`` (m, 2), wherever along it: the path error, not the lag behind a
+    moving setpoint."""
+    a, b = path[:-1], path[1:]
+    ab = b - a
+    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
+    out = np.empty(len(points))
+    for i in range(0, len(points), chunk):
+        p = points[i : i + chunk, None, :]  # (k, 1, 2) against (1, m-1, 2)
+        u = np.clip(np.einsum("kmj,mj->km", p - a[None], ab) / ab2, 0.0, 1.0)
+        near = a[None] + u[..., None] * ab[None]
+        out[i : i + chunk] = np.sqrt(((p - near) ** 2).sum(axis=-1).min(axis=1))
     return out
 
 

@@ -261,3 +261,48 @@ def test_table_with_the_baseline_prints_both_and_their_ratio(
     ratio_rows = out.split("### MFC / baseline")[1].strip().splitlines()[4:]
     assert len(ratio_rows) == len(SCENARIOS)
     assert all(r.startswith("| DJI F450 |") for r in ratio_rows)
+
+
+# --- paths: the figure eight, the fast square, the path error ---------------------------
+
+
+@pytest.mark.parametrize("name", ["figure-eight", "figure-eight-fast"])
+def test_the_figure_eight_is_a_lemniscate_flown_at_its_speed(name: str) -> None:
+    sc = SCENARIOS[name]
+    top = 2.0 if name == "figure-eight" else 5.0
+    t = np.arange(0.0, sc.duration_s - sc.start_s, 0.01)
+    sps = [sc.setpoints(x) for x in t]
+    pos = np.array([s.position_ne_m for s in sps])
+    vel = np.array([s.velocity_ne_m_s for s in sps])
+    moving = np.hypot(*vel.T) > 0.0
+    # Gerono's lemniscate: e = n * sqrt(1 - (n / size)^2), here size 8 m.
+    n, e = pos[moving].T
+    np.testing.assert_allclose(e**2, n**2 * (1.0 - (n / 8.0) ** 2), atol=1e-9)
+    assert np.hypot(*vel[moving].T).max() == pytest.approx(top, rel=1e-3)
+    # The velocity fed forward is the path's own (central differences).
+    dpos = np.gradient(pos[moving], 0.01, axis=0)
+    np.testing.assert_allclose(dpos[1:-1], vel[moving][1:-1], atol=1e-3)
+    # It starts and ends at the origin and then holds there.
+    np.testing.assert_allclose(pos[0], (0.0, 0.0), atol=1e-12)
+    assert not moving[-1] and tuple(pos[-1]) == (0.0, 0.0)
+
+
+def test_the_path_error_is_the_distance_to_the_path_wherever_along_it() -> None:
+    from sitl.lab.outer_flight import path_distance_m
+
+    square = np.array([(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0), (0.0, 0.0)])
+    pts = np.array([(5.0, 1.0), (11.0, 5.0), (5.0, 5.0), (-3.0, -4.0), (10.0, 10.0)])
+    np.testing.assert_allclose(path_distance_m(pts, square, chunk=2), [1.0, 1.0, 5.0, 5.0, 0.0])
+
+
+def test_a_path_scenario_reports_its_path_error() -> None:
+    sc = SCENARIOS["square-fast"].with_duration(16.0)  # 6 s of its first legs
+    out = outer_metrics(simulate_outer_flight(_f450(), _rate_cfg(), sc), sc)
+    assert not out["crashed"]
+    # The vehicle lags behind the moving setpoint more than it strays from the path.
+    assert 0.0 < out["path_rms_m"] < out["pos_rms_h_m"]
+    assert out["path_max_m"] >= out["path_rms_m"]
+    hold = SCENARIOS["position-hold"].with_duration(2.0)
+    assert (
+        outer_metrics(simulate_outer_flight(_f450(), _rate_cfg(), hold), hold)["path_rms_m"] is None
+    )

@@ -1,0 +1,269 @@
+"""The outer loops over vehicles, damage and scenarios, with crashes classified.
+
+Every bundled outer scenario (:data:`sitl.lab.outer_flight.SCENARIOS`) on each
+vehicle, intact and with one motor degraded, flown by the MFC cascade (the
+shipped config over the shipped MFC rate loop) and by PX4's default cascade
+(over PX4's default rate PID), on the estimator's output as in the product.
+
+Feasibility. Wherever either law crashes, both are flown again on the true
+state (the estimator replaced by :data:`sitl.estimator_model.PERFECT`: no error,
+no lag); the case is *feasible* when either of those true-state flights
+survives, and then a crash of the estimator-fed MFC counts against it. A case
+where both crash on the true state too is reported as infeasible, never removed.
+(The true-state pair is this study's oracle: it knows the state, not the plant.)
+
+The flights are tasks on :class:`sitl.lab.executor.Executor` (a local Dask
+cluster, or ``--scheduler``). ``python -m sitl.lab.outer_sweep --out DIR`` writes
+``DIR/flights.json`` (every flight's metrics) and ``DIR/summary.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+from companion.profile import VehicleProfile
+
+__all__ = [
+    "DAMAGE",
+    "SweepFlight",
+    "classify",
+    "fly",
+    "main",
+    "summary_markdown",
+    "sweep_flights",
+    "true_state_flights",
+]
+
+DAMAGE: dict[str, float] = {"intact": 1.0, "motor80": 0.8, "motor60": 0.6}
+"""Damage cases: motor 0's thrust and torque efficiency (``damaged_profile``)."""
+
+METRICS = ("pos_rms_h_m", "pos_rms_v_m", "path_rms_m", "att_mae_deg", "yaw_mae_deg")
+"""The figures compared, MFC against PX4's default (all errors: lower is better)."""
+
+
+@dataclass(frozen=True)
+class SweepFlight:
+    """One flight of the sweep: everything its task needs (it is pickled to a worker)."""
+
+    vehicle: str
+    damage: str
+    scenario: str
+    law: str
+    """``mfc`` or ``px4``."""
+    true_state: bool
+    profile: VehicleProfile
+    duration_s: float | None = None
+    seed: int | None = None
+
+
+def fly(f: SweepFlight) -> dict[str, Any]:
+    """Fly one :class:`SweepFlight`; its metrics with the flight's identity."""
+    from companion.config import PID_DEFAULT_CONTROLLER, load_controller
+    from sitl.estimator_model import PERFECT
+    from sitl.lab.outer_flight import SCENARIOS, outer_metrics, simulate_outer_flight
+
+    sc = SCENARIOS[f.scenario]
+    if f.duration_s is not None:
+        sc = sc.with_duration(f.duration_s)
+    if f.true_state:
+        sc = replace(sc, estimator=PERFECT)
+    cfg = load_controller(PID_DEFAULT_CONTROLLER) if f.law == "px4" else load_controller()
+    t0 = time.perf_counter()
+    fl = simulate_outer_flight(f.profile, cfg, sc, seed=f.seed, outer_law=f.law)
+    m = outer_metrics(fl, sc)
+    m.update(
+        vehicle=f.vehicle, damage=f.damage, law=f.law, true_state=f.true_state,
+        wall_s=round(time.perf_counter() - t0, 2),
+    )  # fmt: skip
+    return m
+
+
+def vehicles(names: Sequence[str], corners: bool) -> dict[str, VehicleProfile]:
+    """The vehicles by name: bundled profiles, then (``corners``) the envelope's corners."""
+    from sitl.envelope import corners as envelope_corners
+    from sitl.lab.outer_flight import _profile
+
+    out = {n: _profile(n) for n in names}
+    if corners:
+        out.update({v.name: v.profile() for v in envelope_corners()})
+    return out
+
+
+def sweep_flights(
+    fleet: dict[str, VehicleProfile],
+    scenarios: Sequence[str],
+    damage: Sequence[str],
+    *,
+    true_state: bool = False,
+    laws: Sequence[str] = ("mfc", "px4"),
+    duration_s: float | None = None,
+    seed: int | None = None,
+) -> list[SweepFlight]:
+    """Every (vehicle, damage, scenario, law), damage applied to motor 0."""
+    from sitl.lab.campaign import damaged_profile
+
+    out = []
+    for name, prof in fleet.items():
+        for d in damage:
+            p = damaged_profile(prof, DAMAGE[d])
+            for sc in scenarios:
+                for law in laws:
+                    out.append(SweepFlight(name, d, sc, law, true_state, p, duration_s, seed))
+    return out
+
+
+def true_state_flights(
+    records: Sequence[dict[str, Any]],
+    fleet: dict[str, VehicleProfile],
+    scenarios: Sequence[str],
+    damage: Sequence[str],
+    **kw: Any,
+) -> list[SweepFlight]:
+    """Both laws on the true state, for every case where either crashed in ``records``."""
+    crashed = {_key(r) for r in records if r["crashed"] and not r["true_state"]}
+    return [
+        f
+        for f in sweep_flights(fleet, scenarios, damage, true_state=True, **kw)
+        if (f.vehicle, f.damage, f.scenario) in crashed
+    ]
+
+
+def _key(r: dict[str, Any]) -> tuple[str, str, str]:
+    return (r["vehicle"], r["damage"], r["scenario"])
+
+
+def classify(records: Sequence[dict[str, Any]]) -> dict[tuple[str, str, str], dict[str, Any]]:
+    """Per case: each law's crash on the estimate and on the true state, and feasibility."""
+    cases: dict[tuple[str, str, str], dict[tuple[str, bool], dict[str, Any]]] = {}
+    for r in records:
+        c = cases.setdefault(_key(r), {})
+        c[(r["law"], r["true_state"])] = r
+    out = {}
+    for k, c in cases.items():
+        crashed: dict[tuple[str, bool], bool] = {lt: bool(r["crashed"]) for lt, r in c.items()}
+        any_crash = crashed.get(("mfc", False), False) or crashed.get(("px4", False), False)
+        truth = [v for (_, ts), v in crashed.items() if ts]
+        feasible = True if not any_crash else (not all(truth) if truth else None)
+        out[k] = {"flights": c, "crashed": crashed, "feasible": feasible}
+    return out
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or not math.isfinite(a) or not math.isfinite(b):
+        return None
+    if b == 0.0:
+        return None if a == 0.0 else math.inf
+    return float(a / b)
+
+
+def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
+    """The verdicts, then one row per case (MFC / PX4 on each metric)."""
+    cases = classify(records)
+    feasible = [c for c in cases.values() if c["feasible"]]
+    mfc_crash = [k for k, c in cases.items() if c["feasible"] and c["crashed"].get(("mfc", False))]
+    px4_crash = [k for k, c in cases.items() if c["feasible"] and c["crashed"].get(("px4", False))]
+    infeasible = [k for k, c in cases.items() if c["feasible"] is False]
+    lines = [
+        f"{len(cases)} cases, {len(records)} flights; {len(feasible)} feasible, "
+        f"{len(infeasible)} infeasible (both laws crash on the true state too).",
+        "",
+        f"- **MFC crashes on a feasible case: {len(mfc_crash)}**"
+        + (": " + ", ".join("/".join(k) for k in mfc_crash) if mfc_crash else ""),
+        f"- PX4's default cascade crashes on a feasible case: {len(px4_crash)}"
+        + (": " + ", ".join("/".join(k) for k in px4_crash) if px4_crash else ""),
+    ]
+    if infeasible:
+        lines.append("- Infeasible: " + ", ".join("/".join(k) for k in infeasible))
+    better: dict[str, list[int]] = {m: [0, 0] for m in METRICS}
+    rows = []
+    for k, c in sorted(cases.items()):
+        mf, px = c["flights"].get(("mfc", False)), c["flights"].get(("px4", False))
+        if mf is None or px is None:
+            continue
+        cells = []
+        for m in METRICS:
+            r = None if mf["crashed"] or px["crashed"] else _ratio(mf.get(m), px.get(m))
+            if r is not None:
+                better[m][0] += r < 1.0
+                better[m][1] += 1
+            cells.append("-" if r is None else f"{r:.2f}")
+        crash = "MFC" if mf["crashed"] else ""
+        crash += ("+" if crash and px["crashed"] else "") + ("PX4" if px["crashed"] else "")
+        feas = {True: "yes", False: "no", None: "?"}[c["feasible"]]
+        rows.append(f"| {' | '.join(k)} | {' | '.join(cells)} | {crash or '-'} | {feas} |")
+    lines += ["", "MFC better than PX4's default (ratio below 1), cases per metric:", ""]
+    lines += [f"- {m}: {b} of {n}" for m, (b, n) in better.items()]
+    lines += [
+        "",
+        "| vehicle | damage | scenario | " + " | ".join(METRICS) + " | crashed | feasible |",
+        "|" + "---|" * (len(METRICS) + 5),
+        *rows,
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m sitl.lab.outer_sweep``: the sweep, its flights and summary."""
+    from sitl.lab.executor import run_tasks
+    from sitl.lab.outer_flight import SCENARIOS, TABLE_PROFILES
+
+    ap = argparse.ArgumentParser(
+        prog="python -m sitl.lab.outer_sweep", description=__doc__.split("\n")[0]
+    )
+    ap.add_argument("--out", required=True, type=Path, help="output folder")
+    ap.add_argument("--profiles", default=",".join(TABLE_PROFILES), help="comma-separated")
+    ap.add_argument("--corners", action="store_true", help="add the envelope's five corners")
+    ap.add_argument(
+        "--scenarios", default=",".join(SCENARIOS), help="comma-separated (default: all)"
+    )
+    ap.add_argument("--damage", default=",".join(DAMAGE), help="comma-separated")
+    ap.add_argument("--duration", type=float, default=None, help="flight time, s")
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler")
+    args = ap.parse_args(argv)
+    scenarios = [s for s in args.scenarios.split(",") if s]
+    damage = [d for d in args.damage.split(",") if d]
+    for s in scenarios:
+        if s not in SCENARIOS:
+            ap.error(f"--scenarios: {s!r} is not one of {', '.join(SCENARIOS)}")
+    for d in damage:
+        if d not in DAMAGE:
+            ap.error(f"--damage: {d!r} is not one of {', '.join(DAMAGE)}")
+    try:
+        fleet = vehicles([p for p in args.profiles.split(",") if p], args.corners)
+    except (OSError, ValueError) as exc:
+        ap.error(f"--profiles: {exc}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    kw = {"duration_s": args.duration, "seed": args.seed}
+    run = {"scheduler": args.scheduler, "workers": args.workers, "unit": "flight"}
+    flights = sweep_flights(fleet, scenarios, damage, **kw)
+    outcomes = run_tasks(fly, flights, desc="outer sweep", **run)
+    records = [o.value for o in outcomes if o.ok]
+    errors = [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law}: {o.error}"
+              for o in outcomes if not o.ok]  # fmt: skip
+    again = true_state_flights(records, fleet, scenarios, damage, **kw)
+    if again:
+        outcomes = run_tasks(fly, again, desc="true state", **run)
+        records += [o.value for o in outcomes if o.ok]
+        errors += [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law} "
+                   f"(true state): {o.error}" for o in outcomes if not o.ok]  # fmt: skip
+    (args.out / "flights.json").write_text(json.dumps(records, indent=1) + "\n")
+    text = summary_markdown(records)
+    if errors:
+        text += "\nErrors:\n\n" + "".join(f"- {e}\n" for e in errors)
+    (args.out / "summary.md").write_text(text)
+    sys.stdout.write(text)
+    return 1 if errors else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,102 @@
+"""The outer-loop sweep (sitl/lab/outer_sweep.py): crashes classified by the
+true-state flights, the summary's counts, and one small run through the executor."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sitl.lab.outer_sweep import (
+    classify,
+    main,
+    summary_markdown,
+    sweep_flights,
+    true_state_flights,
+    vehicles,
+)
+
+
+def _rec(law: str, crashed: bool, *, true_state: bool = False, scenario: str = "square",
+         h: float = 1.0) -> dict[str, Any]:  # fmt: skip
+    return {
+        "vehicle": "f450", "damage": "motor60", "scenario": scenario, "law": law,
+        "true_state": true_state, "crashed": crashed, "pos_rms_h_m": h, "pos_rms_v_m": 0.1,
+        "path_rms_m": None, "att_mae_deg": 2.0, "yaw_mae_deg": 1.0,
+    }  # fmt: skip
+
+
+def test_a_case_is_feasible_when_either_law_survives_on_the_true_state() -> None:
+    k = ("f450", "motor60", "square")
+    # Nobody crashed: feasible without a true-state flight.
+    assert classify([_rec("mfc", False), _rec("px4", False)])[k]["feasible"] is True
+    # MFC crashed, PX4 on the true state survived: feasible, and MFC's crash counts.
+    recs = [_rec("mfc", True), _rec("px4", False),
+            _rec("mfc", True, true_state=True), _rec("px4", False, true_state=True)]  # fmt: skip
+    assert classify(recs)[k]["feasible"] is True
+    text = summary_markdown(recs)
+    assert "**MFC crashes on a feasible case: 1**: f450/motor60/square" in text
+    # Both crash on the true state too: infeasible, in its own line, not counted.
+    recs = [_rec("mfc", True), _rec("px4", True),
+            _rec("mfc", True, true_state=True), _rec("px4", True, true_state=True)]  # fmt: skip
+    assert classify(recs)[k]["feasible"] is False
+    text = summary_markdown(recs)
+    assert "**MFC crashes on a feasible case: 0**" in text
+    assert "- Infeasible: f450/motor60/square" in text
+    # A crash whose true-state flights are missing is unknown, not feasible.
+    assert classify([_rec("mfc", True), _rec("px4", False)])[k]["feasible"] is None
+
+
+def test_the_summary_counts_where_mfc_is_better() -> None:
+    recs = [_rec("mfc", False, h=0.5), _rec("px4", False, h=1.0)]
+    recs += [_rec("mfc", False, scenario="hold", h=2.0), _rec("px4", False, scenario="hold")]
+    text = summary_markdown(recs)
+    assert "- pos_rms_h_m: 1 of 2" in text
+    assert "- att_mae_deg: 0 of 2" in text  # equal is not better
+    assert "- path_rms_m: 0 of 0" in text
+    assert "| f450 | motor60 | square | 0.50 | 1.00 | - | 1.00 | 1.00 | - | yes |" in text
+
+
+def test_only_crashed_cases_are_flown_again_on_the_true_state() -> None:
+    fleet = vehicles(["f450"], corners=False)
+    flights = sweep_flights(fleet, ["square", "position-hold"], ["intact", "motor60"])
+    assert len(flights) == 2 * 2 * 2
+    damaged = {f.damage: f.profile.physics.damage.motors for f in flights}
+    assert not damaged["intact"]
+    assert [(m.motor, m.thrust_efficiency) for m in damaged["motor60"]] == [(0, 0.6)]
+    recs = [_rec("mfc", True), _rec("px4", False)]
+    again = true_state_flights(recs, fleet, ["square", "position-hold"], ["intact", "motor60"])
+    assert [(f.damage, f.scenario, f.law, f.true_state) for f in again] == [
+        ("motor60", "square", "mfc", True),
+        ("motor60", "square", "px4", True),
+    ]
+
+
+def test_a_small_sweep_writes_its_flights_and_summary(tmp_path: Path) -> None:
+    argv = ["--out", str(tmp_path), "--profiles", "f450", "--scenarios", "position-hold",
+            "--damage", "intact", "--duration", "2", "--seed", "1", "--workers", "1"]  # fmt: skip
+    assert main(argv) == 0
+    records = json.loads((tmp_path / "flights.json").read_text())
+    assert sorted(r["law"] for r in records) == ["mfc", "px4"]
+    assert not any(r["crashed"] or r["true_state"] for r in records)
+    summary = (tmp_path / "summary.md").read_text()
+    assert summary.startswith("1 cases, 2 flights; 1 feasible, 0 infeasible")
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "expected"),
+    [
+        ("--scenarios", "loop", "--scenarios: 'loop' is not one of"),
+        ("--damage", "motor10", "--damage: 'motor10' is not one of"),
+    ],
+)
+def test_a_bad_choice_is_refused_before_any_flight(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flag: str, value: str, expected: str
+) -> None:
+    with pytest.raises(SystemExit) as err:
+        main(["--out", str(tmp_path / "out"), flag, value])
+    assert err.value.code == 2
+    assert expected in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
