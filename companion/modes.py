@@ -44,6 +44,9 @@ __all__ = ["ModePath"]
 Vec3 = tuple[float, float, float]
 
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
+_NAN = math.nan
+NO_OUTER_LOG: tuple[float, ...] = (_NAN,) * 12
+"""The control log's outer-loop columns when nothing is known (``--mode rates``)."""
 
 
 class ModePath(Engagement):
@@ -270,6 +273,45 @@ class ModePath(Engagement):
         """Forget what the laws learnt: the rate law and the flight mode's loops."""
         self.controller.reset()
         self._reset_modes(self._thrust)
+
+    def _mode_log(self) -> tuple[float, ...]:
+        """The control log's outer-loop columns (``companion.records.columns``): the
+        attitude setpoint and the attitude estimate (roll, pitch, heading, rad),
+        the position setpoint and the position estimate (north, east, up, m);
+        NaN for what this mode does not hold or has not got. Off the latency path."""
+        if self.flight_mode == "rates":
+            return NO_OUTER_LOG
+        att = None
+        pos_sp: tuple[float, float, float] = (_NAN, _NAN, _NAN)
+        if self.angle is not None:
+            att = self.angle.setpoint
+        elif self.hold is not None:
+            att = self.hold.attitude_setpoint
+            sp = self.hold.setpoint
+            ne = sp.horizontal.position_ne_m
+            up = sp.vertical.up_m
+            pos_sp = (
+                _NAN if ne is None else ne[0],
+                _NAN if ne is None else ne[1],
+                _NAN if up is None else up,
+            )
+        if att is None:
+            sp_att: tuple[float, float, float] = (_NAN, _NAN, _NAN)
+        else:
+            yaw = att.yaw_rad
+            sp_att = (att.roll_rad, att.pitch_rad, _NAN if yaw is None else yaw)
+        q = self._att_q
+        if q is None:
+            est_att: tuple[float, float, float] = (_NAN, _NAN, _NAN)
+        else:
+            w, x, y, z = q
+            est_att = (
+                math.atan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y)),
+                math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x)))),
+                math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
+            )
+        est_pos = (_NAN, _NAN, _NAN) if self._pos is None else self._pos[0]
+        return (*sp_att, *est_att, *pos_sp, est_pos[0], est_pos[1], -est_pos[2])
 
     def _flush_mode_events(self) -> None:
         """Record this sample's events (called once its command has left)."""

@@ -349,7 +349,7 @@ class SamplePath(ModePath):
                     ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
                     thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
-                    self.link_clock.rtt_s * 1e3, age * 1e3,
+                    self.link_clock.rtt_s * 1e3, age * 1e3, *self._mode_log(),
                 ]
             )  # fmt: skip
         if self._telemetry is not None:

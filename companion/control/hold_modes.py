@@ -131,6 +131,8 @@ class HoldMode:
         self.max_tilt_rad = math.radians(MAX_TILT_DEG)
         self.setpoint = OuterSetpoint()
         """The last setpoint flown."""
+        self.attitude_setpoint: AttitudeSetpoint | None = None
+        """What the attitude loop was last asked (None: on the ground, not flown)."""
         self._up_hold: float | None = None
         self._ne_hold: tuple[float, float] | None = None
 
@@ -146,6 +148,7 @@ class HoldMode:
         """Forget the loops' state and the holds; ``thrust``: the collective flying
         as the loops take over (``None``: the hover estimate)."""
         self.outer.reset(thrust=thrust)
+        self.attitude_setpoint = None
         self._up_hold = None
         self._ne_hold = None
 
@@ -186,9 +189,10 @@ class HoldMode:
                 outer.attitude.reset()
                 outer.horizontal.reset()
                 self.setpoint = OuterSetpoint(vertical=vsp)
+                self.attitude_setpoint = None
                 return HoldCommand(_ZERO3, thrust)
             roll, pitch = stick_tilt_rad(deflection[0], deflection[1], self.max_tilt_rad)
-            att_sp = AttitudeSetpoint(roll, pitch, None, yaw_rate)
+            att_sp = self.attitude_setpoint = AttitudeSetpoint(roll, pitch, None, yaw_rate)
             self.setpoint = OuterSetpoint(vertical=vsp, yaw_rate_rad_s=yaw_rate)
             rate_ref = outer.attitude.update(dt_s, q_wxyz, gyro_frd_rad_s, att_sp)
             return HoldCommand(rate_ref, thrust)
@@ -206,6 +210,7 @@ class HoldMode:
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
             applied_thrust=applied_thrust,
         )  # fmt: skip
+        self.attitude_setpoint = o.attitude_setpoint
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)
 
     def fly(
@@ -238,10 +243,12 @@ class HoldMode:
             outer.attitude.reset()
             outer.horizontal.reset()
             self.setpoint = OuterSetpoint(vertical=vsp)
+            self.attitude_setpoint = None
             return HoldCommand(_ZERO3, thrust)
         self.setpoint = setpoint
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, setpoint,
             applied_thrust=applied_thrust,
         )  # fmt: skip
+        self.attitude_setpoint = o.attitude_setpoint
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)

@@ -40,7 +40,15 @@ def columns(n_motors: int) -> list[str]:
     ``on_ground`` (0/1: the autopilot said ON_GROUND, so nothing was learnt),
     ``link_rtt_ms`` (the last TIMESYNC round trip) and ``sample_age_ms`` (the
     sample's age, on the autopilot's clock, when its command left); both NaN
-    until the autopilot first answers TIMESYNC.
+    until the autopilot first answers TIMESYNC. Then what the outer loops
+    (``--mode angle|altitude|position``) flew, NaN where the mode holds no such
+    setpoint or has no estimate (all NaN with ``--mode rates``):
+    ``sp_roll_rad``, ``sp_pitch_rad``, ``sp_yaw_rad`` (the attitude loop's
+    setpoint; the heading NaN while the yaw stick is a rate), ``est_roll_rad``,
+    ``est_pitch_rad``, ``est_yaw_rad`` (the autopilot's attitude estimate),
+    ``sp_north_m``, ``sp_east_m``, ``sp_up_m`` (the position and altitude held,
+    NaN while a stick moves it or on the ground) and ``est_north_m``,
+    ``est_east_m``, ``est_up_m`` (the autopilot's local position estimate).
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -59,6 +67,8 @@ def columns(n_motors: int) -> list[str]:
     cols += [f"motor_{i}" for i in range(1, n_motors + 1)]
     cols += [f"sent_{a}_rad_s" for a in AXES]
     cols += ["on_ground", "link_rtt_ms", "sample_age_ms"]
+    cols += [f"sp_{a}_rad" for a in AXES] + [f"est_{a}_rad" for a in AXES]
+    cols += [f"{w}_{d}_m" for w in ("sp", "est") for d in ("north", "east", "up")]
     return cols
 
 

@@ -57,7 +57,9 @@ SPAN = 2.5
 TRAIN_SEED = 4242
 """The training flights' seed (the test flights use their scenario's)."""
 TRAIN_SCENARIOS = ("position-hold", "square")
-TEST_SCENARIOS = ("altitude-steps", "position-hold", "square")
+TEST_SCENARIOS = (
+    "altitude-steps", "position-hold", "square", "square-fast", "figure-eight", "figure-eight-fast",
+)  # fmt: skip
 
 
 def _px4_rates() -> PidConfig:
@@ -131,6 +133,10 @@ def tune_vehicle(profile_name: str, budget: int, seed: int, workers: int = 1) ->
     }
 
 
+COMPARED = ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "path_rms_m", "att_mae_deg")
+"""The test flights' figures compared (each an error: lower is better)."""
+
+
 def compare(tuned: dict[str, Any]) -> list[dict[str, Any]]:
     """MFC's and each vehicle's tuned PX4 cascade's test flights, with their ratios."""
     rows = []
@@ -143,7 +149,7 @@ def compare(tuned: dict[str, Any]) -> list[dict[str, Any]]:
             mfc = _fly(vehicle, sc, seed, "mfc", PX4_DEFAULT_CASCADE)
             px4 = _fly(vehicle, sc, seed, "px4", gains)
             row: dict[str, Any] = {"vehicle": vehicle, "scenario": sc}
-            for k in ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "att_mae_deg"):
+            for k in COMPARED:
                 a, b = mfc[k], px4[k]
                 row[k] = (a, b, None if a is None or not b else a / b)
             row["crashed"] = (mfc["crashed"], px4["crashed"])
@@ -152,7 +158,7 @@ def compare(tuned: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def _table(rows: Sequence[dict[str, Any]]) -> str:
-    keys = ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "att_mae_deg")
+    keys = COMPARED
     lines = [
         "| vehicle | scenario | " + " | ".join(keys) + " | crash MFC / tuned |",
         "|---|---|" + "---|" * len(keys) + "---|",

@@ -10,12 +10,14 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 from companion.cli import cli
 from companion.errors import EXIT_BAD_INPUT, EXIT_ERROR
+from companion.records import read_columnar
 from tests.app.fakes import (
     CMD_ARM,
     CMD_DO_SET_MODE,
@@ -205,3 +207,22 @@ async def test_the_switch_going_low_while_waiting_for_estimates_abandons_it(
     assert "engagement abandoned" in " ".join(f.details("rc_switch"))
     assert not f.companion.commanding and not f.companion.engaged
     assert not f.fake.commands(CMD_DO_SET_MODE) and not f.fake.setpoints()
+
+
+async def test_the_control_log_holds_the_angle_asked_and_the_estimate(
+    start: Start, tmp_path: Path
+) -> None:
+    f = await engaged_in_angle_mode(start, rolled(10.0), log_dir=tmp_path)
+    f.fake.rc(1000, sticks=(2000, 1500, 1500, 1500))  # full right roll: 35 deg asked
+    for _ in range(10):
+        estimate_and_imu(f, rolled(10.0))
+        await settle(2)
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    last = {k: float(v[-1]) for k, v in cols.items()}
+    assert last["sp_roll_rad"] == pytest.approx(35.0 * DEG)
+    assert last["sp_pitch_rad"] == 0.0 and math.isnan(last["sp_yaw_rad"])
+    assert last["est_roll_rad"] == pytest.approx(10.0 * DEG, abs=1e-6)  # a float32 quaternion
+    # Angle mode holds no position and asks for none.
+    assert all(math.isnan(last[k]) for k in ("sp_north_m", "sp_up_m", "est_north_m", "est_up_m"))

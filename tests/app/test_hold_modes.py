@@ -7,10 +7,15 @@ and a stale position is a failsafe with a hand-back.
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
+
+import numpy as np
 import pytest
 
 from companion.errors import EXIT_ERROR
 from companion.mission import Mission, Waypoint
+from companion.records import read_columnar
 from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import Flight, Start, streams_requested
 
@@ -141,3 +146,48 @@ async def test_from_a_mode_that_holds_altitude_the_hold_takes_over_at_its_hover_
     first = f.fake.of_type("SET_ATTITUDE_TARGET")[n]
     assert first.thrust == pytest.approx(hold.outer.vertical.gains.hover_thrust_initial, abs=0.02)
     assert first.thrust < 0.45  # not the stick's 0.5
+
+
+async def test_the_control_log_holds_the_setpoints_and_the_estimates_flown(
+    start: Start, tmp_path: Path
+) -> None:
+    f = await engaged(start, "position", log_dir=tmp_path)
+    tilt = (math.cos(0.05), math.sin(0.05), 0.0, 0.0)  # 0.1 rad of roll
+    for _ in range(20):
+        f.fake.attitude_quaternion(f.t_ms, tilt)
+        f.fake.local_position((1.0, -2.0, -5.0))
+        f.t_ms += 4
+        f.imu()
+        await settle(2)
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    last = {k: float(v[-1]) for k, v in cols.items()}
+    assert (last["est_roll_rad"], last["est_pitch_rad"], last["est_yaw_rad"]) == pytest.approx(
+        (0.1, 0.0, 0.0), abs=1e-9
+    )
+    assert (last["est_north_m"], last["est_east_m"], last["est_up_m"]) == (1.0, -2.0, 5.0)
+    # Held where the sticks centred (the estimate at engagement), the heading free.
+    assert (last["sp_north_m"], last["sp_east_m"], last["sp_up_m"]) == (0.0, 0.0, 5.0)
+    assert math.isnan(last["sp_yaw_rad"])
+    # Pushed back north-west of the hold: the setpoint tilts against the error.
+    hold = f.companion.hold
+    assert hold is not None and hold.attitude_setpoint is not None
+    assert last["sp_roll_rad"] == hold.attitude_setpoint.roll_rad
+    assert last["sp_pitch_rad"] == hold.attitude_setpoint.pitch_rad
+    assert (last["sp_roll_rad"], last["sp_pitch_rad"]) != (0.0, 0.0)
+
+
+async def test_in_rates_mode_the_outer_columns_are_nan(start: Start, tmp_path: Path) -> None:
+    f = await start(engage="auto", output="rates", log_dir=tmp_path)
+    await streams_requested(f)
+    for _ in range(10):
+        f.imu()
+        await settle(2)
+    f.companion._stop.set()
+    await f.finish()
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    assert len(cols["t_s"]) >= 10
+    outer = [k for k in cols if k.startswith(("sp_", "est_"))]
+    assert len(outer) == 12
+    assert all(np.isnan(cols[k]).all() for k in outer)

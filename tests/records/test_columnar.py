@@ -23,12 +23,17 @@ def test_columns_layout() -> None:
         "torque_roll", "sat_roll",
     ]  # fmt: skip
     assert cols[12] == "ref_pitch_rad_s" and cols[19] == "ref_yaw_rad_s"
-    assert cols[-13:] == [
+    assert cols[-25:-12] == [
         "sat_yaw", "thrust", "thrust_out", "motor_1", "motor_2", "motor_3", "motor_4",
         "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s", "on_ground",
         "link_rtt_ms", "sample_age_ms",
     ]  # fmt: skip
-    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2
+    assert cols[-12:] == [
+        "sp_roll_rad", "sp_pitch_rad", "sp_yaw_rad", "est_roll_rad", "est_pitch_rad",
+        "est_yaw_rad", "sp_north_m", "sp_east_m", "sp_up_m", "est_north_m", "est_east_m",
+        "est_up_m",
+    ]  # fmt: skip
+    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2 + 12
     assert len(columns(6)) == len(cols) + 2
     with pytest.raises(ValueError):
         columns(0)
@@ -71,11 +76,12 @@ def test_round_trip_with_metadata(tmp_path: Path) -> None:
 def test_wrong_row_length_raises(tmp_path: Path) -> None:
     cols = columns(4)
     with ColumnarLog(tmp_path / "x.bin", cols) as log:
-        with pytest.raises(ValueError, match="37 values, expected 38"):
-            log.append([0.0] * 37)
-        with pytest.raises(ValueError, match="39 values, expected 38"):
-            log.append([0.0] * 39)
-        log.append([0.0] * 38)
+        n = len(cols)
+        with pytest.raises(ValueError, match=f"{n - 1} values, expected {n}"):
+            log.append([0.0] * (n - 1))
+        with pytest.raises(ValueError, match=f"{n + 1} values, expected {n}"):
+            log.append([0.0] * (n + 1))
+        log.append([0.0] * n)
     got, _ = read_columnar(tmp_path / "x.bin")
     assert len(got["t_s"]) == 1
 
