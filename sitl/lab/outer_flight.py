@@ -644,25 +644,11 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     if scenario.path:
         moving = sel & (np.hypot(*c["sp_vel_ne_m_s"].T) > 0.0)
         if moving.sum() >= 2:
-            d = path_distance_m(c["pos_ned_m"][moving, :2], c["sp_pos_ne_m"][moving][::10])
+            from sitl.lab.outer_report import segment_distances
+
+            d, _ = segment_distances(c["pos_ned_m"][moving, :2], c["sp_pos_ne_m"][moving][::10])
             out["path_rms_m"] = float(np.sqrt(np.mean(d * d)))
             out["path_max_m"] = float(d.max())
-    return out
-
-
-def path_distance_m(points: np.ndarray, path: np.ndarray, chunk: int = 2048) -> np.ndarray:
-    """Horizontal distance of each of ``points`` (n, 2) to the polyline through
-    ``path`` (m, 2), wherever along it: the path error, not the lag behind a
-    moving setpoint."""
-    a, b = path[:-1], path[1:]
-    ab = b - a
-    ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-18)
-    out = np.empty(len(points))
-    for i in range(0, len(points), chunk):
-        p = points[i : i + chunk, None, :]  # (k, 1, 2) against (1, m-1, 2)
-        u = np.clip(np.einsum("kmj,mj->km", p - a[None], ab) / ab2, 0.0, 1.0)
-        near = a[None] + u[..., None] * ab[None]
-        out[i : i + chunk] = np.sqrt(((p - near) ** 2).sum(axis=-1).min(axis=1))
     return out
 
 

@@ -288,11 +288,11 @@ def test_the_figure_eight_is_a_lemniscate_flown_at_its_speed(name: str) -> None:
 
 
 def test_the_path_error_is_the_distance_to_the_path_wherever_along_it() -> None:
-    from sitl.lab.outer_flight import path_distance_m
+    from sitl.lab.outer_report import segment_distances
 
     square = np.array([(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0), (0.0, 0.0)])
     pts = np.array([(5.0, 1.0), (11.0, 5.0), (5.0, 5.0), (-3.0, -4.0), (10.0, 10.0)])
-    np.testing.assert_allclose(path_distance_m(pts, square, chunk=2), [1.0, 1.0, 5.0, 5.0, 0.0])
+    np.testing.assert_allclose(segment_distances(pts, square)[0], [1.0, 1.0, 5.0, 5.0, 0.0])
 
 
 def test_a_path_scenario_reports_its_path_error() -> None:
