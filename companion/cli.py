@@ -32,6 +32,7 @@ from companion.options import (
     fail_config,
     keep_earlier,
     load_inputs,
+    mode_opt,
     output_opt,
     profile_opt,
     signing_key_opt,
@@ -306,12 +307,8 @@ def preflight(
 @profile_opt
 @controller_opt
 @output_opt
-@click.option(
-    "--mode",
-    type=click.Choice(["rates", "angle", "altitude", "position"]),
-    default="rates",
-    show_default=True,
-    help="What the sticks ask. rates: body rates (acro). angle: roll and pitch angles up "
+@mode_opt(
+    "What the sticks ask. rates: body rates (acro). angle: roll and pitch angles up "
     "to 35 deg (self-levelling) and a yaw rate. altitude: as angle, the throttle a climb "
     "rate (altitude held at mid-stick). position: the sticks a velocity, position and "
     "altitude held at mid-stick. The outer loops fly on the autopilot's estimates "
@@ -501,7 +498,7 @@ def run(
     profile_path: Path,
     controller_path: Path | None,
     output: str,
-    mode: str,
+    flight_mode: str,
     engage: str,
     engage_channel: int,
     rates_full_scale_deg_s: float,
@@ -546,17 +543,18 @@ def run(
     mission = None
     try:
         if mission_path is not None:
-            if mode != "position":
-                raise ValueError(f"--mission: needs --mode position (got --mode {mode})")
+            if flight_mode != "position":
+                raise ValueError(f"--mission: needs --mode position (got --mode {flight_mode})")
             from companion.mission import load_mission
 
             mission = load_mission(mission_path)
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
         if reference_path is not None:
-            if mode != "rates":
+            if flight_mode != "rates":
                 raise ValueError(
-                    f"--reference: scripts body rates, needs --mode rates (got --mode {mode})"
+                    "--reference: scripts body rates, needs --mode rates "
+                    f"(got --mode {flight_mode})"
                 )
             from companion.reference import load_reference
 
@@ -608,7 +606,7 @@ def run(
         profile_path=str(Path(profile_path).resolve()),
         controller_path=str(Path(ctrl_path).resolve()),
         output=output,  # type: ignore[arg-type]
-        mode=mode,  # type: ignore[arg-type]
+        mode=flight_mode,  # type: ignore[arg-type]
         mission=mission,
         engage=engage,  # type: ignore[arg-type]
         imu_source=imu_source,  # type: ignore[arg-type]

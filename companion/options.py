@@ -203,6 +203,22 @@ output_opt = click.option(
 )
 
 
+FLIGHT_MODES = ("rates", "angle", "altitude", "position")
+"""``--mode``: what the pilot's sticks ask (docs/flying.md)."""
+
+
+def mode_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--mode rates|angle|altitude|position`` (the parameter ``flight_mode``)."""
+    return click.option(
+        "--mode",
+        "flight_mode",
+        type=click.Choice(FLIGHT_MODES),
+        default="rates",
+        show_default=True,
+        help=help_,
+    )
+
+
 def signing_key_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     """``--signing-key FILE``: a MAVLink 2 signing key (docs/signing.md)."""
     return click.option(

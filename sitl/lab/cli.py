@@ -37,6 +37,7 @@ from companion.options import (
     find_profile,
     keep_earlier,
     load_inputs,
+    mode_opt,
     output_opt,
     profile_opt,
     usable_out_dir,
@@ -253,6 +254,13 @@ def _check_scheduler(scheduler: str) -> None:
 @_link_opt
 @_progress_opt
 @_oracle_opt
+@mode_opt(
+    "Beyond rates: the outer loops (companion run --mode) on an outer scenario "
+    "(--scenario one of angle-sticks, altitude-steps, position-hold, square, square-fast, "
+    "figure-eight, figure-eight-fast; default: angle-sticks, altitude-steps or "
+    "position-hold), on the autopilot's estimator model; metrics.json's key 'outer', "
+    "path.png and report.md.",
+)
 def simulate(
     profile_path: Path,
     controller_path: Path | None,
@@ -263,9 +271,17 @@ def simulate(
     link: LinkSpec | None,
     progress: bool,
     oracle: bool,
+    flight_mode: str,
 ) -> None:
     """Fly a scenario in one process (plant + controller, no MAVLink) and write a report."""
     _need_lab_extras()
+    if flight_mode != "rates":
+        _simulate_outer(
+            profile_path, controller_path, scenario, seed, out_dir, flight_mode,
+            refused={"--controller-profile": controller_profile is not None,
+                     "--link": link is not None, "--oracle": oracle},
+        )  # fmt: skip
+        return
     from companion.profile import load_profile
     from sitl.lab.report import REPORT_FILES, write_report
     from sitl.lab.simulate import simulate_flight
@@ -299,6 +315,64 @@ def simulate(
     )
     if oracle:
         _add_oracle(metrics, out_dir, profile, sc, seed)
+
+
+def _simulate_outer(
+    profile_path: Path,
+    controller_path: Path | None,
+    scenario: str,
+    seed: int | None,
+    out_dir: Path,
+    mode: str,
+    *,
+    refused: dict[str, bool],
+) -> None:
+    """``companion simulate --mode angle|altitude|position``: one in-process outer flight."""
+    from sitl.lab.outer_flight import (
+        DEFAULT_SCENARIO,
+        SCENARIOS,
+        outer_metrics,
+        simulate_outer_flight,
+    )
+    from sitl.lab.outer_report import OUTER_SIMULATE_FILES, write_outer_report
+
+    for opt, given in refused.items():
+        if given:
+            raise click.UsageError(
+                f"{opt}: not with --mode {mode} (the outer flights fly the "
+                "ideal link, the rate loop on the flown vehicle's profile)"
+            )
+    ctx = click.get_current_context()
+    if ctx.get_parameter_source("scenario") == ParameterSource.DEFAULT:
+        scenario = DEFAULT_SCENARIO[mode]
+    sc = SCENARIOS.get(scenario)
+    if sc is None:
+        raise click.BadParameter(
+            f"{scenario!r}: with --mode {mode}, one of {', '.join(SCENARIOS)}",
+            param_hint="--scenario",
+        )
+    if sc.mode != mode:
+        raise click.BadParameter(
+            f"{scenario} is a {sc.mode}-mode scenario, not {mode}", param_hint="--scenario"
+        )
+    profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, simulated=True)
+    keep_earlier(f"--out {out_dir}", out_dir, OUTER_SIMULATE_FILES)
+    t0 = time.perf_counter()
+    flight = simulate_outer_flight(profile, cfg, sc, seed=seed)
+    figures = outer_metrics(flight, sc)
+    write_outer_report(
+        flight.columns, figures, out_dir, description=sc.description,
+        controller_path=str(ctrl_path), profile_path=str(profile_path),
+        wall_time_s=time.perf_counter() - t0,
+    )  # fmt: skip
+    h, path = figures.get("pos_rms_h_m"), figures.get("path_rms_m")
+    click.echo(
+        f"{'CRASHED' if figures['crashed'] else 'flew'} {sc.name} ({mode}); "
+        + (f"position RMS {h:.2f} m horizontal, " if h is not None else "")
+        + f"{figures['pos_rms_v_m']:.2f} m vertical"
+        + (f", path error RMS {path:.2f} m" if path is not None else "")
+        + f"; report: {out_dir / 'report.md'}"
+    )
 
 
 @click.command("fly")
@@ -337,13 +411,8 @@ def simulate(
     help="Rates output: fly the same scenario again sending the pilot's rates straight "
     "through (into OUT/passthrough) and report both.",
 )
-@click.option(
-    "--mode",
-    "flight_mode",
-    type=click.Choice(["rates", "angle", "altitude", "position"]),
-    default="rates",
-    show_default=True,
-    help="companion run --mode: what the pilot's sticks ask. Beyond rates, metrics.json "
+@mode_opt(
+    "companion run --mode: what the pilot's sticks ask. Beyond rates, metrics.json "
     "gains 'outer' and the report path.png.",
 )
 @click.option(

@@ -147,6 +147,7 @@ class Setpoints:
     climb_m_s: float = 0.0
     position_ne_m: tuple[float, float] = (0.0, 0.0)
     velocity_ne_m_s: tuple[float, float] = (0.0, 0.0)
+    accel_ne_m_s2: tuple[float, float] = (0.0, 0.0)
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
@@ -194,9 +195,10 @@ def _figure_eight(
     up_m: float, size_m: float, speed_m_s: float, laps: int = 1
 ) -> Callable[[float], Setpoints]:
     """A figure eight (a lemniscate of Gerono) through the origin: north
-    ``size_m sin(w t)``, east ``size_m / 2 sin(2 w t)``, the velocity as
-    feedforward, ``speed_m_s`` its fastest (at the crossing: ``w = speed /
-    (size sqrt 2)``); ``laps`` times, then a hold."""
+    ``size_m sin(w t)``, east ``size_m / 2 sin(2 w t)``, the velocity and the
+    acceleration as feedforward (as a trajectory generator gives them),
+    ``speed_m_s`` its fastest (at the crossing: ``w = speed / (size sqrt 2)``);
+    ``laps`` times, then a hold."""
     w = speed_m_s / (size_m * math.sqrt(2.0))
     end_s = laps * 2.0 * math.pi / w
 
@@ -208,6 +210,10 @@ def _figure_eight(
             up_m,
             position_ne_m=(size_m * math.sin(a), 0.5 * size_m * math.sin(2.0 * a)),
             velocity_ne_m_s=(size_m * w * math.cos(a), size_m * w * math.cos(2.0 * a)),
+            accel_ne_m_s2=(
+                -size_m * w * w * math.sin(a),
+                -2.0 * size_m * w * w * math.sin(2.0 * a),
+            ),
         )
 
     return sp
@@ -482,7 +488,7 @@ def simulate_outer_flight(
             att_sp = AttitudeSetpoint(sp.roll_rad, sp.pitch_rad, sp.yaw_rad)
             rate_ref = att.update(sample_dt, q, gyro, att_sp)
         else:
-            hsp = HorizontalSetpoint(sp.velocity_ne_m_s, sp.position_ne_m)
+            hsp = HorizontalSetpoint(sp.velocity_ne_m_s, sp.position_ne_m, sp.accel_ne_m_s2)
             o = outer.update(
                 sample_dt, q, gyro, p.position_ned_m, p.velocity_ned_m_s,
                 OuterSetpoint(hsp, vsp, sp.yaw_rad), applied_thrust=applied,

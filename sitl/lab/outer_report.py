@@ -16,6 +16,7 @@ point). ``path.png`` draws the path flown against the plan.
 from __future__ import annotations
 
 import itertools
+import json
 import re
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,15 @@ from companion.mission import Mission
 from sitl.flight_log import read_log
 from sitl.lab.fly import FlightProcesses
 
-__all__ = ["mission_plan", "outer_metrics", "plot_path", "segment_distances"]
+__all__ = [
+    "OUTER_SIMULATE_FILES",
+    "mission_plan",
+    "outer_metrics",
+    "plot_outer_flight",
+    "plot_path",
+    "segment_distances",
+    "write_outer_report",
+]
 
 _ORIGIN = re.compile(r"from N (-?[\d.]+) E (-?[\d.]+) D (-?[\d.]+) m")
 
@@ -151,3 +160,97 @@ def plot_path(
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+OUTER_SIMULATE_FILES = ("metrics.json", "report.md", "path.png")
+"""What :func:`write_outer_report` writes into its folder (``companion simulate --mode``)."""
+
+
+def plot_outer_flight(columns: dict[str, np.ndarray], out_dir: Path, *, title: str) -> Path:
+    """``path.png`` of an in-process outer flight: the path flown (true position)
+    and the setpoint seen from above, and the height against its setpoint in time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t, pos, sp = columns["t_s"], columns["pos_ned_m"], columns["sp_pos_ne_m"]
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(11, 5), gridspec_kw={"width_ratios": [1, 1.3]})
+    ax.plot(sp[:, 1], sp[:, 0], "k--", lw=1.0, label="setpoint")
+    ax.plot(pos[:, 1], pos[:, 0], lw=1.2, label="flown (true position)")
+    az.plot(t, columns["sp_up_m"], "k--", lw=1.0, label="setpoint")
+    az.plot(t, -pos[:, 2], lw=1.2, label="flown")
+    ax.set_xlabel("east, m")
+    ax.set_ylabel("north, m")
+    ax.set_aspect("equal", adjustable="datalim")
+    az.set_xlabel("time, s")
+    az.set_ylabel("height, m (up)")
+    for a in (ax, az):
+        a.grid(True, alpha=0.3)
+        a.legend(loc="best", fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(out_dir) / "path.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_outer_report(
+    columns: dict[str, np.ndarray],
+    figures: dict[str, Any],
+    out_dir: Path,
+    *,
+    description: str,
+    controller_path: str,
+    profile_path: str,
+    wall_time_s: float,
+) -> dict[str, Any]:
+    """``metrics.json`` (``outer``: the figures of
+    :func:`sitl.lab.outer_flight.outer_metrics`), ``path.png`` and ``report.md``
+    of an in-process outer flight; returns the metrics."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t = columns["t_s"]
+    metrics = {
+        "scenario": figures["scenario"],
+        "mode": figures["mode"],
+        "profile": profile_path,
+        "controller": controller_path,
+        "seed": figures["seed"],
+        "crashed": figures["crashed"],
+        "sim_time_s": round(float(t[-1]), 3) if len(t) else 0.0,
+        "wall_time_s": round(wall_time_s, 2),
+        "outer": figures,
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    plot_outer_flight(columns, out_dir, title=f"{figures['scenario']} on {figures['profile']}")
+    rows = [
+        ("horizontal position RMS, m", figures.get("pos_rms_h_m")),
+        ("vertical position RMS, m", figures.get("pos_rms_v_m")),
+        ("path error RMS, m", figures.get("path_rms_m")),
+        ("path error max, m", figures.get("path_max_m")),
+        ("attitude MAE (roll, pitch), deg", figures.get("att_mae_deg")),
+        ("heading MAE, deg", figures.get("yaw_mae_deg")),
+        ("rate loop saturated, s", figures.get("rate_sat_s")),
+        ("tilt limited, s", figures.get("tilt_limited_s")),
+    ]
+    lift = "-" if figures.get("lift_off_s") is None else f"{figures['lift_off_s']:.2f}"
+    lines = [
+        f"# {figures['scenario']} ({figures['mode']} mode) on {figures['profile']}",
+        "",
+        description,
+        "",
+        f"{'CRASHED' if figures['crashed'] else 'Flew'} {metrics['sim_time_s']} s simulated "
+        f"in {metrics['wall_time_s']} s; lift-off at {lift} s. "
+        "Scored from the true state against the setpoints (`metrics.json`, key `outer`).",
+        "",
+        "| figure | value |",
+        "|---|---|",
+        *(f"| {k} | {'-' if v is None else round(v, 3)} |" for k, v in rows),
+        "",
+        "![path](path.png)",
+        "",
+    ]
+    (out_dir / "report.md").write_text("\n".join(lines))
+    return metrics

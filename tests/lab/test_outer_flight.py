@@ -279,20 +279,15 @@ def test_the_figure_eight_is_a_lemniscate_flown_at_its_speed(name: str) -> None:
     n, e = pos[moving].T
     np.testing.assert_allclose(e**2, n**2 * (1.0 - (n / 8.0) ** 2), atol=1e-9)
     assert np.hypot(*vel[moving].T).max() == pytest.approx(top, rel=1e-3)
-    # The velocity fed forward is the path's own (central differences).
+    # The velocity and acceleration fed forward are the path's own (central differences).
     dpos = np.gradient(pos[moving], 0.01, axis=0)
     np.testing.assert_allclose(dpos[1:-1], vel[moving][1:-1], atol=1e-3)
+    acc = np.array([s.accel_ne_m_s2 for s in sps])[moving]
+    np.testing.assert_allclose(np.gradient(vel[moving], 0.01, axis=0)[1:-1], acc[1:-1], atol=1e-3)
+    assert np.abs(acc).max() > 0.4
     # It starts and ends at the origin and then holds there.
     np.testing.assert_allclose(pos[0], (0.0, 0.0), atol=1e-12)
     assert not moving[-1] and tuple(pos[-1]) == (0.0, 0.0)
-
-
-def test_the_path_error_is_the_distance_to_the_path_wherever_along_it() -> None:
-    from sitl.lab.outer_report import segment_distances
-
-    square = np.array([(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0), (0.0, 0.0)])
-    pts = np.array([(5.0, 1.0), (11.0, 5.0), (5.0, 5.0), (-3.0, -4.0), (10.0, 10.0)])
-    np.testing.assert_allclose(segment_distances(pts, square)[0], [1.0, 1.0, 5.0, 5.0, 0.0])
 
 
 def test_a_path_scenario_reports_its_path_error() -> None:
