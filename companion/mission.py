@@ -33,7 +33,7 @@ from typing import Annotated
 from pydantic import Field
 
 from companion.control.hold_modes import CLIMB_MAX_DOWN_M_S, CLIMB_MAX_UP_M_S
-from companion.control.horizontal import HorizontalSetpoint
+from companion.control.horizontal import DEFAULT_HORIZONTAL_GAINS, HorizontalSetpoint
 from companion.control.outer import OuterSetpoint
 from companion.control.vertical import VerticalSetpoint
 from companion.schema import StrictModel, load_yaml_model
@@ -43,6 +43,9 @@ __all__ = ["Mission", "MissionPath", "Waypoint", "load_mission"]
 MAX_RANGE_M = 5000.0
 """How far from the start a waypoint may be, per axis."""
 MAX_WAYPOINTS = 1000
+MAX_SPEED_M_S = DEFAULT_HORIZONTAL_GAINS.speed_max_m_s
+"""A leg's speed at most the horizontal loop's bound (12 m/s): a faster leg would
+leave the vehicle behind its setpoint."""
 
 Vec3 = tuple[float, float, float]
 
@@ -53,7 +56,7 @@ class Waypoint(StrictModel):
     north_m: Annotated[float, Field(ge=-MAX_RANGE_M, le=MAX_RANGE_M)]
     east_m: Annotated[float, Field(ge=-MAX_RANGE_M, le=MAX_RANGE_M)]
     up_m: Annotated[float, Field(ge=-100.0, le=500.0, description="height above the start, m")]
-    speed_m_s: Annotated[float, Field(gt=0.0, le=15.0)] | None = Field(
+    speed_m_s: Annotated[float, Field(gt=0.0, le=MAX_SPEED_M_S)] | None = Field(
         None, description="speed of the leg to it, m/s; null: the mission's"
     )
     hold_s: Annotated[float, Field(ge=0.0, le=3600.0)] = Field(
@@ -64,7 +67,7 @@ class Waypoint(StrictModel):
 class Mission(StrictModel):
     """A mission file (module docstring)."""
 
-    speed_m_s: Annotated[float, Field(gt=0.0, le=15.0)] = Field(
+    speed_m_s: Annotated[float, Field(gt=0.0, le=MAX_SPEED_M_S)] = Field(
         2.0, description="speed along a leg, m/s"
     )
     waypoints: Annotated[list[Waypoint], Field(min_length=1, max_length=MAX_WAYPOINTS)]

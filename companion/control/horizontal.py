@@ -85,7 +85,9 @@ class HorizontalGains:
     kp_position_1_s
         :math:`K_x`, 1/s: position error to velocity reference.
     speed_max_m_s
-        Bound on the velocity reference's magnitude, m/s.
+        Bound on the velocity reference's magnitude, m/s (12: PX4's
+        ``MPC_XY_VEL_MAX``; above the sticks' 10 m/s, ``MPC_VEL_MANUAL``, so a
+        full stick, and a fast leg with its position error, are not cut short).
     tilt_max_rad
         Bound on the tilt, rad, in (0, pi/2).
     window_s, inner_lag_s
@@ -94,7 +96,7 @@ class HorizontalGains:
 
     kp_velocity_1_s: float = 1.5
     kp_position_1_s: float = 0.4
-    speed_max_m_s: float = 5.0
+    speed_max_m_s: float = 12.0
     tilt_max_rad: float = math.radians(35.0)
     window_s: float = 0.2
     inner_lag_s: float = 0.35

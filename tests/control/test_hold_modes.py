@@ -108,6 +108,8 @@ def test_position_mode_holds_where_the_sticks_came_back_and_leans_towards_it() -
     mode.update(0.004, LEVEL, STILL, (0.0, 1.0, -5.0), STILL, (0.0, -1.0, 0.0), 0.5, 0.0)
     assert mode.setpoint.horizontal.velocity_ne_m_s == pytest.approx((VELOCITY_MAX_M_S, 0.0))
     assert mode.setpoint.horizontal.position_ne_m is None
+    # ... and the velocity loop flies the whole of it: its bound is above full stick.
+    assert mode.outer.horizontal.velocity_ref_ne_m_s == pytest.approx((VELOCITY_MAX_M_S, 0.0))
 
 
 def test_non_finite_estimates_never_make_a_non_finite_command() -> None:

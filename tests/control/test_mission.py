@@ -80,3 +80,12 @@ def test_a_bad_mission_file_names_its_keys(tmp_path: Path) -> None:
     f.write_text("waypoints: []\n", encoding="utf-8")
     with pytest.raises(ConfigError, match="waypoints"):
         load_mission(f)
+
+
+def test_a_leg_faster_than_the_loop_flies_is_refused(tmp_path: Path) -> None:
+    f = tmp_path / "m.yaml"
+    f.write_text("waypoints:\n  - {north_m: 9, east_m: 0, up_m: 2, speed_m_s: 12.5}\n")
+    with pytest.raises(ConfigError, match=r"waypoints\.0\.speed_m_s.*less than or equal to 12"):
+        load_mission(f)
+    f.write_text("waypoints:\n  - {north_m: 9, east_m: 0, up_m: 2, speed_m_s: 12}\n")
+    assert load_mission(f).waypoints[0].speed_m_s == 12.0
