@@ -167,6 +167,12 @@ class ModePath(Engagement):
         q = self._att_q
         assert q is not None
         on_ground = bool(self.controller.on_ground)
+        if on_ground:
+            # On its legs the rate law forgets what it learnt, as PX4 resets its rate
+            # integrators while landed: its F from the air (a damaged motor's torque)
+            # would hold that torque on the ground, saturate the mixer and cut the
+            # collective, and a vehicle that touched down after a hop never lifted off.
+            self.controller.reset()
         if self.angle is not None:
             return self.angle.reference(
                 dt, q, gyro, self._deflection, ref[2], on_ground=on_ground

@@ -24,13 +24,17 @@ MSG_LOCAL_POSITION_NED = 32
 LEVEL = (1.0, 0.0, 0.0, 0.0)
 
 
-def estimates_and_imu(f: Flight, pos: tuple[float, float, float] | None = (0.0, 0.0, -5.0)) -> None:
+def estimates_and_imu(
+    f: Flight,
+    pos: tuple[float, float, float] | None = (0.0, 0.0, -5.0),
+    gyro: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> None:
     """The estimates (the position every fourth sample, as at 62.5 Hz), then an IMU sample."""
     f.fake.attitude_quaternion(f.t_ms, LEVEL)
     if pos is not None and f.t_us // 4000 % 4 == 0:
         f.fake.local_position(pos)
     f.t_ms += 4
-    f.imu()
+    f.imu(gyro)
 
 
 async def engaged(start: Start, mode: str, **opts: object) -> Flight:
@@ -191,3 +195,21 @@ async def test_in_rates_mode_the_outer_columns_are_nan(start: Start, tmp_path: P
     outer = [k for k in cols if k.startswith(("sp_", "est_"))]
     assert len(outer) == 12
     assert all(np.isnan(cols[k]).all() for k in outer)
+
+
+async def test_on_the_ground_the_rate_law_forgets_what_it_learnt_in_the_air(
+    start: Start,
+) -> None:
+    f = await engaged(start, "altitude")
+    for _ in range(60):  # in the air, a roll rate the law fights: it learns an F
+        estimates_and_imu(f, gyro=(0.5, 0.0, 0.0))
+        await settle(2)
+    air = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
+    assert abs(air.body_roll_rate) > 0.05
+    f.fake.extended_sys_state(1)  # MAV_LANDED_STATE_ON_GROUND
+    await f.feed_until(lambda: f.companion.controller.on_ground, send=lambda: estimates_and_imu(f))
+    for _ in range(5):  # on the legs, no rate: nothing held from the air
+        estimates_and_imu(f)
+        await settle(2)
+    ground = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
+    assert abs(ground.body_roll_rate) < 1e-3

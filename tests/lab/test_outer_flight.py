@@ -301,3 +301,17 @@ def test_a_path_scenario_reports_its_path_error() -> None:
     assert (
         outer_metrics(simulate_outer_flight(_f450(), _rate_cfg(), hold), hold)["path_rms_m"] is None
     )
+
+
+def test_a_damaged_vehicle_that_hops_at_take_off_still_climbs() -> None:
+    """The cut-prop F450 with motor 0 at 80 %: it hops, touches down, and lifts off
+    again (the rate law starts afresh on its legs); it hovered on the ground,
+    collective cut by a saturated mixer, when the law kept its F from the hop."""
+    from sitl.lab.campaign import damaged_profile
+    from sitl.lab.outer_flight import _profile
+
+    plant = damaged_profile(_profile("f450_cut_props"), 0.8)
+    sc = SCENARIOS["position-hold"].with_duration(16.0)
+    out = outer_metrics(simulate_outer_flight(plant, _rate_cfg(), sc), sc)
+    assert not out["crashed"]
+    assert out["pos_rms_v_m"] < 0.5  # 5.0 (the hold altitude) when it stayed down
