@@ -57,9 +57,11 @@ def fly_armed_at(step: int, tmp_path: Path) -> dict[str, Any]:
     return {k: log[k][start : start + FLIGHT_STEPS] for k in ("rate_frd_rad_s", "motor_w_rad_s")}
 
 
-def test_the_pilot_counts_steps_from_arming(tmp_path: Path) -> None:
-    # Arming at step 100 the pilot's old arithmetic missed the boundary; at 101 and 1003 not.
-    # (The PX4 personality's rate-loop dt, from absolute times, differed at every step.)
+def test_a_flight_is_the_same_whichever_step_arming_fell_on(tmp_path: Path) -> None:
+    # The PX4 personality's rate-loop dt from absolute times differed at every step
+    # (this fails without its fix). Arming at step 100 the pilot's old arithmetic
+    # missed the 4.0 s boundary, at 101 and 1003 not; paper-acro's sticks are
+    # continuous there, so that fix is not what this test shows.
     assert (100 + 4000) * DT_S - 100 * DT_S < 4.0 <= (101 + 4000) * DT_S - 101 * DT_S
     assert (1003 + 4000) * DT_S - 1003 * DT_S >= 4.0
     first, *others = (fly_armed_at(step, tmp_path) for step in (100, 101, 1003))
