@@ -150,7 +150,9 @@ def test_envelope_moves_the_earlier_results_aside(tmp_path: Path) -> None:
         short_scenario(tmp_path, sc.name, 0.5) for sc in (setup.train, setup.test)
     )  # fmt: skip
     out = tmp_path / "out"
-    written = plant(out, ["envelope.json", "summary.md", "ratio.png", "worst-a-intact.png"])
+    written = plant(
+        out, ["envelope.json", "envelope.parquet", "summary.md", "ratio.png", "worst-a-intact.png"]
+    )
     res = companion(
         "envelope", "--out", str(out), "--corners-only", "--no-damage", "--tune-budget", "1",
         "--worst", "0", "--workers", "1", "--train-scenario", str(train),

@@ -819,8 +819,8 @@ def campaign(
     type=click.Path(file_okay=False),
     callback=usable_out_dir,
     required=True,
-    help="Folder for envelope.json, summary.md, ratio.png and worst-*.png (an earlier "
-    "run's are moved into earlier-<UTC time>/ in it first).",
+    help="Folder for envelope.json, envelope.parquet, summary.md, ratio.png and worst-*.png "
+    "(an earlier run's are moved into earlier-<UTC time>/ in it first).",
 )
 @click.option(
     "--n",

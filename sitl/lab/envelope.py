@@ -52,7 +52,8 @@ is seeded, records come back in case order: the same arguments give the same
 records whatever the number of workers.
 
 Outputs (:func:`write_envelope_outputs`): ``envelope.json`` (``meta``,
-``verdicts``, ``records``), ``summary.md``, ``ratio.png`` and, for the worst
+``verdicts``, ``records``), ``envelope.parquet`` (the same flights, one row
+each: :data:`sitl.lab.table.ENVELOPE_SCHEMA`), ``summary.md``, ``ratio.png`` and, for the worst
 cases, ``worst-<vehicle>-<case>.png`` (re-flown: commanded against measured
 rate for MFC and the tuned PID).
 
@@ -103,7 +104,7 @@ __all__ = [
 
 _log = logging.getLogger(__name__)
 
-ENVELOPE_FILES = ("envelope.json", "summary.md", "ratio.png", "worst-*.png")
+ENVELOPE_FILES = ("envelope.json", "envelope.parquet", "summary.md", "ratio.png", "worst-*.png")
 """What :func:`write_envelope_outputs` writes into its folder (names or patterns)."""
 
 
@@ -335,7 +336,8 @@ def write_envelope_outputs(
     cases: Sequence[EnvelopeCase] = (),
     worst_k: int = 3,
 ) -> dict[str, Path]:
-    """Write ``envelope.json``, ``summary.md``, ``ratio.png`` and the worst-case plots.
+    """Write ``envelope.parquet``, ``envelope.json``, ``summary.md``, ``ratio.png`` and
+    the worst-case plots (``envelope.json`` last: its presence marks a finished run).
 
     Parameters
     ----------
@@ -353,12 +355,15 @@ def write_envelope_outputs(
     Returns
     -------
     dict
-        ``json``, ``summary``, ``plot`` and ``worst-<vehicle>-<case>`` paths.
+        ``json``, ``table``, ``summary``, ``plot`` and ``worst-<vehicle>-<case>`` paths.
     """
+    from sitl.lab.table import envelope_table, write_table
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {
         "json": out / "envelope.json",
+        "table": write_table(envelope_table(records), out / "envelope.parquet"),
         "summary": out / "summary.md",
         "plot": out / "ratio.png",
     }
@@ -373,10 +378,10 @@ def write_envelope_outputs(
             name = f"worst-{_slug(rec['vehicle'])}-{_slug(rec['case'])}"
             paths[name] = plot_worst(rec, by_key[k], setup, out / f"{name}.png")
             images[k] = f"{name}.png"
-    doc = {"meta": meta, "verdicts": verdicts(records), "records": list(records)}
-    paths["json"].write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     paths["summary"].write_text(
         summary_markdown(records, meta, worst_images=images), encoding="utf-8"
     )
     plot_ratio(records, paths["plot"])
+    doc = {"meta": meta, "verdicts": verdicts(records), "records": list(records)}
+    paths["json"].write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
     return paths

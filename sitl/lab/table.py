@@ -41,6 +41,12 @@ oracle_mae_yaw_deg_s     float64   flown (``--no-oracle``) or when it raised
 
 ``campaign.json``'s records, ``summary.md`` and ``mae.png`` are computed from this
 table (:func:`to_records` gives the records back in ``campaign.json``'s shape).
+
+The envelope's flights are a table too, ``envelope.parquet``
+(:data:`ENVELOPE_SCHEMA`, :func:`envelope_table`): one row per test flight,
+four per case (``mfc``, ``pid_tuned``, ``pid_default`` and, when flown, the
+``oracle``), in case order, with the vehicle's figures and the case's
+feasibility on every row; docs/campaigns.md gives its columns.
 """
 
 from __future__ import annotations
@@ -54,7 +60,16 @@ import pyarrow.parquet as pq
 
 from companion.control import AXES
 
-__all__ = ["FLIGHTS_SCHEMA", "SPEC_COLUMNS", "read_table", "to_records", "to_table", "write_table"]
+__all__ = [
+    "ENVELOPE_SCHEMA",
+    "FLIGHTS_SCHEMA",
+    "SPEC_COLUMNS",
+    "envelope_table",
+    "read_table",
+    "to_records",
+    "to_table",
+    "write_table",
+]
 
 SPEC_COLUMNS = (
     "profile",
@@ -139,6 +154,51 @@ def to_records(table: pa.Table) -> list[dict[str, Any]]:
             }
         )
     return out
+
+
+ENVELOPE_VEHICLE_COLUMNS = ("mass_kg", "arm_m", "thrust_to_weight", "motor_tau_s")
+"""The vehicle's figures each row of ``envelope.parquet`` carries (from its record's
+``vehicle_info``)."""
+
+ENVELOPE_SCHEMA = pa.schema(
+    [
+        pa.field("vehicle", pa.string(), nullable=False),
+        pa.field("case", pa.string(), nullable=False),
+        pa.field("controller", pa.string(), nullable=False),
+        *(pa.field(k, pa.float64()) for k in ENVELOPE_VEHICLE_COLUMNS),
+        *(pa.field(f"mae_{a}_deg_s", pa.float64()) for a in AXES),
+        pa.field("crashed", pa.bool_()),
+        pa.field("crashed_at_s", pa.float64()),
+        pa.field("sim_time_s", pa.float64()),
+        pa.field("feasible", pa.bool_()),
+        pa.field("tune_flights", pa.int64()),
+    ],
+    metadata={"schema": "mfc-companion envelope flights, version 1"},
+)
+"""The columns of ``envelope.parquet`` (docs/campaigns.md)."""
+
+
+def envelope_table(records: Sequence[dict[str, Any]]) -> pa.Table:
+    """The envelope's records (:func:`sitl.lab.envelope.run_envelope`'s) as one row per
+    test flight: the three controllers' then the oracle's, when it flew."""
+    rows = []
+    for rec in records:
+        info = rec.get("vehicle_info") or {}
+        flights = {**rec["flights"], **({"oracle": rec["oracle"]} if rec.get("oracle") else {})}
+        for controller, f in flights.items():
+            rows.append(
+                {
+                    "vehicle": rec["vehicle"],
+                    "case": rec["case"],
+                    "controller": controller,
+                    **{k: info.get(k) for k in ENVELOPE_VEHICLE_COLUMNS},
+                    **{f"mae_{a}_deg_s": f["mae_deg_s"].get(a) for a in AXES},
+                    **{k: f.get(k) for k in ("crashed", "crashed_at_s", "sim_time_s")},
+                    "feasible": rec.get("feasible"),
+                    "tune_flights": (rec.get("tune") or {}).get("flights"),
+                }
+            )
+    return pa.Table.from_pylist(rows, schema=ENVELOPE_SCHEMA)
 
 
 def write_table(table: pa.Table, path: str | Path) -> Path:

@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 from typing import Any
 
+import pyarrow.parquet
 import pytest
 from click.testing import CliRunner
 
@@ -35,6 +37,9 @@ from sitl.lab.envelope_setup import (
     load_setup,
 )
 from sitl.lab.envelope_verdicts import verdicts
+from sitl.lab.table import ENVELOPE_SCHEMA
+
+ROOT = Path(__file__).resolve().parents[2]
 
 TRAIN_SLICE_S = 15.0
 BUDGET = 25
@@ -187,6 +192,38 @@ def test_records_and_output_files(
     assert "## Ratio MFC / oracle per axis" not in summary  # not flown
     for r in corner_records:
         assert f"| {r['vehicle']} | intact |" in summary
+    _check_table(paths["table"], corner_records)
+
+
+def _documented_envelope_schema() -> list[tuple[str, str]]:
+    """(column, type) rows of the envelope table's schema in docs/campaigns.md."""
+    text = (ROOT / "docs" / "campaigns.md").read_text(encoding="utf-8")
+    section = text.split("\n## The envelope's table\n", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"^\| `(\w+)` \| (\w+) \|", section, flags=re.MULTILINE)
+
+
+def _check_table(path: Path, records: Records) -> None:
+    """``envelope.parquet`` has the documented schema and the records' figures, a row
+    per test flight (the oracle's only where it flew)."""
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    types = {"string": pa.string(), "float64": pa.float64(), "int64": pa.int64(),
+             "bool": pa.bool_()}  # fmt: skip
+    documented = [(name, types[t]) for name, t in _documented_envelope_schema()]
+    assert documented == [(f.name, f.type) for f in ENVELOPE_SCHEMA]
+    assert pq.read_schema(path).equals(ENVELOPE_SCHEMA, check_metadata=False)
+    df = pd.read_parquet(path)
+    expected = []
+    for r in records:
+        flights = {**r["flights"], **({"oracle": r["oracle"]} if r["oracle"] else {})}
+        for c, f in flights.items():
+            expected.append((r["vehicle"], r["case"], c, f["mae_deg_s"]["yaw"], f["crashed"],
+                             r["feasible"], r["vehicle_info"]["mass_kg"]))  # fmt: skip
+    got = df[["vehicle", "case", "controller", "mae_yaw_deg_s", "crashed", "feasible",
+              "mass_kg"]].itertuples(index=False, name=None)  # fmt: skip
+    assert list(got) == expected
 
 
 def test_damage_cases_follow_the_corners() -> None:
@@ -242,6 +279,9 @@ def test_cli_corners_only(tmp_path: Path) -> None:
     assert doc["meta"]["damage_retuned"] is True
     assert (out / "ratio.png").exists() and len(list(out.glob("worst-*.png"))) == 1
     assert "## Ratio MFC / oracle per axis" in (out / "summary.md").read_text(encoding="utf-8")
+    _check_table(out / "envelope.parquet", doc["records"])
+    rows = pyarrow.parquet.read_metadata(out / "envelope.parquet").num_rows
+    assert rows == len(doc["records"]) * 4  # the oracle flew every case
     bad = CliRunner().invoke(cli, [*args[:3], "--train-scenario", "envelope-test"])
     assert bad.exit_code != 0 and "test flight" in bad.output
 
