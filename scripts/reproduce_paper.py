@@ -30,6 +30,12 @@ Writes ``OUT/results.json``, ``OUT/results.md`` (the per-axis MAE table beside
 the paper's figures and a comparison text generated from the numbers) and, per
 flight, ``OUT/<flight>/`` (``metrics.json``, ``report.md``, ``rates.png``,
 ``motors_and_estimate.png``, ``flight.npz``).
+
+Each flight's metrics are stored in ``OUT/records/`` as it lands, keyed by a
+digest of what decides it (the flight, the profile's and the controller's
+content, the scenario, ``--quick`` and ``--link``); a run that was killed is
+resumed by the same command, which flies only what is missing. A finished run
+(``results.json`` written) is flown afresh.
 """
 
 from __future__ import annotations
@@ -468,6 +474,38 @@ def motion_limits(
             )  # fmt: skip
             out["ideal_tracker_link_deg_s"][a] = round(late, 2)
     return out
+
+
+RUN_MANIFEST = "paper-run.json"
+"""The manifest of a run in ``--out`` (its flights' digest), for resuming."""
+RECORDS_DIR = "records"
+"""Where each flight's metrics are stored as it lands."""
+
+
+def flight_keys(duration_s: float | None, link_text: str | None) -> list[str]:
+    """Each flight's key, in :data:`FLIGHTS` order: a digest of the flight, its
+    profile's and controller's file contents, the scenario and the link."""
+    import dataclasses
+
+    from sitl.lab.campaign_store import _digest
+
+    scenario = _digest(_scenario(duration_s, link_text).model_dump(mode="json"))
+    keys = []
+    for f in FLIGHTS:
+        ctrl = (
+            "oracle" if f.controller == "oracle" else _sha256(DATA_DIR / CONTROLLERS[f.controller])
+        )
+        keys.append(
+            _digest(
+                {
+                    "flight": dataclasses.asdict(f),
+                    "profile": _sha256(PROFILE_DIR / f"{f.profile}.yaml"),
+                    "controller": ctrl,
+                    "scenario": scenario,
+                }
+            )[:20]
+        )
+    return keys
 
 
 def _fly(job: tuple[Flight, float | None, str, str | None]) -> dict[str, Any]:
@@ -1042,27 +1080,47 @@ def main(argv: list[str] | None = None) -> int:
     # Each worker logs its flight's crash; keep the console for the bar and the summary.
     logging.getLogger("sitl").setLevel(logging.WARNING)
 
+    import shutil
+
     from companion.profile import load_profile
-    from sitl.lab.executor import run_tasks
+    from sitl.lab.campaign_store import CampaignStore, grid_digest
+    from sitl.lab.executor import TaskOutcome, run_tasks
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     duration = QUICK_S if args.quick else None
     sc = _scenario(None, args.link)
     t0 = time.perf_counter()
-    jobs = [(f, duration, str(out), args.link) for f in FLIGHTS]
+    keys = flight_keys(duration, args.link)
+    store = CampaignStore(out, manifest=RUN_MANIFEST, finished="results.json")
+    grid = grid_digest(keys)
+    if store.can_resume(grid):
+        done = store.load(RECORDS_DIR, keys)
+        print(f"resuming: {len(done)} of {len(keys)} flights done", file=sys.stderr)
+    else:
+        shutil.rmtree(out / RECORDS_DIR, ignore_errors=True)  # an earlier run's
+        done = {}
+    store.start(grid, len(keys))
+    todo = [i for i, k in enumerate(keys) if k not in done]
+
+    def keep(o: TaskOutcome) -> None:
+        if o.ok:
+            store.save(RECORDS_DIR, keys[todo[o.index]], o.value)
+            done[keys[todo[o.index]]] = o.value
+
+    jobs = [(FLIGHTS[i], duration, str(out), args.link) for i in todo]
     try:
         outcomes = run_tasks(
             _fly, jobs, scheduler=args.scheduler, workers=args.workers, desc="paper flights",
-            unit="flight", progress=not args.no_progress,
-        )  # fmt: skip
+            unit="flight", progress=not args.no_progress, on_result=keep,
+        ) if jobs else []  # fmt: skip
     except ValueError as exc:  # no scheduler answered
         ap.error(f"--scheduler: {exc}")
-    failed = [f"{FLIGHTS[o.index].name}: {o.error}" for o in outcomes if not o.ok]
+    failed = [f"{FLIGHTS[todo[o.index]].name}: {o.error}" for o in outcomes if not o.ok]
     if failed:
         print("flights that raised:\n" + "\n".join(failed), file=sys.stderr)
         return 1
-    metrics = [o.value for o in outcomes]
+    metrics = [done[k] for k in keys]
     wall = time.perf_counter() - t0
 
     flights: dict[str, dict[str, Any]] = {}

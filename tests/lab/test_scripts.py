@@ -22,14 +22,18 @@ PAPER_FLIGHTS = {
 }
 
 
-@pytest.mark.slow  # about 12 s: fourteen 15 s flights and their plots
+def _reproduce_quick(out: Path, workers: int) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "reproduce_paper.py"), "--quick", "--out", str(out),
+         "--workers", str(workers), "--no-progress"],
+        cwd=out.parent, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+@pytest.mark.slow  # about 20 s: fourteen 15 s flights and their plots, two again
 def test_reproduce_paper_quick(tmp_path: Path) -> None:
     out = tmp_path / "paper"
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "reproduce_paper.py"), "--quick", "--out", str(out),
-         "--workers", "2", "--no-progress"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
+    proc = _reproduce_quick(out, workers=2)
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads((out / "results.json").read_text(encoding="utf-8"))
     for key in ("scenario", "seed", "quick", "duration_s", "controllers", "paper", "flights",
@@ -67,6 +71,19 @@ def test_reproduce_paper_quick(tmp_path: Path) -> None:
     assert "| flight |" in md and "f450_pid_tuned" in md
     assert md.index("## Scoreboard") < md.index("## The paper's flights") < md.index("| flight |")
     assert doc["controllers"]["pid_tuned"]["path"].endswith("pid_tarot_tuned.yaml")
+    # As if killed before its last two flights landed: the same command flies only them.
+    records = sorted((out / "records").glob("*.json"))
+    assert len(records) == len(doc["flights"])
+    for r in records[:2]:
+        r.unlink()
+    (out / "results.json").unlink()
+    kept = {r: r.stat().st_mtime_ns for r in records[2:]}
+    again = _reproduce_quick(out, workers=1)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"resuming: {len(records) - 2} of {len(records)} flights done" in again.stderr
+    assert {r: r.stat().st_mtime_ns for r in records[2:]} == kept
+    resumed = json.loads((out / "results.json").read_text(encoding="utf-8"))
+    assert resumed["flights"] == doc["flights"] and resumed["scoreboard"] == doc["scoreboard"]
 
 
 def test_reproduce_paper_refuses_an_unknown_link(tmp_path: Path) -> None:
