@@ -168,10 +168,11 @@ class ModePath(Engagement):
         assert q is not None
         on_ground = bool(self.controller.on_ground)
         if on_ground:
-            # On its legs the rate law forgets what it learnt, as PX4 resets its rate
-            # integrators while landed: its F from the air (a damaged motor's torque)
-            # would hold that torque on the ground, saturate the mixer and cut the
-            # collective, and a vehicle that touched down after a hop never lifted off.
+            # On its legs the rate law forgets what it learnt. (PX4 only freezes its
+            # rate integrators while landed: they are bounded by their limits.) Its F
+            # from the air (a damaged motor's torque) would hold that torque on the
+            # ground, saturate the mixer and cut the collective, and a vehicle that
+            # touched down after a hop never lifted off.
             self.controller.reset()
         if self.angle is not None:
             return self.angle.reference(
