@@ -167,8 +167,12 @@ class MfcController:
         then learn nothing, whatever the collective. On the ground the command
         answers the gyro's noise and the "response" is that noise again, which a
         least-squares slope reads as a small input gain, the most aggressive alpha
-        (docs/research/gains.md, point 9). Not reset by :meth:`reset`: it is the
-        autopilot's state, not the controller's."""
+        (docs/research/gains.md, point 9). And every sample on the ground starts
+        the estimate of F afresh (what was identified is kept): an F learnt in the
+        air (a damaged motor's torque) would hold its torque on the legs, saturate
+        the mixer and cut the collective, and one integrated on the ground (the
+        legs' reaction, the gyro's noise) would be flown at take-off. Not reset by
+        :meth:`reset`: it is the autopilot's state, not the controller's."""
 
     def reset(self) -> None:
         """Forget all state (call on disarm or hand-back)."""
@@ -179,6 +183,17 @@ class MfcController:
         self._prev_ref = None
         self._applied = _ZERO3
         self._last = None
+
+    def settle(self) -> None:
+        """Forget the plant's state, keep what was identified of it: the estimate of
+        F restarts on every axis, no correction is held and the reference starts
+        from the pilot's (every sample on the ground, :attr:`on_ground`)."""
+        for a in self._axes:
+            a.settle()
+        if self._filter is not None:
+            self._filter.reset()
+        self._prev_ref = None
+        self._applied = _ZERO3
 
     @property
     def reference_rate_dot(self) -> Vec3:
@@ -241,6 +256,8 @@ class MfcController:
         # 2. The law on each axis, in command units. Teach the estimators what
         # was applied last time, not what was asked.
         a0, a1, a2 = self._axes
+        if self.on_ground:  # F starts afresh on the legs (on_ground)
+            self.settle()
         if self._any_adapt:
             on = thrust >= self._adapt_thrust and not self.on_ground
             a0.adapting = a1.adapting = a2.adapting = on
@@ -296,6 +313,11 @@ class PidController:
         self._pid.reset()
         self._last = None
         self._sat_pos = self._sat_neg = (False, False, False)
+
+    def settle(self) -> None:
+        """The flight modes' rule on the ground (:meth:`MfcController.settle`): the
+        integrator restarts (PX4's rate loop only freezes it while landed)."""
+        self.reset()
 
     @property
     def reference_rate_dot(self) -> Vec3:

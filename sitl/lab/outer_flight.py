@@ -482,12 +482,8 @@ def simulate_outer_flight(
             # integrators while landed).
             outer.attitude.reset()
             outer.horizontal.reset()
-            # The rate law starts afresh too. PX4 only freezes its rate integrators
-            # while landed (bounded by their limits; reset on disarm); the law's F is
-            # not bounded so: learnt in the air (a damaged motor's torque), it would
-            # hold its torque on the legs, saturate the mixer and cut the collective,
-            # and a vehicle that touched down again after a hop never lifted off.
-            controller.reset()
+            # The rate law settles too, as in the app (companion/modes.py).
+            controller.settle()
             att_sp = AttitudeSetpoint(0.0, 0.0, sp.yaw_rad)
             rate_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         elif angle_mode:

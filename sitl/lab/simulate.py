@@ -135,7 +135,7 @@ def simulate_flight(
 
     n_steps = round(duration / dt)
     # The landed state, as the autopilot streams it at the rate the companion asks:
-    # one message at each period (the first at the start), taken from the next sample.
+    # one message at each period (the first at the start), read on its physics step.
     landed_period = 1.0 / LANDED_STATE_RATE_HZ
     next_landed = 0.0
     controller.on_ground = quad.state.landed
@@ -226,11 +226,13 @@ def simulate_flight(
                     heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
         sample = imu.update(t, quad.rate_frd_rad_s, quad.specific_force_frd_m_s2)
         if ideal:
+            # The landed state goes out on its step, ahead of that step's IMU sample
+            # (the SITL streams it after arming, every period, as the link branch).
+            if t >= next_landed - 1e-12:
+                controller.on_ground = quad.state.landed
+                next_landed += landed_period
             if sample is not None:
                 motors = on_sample(sample.time_s, sample.gyro_frd_rad_s)
-                if sample.time_s >= next_landed - 1e-12:
-                    controller.on_ground = quad.state.landed
-                    next_landed += landed_period
         else:
             if t >= next_landed - 1e-12:
                 next_landed += landed_period

@@ -395,3 +395,43 @@ def test_a_strong_vehicle_keeps_more_of_kd_on_a_slow_lag(ref: float) -> None:
     want = -(ax.f_hat + 15.0 * r * g * ax.e_dot) / ax.alpha
     assert abs(want) < 500.0
     assert got == pytest.approx(want, rel=1e-9)
+
+
+def _landing(settle_on_the_legs: bool) -> tuple[float, float, float, float]:
+    """The shipped law on the F450 flies a roll axis with a steady disturbance (a
+    damaged motor's torque, 20 rad/s^2) for 3 s, then stands on its legs (the gyro
+    reads nothing) for 1 s, told so or not. Returns the roll torque in the air and
+    at the end on the legs, and the roll alpha before and after landing."""
+    ctl = build_controller(load_controller(DEFAULT_CONTROLLER), F450)
+    assert isinstance(ctl, MfcController)
+    dt, authority, disturbance = 0.004, 60.0, 20.0  # rad/s^2 per unit torque, rad/s^2
+    w, torque = 0.0, 0.0
+    rng = np.random.default_rng(3)
+    for k in range(750):  # in the air, the sticks stirring the roll rate
+        ref = 0.5 * math.sin(2.0 * math.pi * 0.7 * k * dt)
+        out = ctl.update(dt, (w, 0.0, 0.0), (ref, 0.0, 0.0), 0.5)
+        ctl.learn()
+        torque = out.torque[0]
+        w += (disturbance + authority * torque) * dt + float(rng.normal(0.0, 0.002))
+    airborne_torque = torque
+    ident = ctl._axes[0]._ident
+    assert ident is not None
+    alpha_air = ident.alpha
+    ctl.on_ground = settle_on_the_legs
+    for _ in range(250):  # on the legs: nothing turns
+        torque = ctl.update(dt, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.3).torque[0]
+        ctl.learn()
+    return airborne_torque, torque, alpha_air, ident.alpha
+
+
+def test_on_the_legs_the_law_holds_no_torque_and_keeps_what_it_identified() -> None:
+    """F learnt in the air holds its torque on the ground unless the law is told it
+    landed: a damaged vehicle's mixer then saturates and cuts the collective (the
+    cut-prop F450 with a motor at 80 % sat on the ground after a hop, #12). Told, F
+    starts afresh every sample and alpha stays what the flight identified."""
+    air, held, alpha_air, _ = _landing(settle_on_the_legs=False)
+    assert air == pytest.approx(-20.0 / 60.0, abs=0.05)  # it flew against the disturbance
+    assert abs(held) > 0.2  # and holds that torque on the legs
+    air, settled, alpha_air, alpha_after = _landing(settle_on_the_legs=True)
+    assert abs(settled) < 0.01
+    assert alpha_after == alpha_air != 1.0  # identified in the air (1.0 until then), kept

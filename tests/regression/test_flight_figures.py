@@ -27,24 +27,25 @@ ROOT = Path(__file__).resolve().parents[2]
 TOLERANCE = 0.03
 """Relative: room for a numpy or platform rounding change, not for a new flight."""
 
-# The full 60 s paper-acro, MAE roll / pitch / yaw in deg/s. Measured 2026-11-25 with
+# The full 60 s paper-acro, MAE roll / pitch / yaw in deg/s. Measured 2026-11-26 with
 #   python scripts/reproduce_paper.py --out runs/paper    (results.md, one decimal)
-# (the figures moved when the shipped controller began identifying the loop's delay).
+# (the figures moved when the shipped controller began identifying the loop's delay, and
+# by at most 0.2 when its F began afresh every sample on the ground).
 PAPER_FULL = {
     "f450": (6.4, 6.0, 7.2),
-    "f450_cut_props": (10.6, 9.3, 24.9),
-    "tarot650": (12.0, 8.5, 11.7),
+    "f450_cut_props": (10.6, 9.2, 24.7),
+    "tarot650": (12.1, 8.5, 11.7),
 }
 
-# The first 15 s of paper-acro on every bundled vehicle. Measured 2026-11-25 with
+# The first 15 s of paper-acro on every bundled vehicle. Measured 2026-11-26 with
 #   python -c 'from sitl.lab.simulate import simulate_flight; ...' (the test's own flight:
 #   paper-acro with duration_s 15, mfc_default.yaml, compute_metrics(...)["mae_deg_s"])
 SLICE_S = 15.0
 PAPER_SLICE = {
-    "f450": (10.232, 1.585, 0.913),
-    "f450_cut_props": (16.276, 2.064, 3.779),
-    "tarot650": (18.606, 2.426, 1.091),
-    "x500": (8.732, 1.493, 0.986),
+    "f450": (10.185, 1.605, 0.916),
+    "f450_cut_props": (16.314, 2.074, 3.889),
+    "tarot650": (18.926, 2.437, 1.076),
+    "x500": (8.74, 1.527, 0.979),
 }
 
 
@@ -81,14 +82,14 @@ def test_a_paper_acro_slice_on_every_vehicle(profile: str) -> None:
 
 # Through a companion link (sitl/link_model.py): the full paper-acro through 10 ms each
 # way (the delay that crashed the controller before it identified the loop's delay) and
-# the F450 through a USB-serial adapter's link. Measured 2026-11-25 with
+# the F450 through a USB-serial adapter's link. Measured 2026-11-26 with
 #   companion simulate --profile vehicle_profiles/PROFILE.yaml --link LINK
 # (the test's own flight; MAE roll / pitch / yaw deg/s):
 LINK_FULL = {
-    ("f450", "delay_ms=10"): (12.25, 11.711, 9.182),
-    ("f450_cut_props", "delay_ms=10"): (16.184, 15.062, 25.441),
-    ("tarot650", "delay_ms=10"): (19.565, 15.174, 13.44),
-    ("f450", "usb-serial"): (9.988, 9.297, 8.349),
+    ("f450", "delay_ms=10"): (12.752, 11.672, 9.176),
+    ("f450_cut_props", "delay_ms=10"): (16.254, 15.098, 26.153),
+    ("tarot650", "delay_ms=10"): (19.541, 15.148, 13.46),
+    ("f450", "usb-serial"): (9.982, 9.312, 8.359),
 }
 LINK_10MS_MAX_RATIO = 2.5
 """#14's target for 10 ms each way: within 2.5x of the ideal link's MAE, no crash."""
