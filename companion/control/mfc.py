@@ -175,13 +175,11 @@ class MfcController:
         :meth:`reset`: it is the autopilot's state, not the controller's."""
 
     def reset(self) -> None:
-        """Forget all state (call on disarm or hand-back)."""
+        """Forget all state (call on disarm or hand-back): :meth:`settle`, and what
+        was identified."""
         for a in self._axes:
-            a.reset()
-        if self._filter is not None:
-            self._filter.reset()
-        self._prev_ref = None
-        self._applied = _ZERO3
+            a.reset()  # (the axis settles too)
+        self.settle()
         self._last = None
 
     def settle(self) -> None:
