@@ -14,7 +14,11 @@ where both crash on the true state too is reported as infeasible, never removed.
 
 The flights are tasks on :class:`sitl.lab.executor.Executor` (a local Dask
 cluster, or ``--scheduler``). ``python -m sitl.lab.outer_sweep --out DIR`` writes
-``DIR/flights.json`` (every flight's metrics) and ``DIR/summary.md``.
+``DIR/flights.json`` (every flight's metrics) and ``DIR/summary.md``. Each
+flight is stored in ``DIR/flights/`` as it lands, keyed by a digest of what
+decides it (:func:`flight_key`): a sweep that was killed is resumed by the same
+command, which flies only what is missing; a finished one (``summary.md``
+written) is moved into ``DIR/earlier-<UTC time>/`` and flown afresh.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ __all__ = [
     "DAMAGE",
     "SweepFlight",
     "classify",
+    "flight_key",
     "fly",
     "main",
     "summary_markdown",
@@ -44,6 +49,13 @@ __all__ = [
 
 DAMAGE: dict[str, float] = {"intact": 1.0, "motor80": 0.8, "motor60": 0.6}
 """Damage cases: motor 0's thrust and torque efficiency (``damaged_profile``)."""
+
+RUN_MANIFEST = "outer-sweep-run.json"
+"""The manifest of a sweep in its folder (its flights' digest), for resuming."""
+RECORDS_DIR = "flights"
+"""Where each flight's metrics are stored as it lands."""
+OUTPUTS = ("flights.json", "summary.md")
+"""What a finished sweep wrote (``summary.md`` last)."""
 
 METRICS = ("pos_rms_h_m", "pos_rms_v_m", "path_rms_m", "att_mae_deg", "yaw_mae_deg")
 """The figures compared, MFC against PX4's default (all errors: lower is better)."""
@@ -84,6 +96,53 @@ def fly(f: SweepFlight) -> dict[str, Any]:
         wall_s=round(time.perf_counter() - t0, 2),
     )  # fmt: skip
     return m
+
+
+def flight_key(f: SweepFlight) -> str:
+    """The flight's key: a digest of everything that decides it (the profile by its
+    content), so a changed input never reuses a stored record."""
+    from sitl.lab.campaign_store import _digest
+
+    return _digest(
+        {
+            "vehicle": f.vehicle,
+            "damage": f.damage,
+            "scenario": f.scenario,
+            "law": f.law,
+            "true_state": f.true_state,
+            "profile": f.profile.model_dump(mode="json"),
+            "duration_s": f.duration_s,
+            "seed": f.seed,
+        }
+    )[:20]
+
+
+def _fly_stored(
+    flights: Sequence[SweepFlight], store: Any, desc: str, run: dict[str, Any]
+) -> tuple[list[dict[str, Any]], list[str]]:
+    """Fly those of ``flights`` not in ``store`` yet, storing each as it lands; every
+    flight's record that exists (in order), and what raised."""
+    from sitl.lab.executor import TaskOutcome, run_tasks
+
+    keys = [flight_key(f) for f in flights]
+    done: dict[str, Any] = store.load(RECORDS_DIR, keys)
+    todo = [i for i, k in enumerate(keys) if k not in done]
+
+    def keep(o: TaskOutcome) -> None:
+        if o.ok:
+            key = keys[todo[o.index]]
+            store.save(RECORDS_DIR, key, o.value)
+            done[key] = o.value
+
+    outcomes = (
+        run_tasks(fly, [flights[i] for i in todo], desc=desc, on_result=keep, **run)
+        if todo
+        else []
+    )
+    errors = [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law}"
+              f"{' (true state)' if o.item.true_state else ''}: {o.error}"
+              for o in outcomes if not o.ok]  # fmt: skip
+    return [done[k] for k in keys if k in done], errors
 
 
 def vehicles(names: Sequence[str], corners: bool) -> dict[str, VehicleProfile]:
@@ -212,7 +271,8 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m sitl.lab.outer_sweep``: the sweep, its flights and summary."""
-    from sitl.lab.executor import run_tasks
+    from companion.options import keep_earlier
+    from sitl.lab.campaign_store import CampaignStore, grid_digest
     from sitl.lab.outer_flight import SCENARIOS, TABLE_PROFILES
 
     ap = argparse.ArgumentParser(
@@ -246,16 +306,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     kw = {"duration_s": args.duration, "seed": args.seed}
     run = {"scheduler": args.scheduler, "workers": args.workers, "unit": "flight"}
     flights = sweep_flights(fleet, scenarios, damage, **kw)
-    outcomes = run_tasks(fly, flights, desc="outer sweep", **run)
-    records = [o.value for o in outcomes if o.ok]
-    errors = [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law}: {o.error}"
-              for o in outcomes if not o.ok]  # fmt: skip
+    store = CampaignStore(args.out, manifest=RUN_MANIFEST, finished=OUTPUTS[-1])
+    grid = grid_digest([flight_key(f) for f in flights])
+    if store.can_resume(grid):
+        n = len(store.load(RECORDS_DIR, (flight_key(f) for f in flights)))
+        print(f"resuming: {n} of {len(flights)} flights done", file=sys.stderr)
+    else:
+        keep_earlier(f"--out {args.out}", args.out, (*OUTPUTS, RUN_MANIFEST, RECORDS_DIR))
+    store.start(grid, len(flights))
+    records, errors = _fly_stored(flights, store, "outer sweep", run)
     again = true_state_flights(records, fleet, scenarios, damage, **kw)
     if again:
-        outcomes = run_tasks(fly, again, desc="true state", **run)
-        records += [o.value for o in outcomes if o.ok]
-        errors += [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law} "
-                   f"(true state): {o.error}" for o in outcomes if not o.ok]  # fmt: skip
+        more, more_errors = _fly_stored(again, store, "true state", run)
+        records += more
+        errors += more_errors
     (args.out / "flights.json").write_text(json.dumps(records, indent=1) + "\n")
     text = summary_markdown(records)
     if errors:

@@ -74,7 +74,9 @@ def test_only_crashed_cases_are_flown_again_on_the_true_state() -> None:
     ]
 
 
-def test_a_small_sweep_writes_its_flights_and_summary(tmp_path: Path) -> None:
+def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     argv = ["--out", str(tmp_path), "--profiles", "f450", "--scenarios", "position-hold",
             "--damage", "intact", "--duration", "2", "--seed", "1", "--workers", "1"]  # fmt: skip
     assert main(argv) == 0
@@ -83,6 +85,22 @@ def test_a_small_sweep_writes_its_flights_and_summary(tmp_path: Path) -> None:
     assert not any(r["crashed"] or r["true_state"] for r in records)
     summary = (tmp_path / "summary.md").read_text()
     assert summary.startswith("1 cases, 2 flights; 1 feasible, 0 infeasible")
+    # As if killed before its last flight landed: the same command flies only that one.
+    stored = sorted((tmp_path / "flights").glob("*.json"))
+    assert len(stored) == 2
+    stored[1].unlink()
+    (tmp_path / "summary.md").unlink()
+    kept = stored[0].stat().st_mtime_ns
+    assert main(argv) == 0
+    assert "resuming: 1 of 2 flights done" in capsys.readouterr().err
+    assert stored[0].stat().st_mtime_ns == kept and stored[1].exists()
+    resumed = json.loads((tmp_path / "flights.json").read_text())
+    assert [{**r, "wall_s": 0} for r in resumed] == [{**r, "wall_s": 0} for r in records]
+    # A finished sweep is moved aside, whole, and flown afresh.
+    assert main(argv) == 0
+    assert "resuming" not in capsys.readouterr().err
+    (earlier,) = tmp_path.glob("earlier-*")
+    assert (earlier / "summary.md").read_text() == summary
 
 
 @pytest.mark.parametrize(
