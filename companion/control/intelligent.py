@@ -274,16 +274,10 @@ class IntelligentController:
         return self._tau if self._ident is None else self._ident.tau
 
     def reset(self) -> None:
+        self._est.reset()
         if self._ident is not None:
             self._ident.reset()
         self._scale_gains()
-        self.settle()
-
-    def settle(self) -> None:
-        """Forget the plant's state, keep what was identified of the plant (alpha,
-        the lag, the delay): on the ground, where the vehicle cannot answer its
-        command, the estimate of F restarts and no correction is held."""
-        self._est.reset()
         self._u_a = 0.0
         self._u_hist = [0.0] * _U_HIST_LEN
         self._u_hist_i = 0

@@ -135,9 +135,7 @@ def _fly_stored(
             done[key] = o.value
 
     outcomes = (
-        run_tasks(fly, [flights[i] for i in todo], desc=desc, on_result=keep, **run)
-        if todo
-        else []
+        run_tasks(fly, [flights[i] for i in todo], desc=desc, on_result=keep, **run) if todo else []
     )
     errors = [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law}"
               f"{' (true state)' if o.item.true_state else ''}: {o.error}"
