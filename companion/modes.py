@@ -168,12 +168,12 @@ class ModePath(Engagement):
         assert q is not None
         on_ground = bool(self.controller.on_ground)
         if on_ground:
-            # On its legs the rate law settles (MfcController.settle: F afresh, what
-            # was identified kept): its F from the air (a damaged motor's torque)
-            # would hold that torque on the ground, saturate the mixer and cut the
-            # collective, and a vehicle that touched down after a hop never lifted
-            # off. The MFC law does it itself on the ground; a PID restarts here.
-            self.controller.settle()
+            # On its legs the rate law starts afresh (MfcController.on_ground: the MFC
+            # law does it itself; a PID restarts here): its F from the air (a damaged
+            # motor's torque) would hold that torque on the ground, saturate the
+            # mixer and cut the collective, and a vehicle that touched down after a
+            # hop never lifted off.
+            self.controller.reset()
         if self.angle is not None:
             return self.angle.reference(
                 dt, q, gyro, self._deflection, ref[2], on_ground=on_ground

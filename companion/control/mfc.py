@@ -167,31 +167,25 @@ class MfcController:
         then learn nothing, whatever the collective. On the ground the command
         answers the gyro's noise and the "response" is that noise again, which a
         least-squares slope reads as a small input gain, the most aggressive alpha
-        (docs/research/gains.md, point 9). And every sample on the ground starts
-        the estimate of F afresh (what was identified is kept): an F learnt in the
-        air (a damaged motor's torque) would hold its torque on the legs, saturate
-        the mixer and cut the collective, and one integrated on the ground (the
-        legs' reaction, the gyro's noise) would be flown at take-off. Not reset by
+        (docs/research/gains.md, point 9). And every sample on the ground the law
+        starts afresh (:meth:`reset`): an F learnt in the air (a damaged motor's
+        torque) would hold its torque on the legs, saturate the mixer and cut the
+        collective, and one integrated on the ground (the legs' reaction, the
+        gyro's noise) would be flown at take-off. What it identified goes too: the
+        landed state comes late (4 Hz, and the autopilot's detector), so a hop
+        teaches it from samples on the legs, and a thrust-limited vehicle kept
+        that too-small alpha and hopped on (docs/research/outer.md). Not reset by
         :meth:`reset`: it is the autopilot's state, not the controller's."""
 
     def reset(self) -> None:
-        """Forget all state (call on disarm or hand-back): :meth:`settle`, and what
-        was identified."""
+        """Forget all state (on disarm, hand-back, and every sample on the ground)."""
         for a in self._axes:
-            a.reset()  # (the axis settles too)
-        self.settle()
-        self._last = None
-
-    def settle(self) -> None:
-        """Forget the plant's state, keep what was identified of it: the estimate of
-        F restarts on every axis, no correction is held and the reference starts
-        from the pilot's (every sample on the ground, :attr:`on_ground`)."""
-        for a in self._axes:
-            a.settle()
+            a.reset()
         if self._filter is not None:
             self._filter.reset()
         self._prev_ref = None
         self._applied = _ZERO3
+        self._last = None
 
     @property
     def reference_rate_dot(self) -> Vec3:
@@ -254,8 +248,8 @@ class MfcController:
         # 2. The law on each axis, in command units. Teach the estimators what
         # was applied last time, not what was asked.
         a0, a1, a2 = self._axes
-        if self.on_ground:  # F starts afresh on the legs (on_ground)
-            self.settle()
+        if self.on_ground:  # the law starts afresh on the legs (on_ground)
+            self.reset()
         if self._any_adapt:
             on = thrust >= self._adapt_thrust and not self.on_ground
             a0.adapting = a1.adapting = a2.adapting = on
@@ -311,11 +305,6 @@ class PidController:
         self._pid.reset()
         self._last = None
         self._sat_pos = self._sat_neg = (False, False, False)
-
-    def settle(self) -> None:
-        """The flight modes' rule on the ground (:meth:`MfcController.settle`): the
-        integrator restarts (PX4's rate loop only freezes it while landed)."""
-        self.reset()
 
     @property
     def reference_rate_dot(self) -> Vec3:

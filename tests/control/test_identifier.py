@@ -424,14 +424,15 @@ def _landing(settle_on_the_legs: bool) -> tuple[float, float, float, float]:
     return airborne_torque, torque, alpha_air, ident.alpha
 
 
-def test_on_the_legs_the_law_holds_no_torque_and_keeps_what_it_identified() -> None:
+def test_on_the_legs_the_law_holds_no_torque_and_starts_afresh() -> None:
     """F learnt in the air holds its torque on the ground unless the law is told it
     landed: a damaged vehicle's mixer then saturates and cuts the collective (the
-    cut-prop F450 with a motor at 80 % sat on the ground after a hop, #12). Told, F
-    starts afresh every sample and alpha stays what the flight identified."""
+    cut-prop F450 with a motor at 80 % sat on the ground after a hop, #12). Told, the
+    law starts afresh every sample, what it identified too (a hop teaches it from
+    samples on the legs before the landed state arrives)."""
     air, held, alpha_air, _ = _landing(settle_on_the_legs=False)
     assert air == pytest.approx(-20.0 / 60.0, abs=0.05)  # it flew against the disturbance
     assert abs(held) > 0.2  # and holds that torque on the legs
     air, settled, alpha_air, alpha_after = _landing(settle_on_the_legs=True)
     assert abs(settled) < 0.01
-    assert alpha_after == alpha_air != 1.0  # identified in the air (1.0 until then), kept
+    assert alpha_air != 1.0 and alpha_after == 1.0  # identified in the air, then the start
