@@ -1084,7 +1084,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from companion.profile import load_profile
     from sitl.lab.campaign_store import CampaignStore, grid_digest
-    from sitl.lab.executor import TaskOutcome, run_tasks
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -1095,28 +1094,20 @@ def main(argv: list[str] | None = None) -> int:
     store = CampaignStore(out, manifest=RUN_MANIFEST, finished="results.json")
     grid = grid_digest(keys)
     if store.can_resume(grid):
-        done = store.load(RECORDS_DIR, keys)
-        print(f"resuming: {len(done)} of {len(keys)} flights done", file=sys.stderr)
+        n = len(store.load(RECORDS_DIR, keys))
+        print(f"resuming: {n} of {len(keys)} flights done", file=sys.stderr)
     else:
         shutil.rmtree(out / RECORDS_DIR, ignore_errors=True)  # an earlier run's
-        done = {}
     store.start(grid, len(keys))
-    todo = [i for i, k in enumerate(keys) if k not in done]
-
-    def keep(o: TaskOutcome) -> None:
-        if o.ok:
-            store.save(RECORDS_DIR, keys[todo[o.index]], o.value)
-            done[keys[todo[o.index]]] = o.value
-
-    jobs = [(FLIGHTS[i], duration, str(out), args.link) for i in todo]
+    jobs = [(f, duration, str(out), args.link) for f in FLIGHTS]
     try:
-        outcomes = run_tasks(
-            _fly, jobs, scheduler=args.scheduler, workers=args.workers, desc="paper flights",
-            unit="flight", progress=not args.no_progress, on_result=keep,
-        ) if jobs else []  # fmt: skip
+        done, outcomes = store.run_missing(
+            RECORDS_DIR, keys, _fly, jobs, scheduler=args.scheduler, workers=args.workers,
+            desc="paper flights", unit="flight", progress=not args.no_progress,
+        )  # fmt: skip
     except ValueError as exc:  # no scheduler answered
         ap.error(f"--scheduler: {exc}")
-    failed = [f"{FLIGHTS[todo[o.index]].name}: {o.error}" for o in outcomes if not o.ok]
+    failed = [f"{o.item[0].name}: {o.error}" for o in outcomes if not o.ok]
     if failed:
         print("flights that raised:\n" + "\n".join(failed), file=sys.stderr)
         return 1

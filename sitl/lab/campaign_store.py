@@ -42,7 +42,7 @@ import json
 import logging
 import os
 import uuid
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -207,6 +207,36 @@ class CampaignStore:
     def save(self, sub: str, key: str, record: dict[str, Any]) -> None:
         """Store ``record`` as ``sub/<key>.json``, whole or not at all."""
         write_json_atomic(self.folder / sub / f"{key}.json", record)
+
+    def run_missing(
+        self,
+        sub: str,
+        keys: Sequence[str],
+        fn: Callable[[Any], dict[str, Any]],
+        items: Sequence[Any],
+        **run_kw: Any,
+    ) -> tuple[dict[str, Any], list[Any]]:
+        """Run ``fn`` (on the lab's executor, :func:`sitl.lab.executor.run_tasks` with
+        ``run_kw``) on those of ``items`` whose key has no record in ``sub/`` yet,
+        storing each value as it lands.
+
+        Returns the records by key (stored before and new) and the new tasks'
+        outcomes (their ``item`` says which; one that raised has no record)."""
+        from sitl.lab.executor import TaskOutcome, run_tasks
+
+        done = self.load(sub, keys)
+        todo = [i for i, k in enumerate(keys) if k not in done]
+
+        def keep(o: TaskOutcome) -> None:
+            if o.ok:
+                key = keys[todo[o.index]]
+                self.save(sub, key, o.value)
+                done[key] = o.value
+
+        if not todo:
+            return done, []
+        outcomes = run_tasks(fn, [items[i] for i in todo], on_result=keep, **run_kw)
+        return done, outcomes
 
     def _load(self, sub: str, ids: Iterable[str]) -> dict[str, Any]:
         """The stored records among ``ids`` that have no ``error``, by id."""

@@ -122,21 +122,8 @@ def _fly_stored(
 ) -> tuple[list[dict[str, Any]], list[str]]:
     """Fly those of ``flights`` not in ``store`` yet, storing each as it lands; every
     flight's record that exists (in order), and what raised."""
-    from sitl.lab.executor import TaskOutcome, run_tasks
-
     keys = [flight_key(f) for f in flights]
-    done: dict[str, Any] = store.load(RECORDS_DIR, keys)
-    todo = [i for i, k in enumerate(keys) if k not in done]
-
-    def keep(o: TaskOutcome) -> None:
-        if o.ok:
-            key = keys[todo[o.index]]
-            store.save(RECORDS_DIR, key, o.value)
-            done[key] = o.value
-
-    outcomes = (
-        run_tasks(fly, [flights[i] for i in todo], desc=desc, on_result=keep, **run) if todo else []
-    )
+    done, outcomes = store.run_missing(RECORDS_DIR, keys, fly, flights, desc=desc, **run)
     errors = [f"{o.item.vehicle}/{o.item.damage}/{o.item.scenario}/{o.item.law}"
               f"{' (true state)' if o.item.true_state else ''}: {o.error}"
               for o in outcomes if not o.ok]  # fmt: skip
@@ -305,9 +292,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     run = {"scheduler": args.scheduler, "workers": args.workers, "unit": "flight"}
     flights = sweep_flights(fleet, scenarios, damage, **kw)
     store = CampaignStore(args.out, manifest=RUN_MANIFEST, finished=OUTPUTS[-1])
-    grid = grid_digest([flight_key(f) for f in flights])
+    keys = [flight_key(f) for f in flights]
+    grid = grid_digest(keys)
     if store.can_resume(grid):
-        n = len(store.load(RECORDS_DIR, (flight_key(f) for f in flights)))
+        n = len(store.load(RECORDS_DIR, keys))
         print(f"resuming: {n} of {len(flights)} flights done", file=sys.stderr)
     else:
         keep_earlier(f"--out {args.out}", args.out, (*OUTPUTS, RUN_MANIFEST, RECORDS_DIR))
