@@ -296,10 +296,11 @@ async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
     async with subscribed(broker.port) as sub2:
         await until(lambda: t.connected, timeout=15.0)
         await stream(0.5)
-        await until(lambda: len(sub2.on("axis/roll")) >= 20)
-        # after reconnecting, fresh samples flow, the retained status is restated,
-        # and the event published during the outage arrives
-        assert max(p["t_s"] for p in sub2.on("axis/roll")) > k_restart * 0.001
+        # after reconnecting, fresh samples flow (behind whatever the queue kept from
+        # the outage, which drains first), the retained status is restated, and the
+        # event published during the outage arrives
+        t_restart = k_restart * 0.001
+        await until(lambda: any(p["t_s"] > t_restart for p in sub2.on("axis/roll")))
         await until(lambda: sub2.on("event"))
         assert sub2.on("event")[0]["detail"] == "broker restarted"
     assert t.counters["reconnects"] == 1
