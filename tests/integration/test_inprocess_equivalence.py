@@ -96,7 +96,12 @@ def test_through_a_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     assert 0.9 * duration * RATE_HZ < len(a["t_s"]) == len(b["t_s"]) < duration * RATE_HZ
     np.testing.assert_allclose(np.asarray(a["t_s"]) - a["t_s"][0], b["t_s"], atol=1e-9)
     assert np.array_equal(a["ref_rad_s"], b["ref_rad_s"])
-    assert np.array_equal(a["thrust"], b["thrust"])
+    # (Once in many suite runs on a loaded machine the pilot's throttle parted by one
+    # microsecond late in the flight; not reproduced alone or under synthetic load.
+    # Where and with which lockstep counts, should it happen again.)
+    parted = np.flatnonzero(np.asarray(a["thrust"]) != np.asarray(b["thrust"]))
+    lockstep = {k: v for k, v in flight.sitl_summary.items() if k.startswith(("lock", "setp"))}
+    assert parted.size == 0, (parted[:5], float(a["t_s"][parted[0]] - a["t_s"][0]), lockstep)
     # The gyro and the law's motors differ by the link's float32 only.
     assert np.max(np.abs(a["meas_rad_s"] - b["meas_rad_s"])) < 1e-6
     assert np.max(np.abs(a["motors"] - b["motors"])) < 1e-6
