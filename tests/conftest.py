@@ -7,6 +7,11 @@
 - ``integration``: separate processes over real UDP (the SITL, mosquitto, MAVSDK);
   also any test elsewhere marked so;
 - ``regression``: pinned flight figures (tests/regression, and tests marked so).
+
+Across the tiers, the ``long`` checks (marked so: the wheel built and installed,
+the envelope's corners with a PID tuned for each, the paper reproduction) take
+minutes each. The default run leaves them out (they are *deselected*, and the
+header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 """
 
 from __future__ import annotations
@@ -28,7 +33,28 @@ _BY_FOLDER = {
 }
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--long",
+        action="store_true",
+        help="run the long checks alone (marked long); the default run leaves them out",
+    )
+
+
+def pytest_report_header(config: pytest.Config) -> str:
+    if config.getoption("--long"):
+        return "long checks: only these (--long)"
+    return "long checks: deselected (--long runs them)"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    long = bool(config.getoption("--long"))
+    kept, dropped = [], []
+    for item in items:
+        (kept if (item.get_closest_marker("long") is not None) == long else dropped).append(item)
+    if dropped:
+        config.hook.pytest_deselected(items=dropped)
+        items[:] = kept
     for item in items:
         parts = Path(str(item.path)).resolve().relative_to(HERE).parts
         tier = _BY_FOLDER.get(parts[0], "unit") if len(parts) > 1 else "unit"

@@ -95,6 +95,7 @@ def _table(records: Records) -> str:
     )
 
 
+@pytest.mark.long
 @pytest.mark.slow  # ~35 s on 2 cores: 2 corners x (25 tuning flights + 3 test flights)
 def test_no_crash_at_the_corners(corner_records: Records) -> None:
     assert [r["vehicle"] for r in corner_records] == list(CORNERS_FLOWN)
@@ -116,6 +117,7 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
 # (tiny-slow-motor). docs/research/envelope.md has the full campaign.
 
 
+@pytest.mark.long
 @pytest.mark.slow
 def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) -> None:
     ratios = [r["ratio_mfc_tuned"][a] for r in corner_records for a in AXES]
@@ -131,6 +133,7 @@ def test_ratio_to_the_tuned_pid_holds_at_the_corners(corner_records: Records) ->
 MEASURED_MEDIAN_RATIO = 0.86
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.regression
 def test_median_ratio_to_the_tuned_pid_at_the_corners(corner_records: Records) -> None:
@@ -139,6 +142,7 @@ def test_median_ratio_to_the_tuned_pid_at_the_corners(corner_records: Records) -
     assert ratios[len(ratios) // 2] <= max(1.15 * MEASURED_MEDIAN_RATIO, 1.0), detail
 
 
+@pytest.mark.long
 @pytest.mark.slow
 def test_mfc_beats_px4_default_pid_at_the_corners(corner_records: Records) -> None:
     worse = [
@@ -150,6 +154,7 @@ def test_mfc_beats_px4_default_pid_at_the_corners(corner_records: Records) -> No
     assert worse == [], worse
 
 
+@pytest.mark.long
 @pytest.mark.slow
 def test_records_and_output_files(
     corner_records: Records,

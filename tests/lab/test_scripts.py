@@ -30,7 +30,8 @@ def _reproduce_quick(out: Path, workers: int) -> subprocess.CompletedProcess[str
     )  # fmt: skip
 
 
-@pytest.mark.slow  # about 20 s: fourteen 15 s flights and their plots, two again
+@pytest.mark.slow  # about 30 s alone: fourteen 15 s flights and their plots, two again
+@pytest.mark.long
 def test_reproduce_paper_quick(tmp_path: Path) -> None:
     out = tmp_path / "paper"
     proc = _reproduce_quick(out, workers=2)
