@@ -83,7 +83,8 @@ class HorizontalGains:
     kp_velocity_1_s
         :math:`K_v`, 1/s: velocity error decay rate.
     kp_position_1_s
-        :math:`K_x`, 1/s: position error to velocity reference.
+        :math:`K_x`, 1/s: position error to velocity reference (0.75: damping
+        sqrt(K_v / K_x) / 2 = 1 / sqrt(2) on an ideal velocity loop).
     speed_max_m_s
         Bound on the velocity reference's magnitude, m/s (12: PX4's
         ``MPC_XY_VEL_MAX``; above the sticks' 10 m/s, ``MPC_VEL_MANUAL``, so a
@@ -95,7 +96,7 @@ class HorizontalGains:
     """
 
     kp_velocity_1_s: float = 1.5
-    kp_position_1_s: float = 0.4
+    kp_position_1_s: float = 0.75
     speed_max_m_s: float = 12.0
     tilt_max_rad: float = math.radians(35.0)
     window_s: float = 0.2

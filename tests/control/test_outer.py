@@ -159,8 +159,10 @@ def test_default_gains_keep_the_bandwidth_separation() -> None:
     assert DEFAULT_OUTER_GAINS.attitude is a
     assert 25.0 * 0.526 / a.kp_roll_pitch_1_s >= 3.0
     assert a.kp_roll_pitch_1_s / h.kp_velocity_1_s >= 2.5
-    # Position P on an ideal velocity loop: zeta = sqrt(kv / kx) / 2 >= 0.95.
-    assert math.sqrt(h.kp_velocity_1_s / h.kp_position_1_s) / 2.0 >= 0.95
+    # Position P on an ideal velocity loop: zeta = sqrt(kv / kx) / 2 >= 1 / sqrt(2)
+    # (PX4's defaults, MPC_XY_P 0.95 on MPC_XY_VEL_P_ACC 1.8, give 0.69 by this rule;
+    # 0.95 until 2026-11-26, when the moving setpoints asked for more position gain).
+    assert math.sqrt(h.kp_velocity_1_s / h.kp_position_1_s) / 2.0 >= 1.0 / math.sqrt(2.0) - 1e-9
     assert math.sqrt(v.kp_climb_1_s / v.kp_up_1_s) / 2.0 >= 0.95
     # Each estimate's lag is the loop beneath it: the horizontal one the attitude
     # loop's 1/kp plus the rate loop's lag.
@@ -192,8 +194,12 @@ def fly_position_hold(plant: PointMassPlant, duration_s: float, dt: float = 0.01
 
 @pytest.mark.parametrize(
     ("plant", "overshoot_share"),
+    # Regression checks (today's output): 9.7 % and 8.2 % past the setpoint on the
+    # horizontal axes, 0.1 % and 0.6 % on the vertical one. zeta 1/sqrt(2) alone gives
+    # 4.3 % on an ideal velocity loop; the attitude and rate loops' lags add the rest.
+    #   pytest tests/control/test_outer.py -k position_hold_from_an_offset
     [
-        (PointMassPlant(), 0.02),
+        (PointMassPlant(), 0.12),
         # A slow rate loop behind a slow link, slow heavy motors, square-law thrust,
         # a hover estimate starting far off (0.3 for 0.65) and a steady wind.
         (
@@ -205,7 +211,7 @@ def fly_position_hold(plant: PointMassPlant, duration_s: float, dt: float = 0.01
                 drag_1_s=0.3,
                 wind_accel_ned=(0.8, -0.5, 0.0),
             ),
-            0.05,
+            0.12,
         ),
     ],
     ids=["nominal", "sloppy"],
@@ -221,10 +227,13 @@ def test_closed_loop_position_hold_from_an_offset(
         beyond = np.max(-np.sign(start) * x)  # how far past the setpoint it went
         assert beyond <= overshoot_share * abs(start), f"axis {i}: {beyond:.3f} m past"
         assert abs(x[-1]) < 0.01, f"axis {i}: {x[-1]:.4f} m off at 15 s"
-    # Back within 10 % of the offset in 8 s (position P time constant 1/0.4 = 2.5 s).
+    # Back within 10 % of the offset in 8 s (measured 2.2-2.3 s; 4.3-4.5 s with the
+    # former 0.4 1/s).
     late = rows[rows[:, 0] >= 8.0]
     assert np.all(np.linalg.norm(late[:, 1:4], axis=1) < 0.1 * np.linalg.norm(p0))
-    assert np.max(np.abs(rows[:, 4])) < 1.0 * DEG  # heading held throughout
+    # Heading held throughout: at most 0.35 deg off (nominal) and 2.1 deg (sloppy: the
+    # tilt's coupling through the slow rate loop; 0.85 deg with the former 0.4 1/s).
+    assert np.max(np.abs(rows[:, 4])) < 3.0 * DEG
     # At rest the thrust leans into the wind exactly: tilt vector -wind / g.
     b = body_z_ned(plant.q)
     lean = (-b[0] / b[2], -b[1] / b[2])
