@@ -14,7 +14,9 @@ where both crash on the true state too is reported as infeasible, never removed.
 
 The flights are tasks on :class:`sitl.lab.executor.Executor` (a local Dask
 cluster, or ``--scheduler``). ``python -m sitl.lab.outer_sweep --out DIR`` writes
-``DIR/flights.json`` (every flight's metrics) and ``DIR/summary.md``. Each
+``DIR/flights.json`` (every flight's metrics), the same as a table,
+``DIR/flights.parquet`` (:data:`sitl.lab.table.OUTER_SWEEP_SCHEMA`), and
+``DIR/summary.md``. Each
 flight is stored in ``DIR/flights/`` as it lands, keyed by a digest of what
 decides it (:func:`flight_key`): a sweep that was killed is resumed by the same
 command, which flies only what is missing; a finished one (``summary.md``
@@ -54,7 +56,7 @@ RUN_MANIFEST = "outer-sweep-run.json"
 """The manifest of a sweep in its folder (its flights' digest), for resuming."""
 RECORDS_DIR = "flights"
 """Where each flight's metrics are stored as it lands."""
-OUTPUTS = ("flights.json", "summary.md")
+OUTPUTS = ("flights.parquet", "flights.json", "summary.md")
 """What a finished sweep wrote (``summary.md`` last)."""
 
 METRICS = ("pos_rms_h_m", "pos_rms_v_m", "path_rms_m", "att_mae_deg", "yaw_mae_deg")
@@ -306,6 +308,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         more, more_errors = _fly_stored(again, store, "true state", run)
         records += more
         errors += more_errors
+    from sitl.lab.table import outer_sweep_table, write_table
+
+    feasible = {k: c["feasible"] for k, c in classify(records).items()}
+    write_table(outer_sweep_table(records, feasible), args.out / "flights.parquet")
     (args.out / "flights.json").write_text(json.dumps(records, indent=1) + "\n")
     text = summary_markdown(records)
     if errors:

@@ -47,6 +47,11 @@ The envelope's flights are a table too, ``envelope.parquet``
 four per case (``mfc``, ``pid_tuned``, ``pid_default`` and, when flown, the
 ``oracle``), in case order, with the vehicle's figures and the case's
 feasibility on every row; docs/campaigns.md gives its columns.
+
+The outer sweep's flights (``python -m sitl.lab.outer_sweep``) are a table too,
+its ``flights.parquet`` (:data:`OUTER_SWEEP_SCHEMA`, :func:`outer_sweep_table`):
+one row per flight, with the case's feasibility; docs/campaigns.md gives its
+columns.
 """
 
 from __future__ import annotations
@@ -63,8 +68,10 @@ from companion.control import AXES
 __all__ = [
     "ENVELOPE_SCHEMA",
     "FLIGHTS_SCHEMA",
+    "OUTER_SWEEP_SCHEMA",
     "SPEC_COLUMNS",
     "envelope_table",
+    "outer_sweep_table",
     "read_table",
     "to_records",
     "to_table",
@@ -199,6 +206,53 @@ def envelope_table(records: Sequence[dict[str, Any]]) -> pa.Table:
                 }
             )
     return pa.Table.from_pylist(rows, schema=ENVELOPE_SCHEMA)
+
+
+OUTER_SWEEP_FIGURES = (
+    "lift_off_s", "hover_thrust_estimate", "hover_motor_command",
+    "pos_rms_h_m", "pos_max_h_m", "pos_rms_v_m", "est_rms_h_m", "est_rms_v_m",
+    "att_mae_deg", "yaw_mae_deg", "rate_sat_s", "thrust_sat_s", "tilt_limited_s",
+    "path_rms_m", "path_max_m",
+)  # fmt: skip
+"""The float figures of an outer flight (:func:`sitl.lab.outer_flight.outer_metrics`),
+one column each; null where the scenario has none (no path in a hold)."""
+
+OUTER_SWEEP_SCHEMA = pa.schema(
+    [
+        pa.field("vehicle", pa.string(), nullable=False),
+        pa.field("damage", pa.string(), nullable=False),
+        pa.field("scenario", pa.string(), nullable=False),
+        pa.field("law", pa.string(), nullable=False),
+        pa.field("true_state", pa.bool_(), nullable=False),
+        pa.field("profile", pa.string()),
+        pa.field("mode", pa.string()),
+        pa.field("seed", pa.int64()),
+        pa.field("crashed", pa.bool_()),
+        pa.field("crashed_at_s", pa.float64()),
+        *(pa.field(k, pa.float64()) for k in OUTER_SWEEP_FIGURES),
+        pa.field("step_reach_s", pa.list_(pa.float64())),
+        pa.field("feasible", pa.bool_()),
+        pa.field("wall_s", pa.float64()),
+    ],
+    metadata={"schema": "mfc-companion outer sweep flights, version 1"},
+)
+"""The columns of the outer sweep's ``flights.parquet`` (docs/campaigns.md)."""
+
+
+def outer_sweep_table(
+    records: Sequence[dict[str, Any]], feasible: dict[tuple[str, str, str], bool | None]
+) -> pa.Table:
+    """The outer sweep's records (:func:`sitl.lab.outer_sweep.fly`'s) as one row per
+    flight, each with its case's ``feasible`` (keyed by vehicle, damage, scenario)."""
+    keep = [f.name for f in OUTER_SWEEP_SCHEMA if f.name != "feasible"]
+    rows = [
+        {
+            **{k: r.get(k) for k in keep},
+            "feasible": feasible.get((r["vehicle"], r["damage"], r["scenario"])),
+        }
+        for r in records
+    ]
+    return pa.Table.from_pylist(rows, schema=OUTER_SWEEP_SCHEMA)
 
 
 def write_table(table: pa.Table, path: str | Path) -> Path:

@@ -4,9 +4,13 @@ true-state flights, the summary's counts, and one small run through the executor
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
+import pandas
+import pyarrow as pa
+import pyarrow.parquet
 import pytest
 
 from sitl.lab.outer_sweep import (
@@ -17,6 +21,9 @@ from sitl.lab.outer_sweep import (
     true_state_flights,
     vehicles,
 )
+from sitl.lab.table import OUTER_SWEEP_FIGURES, OUTER_SWEEP_SCHEMA, outer_sweep_table
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _rec(law: str, crashed: bool, *, true_state: bool = False, scenario: str = "square",
@@ -47,6 +54,33 @@ def test_a_case_is_feasible_when_either_law_survives_on_the_true_state() -> None
     assert "- Infeasible: f450/motor60/square" in text
     # A crash whose true-state flights are missing is unknown, not feasible.
     assert classify([_rec("mfc", True), _rec("px4", False)])[k]["feasible"] is None
+
+
+def test_the_table_has_a_row_per_flight_with_its_cases_feasibility() -> None:
+    recs = [_rec("mfc", True), _rec("px4", False),
+            _rec("mfc", True, true_state=True), _rec("px4", False, true_state=True)]  # fmt: skip
+    recs[1]["step_reach_s"] = [3.2, None]
+    feasible = {k: c["feasible"] for k, c in classify(recs).items()}
+    table = outer_sweep_table(recs, feasible)
+    assert table.schema.equals(OUTER_SWEEP_SCHEMA)
+    rows = table.to_pylist()
+    assert [(r["law"], r["true_state"], r["crashed"]) for r in rows] == [
+        ("mfc", False, True), ("px4", False, False), ("mfc", True, True), ("px4", True, False),
+    ]  # fmt: skip
+    assert all(r["feasible"] is True for r in rows)
+    assert rows[1]["step_reach_s"] == [3.2, None] and rows[0]["step_reach_s"] is None
+    # What a record lacks is null, never made up.
+    assert rows[0]["path_rms_m"] is None and rows[0]["lift_off_s"] is None
+    assert set(OUTER_SWEEP_FIGURES) < set(OUTER_SWEEP_SCHEMA.names)
+
+
+def test_the_table_is_documented() -> None:
+    text = (ROOT / "docs" / "campaigns.md").read_text(encoding="utf-8")
+    section = text.split("\n## The outer sweep's table\n", 1)[1].split("\n## ", 1)[0]
+    documented = re.findall(r"^\| `(\w+)` \| ([\w<>]+) \|", section, flags=re.MULTILINE)
+    types = {"string": pa.string(), "float64": pa.float64(), "int64": pa.int64(),
+             "bool": pa.bool_(), "list<float64>": pa.list_(pa.float64())}  # fmt: skip
+    assert [(n, types[t]) for n, t in documented] == [(f.name, f.type) for f in OUTER_SWEEP_SCHEMA]
 
 
 def test_the_summary_counts_where_mfc_is_better() -> None:
@@ -85,6 +119,14 @@ def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
     assert not any(r["crashed"] or r["true_state"] for r in records)
     summary = (tmp_path / "summary.md").read_text()
     assert summary.startswith("1 cases, 2 flights; 1 feasible, 0 infeasible")
+    # The same flights as a table, readable by pandas in one line.
+    df = pandas.read_parquet(tmp_path / "flights.parquet")
+    assert pyarrow.parquet.read_schema(tmp_path / "flights.parquet").equals(
+        OUTER_SWEEP_SCHEMA, check_metadata=False
+    )
+    assert list(df["law"]) == [r["law"] for r in records]
+    assert list(df["pos_rms_h_m"]) == [r["pos_rms_h_m"] for r in records]
+    assert df["feasible"].tolist() == [True, True]
     # As if killed before its last flight landed: the same command flies only that one.
     stored = sorted((tmp_path / "flights").glob("*.json"))
     assert len(stored) == 2
