@@ -87,9 +87,10 @@ def test_a_5_ms_link_hands_each_command_over_10_ms_after_its_sample(tmp_path: Pa
 # the companion's wall clock says nothing of the modelled link there.
 
 
-def _fly_realtime(tmp_path: Path, link: str) -> dict[str, np.ndarray]:
+def _fly_realtime(tmp_path: Path, link: str) -> tuple[dict[str, np.ndarray], float]:
     """1 s engaged through ``link`` with the SITL paced to the wall clock: the
-    engaged rows' ``link_rtt_ms`` and ``sample_age_ms``."""
+    engaged rows' ``link_rtt_ms`` and ``sample_age_ms``, and how far, at most, the
+    SITL's simulation time fell behind the wall clock (ms)."""
     spec = parse_link(link)
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path, duration_s=1.0, link=spec, sitl_args=["--clock", "realtime"]
@@ -104,7 +105,7 @@ def _fly_realtime(tmp_path: Path, link: str) -> dict[str, np.ndarray]:
     assert len(eng["t_s"]) >= 0.9 * RATE_HZ
     # The companion asks the time from its start-up: every engaged sample is dated.
     assert np.isfinite(eng["link_rtt_ms"]).all() and np.isfinite(eng["sample_age_ms"]).all()
-    return eng
+    return eng, 1e3 * float(flight.sitl_summary["max_lag_s"])
 
 
 def test_the_companion_measures_a_5_ms_link_10_ms_round_and_its_samples_5_ms_old(
@@ -113,11 +114,17 @@ def test_the_companion_measures_a_5_ms_link_10_ms_round_and_its_samples_5_ms_old
     """TIMESYNC through 5 ms each way: a 10 ms round trip (plus the SITL's 1 ms steps
     and scheduling); a sample arrives 5 ms after its time and its command leaves a
     fraction of a millisecond later. Measured (3 runs, medians, 2 cores): round trip
-    10.3 to 10.8 ms (11.3 with both cores busy), age 5.5 to 5.7 ms (5.8 busy)."""
-    eng = _fly_realtime(tmp_path, "delay_ms=5")
+    10.3 to 10.8 ms (11.3 with both cores busy), age 5.5 to 5.7 ms (5.8 busy).
+
+    A SITL that falls behind the wall clock (a loaded machine: 22.9 ms seen in a
+    fresh-clone CI run) releases what the link delays late by as much, each way: the
+    upper bound allows twice its largest lag, which the SITL reports (4.6 and 5.8 ms
+    on a quiet machine, at its start: there the bound is about 26 ms). The delay
+    itself, to the microsecond, is checked in lockstep above."""
+    eng, lag_ms = _fly_realtime(tmp_path, "delay_ms=5")
     rtt = float(np.median(eng["link_rtt_ms"]))
     age = float(np.median(eng["sample_age_ms"]))
-    assert 9.0 <= rtt <= 16.0, rtt
+    assert 9.0 <= rtt <= 16.0 + 2.0 * lag_ms, (rtt, lag_ms)
     # The SITL answers TIMESYNC with its simulation time, which keeps wall time only
     # as well as the SITL keeps up: on a loaded machine it lags when it answers, and
     # the dates move by a few ms (0.8 ms seen under the whole suite on 2 cores).
@@ -127,7 +134,7 @@ def test_the_companion_measures_a_5_ms_link_10_ms_round_and_its_samples_5_ms_old
 def test_the_companion_measures_the_ideal_link_well_under_5_ms(tmp_path: Path) -> None:
     """Measured (3 runs, medians): round trip 0.5 to 1.1 ms (1.0 with both cores
     busy), age 0.8 to 1.2 ms (1.9 busy)."""
-    eng = _fly_realtime(tmp_path, "ideal")
+    eng, _ = _fly_realtime(tmp_path, "ideal")
     rtt = float(np.median(eng["link_rtt_ms"]))
     age = float(np.median(eng["sample_age_ms"]))
     assert 0.0 < rtt < 5.0, rtt
