@@ -128,14 +128,16 @@ def test_the_companion_measures_a_5_ms_link_10_ms_round_and_its_samples_5_ms_old
     # The SITL answers TIMESYNC with its simulation time, which keeps wall time only
     # as well as the SITL keeps up: on a loaded machine it lags when it answers, and
     # the dates move by a few ms (0.8 ms seen under the whole suite on 2 cores).
-    assert 0.0 < age <= 12.0, age
+    assert 0.0 < age <= 12.0 + lag_ms, (age, lag_ms)
 
 
 def test_the_companion_measures_the_ideal_link_well_under_5_ms(tmp_path: Path) -> None:
     """Measured (3 runs, medians): round trip 0.5 to 1.1 ms (1.0 with both cores
-    busy), age 0.8 to 1.2 ms (1.9 busy)."""
-    eng, _ = _fly_realtime(tmp_path, "ideal")
+    busy), age 0.8 to 1.2 ms (1.9 busy); 5.6 ms round trip in a fresh-clone CI run
+    under the whole suite. The bounds allow for the SITL's lag as the test above
+    does."""
+    eng, lag_ms = _fly_realtime(tmp_path, "ideal")
     rtt = float(np.median(eng["link_rtt_ms"]))
     age = float(np.median(eng["sample_age_ms"]))
-    assert 0.0 < rtt < 5.0, rtt
-    assert -5.0 < age < 5.0, age  # a loaded SITL's clock: see the test above
+    assert 0.0 < rtt < 5.0 + 2.0 * lag_ms, (rtt, lag_ms)
+    assert abs(age) < 5.0 + lag_ms, (age, lag_ms)  # a loaded SITL's clock: see above
