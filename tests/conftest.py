@@ -9,7 +9,8 @@
 - ``regression``: pinned flight figures (tests/regression, and tests marked so).
 
 Across the tiers, the ``long`` checks (marked so: the wheel built and installed,
-the envelope's corners with a PID tuned for each, the paper reproduction) take
+the envelope's corners with a PID tuned for each, the paper reproduction, the
+fuzzer's real-time run) take
 minutes each. The default run leaves them out (they are *deselected*, and the
 header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 """

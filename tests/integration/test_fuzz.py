@@ -37,6 +37,7 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict[str, 
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.long
 def test_every_kind_is_sent_and_counted(short_run: tuple[int, dict[str, Any]]) -> None:
     _, report = short_run
     assert report["clean"]["failsafes"] == [] and report["clean"]["crashes"] == []
@@ -51,6 +52,7 @@ def test_every_kind_is_sent_and_counted(short_run: tuple[int, dict[str, Any]]) -
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.long
 def test_no_crash_and_no_nonfinite_command(short_run: tuple[int, dict[str, Any]]) -> None:
     """Neither process dies or logs a traceback, the vehicle does not crash, and every
     setpoint on the wire is finite and in range, whatever arrived."""
@@ -64,6 +66,7 @@ def test_no_crash_and_no_nonfinite_command(short_run: tuple[int, dict[str, Any]]
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.long
 def test_garbage_without_a_valid_imu_sample_costs_no_failsafe_and_no_tracking(
     short_run: tuple[int, dict[str, Any]],
 ) -> None:
