@@ -99,7 +99,7 @@ class HorizontalGains:
     kp_position_1_s: float = 0.75
     speed_max_m_s: float = 12.0
     tilt_max_rad: float = math.radians(35.0)
-    window_s: float = 0.2
+    window_s: float = 0.6
     inner_lag_s: float = 0.35
 
     def __post_init__(self) -> None:
@@ -189,9 +189,10 @@ class HorizontalLoop:
         return self._gains
 
     def reset(self) -> None:
-        """Forget the windows and the references (the vehicle is taken to be level)."""
+        """Forget the windows and the references (the vehicle is taken to be level
+        and at rest: the windows start full of rest)."""
         for est in self._est:
-            est.reset()
+            est.reset(at_rest=True)
         self._v_prev: Vec2 | None = None
         self.tilt_ne: Vec2 = _ZERO2
         self.velocity_ref_ne_m_s: Vec2 = _ZERO2

@@ -77,25 +77,40 @@ class LagAwareEstimate:
     prior given to :meth:`reset`.
     """
 
-    __slots__ = ("_est", "_lag_dt", "_lag_k", "_lag_s", "f_hat", "u_lagged", "y_dot_mean")
+    __slots__ = (
+        "_est", "_lag_dt", "_lag_k", "_lag_s", "_rest_left_s", "_u_rest", "_window_s",
+        "f_hat", "u_lagged", "y_dot_mean",
+    )  # fmt: skip
 
     def __init__(self, window_s: float, lag_s: float) -> None:
         self._est = WindowEstimator(1, 1.0, window_s)  # alpha: its f_hat is not used
+        self._window_s = window_s
         self._lag_s = lag_s
         self._lag_dt = -1.0
         self._lag_k = 1.0
         self.reset()
 
-    def reset(self, u_prior: float = 0.0, f_prior: float = 0.0) -> None:
+    def reset(self, u_prior: float = 0.0, f_prior: float = 0.0, *, at_rest: bool = False) -> None:
         """Forget the window. ``u_prior``: the command the inner loop is taken to be
         following (the lag's state); ``f_prior``: :attr:`f_hat` until the first
-        interval."""
+        interval.
+
+        ``at_rest``: the window starts full, of a window's time at rest (no
+        change in ``y``, the command ``u_prior`` held), which the new intervals
+        push out as they arrive. The means then cover the whole window from the
+        first interval, as the lag model assumes; a window filling from empty
+        weighs its first intervals too much and costs the loop damping
+        (``docs/research/outer.md``). Use it when the reset is made at rest (on
+        the ground) and ``f_prior`` is ``-alpha u_prior``.
+        """
         est = self._est
         est.reset()
         est.update(1.0, 0.0, 0.0)  # primes it: from now on every update is an interval
         self.u_lagged = u_prior
         self.y_dot_mean = 0.0
         self.f_hat = f_prior
+        self._u_rest = u_prior
+        self._rest_left_s = self._window_s if at_rest else 0.0
 
     def update(self, dt_s: float, y_dot: float, u_prev: float, alpha: float) -> float:
         r"""Add an interval; return :math:`\hat F` (units of :math:`\dot y`).
@@ -113,7 +128,12 @@ class LagAwareEstimate:
         """
         est = self._est
         est.update(dt_s, y_dot, u_prev)
-        u_mean = est.u_mean
+        u_mean, y_m = est.u_mean, est.y_m
+        if self._rest_left_s > 0.0:  # part of the window is still the rest before the reset
+            self._rest_left_s = rest = max(self._rest_left_s - dt_s, 0.0)
+            share = rest / self._window_s
+            y_m *= 1.0 - share
+            u_mean += (self._u_rest - u_mean) * share
         tau = self._lag_s
         if tau > 0.0:
             if abs(dt_s - self._lag_dt) > DT_REL_TOL * dt_s:
@@ -122,6 +142,6 @@ class LagAwareEstimate:
             self.u_lagged = u_a = self.u_lagged + (u_mean - self.u_lagged) * self._lag_k
         else:
             self.u_lagged = u_a = u_mean
-        self.y_dot_mean = y_m = est.y_m
+        self.y_dot_mean = y_m
         self.f_hat = f = y_m - alpha * u_a
         return f
