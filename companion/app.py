@@ -87,6 +87,8 @@ from companion.stacks import FlightStack, SafeMode, stack_for
 from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
+_TASKS_STOP_S = 2.0
+"""How long the run's end waits for its background tasks after cancelling them."""
 """How often the counters (ours, the link's, the transport's) go to the events."""
 
 _LINK_REPORT_PERIOD_S = 1.0
@@ -663,11 +665,15 @@ class Companion(SamplePath):
             _log.error("%s", exc)
             self._exit_code = EXIT_ERROR
         finally:
-            for task in list(self._tasks):
+            tasks = list(self._tasks)
+            for task in tasks:
                 task.cancel()
-            for task in list(self._tasks):
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
+            if tasks:
+                # Bounded: a task that does not end (a cancellation lost inside a
+                # library) must not keep the program from stopping.
+                _, stuck = await asyncio.wait(tasks, timeout=_TASKS_STOP_S)
+                for task in stuck:
+                    _log.error("task %s did not stop when cancelled; leaving it", task.get_name())
             with contextlib.suppress(Exception):
                 await self.link.close()
             self._final_counters()  # if an error or a signal ended the run early

@@ -87,6 +87,20 @@ def _num(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+_STOP_S = 2.0
+"""How long a connection's end waits for its publisher and watcher to stop."""
+
+
+def _cancel_requested() -> bool:
+    """Whether the current task has been asked to stop (Python >= 3.11; False
+    before). On 3.11 ``asyncio.wait_for`` (which aiomqtt's publish uses) can lose
+    a cancellation that arrives just as its inner future completes; a loop that
+    checks this still ends."""
+    task = asyncio.current_task()
+    cancelling = getattr(task, "cancelling", None)
+    return bool(cancelling is not None and cancelling())
+
+
 class MqttTelemetry:
     """Publish flight telemetry to an MQTT broker without ever blocking the control loop.
 
@@ -388,7 +402,12 @@ class MqttTelemetry:
         finally:
             publisher.cancel()
             watcher.cancel()
-            await asyncio.gather(publisher, watcher, return_exceptions=True)
+            # Bounded: the connection's end must not wait on a task that missed
+            # its cancellation.
+            await asyncio.wait((publisher, watcher), timeout=_STOP_S)
+            for task in (publisher, watcher):
+                if task.done() and not task.cancelled():
+                    task.exception()  # retrieved: the one that matters is re-raised below
         for task in done:
             task.result()  # re-raises the MqttError that ended it
 
@@ -408,6 +427,8 @@ class MqttTelemetry:
             await self._send(client, item)
         get = self._queue.get
         while True:
+            if _cancel_requested():
+                raise asyncio.CancelledError
             item = await get()
             self._sending = True
             try:

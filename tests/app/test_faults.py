@@ -9,8 +9,10 @@ lists them with the bounds these tests hold the app to.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
+import signal
 import time
 import tracemalloc
 from collections.abc import Callable
@@ -459,6 +461,28 @@ async def test_a_crashed_background_task_while_idle_is_an_event(start: Start) ->
     await settle()
     assert "task_failed" in f.kinds()
     assert not f.task.done()  # not engaged, not the supervisor: the run goes on
+
+
+async def test_a_task_that_ignores_its_cancellation_does_not_keep_the_run_from_ending(
+    start: Start, caplog: pytest.LogCaptureFixture
+) -> None:
+    # On Python 3.11 asyncio.wait_for (in aiomqtt's publish) can lose a
+    # cancellation; a task that then carries on must not hang the run's end.
+    f = await start(engage="none", output="actuator")
+    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    release = asyncio.Event()
+
+    async def deaf() -> None:
+        while not release.is_set():
+            with contextlib.suppress(asyncio.CancelledError):
+                await asyncio.sleep(3600.0)
+
+    f.companion._spawn(deaf(), "mqtt")
+    await settle()
+    f.companion._on_signal(signal.SIGTERM)
+    assert await f.finish(timeout_s=5.0) == 0  # the run waited 2 s for it, not for ever
+    assert any("task mqtt did not stop" in r.getMessage() for r in caplog.records)
+    release.set()
 
 
 # ---------------------------------------------------------------- lost heartbeats

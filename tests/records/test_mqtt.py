@@ -100,7 +100,7 @@ async def test_full_queue_drops_counts_and_never_blocks(
     assert kinds[-2:] == [1, 2] and len(kinds) == 50
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
-        await task
+        await stopped(task)
 
 
 # -- a real mosquitto -------------------------------------------------------------
@@ -200,7 +200,14 @@ async def subscribed(port: int) -> AsyncIterator[Subscriber]:
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError, aiomqtt.MqttError):
-            await task
+            await asyncio.wait_for(task, 15.0)
+
+
+async def stopped(task: asyncio.Task[None], timeout: float = 10.0) -> None:
+    """Await a cancelled task, failing (not hanging) if it does not end."""
+    done, _ = await asyncio.wait({task}, timeout=timeout)
+    assert done, f"task {task.get_name()} did not end within {timeout} s of its cancellation"
+    await task
 
 
 async def until(cond: Any, timeout: float = 10.0) -> None:
@@ -252,7 +259,7 @@ async def test_topics_payloads_decimation_and_clean_cancel(broker: Broker) -> No
     # cancelling is clean and leaves "offline" retained
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
-        await task
+        await stopped(task)
     assert task.cancelled() and not t.connected
     async with subscribed(broker.port) as after:
         await until(lambda: after.on("status"))
@@ -314,4 +321,4 @@ async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
 
     task.cancel()
     with pytest.raises(asyncio.CancelledError):
-        await task
+        await stopped(task)
