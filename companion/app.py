@@ -87,9 +87,10 @@ from companion.stacks import FlightStack, SafeMode, stack_for
 from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
+"""How often the counters (ours, the link's, the transport's) go to the events."""
+
 _TASKS_STOP_S = 2.0
 """How long the run's end waits for its background tasks after cancelling them."""
-"""How often the counters (ours, the link's, the transport's) go to the events."""
 
 _LINK_REPORT_PERIOD_S = 1.0
 """How often the link's figures go to telemetry (and are judged slow or not)."""
