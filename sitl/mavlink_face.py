@@ -269,12 +269,17 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
 
     @property
     def setpoints_arrived(self) -> int:
-        """Setpoints that reached the socket, which the lockstep clock counts: those
-        handled (:attr:`setpoints_received`), or through a modelled link, which
-        hands them over later, those read from the socket."""
-        if self.link_model is None:
-            return self.setpoints_received
+        """Setpoints read from the socket that the lockstep clock counts: all but
+        the answers to samples older than the ones it waits for
+        (:meth:`~sitl.mavlink_link.MavlinkLink.expect_answers`)."""
         return self._setpoints_arrived
+
+    def _setpoint_stamp(self, msg: Any) -> tuple[int, float] | None:
+        if msg.get_type() == "SET_ACTUATOR_CONTROL_TARGET":
+            return int(msg.time_usec), 1e-6
+        if msg.get_type() == "SET_ATTITUDE_TARGET":
+            return int(msg.time_boot_ms), 1e-3
+        return None
 
     def setpoint_age_ms(self) -> dict[str, float]:
         """How long after its sample's time each setpoint was handled: mean and max, ms."""
@@ -517,6 +522,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                         self._clock_t_s = None
                     else:
                         self._send_one(msg_id)
+                        if msg_id == clock:
+                            self.given_to_client(self.snapshot.imu_t_s)
                     imu_sent = imu_sent or msg_id == clock
         for msg_id in (
             ID_LOCAL_POSITION_NED,

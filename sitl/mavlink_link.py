@@ -50,6 +50,7 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from sitl.answers import AnswerJudge
 from sitl.link_model import DOWN, UP, LinkModel
 
 __all__ = ["Endpoint", "MavlinkLink", "enable_signing", "frame_msgid", "parse_endpoint"]
@@ -231,8 +232,12 @@ class MavlinkLink:
         self.samples_delivered: list[float] = []
         """Arrival times of the clock-stream frames the last :meth:`flush` gave the
         socket that carry a newer IMU sample than any before (the ones a client answers)."""
+        self.samples_delivered_t: list[float] = []
+        """Those samples' times, s."""
         self._answers: deque[float] = deque()
         self._setpoints_arrived = 0
+        self.answers = AnswerJudge()
+        """Which sample each setpoint answers (:mod:`sitl.answers`)."""
 
     # -------------------------------------------------------------- lifecycle
 
@@ -285,17 +290,49 @@ class MavlinkLink:
             heapq.heapify(self._inbox)
             self._answers.clear()
 
-    def expect_answers(self, arrivals_s: Sequence[float]) -> None:
-        """The lockstep clock waits for the answers to these samples (their arrival
-        times, in order): the setpoints that arrive meanwhile count as sent then.
-        Called with ``()`` when the wait ends."""
+    def expect_answers(self, arrivals_s: Sequence[float], oldest_t_s: float | None = None) -> None:
+        """The lockstep clock waits for the answers to samples from ``oldest_t_s``
+        (their time; None: the wait ends) on; through a modelled link, to the ones
+        that arrived at ``arrivals_s`` (in order): the setpoints that arrive
+        meanwhile count as sent then.
+
+        A client that stamps its setpoints with the time of the sample they
+        answer may still be answering older samples: those answers are handled
+        but not counted (:mod:`sitl.answers`), so the wait ends on this sample's
+        answer whatever the wall clock did."""
         self._answers = deque(arrivals_s)
+        self.answers.await_from(oldest_t_s)
+
+    @property
+    def stale_setpoints(self) -> int:
+        """Answers to samples older than the ones the lockstep clock waited for."""
+        return self.answers.stale
+
+    def lockstep_timed_out(self) -> None:
+        """The client did not answer in time: count what it sends again, whatever
+        its stamps (a client that stopped stamping samples' times is not stuck)."""
+        self.answers.forget()
+
+    def _setpoint_stamp(self, msg: Any) -> tuple[int, float] | None:
+        """A setpoint's time field and its unit (s), if it has one (a face says)."""
+        return None
+
+    def _counts_as_answer(self, msg: Any) -> bool:
+        """Whether a setpoint counts towards the lockstep clock's wait."""
+        stamp = self._setpoint_stamp(msg)
+        return stamp is None or self.answers.counts(*stamp)
+
+    def given_to_client(self, t_s: float) -> None:
+        """A clock-stream sample of time ``t_s`` reached the socket (the ideal link:
+        when the face sent it; a modelled link: when :meth:`flush` delivered it)."""
+        self.answers.sample_given(t_s)
 
     def flush(self, t_s: float) -> int:
         """Give the socket what the link delivers by simulation time ``t_s``; return
         how many of those frames are clock-stream samples newer than any before
         (their arrival times in :attr:`samples_delivered`)."""
         self.samples_delivered = delivered = []
+        self.samples_delivered_t = []
         outbox = self._outbox
         due = t_s + _DUE_TOLERANCE_S
         while outbox and outbox[0][0] <= due:
@@ -306,6 +343,8 @@ class MavlinkLink:
             if sent and clock_t is not None and clock_t > self._last_clock_t_s:
                 self._last_clock_t_s = clock_t
                 delivered.append(arrival)
+                self.samples_delivered_t.append(clock_t)
+                self.given_to_client(clock_t)
         return len(delivered)
 
     def _queue_out(self, buf: bytes, model: LinkModel) -> None:
@@ -316,7 +355,7 @@ class MavlinkLink:
 
     def _queue_in(self, msg: Any, t_s: float, model: LinkModel) -> None:
         t_sent = t_s
-        if self._is_setpoint(msg):
+        if self._is_setpoint(msg) and self._counts_as_answer(msg):
             self._setpoints_arrived += 1
             if self._answers:
                 t_sent = self._answers.popleft()
@@ -423,7 +462,10 @@ class MavlinkLink:
             for msg in msgs:
                 if model is not None and msg.get_type() != "BAD_DATA":
                     self._queue_in(msg, t_s, model)
-                elif defer_commands and msg.get_type() in _DEFERRED_TYPES:
+                    continue
+                if self._is_setpoint(msg) and self._counts_as_answer(msg):
+                    self._setpoints_arrived += 1
+                if defer_commands and msg.get_type() in _DEFERRED_TYPES:
                     self._deferred.append(msg)
                 else:
                     self._handle(msg, t_s)

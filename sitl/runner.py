@@ -24,8 +24,12 @@ Clocks
     it stops waiting (the client is taken as gone) until a setpoint arrives again,
     so a disconnected client cannot stall the simulation; the offboard-loss
     failsafe then fires in simulation time. Outside OFFBOARD it never waits and
-    runs as fast as the CPU allows. With ``autopilot="ardupilot"`` the same holds
-    in GUIDED / GUIDED_NOGPS after each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
+    runs as fast as the CPU allows, so a client may fall behind there; a client
+    that stamps its setpoints with their samples' times (the companion) has its
+    late answers to older samples handled but not counted (:mod:`sitl.answers`):
+    each wait ends on the answer to the sample it gave. With
+    ``autopilot="ardupilot"`` the same holds in GUIDED / GUIDED_NOGPS after
+    each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
 Link
 ----
@@ -263,6 +267,7 @@ class RunSummary:
     max_lag_s: float = 0.0
     lockstep_waits: int = 0
     lockstep_timeouts: int = 0
+    stale_setpoints: int = 0
     setpoints_received: int = 0
     rejected_setpoints: int = 0
     messages_sent: int = 0
@@ -478,6 +483,7 @@ class Runner:
             summary.steps_per_wall_s = summary.steps / wall if wall > 0 else 0.0
             summary.realtime_factor = summary.sim_time_s / wall if wall > 0 else 0.0
             summary.setpoints_received = self.face.setpoints_received
+            summary.stale_setpoints = self.face.stale_setpoints
             summary.rejected_setpoints = ap.rejected_setpoints
             summary.messages_sent = self.face.messages_sent
             summary.messages_received = self.face.messages_received
@@ -698,13 +704,16 @@ class Runner:
                 want = face.setpoints_arrived + 1
                 if linked:
                     want += len(face.samples_delivered) - 1
-                    face.expect_answers(face.samples_delivered)
+                    face.expect_answers(face.samples_delivered, min(face.samples_delivered_t))
+                else:
+                    face.expect_answers((), snap.imu_t_s)
                 summary.lockstep_waits += 1
                 deadline = monotonic() + cfg.lockstep_timeout_s
                 while face.setpoints_arrived < want and not stop.is_set():
                     left = deadline - monotonic()
                     if left <= 0.0:
                         summary.lockstep_timeouts += 1
+                        face.lockstep_timed_out()
                         client_active = False
                         sp_at_timeout = face.setpoints_arrived
                         logger.warning(
@@ -716,8 +725,7 @@ class Runner:
                         break
                     if face.wait_readable(left):
                         face.poll(t, defer_commands=True)
-                if linked:
-                    face.expect_answers(())
+                face.expect_answers(())
 
             if sample is not None:
                 motors = ap.update(

@@ -1,0 +1,159 @@
+"""The lockstep clock ends each wait on the answer to the sample it gave, not on
+a late answer to an older one.
+
+Seen in CI: a companion that fell behind before OFFBOARD (the clock does not
+wait there, and runs as fast as it can) still had older samples to answer when
+OFFBOARD began; counting setpoints, the clock took those answers for the
+current sample's, so the autopilot flew a setpoint some samples old, by an
+amount that depended on the wall clock. Reproduced with a companion stopped
+for a moment before OFFBOARD (``SIGSTOP``); here with a client that sleeps.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from companion.profile import load_profile
+from sitl.answers import ECHO_RUN, AnswerJudge
+from sitl.mavlink_link import parse_endpoint
+from sitl.runner import RunConfig, Runner
+
+ROOT = Path(__file__).resolve().parents[2]
+US = 1e-6
+
+
+def code(time_usec: int) -> float:
+    """What the client puts in the roll control: its sample's time, recognisably."""
+    return (time_usec // 1000 % 1000) * 1e-5
+
+
+# ------------------------------------------------------------------ the judge
+
+
+def test_a_client_stamping_samples_times_is_recognised_and_its_late_answers_not_counted() -> None:
+    judge = AnswerJudge()
+    for k in range(40):
+        judge.sample_given(k * 0.004)
+    # Answers to samples 0..ECHO_RUN: consecutive, so the client stamps sample times.
+    for k in range(ECHO_RUN + 1):
+        assert judge.counts(round(k * 0.004 / US), US)
+    assert judge.echoes_stamps
+    judge.await_from(39 * 0.004)
+    late = [judge.counts(round(k * 0.004 / US), US) for k in range(ECHO_RUN + 1, 39)]
+    assert not any(late) and judge.stale == len(late)
+    assert judge.counts(round(39 * 0.004 / US), US)  # the awaited sample's answer
+
+
+def test_a_client_stamping_its_own_clock_is_counted_as_before() -> None:
+    judge = AnswerJudge()
+    for k in range(2000):
+        judge.sample_given(k * 0.001)  # every millisecond is a sample's
+    judge.await_from(1.999)
+    # MAVSDK's time_boot_ms: its own uptime, 20 ms apart, behind the simulation.
+    assert all(judge.counts(ms, 1e-3) for ms in range(100, 1000, 20))
+    assert not judge.echoes_stamps and judge.stale == 0
+    # A time never given forgets what was learnt.
+    for k in range(ECHO_RUN + 1):
+        judge.counts(1000 + k, 1e-3)
+    assert judge.echoes_stamps
+    assert judge.counts(5000, 1e-3) and not judge.echoes_stamps
+
+
+def test_a_lockstep_timeout_makes_the_judge_count_everything_again() -> None:
+    judge = AnswerJudge()
+    for k in range(20):
+        judge.sample_given(k * 0.004)
+    for k in range(ECHO_RUN + 1):
+        judge.counts(round(k * 0.004 / US), US)
+    judge.await_from(19 * 0.004)
+    assert not judge.counts(round(10 * 0.004 / US), US)
+    judge.forget()
+    assert judge.counts(round(11 * 0.004 / US), US)
+
+
+# ------------------------------------------------------- a SITL and a client
+
+
+def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_stall() -> None:
+    client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    client.bind(("127.0.0.1", 0))
+    client.settimeout(0.5)
+    port = client.getsockname()[1]
+    profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
+    config = RunConfig(
+        mavlink=parse_endpoint(f"udpout:127.0.0.1:{port}"),
+        pilot="paper-acro",
+        clock="lockstep",
+        seed=1,
+        duration_s=1.0,
+        initial_mode="MANUAL",
+        auto_arm=False,
+        log_path=None,
+    )
+    runner = Runner(profile, config, profile_name="f450")
+    runner.face.streams.set_interval(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 4000.0, t_s=0.0)
+    ap = runner.autopilot
+    offboard_step = 300  # t = 0.3 s: the client sleeps through it
+
+    poll = runner.face.poll
+
+    def poll_then_engage(t_s: float, *, defer_commands: bool = False) -> int:
+        n = poll(t_s, defer_commands=defer_commands)
+        if runner.quad.steps == offboard_step:
+            assert ap.set_mode(t_s, 6) == 0  # type: ignore[attr-defined]  # OFFBOARD
+            assert ap.arm(t_s) == 0
+        return n
+
+    runner.face.poll = poll_then_engage  # type: ignore[method-assign]
+    flown: list[tuple[float, float]] = []  # (sample time, roll control flown)
+    update = ap.update
+
+    def recording_update(t_s: float, *args: object, **kwargs: object) -> tuple[float, ...]:
+        motors = update(t_s, *args, **kwargs)  # type: ignore[arg-type]
+        if ap.armed:
+            flown.append((t_s, ap.last_torque_thrust[0]))
+        return motors
+
+    ap.update = recording_update  # type: ignore[method-assign]
+    sitl = threading.Thread(target=runner.run, daemon=True)
+    sitl.start()
+
+    mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    slept = False
+    answered = 0
+    try:
+        while sitl.is_alive():
+            try:
+                data, addr = client.recvfrom(4096)
+            except TimeoutError:
+                continue
+            for msg in mav.parse_buffer(data) or []:
+                if msg.get_type() != "HIGHRES_IMU":
+                    continue
+                if not slept and msg.time_usec >= 100_000:
+                    slept = True
+                    time.sleep(0.3)  # the SITL runs on, OFFBOARD begins meanwhile
+                sp = mavlink.MAVLink_set_actuator_control_target_message(
+                    msg.time_usec, 0, 1, 1, [code(msg.time_usec), 0, 0, 0, 0, 0, 0, 0]
+                )
+                client.sendto(sp.pack(mav), addr)
+                answered += 1
+    finally:
+        runner.stop.set()
+        sitl.join(10)
+        client.close()
+
+    assert slept and answered > 100
+    assert runner.face.answers.echoes_stamps
+    assert runner.face.stale_setpoints > 10  # the samples answered after the sleep
+    # The autopilot's own IMU runs at 1 kHz: the steps that sent HIGHRES_IMU (250 Hz).
+    sent = [(t, roll) for t, roll in flown if round(t / US) % 4000 == 0]
+    assert len(sent) > 100
+    wrong = [(t, roll) for t, roll in sent if roll != pytest.approx(code(round(t / US)), abs=1e-9)]
+    assert not wrong, f"{len(wrong)} of {len(sent)} samples flew another's answer: {wrong[:3]}"
