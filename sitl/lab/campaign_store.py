@@ -21,7 +21,8 @@ content (damage included), the damage, gust and seed, the controller's name and
 content, the scenario's content (wind, duration, link included) and the
 duration. A changed configuration gives new ids, so a stale record is never
 reused. A case's id is the same without the controller. The grid's digest is
-that of its flight ids in order.
+that of the code (:func:`code_digest`) and its flight ids in order: a run of
+other code is another grid's, so records flown by two versions never mix.
 
 Resuming
 --------
@@ -37,6 +38,7 @@ flown again by the next run.
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import logging
@@ -59,9 +61,11 @@ __all__ = [
     "CampaignStore",
     "can_resume",
     "case_ids",
+    "code_digest",
     "flight_ids",
     "grid_digest",
     "replacing",
+    "sources_digest",
     "write_json_atomic",
 ]
 
@@ -150,9 +154,33 @@ def case_ids(specs: Iterable[FlightSpec]) -> list[str]:
     return [_digest(_case_key(s, contents))[:20] for s in specs]
 
 
+@functools.cache
+def code_digest() -> str:
+    """A digest of the code that flies and scores the flights: every Python source
+    of the ``companion`` and ``sitl`` packages (as installed)."""
+    import companion
+    import sitl
+
+    return sources_digest(
+        (pkg.__name__, Path(str(pkg.__file__)).resolve().parent) for pkg in (companion, sitl)
+    )
+
+
+def sources_digest(packages: Iterable[tuple[str, Path]]) -> str:
+    """A digest of the ``*.py`` files under each ``(name, folder)``, by name and
+    relative path (20 hex digits)."""
+    h = hashlib.sha256()
+    for name, root in packages:
+        for path in sorted(root.rglob("*.py")):
+            h.update(f"{name}/{path.relative_to(root).as_posix()}\n".encode())
+            h.update(hashlib.sha256(path.read_bytes()).digest())
+    return h.hexdigest()[:20]
+
+
 def grid_digest(ids: Sequence[str]) -> str:
-    """The grid's identity: a digest of its flight ids in order."""
-    return hashlib.sha256("\n".join(ids).encode("ascii")).hexdigest()[:20]
+    """The grid's identity: a digest of the code (:func:`code_digest`) and its
+    flight ids in order."""
+    return hashlib.sha256("\n".join([code_digest(), *ids]).encode("ascii")).hexdigest()[:20]
 
 
 def _read_json(path: Path) -> Any:
