@@ -5,6 +5,8 @@ note of the issue that asked for it: ``python scripts/fuzz.py config --seed 1 --
 
 from __future__ import annotations
 
+import pytest
+
 from tests.config_fuzzing import campaign, mutants
 
 
@@ -13,6 +15,8 @@ def test_mutants_are_seeded() -> None:
     assert mutants(1, 4) != mutants(2, 4)
 
 
+# 47 s on one worker (the default suite's slowest test): in the long tier, which CI runs too.
+@pytest.mark.long
 def test_no_accepted_config_crashes_or_blows_up_on_held_out_flights() -> None:
     report = campaign(seed=1, n=4, workers=1)
     verdicts = [r["verdict"] for r in report["records"]]
