@@ -6,6 +6,8 @@ the pilot's clock, a difference of two rounded absolute times, fell 1e-16 s
 short of a script's segment boundary for about one arming step in ten (now it
 counts physics steps); the PX4 personality's rate-loop dt carried the rounding
 of the absolute clock at every step (now whole microseconds, as PX4's).
+A cause of such a failure, found later with a stalled companion: late answers to older
+samples ending the lockstep clock's waits (tests/sitl/test_lockstep_answers.py).
 """
 
 from __future__ import annotations
