@@ -70,7 +70,15 @@ class LogWriter:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._events = events_path(path).open("w", encoding="utf-8")
 
+    @property
+    def rows_kept(self) -> int:
+        """Rows held for the ``.npz`` (none without a path: a run without ``--log``
+        keeps nothing, however long it runs)."""
+        return len(self._blocks) * self._BLOCK + self._i
+
     def append(self, row: list[float]) -> None:
+        if self.path is None:
+            return
         if self._i == self._BLOCK:
             self._blocks.append(self._buf)
             self._buf = np.empty((self._BLOCK, self.width))
