@@ -27,7 +27,7 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         assert (b.lag_scaling_authority_ref, r.lag_scaling_authority_ref) == (150.0, 0.0)
         assert (b.alpha_adapt.margin_min, r.alpha_adapt.margin_min) == (0.3, 0.0)
         assert (b.lag_scaling_max, r.lag_scaling_max) == (1.0, None)
-        assert (b.lag_scaling_min, r.lag_scaling_min) == (0.526, None)
+        assert (b.lag_scaling_min, r.lag_scaling_min) == (0.7, None)
         # Everything else is the same law.
         assert (b.delay_kd_limit, r.delay_kd_limit) == (0.2, 0.0)
         assert b.alpha_adapt.delay_candidates_s and not r.alpha_adapt.delay_candidates_s
