@@ -7,7 +7,7 @@ import math
 import pytest
 
 from companion.control.angle_mode import MAX_TILT_DEG, AngleMode, stick_tilt_rad
-from companion.control.attitude import AttitudeLoop, AttitudeSetpoint
+from companion.control.attitude import DEFAULT_ATTITUDE_GAINS, AttitudeLoop, AttitudeSetpoint
 
 MAX = math.radians(MAX_TILT_DEG)
 LEVEL = (1.0, 0.0, 0.0, 0.0)
@@ -39,11 +39,11 @@ def test_the_reference_is_the_attitude_loops_for_the_sticks_setpoint() -> None:
         )
         assert got == want, k
     assert mode.setpoint == AttitudeSetpoint(0.5 * MAX, 0.0, None, 0.2)
-    # The first sample: K_P times the error (4 1/s), the yaw rate as feedforward.
+    # The first sample: K_P times the error, the yaw rate as feedforward.
     first = AngleMode().reference(
         0.004, LEVEL, (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 0.0, on_ground=False
     )
-    assert first[0] == pytest.approx(4.0 * 0.5 * MAX)
+    assert first[0] == pytest.approx(DEFAULT_ATTITUDE_GAINS.kp_roll_pitch_1_s * 0.5 * MAX)
 
 
 def test_on_the_ground_no_rates_and_nothing_learnt() -> None:

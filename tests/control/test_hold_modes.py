@@ -6,6 +6,7 @@ import math
 
 import pytest
 
+from companion.control.attitude import DEFAULT_ATTITUDE_GAINS
 from companion.control.hold_modes import (
     CLIMB_MAX_DOWN_M_S,
     CLIMB_MAX_UP_M_S,
@@ -79,7 +80,8 @@ def test_altitude_mode_flies_the_sticks_as_angles() -> None:
     mode = HoldMode(position=False)
     mode.reset(thrust=0.4)
     out = mode.update(0.004, LEVEL, STILL, (0.0, 0.0, -5.0), STILL, (1.0, 0.0, 0.0), 0.5, 0.0)
-    assert out.rate_ref_frd_rad_s[0] == pytest.approx(4.0 * math.radians(35.0))
+    kp = DEFAULT_ATTITUDE_GAINS.kp_roll_pitch_1_s
+    assert out.rate_ref_frd_rad_s[0] == pytest.approx(kp * math.radians(35.0))
 
 
 def test_on_the_ground_only_the_vertical_loop_flies_and_nothing_is_held() -> None:

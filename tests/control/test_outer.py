@@ -15,6 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller
 from companion.control.attitude import DEFAULT_ATTITUDE_GAINS
 from companion.control.horizontal import DEFAULT_HORIZONTAL_GAINS, HorizontalSetpoint
 from companion.control.outer import (
@@ -153,11 +154,15 @@ def test_never_a_non_finite_output(samples: list[tuple[float, ...]]) -> None:
 
 def test_default_gains_keep_the_bandwidth_separation() -> None:
     # The design (docs/research/outer.md): each loop several times slower than the
-    # one it drives. The rate loop's error dynamics run at kd = 13-25 1/s
-    # (mfc_default.yaml, kd 25 scaled down to at most 0.526 of it on slow motors).
+    # one it drives. The rate loop's error dynamics run at kd scaled down to no less
+    # than lag_scaling_min of it on slow motors (mfc_default.yaml: 25 x 0.7 = 17.5 1/s).
     a, h, v = DEFAULT_ATTITUDE_GAINS, DEFAULT_HORIZONTAL_GAINS, DEFAULT_VERTICAL_GAINS
     assert DEFAULT_OUTER_GAINS.attitude is a
-    assert 25.0 * 0.526 / a.kp_roll_pitch_1_s >= 3.0
+    rate = load_controller(DEFAULT_CONTROLLER)
+    assert isinstance(rate, MfcConfig)
+    for axis in (rate.axes.roll, rate.axes.pitch):
+        assert axis.lag_scaling_min is not None
+        assert axis.kd * axis.lag_scaling_min / a.kp_roll_pitch_1_s >= 3.0
     assert a.kp_roll_pitch_1_s / h.kp_velocity_1_s >= 2.5
     # Position P on an ideal velocity loop: zeta = sqrt(kv / kx) / 2 >= 1 / sqrt(2)
     # (PX4's defaults, MPC_XY_P 0.95 on MPC_XY_VEL_P_ACC 1.8, give 0.69 by this rule;
