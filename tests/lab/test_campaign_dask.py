@@ -95,6 +95,15 @@ def _wait_for(what: str, ok: Callable[[], bool], timeout_s: float = 60.0) -> Non
         time.sleep(0.02)
 
 
+def _scheduler_address(path: Path) -> str | None:
+    """The address in a dask scheduler file, or None while it is missing or half-written."""
+    try:
+        address = json.loads(path.read_text(encoding="utf-8"))["address"]
+    except (OSError, ValueError, KeyError):
+        return None
+    return str(address)
+
+
 @pytest.fixture(scope="module")
 def cluster(logs: Path, spawn: Callable[..., subprocess.Popen[bytes]]) -> Any:
     """A ``dask scheduler`` and two single-thread ``dask worker`` processes on 127.0.0.1:
@@ -103,8 +112,14 @@ def cluster(logs: Path, spawn: Callable[..., subprocess.Popen[bytes]]) -> Any:
     sched_file = logs / "scheduler.json"
     spawn([str(DASK), "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
            "--scheduler-file", str(sched_file)], "scheduler")  # fmt: skip
-    _wait_for("the scheduler", sched_file.exists)
-    address = json.loads(sched_file.read_text(encoding="utf-8"))["address"]
+
+    # The scheduler creates the file before it writes it: wait for its contents.
+    def written() -> bool:
+        return _scheduler_address(sched_file) is not None
+
+    _wait_for("the scheduler", written)
+    address = _scheduler_address(sched_file)
+    assert address is not None
     worker = [str(DASK), "worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard",
               "--host", "127.0.0.1"]  # fmt: skip
     workers = [spawn([*worker, "--name", f"w{i}"], f"worker{i}") for i in range(2)]
