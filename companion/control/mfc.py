@@ -299,7 +299,9 @@ class PidController:
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
         self.on_ground = False
-        """Same attribute as :attr:`MfcController.on_ground`; the PID learns nothing anyway."""
+        """Same attribute as :attr:`MfcController.on_ground`: while True the integrator
+        is held (a vehicle on its legs cannot turn, so a rate error there is no
+        torque to trim; PX4's rate controller holds its integrator while landed)."""
 
     def reset(self) -> None:
         self._pid.reset()
@@ -324,7 +326,10 @@ class PidController:
         if dt_s < self._dt_min or dt_s > self._dt_max:
             self.dt_clamped_events += 1
             dt_s = self._dt_min if dt_s < self._dt_min else self._dt_max
-        u = self._pid.update(dt_s, rate_ref_rad_s, rate_frd_rad_s, self._sat_pos, self._sat_neg)
+        u = self._pid.update(
+            dt_s, rate_ref_rad_s, rate_frd_rad_s, self._sat_pos, self._sat_neg,
+            integrate=not self.on_ground,
+        )  # fmt: skip
         mix = self.mixer.mix(thrust, u[0], u[1], u[2])
         sat = mix.saturated_axes
         self._sat_pos = (sat[0] and u[0] > 0, sat[1] and u[1] > 0, sat[2] and u[2] > 0)

@@ -94,6 +94,8 @@ class RatePid:
         measured_rad_s: Vec3,
         saturated_pos: tuple[bool, bool, bool] = (False, False, False),
         saturated_neg: tuple[bool, bool, bool] = (False, False, False),
+        *,
+        integrate: bool = True,
     ) -> Vec3:
         """One update; returns normalised torques (roll, pitch, yaw).
 
@@ -101,7 +103,8 @@ class RatePid:
         non-finite setpoint component falls back to the measured rate (zero
         error), as PX4 does; ``saturated_pos``/``saturated_neg`` tell which
         directions the mixer could not realise last time, so the integrator
-        does not wind up there.
+        does not wind up there. ``integrate`` False holds the integrator where it is
+        (on the ground, as PX4's rate controller does while landed).
         """
         out = [0.0, 0.0, 0.0]
         primed = self._primed
@@ -120,7 +123,9 @@ class RatePid:
             self._prev_rate[i] = w
             integ = self._integral[i]
             di = g.ki * e * dt_s
-            if not ((di > 0.0 and saturated_pos[i]) or (di < 0.0 and saturated_neg[i])):
+            if integrate and not (
+                (di > 0.0 and saturated_pos[i]) or (di < 0.0 and saturated_neg[i])
+            ):
                 integ = min(g.i_limit, max(-g.i_limit, integ + di))
             self._integral[i] = integ
             u = g.kp * e + integ + g.kff * sp - g.kd * self._d_state[i]

@@ -124,3 +124,28 @@ def test_pid_controller_anti_windup_from_mixer_feedback() -> None:
     assert ctrl._pid.integral[0] == pytest.approx(0.2 * 50.0 * dt, rel=1e-12)
     assert out.f_hat == (0.0, 0.0, 0.0)
     assert out.error == (-50.0, 0.0, 0.0)
+
+
+def test_integrator_held_while_not_integrating() -> None:
+    """``integrate=False`` holds the integrator where it is; P, FF and D still act."""
+    pid = RatePid(GAINS)
+    pid.update(0.01, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    held = pid.integral
+    assert held[0] == pytest.approx(2.0 * 1.0 * 0.01)
+    out = pid.update(0.01, (1.0, 0.0, 0.0), (0.0, 0.0, 0.0), integrate=False)
+    assert pid.integral == held
+    assert out[0] == pytest.approx(0.5 * 1.0 + held[0] + 0.1 * 1.0)
+
+
+def test_pid_controller_holds_its_integrator_on_the_ground() -> None:
+    """On its legs a held roll stick is a rate error the vehicle cannot answer; the
+    integrator must not wind up there and tip the vehicle at lift-off (PX4 holds it
+    while landed). In the air it integrates again."""
+    ctrl = PidController(PX4_DEFAULT_GAINS, f450_mixer())
+    ctrl.on_ground = True
+    for _ in range(500):  # 2 s of a 1 rad/s roll request at 250 Hz
+        ctrl.update(0.004, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.3)
+    assert ctrl._pid.integral == (0.0, 0.0, 0.0)
+    ctrl.on_ground = False
+    ctrl.update(0.004, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.3)
+    assert ctrl._pid.integral[0] == pytest.approx(PX4_DEFAULT_GAINS.roll.ki * 1.0 * 0.004)
