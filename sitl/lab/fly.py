@@ -27,6 +27,7 @@ import numpy as np
 
 from companion.control import AXES
 from companion.records import move_earlier
+from sitl.lab import children
 from sitl.lab.simulate import FlightRecord
 from sitl.link_model import LINK_PROFILES, LinkSpec
 
@@ -214,8 +215,8 @@ def fly_mavlink(
     ]  # fmt: skip
     t0 = time.monotonic()
     with (out / "companion.stderr").open("wb") as c_err, (out / "sitl.stderr").open("wb") as s_err:
-        comp = subprocess.Popen(comp_cmd, stdout=subprocess.DEVNULL, stderr=c_err, env=env)
-        sitl = subprocess.Popen(sitl_cmd, stdout=subprocess.DEVNULL, stderr=s_err, env=env)
+        comp = children.start(comp_cmd, stdout=subprocess.DEVNULL, stderr=c_err, env=env)
+        sitl = children.start(sitl_cmd, stdout=subprocess.DEVNULL, stderr=s_err, env=env)
         if on_started is not None:
             on_started(sitl, comp)
         try:

@@ -84,6 +84,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from sitl.lab import children
+
 __all__ = ["echo_server", "run_harness", "run_loop_bench"]
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -361,7 +363,7 @@ def run_loop_bench(
         procs = []
         for c, e in zip(cmds, errs, strict=True):
             with e.open("wb") as f:
-                procs.append(subprocess.Popen(c, stdout=subprocess.DEVNULL, stderr=f))
+                procs.append(children.start(c, stdout=subprocess.DEVNULL, stderr=f))
         try:
             time.sleep(1.5)  # imports and socket set-up
             for p, e in zip(procs, errs, strict=True):

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from sitl.lab import children
+
 ROOT = Path(__file__).resolve().parents[2]
 PROFILE = ROOT / "vehicle_profiles" / "f450.yaml"
 
@@ -85,7 +87,7 @@ def start_sitl(tmp_path: Path) -> Iterator[Callable[..., SitlProcess]]:
         ]
         env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
         with stderr_path.open("wb") as err:
-            proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
+            proc = children.start(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
         sp = SitlProcess(proc, log_path, stderr_path)
         started.append(sp)
         return sp

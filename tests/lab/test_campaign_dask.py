@@ -27,7 +27,7 @@ import pytest
 
 from companion.config import DEFAULT_CONTROLLER, load_controller
 from companion.profile import load_profile
-from sitl.lab import campaign
+from sitl.lab import campaign, children
 from sitl.lab.campaign import FlightSpec, run_campaign, write_outputs
 from sitl.lab.campaign_store import CampaignStore
 from sitl.lab.executor import Executor
@@ -75,8 +75,8 @@ def spawn(logs: Path) -> Iterator[Callable[..., subprocess.Popen[bytes]]]:
 
     def start(args: list[str], name: str) -> subprocess.Popen[bytes]:
         with (logs / f"{name}.stderr").open("wb") as err:
-            proc = subprocess.Popen(args, cwd=ROOT, stdout=err, stderr=err,
-                                    start_new_session=True)  # fmt: skip
+            proc = children.start(args, cwd=ROOT, stdout=err, stderr=err,
+                                   start_new_session=True)  # fmt: skip
         procs.append(proc)
         return proc
 

@@ -20,6 +20,7 @@ import aiomqtt
 import pytest
 
 from companion.telemetry import MqttTelemetry, parse_mqtt_url
+from sitl.lab import children
 
 PREFIX = "mfc/f450"
 
@@ -138,7 +139,7 @@ class Broker:
 
     def start(self) -> None:
         with open(self.log, "ab") as out:
-            self.proc = subprocess.Popen(
+            self.proc = children.start(
                 [self.exe, "-c", str(self.conf)], stdout=out, stderr=subprocess.STDOUT
             )
         deadline = time.monotonic() + 10.0
