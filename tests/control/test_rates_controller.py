@@ -14,8 +14,8 @@ from companion.config import (
 def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     """mfc_rates.yaml differs from mfc_default.yaml only where its header says:
     roll/pitch margin 1.0 and kd 10, a 60 Hz prefilter, none of the lag
-    scaling's later changes (authority easing, margin_min, lag_scaling_max and _min)
-    and no identification of the loop's delay."""
+    scaling's later changes (authority easing, margin_min, lag_scaling_max and _min),
+    no identification of the loop's delay, and the yaw margin left at 0.8."""
     base = load_controller(DEFAULT_CONTROLLER)
     rates = load_controller(RATES_CONTROLLER)
     assert isinstance(base, MfcConfig) and isinstance(rates, MfcConfig)
@@ -41,7 +41,11 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     b_yaw, r_yaw = base.axes.yaw, rates.axes.yaw
     assert b_yaw.model_copy(update=no_delay) == r_yaw.model_copy(update=no_delay)
     assert b_yaw.alpha_adapt is not None and r_yaw.alpha_adapt is not None
-    assert b_yaw.alpha_adapt.model_copy(update={"delay_candidates_s": ()}) == r_yaw.alpha_adapt
+    assert (b_yaw.alpha_adapt.margin, r_yaw.alpha_adapt.margin) == (1.0, 0.8)
+    assert (
+        b_yaw.alpha_adapt.model_copy(update={"delay_candidates_s": (), "margin": 0.8})
+        == r_yaw.alpha_adapt
+    )
     assert (base.prefilter_hz, rates.prefilter_hz) == (25.0, 60.0)
     same_top = {"axes": None, "prefilter_hz": None}
     assert base.model_copy(update=same_top) == rates.model_copy(update=same_top)
