@@ -189,6 +189,11 @@ class MfcAxisConfig(StrictModel):
         description="smallest factor a lag slower than actuator_tau_s cuts the gains to; "
         "null: no floor",
     )
+    window_lag_scaled: bool = Field(
+        False,
+        description="a lag faster than actuator_tau_s shortens window_s by the factor it "
+        "raises the gains by (at most lag_scaling_max)",
+    )
     delay_kd_limit: float = Field(
         0.0,
         ge=0.0,
@@ -212,6 +217,8 @@ class MfcAxisConfig(StrictModel):
             self.lag_scaling_max is not None or self.lag_scaling_min is not None
         ):
             raise ValueError("lag_scaling_max and lag_scaling_min need lag_scaled_gains")
+        if self.window_lag_scaled and not (self.lag_scaled_gains and self.estimator == "window"):
+            raise ValueError("window_lag_scaled needs lag_scaled_gains and estimator: window")
         if (
             self.lag_scaling_authority_ref > 0.0
             and not self.lag_scaled_gains
@@ -373,6 +380,7 @@ def mfc_gains(cfg: MfcConfig) -> MfcGains:
             lag_scaling_authority_ref=a.lag_scaling_authority_ref,
             lag_scaling_max=math.inf if a.lag_scaling_max is None else a.lag_scaling_max,
             lag_scaling_min=0.0 if a.lag_scaling_min is None else a.lag_scaling_min,
+            window_lag_scaled=a.window_lag_scaled,
             delay_kd_limit=a.delay_kd_limit,
             adapt=None
             if a.alpha_adapt is None

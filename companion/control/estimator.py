@@ -123,6 +123,12 @@ class WindowEstimator:
         self.u_mean = 0.0
         self.y_m = 0.0
 
+    def set_window(self, window_s: float) -> None:
+        """Change the window's duration from the next update on: a shorter one drops
+        its oldest intervals then; a longer one fills as the intervals come."""
+        _check_args(self._order, self._alpha, window_s)
+        self._window_s = window_s * (1.0 - 1e-9)
+
     def update(self, dt_s: float, rate: float, u_prev: float) -> float:
         r"""Add the interval that just ended and return the new estimate.
 
@@ -214,6 +220,11 @@ class AlgebraicEstimator:
         self._s_t = 0.0
         self._prev_rate: float | None = None
         self.f_hat = 0.0
+
+    def set_window(self, window_s: float) -> None:
+        """As :meth:`WindowEstimator.set_window`."""
+        _check_args(self._order, self._alpha, window_s)
+        self._window_s = window_s * (1.0 - 1e-9)
 
     def update(self, dt_s: float, rate: float, u_prev: float) -> float:
         prev = self._prev_rate

@@ -110,6 +110,10 @@ class MfcAxisGains:
     lag_scaling_min: float = 0.0
     """With ``lag_scaled_gains``, the smallest factor (<= 1) a lag slower than
     ``actuator_tau_s`` may cut the gains to (0: no floor)."""
+    window_lag_scaled: bool = False
+    """With ``lag_scaled_gains``, a fast lag shortens the estimate's window by the
+    factor it raises the gains by (``window_s`` divided by at most
+    ``lag_scaling_max``): the window's delay bounds the loop as the motors do."""
     delay_kd_limit: float = 0.0
     """With an identified loop delay ``D`` (``adapt.delay_candidates_s``), kd is
     at most ``delay_kd_limit / D`` (kp by the square of the same cut): the phase
@@ -151,6 +155,8 @@ class MfcAxisGains:
             self.lag_scaling_max != math.inf or self.lag_scaling_min != 0.0
         ):
             raise ValueError("lag_scaling_max and lag_scaling_min need lag_scaled_gains")
+        if self.window_lag_scaled and not (self.lag_scaled_gains and self.estimator == "window"):
+            raise ValueError("window_lag_scaled needs lag_scaled_gains and the window estimator")
         if self.lag_scaling_authority_ref > 0.0 and not self.lag_scaled_gains and margin_min <= 0.0:
             raise ValueError("lag_scaling_authority_ref needs lag_scaled_gains or adapt.margin_min")
         if not (math.isfinite(self.delay_kd_limit) and self.delay_kd_limit >= 0.0):
@@ -216,6 +222,8 @@ class IntelligentController:
         "_u_a",
         "_u_hist",
         "_u_hist_i",
+        "_window_s",
+        "_window_scaled",
         "adapting",
         "e",
         "e_dot",
@@ -255,6 +263,8 @@ class IntelligentController:
         self._authority_ref = gains.lag_scaling_authority_ref
         self._lag_max = gains.lag_scaling_max
         self._lag_min = gains.lag_scaling_min
+        self._window_s = gains.window_s
+        self._window_scaled = gains.window_lag_scaled
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
         self._delayed = gains.adapt is not None and bool(gains.adapt.delay_candidates_s)
@@ -452,6 +462,8 @@ class IntelligentController:
             authority = ident.alpha / ident.margin * self._scale  # rad/s^m, full scale
             if authority > self._authority_ref:
                 g = min(1.0 / r, math.sqrt(authority / self._authority_ref))
+        if self._window_scaled:
+            self._est.set_window(self._window_s / r if r > 1.0 else self._window_s)
         kd = self._kd * r * g
         kp = self._kp * (r * r if self.order == 2 else r)
         if self._delay_kd > 0.0 and ident is not None and ident.delay > 0.0:

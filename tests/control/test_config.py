@@ -214,14 +214,21 @@ def _then(*steps: Callable[[dict[str, Any]], None]) -> Callable[[dict[str, Any]]
         pytest.param(
             _then(
                 _set("axes.yaw.lag_scaled_gains", False),
+                _set("axes.yaw.window_lag_scaled", False),
                 _set("axes.yaw.lag_scaling_authority_ref", 150.0),
             ),
             "lag_scaling_authority_ref needs lag_scaled_gains or alpha_adapt.margin_min",
             id="authority-reference-reaching-nothing",
         ),
         pytest.param(
+            _set("axes.yaw.lag_scaled_gains", False),
+            "axes.yaw: window_lag_scaled needs lag_scaled_gains and estimator: window",
+            id="window-scaling-without-lag-scaling",
+        ),
+        pytest.param(
             _then(
                 _set("axes.yaw.lag_scaled_gains", False),
+                _set("axes.yaw.window_lag_scaled", False),
                 _delete("axes.yaw.alpha_adapt"),
                 _set("axes.yaw.estimator", "algebraic"),
             ),

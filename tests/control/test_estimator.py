@@ -103,6 +103,37 @@ def test_window_holds_t_over_dt_intervals(order: int, rate_hz: float, n_expected
     np.testing.assert_allclose(dev[affected], -ALPHA * 10.0 / n_expected, rtol=1e-6)
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_set_window_changes_how_many_intervals_the_estimate_holds(order: int) -> None:
+    """At 1 kHz, 0.02 s then 0.01 s from update 40 on: one command the plant never
+    received (off by 10, at update 60) moves the estimate by alpha * 10 / 10 for 10
+    updates. Back to 0.02 s at update 90, the window fills again interval by
+    interval: a second slip at update 100 is held for 20 updates, by alpha * 10 / 20."""
+    n = 140
+    dts = np.full(n, 0.001)
+    u_told = np.full(n, 5.0)
+    u_told[60] += 10.0
+    u_told[100] += 10.0
+    est = WindowEstimator(order, ALPHA, 0.02)
+    rate = 0.0
+    est.update(0.001, rate, 0.0)
+    dev = []
+    for k in range(n):
+        if k == 40:
+            est.set_window(0.01)
+        if k == 90:
+            est.set_window(0.02)
+        rate = rate + 0.001 * (F_TRUE + ALPHA * 5.0) if order == 2 else F_TRUE + ALPHA * 5.0
+        dev.append(est.update(float(dts[k]), rate, float(u_told[k])) - F_TRUE)
+    d = np.array(dev)
+    affected = np.flatnonzero(np.abs(d) > 1e-6)
+    np.testing.assert_array_equal(affected, np.r_[np.arange(60, 70), np.arange(100, 120)])
+    np.testing.assert_allclose(d[60:70], -ALPHA * 10.0 / 10, rtol=1e-6)
+    np.testing.assert_allclose(d[100:120], -ALPHA * 10.0 / 20, rtol=1e-6)
+    with pytest.raises(ValueError, match="window_s"):
+        est.set_window(0.0)
+
+
 def test_window_estimator_slowly_varying_f_m2_is_the_window_average() -> None:
     """m = 2, F = F0 + A sin(2 pi f t), f = 1 Hz, T = 0.02 s, 1 kHz.
 

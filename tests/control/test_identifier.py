@@ -18,7 +18,13 @@ from companion.config import (
     load_controller,
     mfc_gains,
 )
-from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains, MfcController
+from companion.control import (
+    AlphaAdaptation,
+    IntelligentController,
+    MfcAxisGains,
+    MfcController,
+    WindowEstimator,
+)
 from companion.control.identifier import PlantIdentifier
 from companion.profile import load_profile
 
@@ -214,6 +220,11 @@ def test_settings_that_would_reach_nothing_are_refused() -> None:
         ("lag_scaled_gains needs adapt", {"lag_scaled_gains": True, "adapt": ADAPT}),
         ("need lag_scaled_gains", {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_max": 1.0}),
         ("need lag_scaled_gains", {"lag_scaling_min": 0.5}),
+        ("window_lag_scaled needs", {"window_lag_scaled": True}),
+        (
+            "window_lag_scaled needs",
+            {"actuator_tau_s": 0.03, "adapt": ADAPT, "window_lag_scaled": True},
+        ),
         (
             "lag_scaling_authority_ref needs",
             {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_authority_ref": 150.0},
@@ -330,6 +341,28 @@ def test_a_fast_lag_raises_kd_at_most_by_lag_scaling_max(cap: float, want_r: flo
     want = -(ax.f_hat + 15.0 * want_r * ax.e_dot) / ax.alpha
     assert abs(want) < 500.0
     assert got == pytest.approx(want, rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("tau", "want_window_s"), [(0.01, 0.01), (0.02, 0.02 * 0.02 / 0.03), (0.08, 0.02)]
+)
+def test_a_fast_lag_shortens_the_window_as_it_raises_kd(tau: float, want_window_s: float) -> None:
+    """window_lag_scaled: identified at 10 ms against the configured 30 ms, kd is raised
+    by lag_scaling_max (2) and the 20 ms window shortened by as much; at 20 ms, by
+    30/20; a slow lag (80 ms) cuts kd and leaves the window. reset() restores it."""
+    gains = MfcAxisGains(
+        order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_max=2.0,
+        window_lag_scaled=True,
+    )  # fmt: skip
+    ax = IntelligentController(gains)
+    _fly_a_lag(ax, 2, tau=tau)
+    assert ax.tau_s == tau
+    est = ax._est
+    assert isinstance(est, WindowEstimator)
+    assert est._s_t == pytest.approx(want_window_s, abs=0.0011)  # whole 1 ms intervals
+    ax.reset()
+    assert est._window_s == pytest.approx(0.02)
 
 
 @pytest.mark.parametrize(("floor", "want_r"), [(0.0, 0.375), (0.5, 0.5), (0.3, 0.375)])

@@ -14,8 +14,8 @@ from companion.config import (
 def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     """mfc_rates.yaml differs from mfc_default.yaml only where its header says:
     roll/pitch margin 1.0 and kd 10, a 60 Hz prefilter, none of the lag
-    scaling's later changes (authority easing, margin_min, lag_scaling_max and _min),
-    no identification of the loop's delay, and the yaw margin left at 0.8."""
+    scaling's later changes (authority easing, margin_min, lag_scaling_max and _min, the
+    lag-scaled window), no identification of the loop's delay, and the yaw margin left at 0.8."""
     base = load_controller(DEFAULT_CONTROLLER)
     rates = load_controller(RATES_CONTROLLER)
     assert isinstance(base, MfcConfig) and isinstance(rates, MfcConfig)
@@ -26,8 +26,9 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         assert (b.kd, r.kd) == (25.0, 10.0)
         assert (b.lag_scaling_authority_ref, r.lag_scaling_authority_ref) == (150.0, 0.0)
         assert (b.alpha_adapt.margin_min, r.alpha_adapt.margin_min) == (0.3, 0.0)
-        assert (b.lag_scaling_max, r.lag_scaling_max) == (1.0, None)
+        assert (b.lag_scaling_max, r.lag_scaling_max) == (2.0, None)
         assert (b.lag_scaling_min, r.lag_scaling_min) == (0.7, None)
+        assert (b.window_lag_scaled, r.window_lag_scaled) == (True, False)
         # Everything else is the same law.
         assert (b.delay_kd_limit, r.delay_kd_limit) == (0.2, 0.0)
         assert b.alpha_adapt.delay_candidates_s and not r.alpha_adapt.delay_candidates_s
@@ -35,9 +36,10 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         same = {
             "alpha_adapt": None, "kd": 0.0, "lag_scaling_authority_ref": 0.0,
             "lag_scaling_max": None, "lag_scaling_min": None, "delay_kd_limit": 0.0,
+            "window_lag_scaled": False,
         }  # fmt: skip
         assert b.model_copy(update=same) == r.model_copy(update=same)
-    no_delay = {"delay_kd_limit": 0.0, "alpha_adapt": None}
+    no_delay = {"delay_kd_limit": 0.0, "alpha_adapt": None, "window_lag_scaled": False}
     b_yaw, r_yaw = base.axes.yaw, rates.axes.yaw
     assert b_yaw.model_copy(update=no_delay) == r_yaw.model_copy(update=no_delay)
     assert b_yaw.alpha_adapt is not None and r_yaw.alpha_adapt is not None
@@ -46,7 +48,8 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         b_yaw.alpha_adapt.model_copy(update={"delay_candidates_s": (), "margin": 0.8})
         == r_yaw.alpha_adapt
     )
-    assert (base.prefilter_hz, rates.prefilter_hz) == (25.0, 60.0)
+    assert b_yaw.window_lag_scaled and not r_yaw.window_lag_scaled
+    assert (base.prefilter_hz, rates.prefilter_hz) == (30.0, 60.0)
     same_top = {"axes": None, "prefilter_hz": None}
     assert base.model_copy(update=same_top) == rates.model_copy(update=same_top)
 
