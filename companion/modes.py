@@ -76,6 +76,9 @@ class ModePath(Engagement):
         self.landed_state_seen = False
         """An EXTENDED_SYS_STATE with a landed state came (the modes need it)."""
         self._applied_thrust: float | None = None
+        self._rate_saturated: tuple[bool, bool, bool] | None = None
+        """Which axes our rate loop's mixer saturated on the last command sent
+        (None: not known: nothing sent, or the autopilot's rate loop flies it)."""
         self.mission = opts.mission
         self.mission_path: MissionPath | None = None
         """The mission as flown from where this engagement started (None before)."""
@@ -176,8 +179,9 @@ class ModePath(Engagement):
             self.controller.reset()
         if self.angle is not None:
             return self.angle.reference(
-                dt, q, gyro, self._deflection, ref[2], on_ground=on_ground
-            ), thrust
+                dt, q, gyro, self._deflection, ref[2], on_ground=on_ground,
+                rate_saturated=self._rate_saturated,
+            ), thrust  # fmt: skip
         hold = self.hold
         assert hold is not None and self._pos is not None
         pos, vel = self._pos
@@ -186,7 +190,7 @@ class ModePath(Engagement):
             return cmd.rate_ref_frd_rad_s, cmd.thrust
         cmd = hold.update(
             dt, q, gyro, pos, vel, self._deflection, thrust, ref[2],
-            applied_thrust=self._applied_thrust,
+            applied_thrust=self._applied_thrust, rate_saturated=self._rate_saturated,
         )  # fmt: skip
         return cmd.rate_ref_frd_rad_s, cmd.thrust
 
@@ -220,7 +224,7 @@ class ModePath(Engagement):
         take_off = path.target_at(t)[2] < pos[2] - 0.3  # the waypoint flown to is above
         return hold.fly(
             dt, q, gyro, pos, vel, path.at(t), take_off=take_off,
-            applied_thrust=self._applied_thrust,
+            applied_thrust=self._applied_thrust, rate_saturated=self._rate_saturated,
         )  # fmt: skip
 
     def _stale_estimates(self) -> tuple[str, str] | None:
@@ -274,6 +278,7 @@ class ModePath(Engagement):
             take_over = 0.0 if self.controller.on_ground else thrust if manual else None
             self.hold.reset(thrust=take_over)
             self._applied_thrust = None
+            self._rate_saturated = None
             self.mission_path = None  # an engagement starts the mission from where it is
 
     def _reset_laws(self) -> None:

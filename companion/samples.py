@@ -320,6 +320,7 @@ class SamplePath(ModePath):
             sent = self._send_output(t_s, out, ref, thrust)
         else:
             self._applied_thrust = None  # the outer loops learn only what was sent
+            self._rate_saturated = None
         t_sent = time.perf_counter()
         if self._mode_events:
             self._flush_mode_events()
@@ -367,6 +368,7 @@ class SamplePath(ModePath):
             r, p, y, t = controls
             self.link.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
             self._applied_thrust = t
+            self._rate_saturated = out.saturated_axes
             self.n_commands += 1
             return NO_RATES
         sp, thrust_out, replaced = self.step.rates_command(out, ref, thrust)
@@ -374,6 +376,7 @@ class SamplePath(ModePath):
             self._gated(replaced)
         self.link.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
         self._applied_thrust = thrust_out
+        self._rate_saturated = None  # the autopilot's rate loop: its mixer is not seen
         self.n_commands += 1
         return sp
 

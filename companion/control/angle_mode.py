@@ -34,6 +34,11 @@ from companion.control.attitude import (
     AttitudeLoop,
     AttitudeSetpoint,
 )
+from companion.control.outer import (
+    DEFAULT_SATURATION_BACKOFF,
+    GainBackoff,
+    SaturationBackoff,
+)
 from companion.control.quaternion import Quat, Vec3
 
 __all__ = ["MAX_TILT_DEG", "AngleMode", "stick_tilt_rad"]
@@ -68,11 +73,17 @@ class AngleMode:
     """
 
     def __init__(
-        self, gains: AttitudeGains = DEFAULT_ATTITUDE_GAINS, max_tilt_deg: float = MAX_TILT_DEG
+        self,
+        gains: AttitudeGains = DEFAULT_ATTITUDE_GAINS,
+        max_tilt_deg: float = MAX_TILT_DEG,
+        backoff: SaturationBackoff = DEFAULT_SATURATION_BACKOFF,
     ) -> None:
         if not (0.0 < max_tilt_deg <= 60.0):
             raise ValueError(f"max_tilt_deg: expected (0, 60] deg, got {max_tilt_deg!r}")
         self.loop = AttitudeLoop(gains)
+        self.backoff = GainBackoff(backoff)
+        """The roll and pitch gain's backoff while the rate loop saturates
+        (:class:`~companion.control.outer.SaturationBackoff`)."""
         self.max_tilt_rad = math.radians(max_tilt_deg)
         self.setpoint = AttitudeSetpoint()
         """The last setpoint asked of the attitude loop."""
@@ -80,6 +91,8 @@ class AngleMode:
     def reset(self) -> None:
         """Forget what the attitude loop learnt (on engagement, a clock reset)."""
         self.loop.reset()
+        self.backoff.reset()
+        self.loop.set_gain_scale(1.0)
 
     def reference(
         self,
@@ -90,6 +103,7 @@ class AngleMode:
         yaw_rate_rad_s: float,
         *,
         on_ground: bool,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
     ) -> Vec3:
         """The body-rate reference (FRD, rad/s) for this sample.
 
@@ -108,6 +122,9 @@ class AngleMode:
             The pilot's yaw rate about the vertical, rad/s.
         on_ground
             The autopilot says the vehicle is landed.
+        rate_saturated
+            Which axes our rate loop's mixer saturated on the last command
+            (``None``: not known): the backoff of the roll and pitch gain.
         """
         roll, pitch = stick_tilt_rad(deflection[0], deflection[1], self.max_tilt_rad)
         yaw_rate = yaw_rate_rad_s if math.isfinite(yaw_rate_rad_s) else 0.0
@@ -115,4 +132,8 @@ class AngleMode:
         if on_ground:
             self.loop.reset()
             return _ZERO3
+        b = self.backoff
+        before = b.scale
+        if b.update(dt_s, rate_saturated) != before:
+            self.loop.set_gain_scale(b.scale)
         return self.loop.update(dt_s, q_wxyz, gyro_frd_rad_s, self.setpoint)

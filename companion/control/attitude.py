@@ -107,7 +107,7 @@ class AttitudeGains:
         The rate loop's expected lag in the estimate of ``F``, s (0: the paper's).
     """
 
-    kp_roll_pitch_1_s: float = 4.0
+    kp_roll_pitch_1_s: float = 5.5
     kp_yaw_1_s: float = 2.5
     yaw_weight: float = 0.4
     rate_max_roll_pitch_rad_s: float = math.radians(220.0)
@@ -186,6 +186,8 @@ class AttitudeLoop:
         :math:`\hat F` per axis, rad/s.
     saturated
         Per axis, whether the rate reference was at its limit.
+    gain_scale
+        The roll and pitch gain's scale (:meth:`set_gain_scale`).
     fault
         True when a non-finite or invalid input was replaced (see :meth:`update`).
     """
@@ -201,6 +203,7 @@ class AttitudeLoop:
         "error_frd_rad",
         "f_hat",
         "fault",
+        "gain_scale",
         "nonfinite_events",
         "saturated",
     )
@@ -209,6 +212,7 @@ class AttitudeLoop:
         self._gains = gains
         w = gains.yaw_weight
         self._k = (gains.kp_roll_pitch_1_s, gains.kp_roll_pitch_1_s, gains.kp_yaw_1_s / w)
+        self.gain_scale = 1.0
         rp, yw = gains.rate_max_roll_pitch_rad_s, gains.rate_max_yaw_rad_s
         self._lim = (rp, rp, yw)
         self._est = (
@@ -223,6 +227,14 @@ class AttitudeLoop:
     @property
     def gains(self) -> AttitudeGains:
         return self._gains
+
+    def set_gain_scale(self, scale: float) -> None:
+        """Scale the roll and pitch gain by ``scale`` from the next update (the
+        heading's stays: :class:`~companion.control.outer.SaturationBackoff`)."""
+        g = self._gains
+        k = g.kp_roll_pitch_1_s * scale
+        self._k = (k, k, self._k[2])
+        self.gain_scale = scale
 
     def reset(self) -> None:
         """Forget the windows and the last reference (on disarm, on hand-back)."""

@@ -164,6 +164,7 @@ class HoldMode:
         yaw_rate_rad_s: float,
         *,
         applied_thrust: float | None = None,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
     ) -> HoldCommand:
         """One sample (parameters as :meth:`OuterController.update`; ``deflection``,
         ``throttle`` and ``yaw_rate_rad_s``: the pilot's sticks)."""
@@ -194,6 +195,7 @@ class HoldMode:
             roll, pitch = stick_tilt_rad(deflection[0], deflection[1], self.max_tilt_rad)
             att_sp = self.attitude_setpoint = AttitudeSetpoint(roll, pitch, None, yaw_rate)
             self.setpoint = OuterSetpoint(vertical=vsp, yaw_rate_rad_s=yaw_rate)
+            outer.note_rate_saturation(dt_s, rate_saturated)
             rate_ref = outer.attitude.update(dt_s, q_wxyz, gyro_frd_rad_s, att_sp)
             return HoldCommand(rate_ref, thrust)
 
@@ -208,7 +210,7 @@ class HoldMode:
         self.setpoint = OuterSetpoint(hsp, vsp, None, yaw_rate)
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
-            applied_thrust=applied_thrust,
+            applied_thrust=applied_thrust, rate_saturated=rate_saturated,
         )  # fmt: skip
         self.attitude_setpoint = o.attitude_setpoint
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)
@@ -224,6 +226,7 @@ class HoldMode:
         *,
         take_off: bool,
         applied_thrust: float | None = None,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
     ) -> HoldCommand:
         """Fly a given setpoint (a mission's) instead of the sticks.
 
@@ -248,7 +251,7 @@ class HoldMode:
         self.setpoint = setpoint
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, setpoint,
-            applied_thrust=applied_thrust,
+            applied_thrust=applied_thrust, rate_saturated=rate_saturated,
         )  # fmt: skip
         self.attitude_setpoint = o.attitude_setpoint
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)

@@ -83,24 +83,26 @@ class HorizontalGains:
     kp_velocity_1_s
         :math:`K_v`, 1/s: velocity error decay rate.
     kp_position_1_s
-        :math:`K_x`, 1/s: position error to velocity reference (0.75: damping
-        sqrt(K_v / K_x) / 2 = 1 / sqrt(2) on an ideal velocity loop).
+        :math:`K_x`, 1/s: position error to velocity reference (1.0 with
+        :math:`K_v` 2.0: damping sqrt(K_v / K_x) / 2 = 1 / sqrt(2) on an ideal
+        velocity loop).
     speed_max_m_s
         Bound on the velocity reference's magnitude, m/s (12: PX4's
         ``MPC_XY_VEL_MAX``; above the sticks' 10 m/s, ``MPC_VEL_MANUAL``, so a
         full stick, and a fast leg with its position error, are not cut short).
     tilt_max_rad
-        Bound on the tilt, rad, in (0, pi/2).
+        Bound on the tilt, rad, in (0, pi/2) (45 deg: PX4's ``MPC_TILTMAX_AIR``,
+        as its position controller; 35 deg before the gains were raised).
     window_s, inner_lag_s
         Window and lag (the attitude loop) of the estimate of ``F``, s.
     """
 
-    kp_velocity_1_s: float = 1.5
-    kp_position_1_s: float = 0.75
+    kp_velocity_1_s: float = 2.0
+    kp_position_1_s: float = 1.0
     speed_max_m_s: float = 12.0
-    tilt_max_rad: float = math.radians(35.0)
-    window_s: float = 0.6
-    inner_lag_s: float = 0.35
+    tilt_max_rad: float = math.radians(45.0)
+    window_s: float = 1.0
+    inner_lag_s: float = 0.26
 
     def __post_init__(self) -> None:
         check_positive(
@@ -155,6 +157,8 @@ class HorizontalLoop:
         :math:`\\hat F` per axis, m/s^2.
     limited
         Whether the tilt was clamped.
+    gain_scale
+        The velocity and position gains' scale (:meth:`set_gain_scale`).
     fault
         True when a non-finite input was replaced (see :meth:`update`).
     """
@@ -162,11 +166,14 @@ class HorizontalLoop:
     __slots__ = (
         "_est",
         "_gains",
+        "_kv",
+        "_kx",
         "_tan_max",
         "_v_prev",
         "dt_clamped_events",
         "f_hat",
         "fault",
+        "gain_scale",
         "limited",
         "nonfinite_events",
         "tilt_ne",
@@ -176,6 +183,9 @@ class HorizontalLoop:
     def __init__(self, gains: HorizontalGains = DEFAULT_HORIZONTAL_GAINS) -> None:
         self._gains = gains
         self._tan_max = math.tan(gains.tilt_max_rad)
+        self._kv = gains.kp_velocity_1_s
+        self._kx = gains.kp_position_1_s
+        self.gain_scale = 1.0
         self._est = (
             LagAwareEstimate(gains.window_s, gains.inner_lag_s),
             LagAwareEstimate(gains.window_s, gains.inner_lag_s),
@@ -187,6 +197,13 @@ class HorizontalLoop:
     @property
     def gains(self) -> HorizontalGains:
         return self._gains
+
+    def set_gain_scale(self, scale: float) -> None:
+        """Scale the velocity and position gains by ``scale`` from the next update
+        (:class:`~companion.control.outer.SaturationBackoff`)."""
+        self._kv = self._gains.kp_velocity_1_s * scale
+        self._kx = self._gains.kp_position_1_s * scale
+        self.gain_scale = scale
 
     def reset(self) -> None:
         """Forget the windows and the references (the vehicle is taken to be level
@@ -271,7 +288,7 @@ class HorizontalLoop:
             rn = re = an = ae = 0.0
             pos_sp = None
         if pos_sp is not None:
-            kx = g.kp_position_1_s
+            kx = self._kx
             rn += kx * (pos_sp[0] - pn)
             re += kx * (pos_sp[1] - pe)
         speed = math.hypot(rn, re)
@@ -282,7 +299,7 @@ class HorizontalLoop:
         self.velocity_ref_ne_m_s = (rn, re)
 
         # iP per axis, then the tilt bound on the vector.
-        kv = g.kp_velocity_1_s
+        kv = self._kv
         un = -(fn - an + kv * (vn - rn)) / HORIZONTAL_ALPHA
         ue = -(fe - ae + kv * (ve - re)) / HORIZONTAL_ALPHA
         tan_lim = self._tan_max

@@ -27,6 +27,23 @@ and velocity:
    heading setpoint (the current heading without one), within that limit.
 4. :class:`~companion.control.attitude.AttitudeLoop`: the body-rate reference.
 
+Backing off when the rate loop saturates
+----------------------------------------
+The attitude (roll and pitch), velocity and position gains are scaled by
+:math:`s \in [s_{min}, 1]` (:class:`SaturationBackoff`): :math:`s = 1` while the
+rate loop's mixer saturated roll or pitch in less than ``saturation_low`` of the
+recent samples (a first-order average over ``tau_s``), :math:`s_{min}` above
+``saturation_high``, linear between; the same for the yaw, which gets only the
+headroom the others leave (:mod:`~companion.control.mixer`), with its own,
+higher thresholds (a vehicle near its thrust limit saturates the yaw now and
+then in a plain hover); the lower scale of the two applies. A vehicle with the
+authority and the thrust to spare flies the full gains; one whose rate loop
+runs out of authority (a weak motor, little thrust margin) is asked for less,
+before the collective the mixer shifts for its torques costs it its altitude
+and the yaw its heading. The caller says which axes the rate loop saturated
+(``rate_saturated``); without it (the autopilot's own rate loop, ``--output
+rates``) the gains stay as they are.
+
 No I/O, no clock: ``dt_s`` and the samples come from the caller.
 """
 
@@ -58,12 +75,104 @@ from companion.control.vertical import (
 
 __all__ = [
     "DEFAULT_OUTER_GAINS",
+    "DEFAULT_SATURATION_BACKOFF",
+    "GainBackoff",
     "OuterController",
     "OuterGains",
     "OuterOutput",
     "OuterSetpoint",
+    "SaturationBackoff",
     "altitude_first_tilt_limit",
 ]
+
+
+@dataclass(frozen=True)
+class SaturationBackoff:
+    """How far the outer gains back off when the rate loop saturates (module docstring).
+
+    Attributes
+    ----------
+    scale_min
+        :math:`s_{min}`, in (0, 1]: the gains' share left at full backoff (1: none).
+    saturation_low, saturation_high
+        Share of the recent samples with roll or pitch saturated at which the
+        backoff starts and is complete, 0 <= low < high <= 1.
+    yaw_saturation_low, yaw_saturation_high
+        The same for the yaw.
+    tau_s
+        Time constant of the shares' averages, s.
+    """
+
+    scale_min: float = 0.55
+    saturation_low: float = 0.02
+    saturation_high: float = 0.10
+    yaw_saturation_low: float = 0.10
+    yaw_saturation_high: float = 0.30
+    tau_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.scale_min <= 1.0:
+            raise ValueError(
+                f"SaturationBackoff.scale_min must be in (0, 1], got {self.scale_min!r}"
+            )
+        for pre in ("", "yaw_"):
+            lo, hi = getattr(self, f"{pre}saturation_low"), getattr(self, f"{pre}saturation_high")
+            if not 0.0 <= lo < hi <= 1.0:
+                raise ValueError(
+                    f"SaturationBackoff needs 0 <= {pre}saturation_low < {pre}saturation_high "
+                    f"<= 1, got {lo!r} and {hi!r}"
+                )
+        if not (math.isfinite(self.tau_s) and self.tau_s > 0.0):
+            raise ValueError(f"SaturationBackoff.tau_s must be finite and > 0, got {self.tau_s!r}")
+
+    def scale(self, roll_pitch_share: float, yaw_share: float = 0.0) -> float:
+        """The gains' scale for the shares of samples with roll or pitch, and with
+        yaw, saturated: the lower of the two ramps."""
+        a = self._ramp(roll_pitch_share, self.saturation_low, self.saturation_high)
+        b = self._ramp(yaw_share, self.yaw_saturation_low, self.yaw_saturation_high)
+        return a if a < b else b
+
+    def _ramp(self, share: float, lo: float, hi: float) -> float:
+        if share <= lo:
+            return 1.0
+        if share >= hi:
+            return self.scale_min
+        return 1.0 - (1.0 - self.scale_min) * (share - lo) / (hi - lo)
+
+
+DEFAULT_SATURATION_BACKOFF = SaturationBackoff()
+"""The shipped backoff (``docs/research/outer.md``: the gains raised, backing off)."""
+
+
+class GainBackoff:
+    """The recent shares of saturated samples and the gain scale they give
+    (:class:`SaturationBackoff`), for whichever loops the caller scales."""
+
+    __slots__ = ("_b", "scale", "shares")
+
+    def __init__(self, backoff: SaturationBackoff = DEFAULT_SATURATION_BACKOFF) -> None:
+        self._b = backoff
+        self.reset()
+
+    def reset(self) -> None:
+        self.shares = (0.0, 0.0)
+        """Shares of the recent samples with roll or pitch, and with yaw, saturated."""
+        self.scale = 1.0
+        """The gains' scale now."""
+
+    def update(self, dt_s: float, rate_saturated: tuple[bool, bool, bool] | None) -> float:
+        """Count one sample (``None`` or a ``dt_s`` not finite and > 0: nothing
+        known, nothing changes); returns the scale."""
+        if rate_saturated is None or not (math.isfinite(dt_s) and dt_s > 0.0):
+            return self.scale
+        k = dt_s / self._b.tau_s
+        k = k if k < 1.0 else 1.0
+        rp, yw = self.shares
+        rp += ((1.0 if rate_saturated[0] or rate_saturated[1] else 0.0) - rp) * k
+        yw += ((1.0 if rate_saturated[2] else 0.0) - yw) * k
+        self.shares = (rp, yw)
+        self.scale = self._b.scale(rp, yw)
+        return self.scale
 
 
 @dataclass(frozen=True)
@@ -73,6 +182,7 @@ class OuterGains:
     attitude: AttitudeGains = DEFAULT_ATTITUDE_GAINS
     vertical: VerticalGains = DEFAULT_VERTICAL_GAINS
     horizontal: HorizontalGains = DEFAULT_HORIZONTAL_GAINS
+    backoff: SaturationBackoff = DEFAULT_SATURATION_BACKOFF
 
 
 DEFAULT_OUTER_GAINS = OuterGains()
@@ -107,6 +217,8 @@ class OuterOutput(NamedTuple):
     """Whether the horizontal loop's tilt was clamped (to its max or by altitude first)."""
     fault: bool
     """True when any loop replaced a non-finite input (each loop's ``fault`` says which)."""
+    gain_scale: float = 1.0
+    """The scale of the attitude, velocity and position gains this sample (backoff)."""
 
 
 def altitude_first_tilt_limit(level_thrust: float, thrust_max: float, tilt_max_rad: float) -> float:
@@ -132,17 +244,28 @@ class OuterController:
     and, for the vertical loop, ``on_ground``.
     """
 
-    __slots__ = ("_gains", "attitude", "horizontal", "vertical")
+    __slots__ = ("_backoff", "_gains", "attitude", "horizontal", "vertical")
 
     def __init__(self, gains: OuterGains = DEFAULT_OUTER_GAINS) -> None:
         self._gains = gains
         self.attitude = AttitudeLoop(gains.attitude)
         self.vertical = VerticalLoop(gains.vertical)
         self.horizontal = HorizontalLoop(gains.horizontal)
+        self._backoff = GainBackoff(gains.backoff)
 
     @property
     def gains(self) -> OuterGains:
         return self._gains
+
+    @property
+    def rate_saturation(self) -> tuple[float, float]:
+        """Shares of the recent samples with roll or pitch, and with yaw, saturated."""
+        return self._backoff.shares
+
+    @property
+    def gain_scale(self) -> float:
+        """The scale of the attitude, velocity and position gains (backoff)."""
+        return self._backoff.scale
 
     def reset(self, thrust: float | None = None, hover_thrust: float | None = None) -> None:
         """Forget all state (on disarm, on hand-back). ``thrust`` and
@@ -150,6 +273,23 @@ class OuterController:
         self.attitude.reset()
         self.vertical.reset(thrust, hover_thrust)
         self.horizontal.reset()
+        self._backoff.reset()
+        self.attitude.set_gain_scale(1.0)
+        self.horizontal.set_gain_scale(1.0)
+
+    def note_rate_saturation(
+        self, dt_s: float, rate_saturated: tuple[bool, bool, bool] | None
+    ) -> float:
+        """Count one sample of the rate loop's saturation and scale the gains by
+        the backoff (``update`` does it; a caller flying the attitude loop alone,
+        the angle sticks, calls it itself). Returns the scale."""
+        b = self._backoff
+        before = b.scale
+        s = b.update(dt_s, rate_saturated)
+        if s != before:
+            self.attitude.set_gain_scale(s)
+            self.horizontal.set_gain_scale(s)
+        return s
 
     def update(
         self,
@@ -161,6 +301,7 @@ class OuterController:
         setpoint: OuterSetpoint,
         *,
         applied_thrust: float | None = None,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
     ) -> OuterOutput:
         """One update of the cascade.
 
@@ -179,6 +320,9 @@ class OuterController:
         applied_thrust
             The collective the mixer really applied after the previous update
             (``None``: as sent).
+        rate_saturated
+            Which axes (roll, pitch, yaw) the rate loop's mixer saturated after
+            the previous update (``None``: not known; the backoff stays where it is).
 
         Each loop handles its own non-finite inputs (their ``update`` docstrings);
         an attitude estimate that is not a rotation counts as level at an unknown
@@ -194,6 +338,7 @@ class OuterController:
         yaw_sp = setpoint.yaw_rad
         if yaw_sp is not None:
             heading = yaw_sp
+        self.note_rate_saturation(dt_s, rate_saturated)
 
         vert = self.vertical
         thrust = vert.update(
@@ -228,4 +373,5 @@ class OuterController:
             tilt_lim,
             hor.limited,
             att.fault or vert.fault or hor.fault,
+            self.gain_scale,
         )

@@ -714,6 +714,13 @@ class CascadePid:
             rates = self.attitude.update_q(q, euler_to_quat(0.0, 0.0, heading), yaw_rate)
         return OuterOutput(rates, t, att_sp, t, g.tilt_max_rad, False, True)
 
+    def note_rate_saturation(
+        self, dt_s: float, rate_saturated: tuple[bool, bool, bool] | None
+    ) -> float:
+        """PX4's gains do not back off (as :meth:`OuterController.note_rate_saturation`'s
+        interface): 1."""
+        return 1.0
+
     def update(
         self,
         dt_s: float,
@@ -724,10 +731,12 @@ class CascadePid:
         setpoint: OuterSetpoint,
         *,
         applied_thrust: float | None = None,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
     ) -> OuterOutput:
         """One update of PX4's position controller and attitude controller (module
         docstring); the arguments as :meth:`OuterController.update`'s
-        (``rate_frd_rad_s`` and ``applied_thrust`` unused)."""
+        (``rate_frd_rad_s``, ``applied_thrust`` and ``rate_saturated`` unused: PX4's
+        gains do not back off)."""
         g = self._gains
         vert, hor = self.vertical, self.horizontal
         q = normalise_or_none(q_wxyz)

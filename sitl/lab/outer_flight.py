@@ -431,6 +431,7 @@ def simulate_outer_flight(
     prev_sample_t: float | None = None
     lift_off_t: float | None = None
     applied: float | None = None
+    rate_saturated: tuple[bool, bool, bool] | None = None
 
     names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
              "sp_up_m",
@@ -452,7 +453,7 @@ def simulate_outer_flight(
         return Setpoints(up, climb_m_s=TAKEOFF_CLIMB_M_S), True
 
     def on_sample(t: float, gyro: tuple[float, float, float]) -> tuple[float, ...]:
-        nonlocal prev_sample_t, engaged, lift_off_t, applied
+        nonlocal prev_sample_t, engaged, lift_off_t, applied, rate_saturated
         a, p = est.attitude, est.position
         if a is None or p is None:
             return (0.0,) * n_motors  # disarmed until the estimator streams
@@ -460,6 +461,7 @@ def simulate_outer_flight(
             engaged = True
             outer.reset(thrust=0.0)
             applied = None
+            rate_saturated = None
         sample_dt = t - prev_sample_t if prev_sample_t is not None else 0.0
         prev_sample_t = t
         if lift_off_t is None and not on_ground:
@@ -488,12 +490,14 @@ def simulate_outer_flight(
             rate_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         elif angle_mode:
             att_sp = AttitudeSetpoint(sp.roll_rad, sp.pitch_rad, sp.yaw_rad)
+            outer.note_rate_saturation(sample_dt, rate_saturated)
             rate_ref = att.update(sample_dt, q, gyro, att_sp)
         else:
             hsp = HorizontalSetpoint(sp.velocity_ne_m_s, sp.position_ne_m, sp.accel_ne_m_s2)
             o = outer.update(
                 sample_dt, q, gyro, p.position_ned_m, p.velocity_ned_m_s,
                 OuterSetpoint(hsp, vsp, sp.yaw_rad), applied_thrust=applied,
+                rate_saturated=rate_saturated,
             )  # fmt: skip
             rate_ref, thrust = o.rate_ref_frd_rad_s, o.thrust
             att_sp = o.attitude_setpoint
@@ -506,6 +510,7 @@ def simulate_outer_flight(
             else out.motors
         )
         applied = out.thrust
+        rate_saturated = out.saturated_axes
         step.learn()
         st = quad.state
         cols["t_s"].append(t)

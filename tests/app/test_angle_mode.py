@@ -16,6 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from companion.cli import cli
+from companion.control.attitude import DEFAULT_ATTITUDE_GAINS
 from companion.errors import EXIT_BAD_INPUT, EXIT_ERROR
 from companion.records import read_columnar
 from tests.app.fakes import (
@@ -28,6 +29,7 @@ from tests.app.fakes import (
 from tests.app.flight import LOOSE, PROFILE_PATH, Flight, Start, streams_requested
 
 MSG_ATTITUDE_QUATERNION = 31
+KP = DEFAULT_ATTITUDE_GAINS.kp_roll_pitch_1_s
 DEG = math.pi / 180.0
 
 
@@ -81,8 +83,8 @@ async def test_a_tilted_estimate_with_centred_sticks_is_levelled(start: Start) -
         await settle(2)
     rates = body_rates(f)[n:]
     assert len(rates) >= 20
-    # The attitude loop's K_P (4 1/s) on a 10 deg error: -0.70 rad/s of roll at first.
-    assert rates[0][0] == pytest.approx(-4.0 * 10.0 * DEG, rel=0.02)
+    # The attitude loop's K_P (5.5 1/s) on a 10 deg error: -0.96 rad/s of roll at first.
+    assert rates[0][0] == pytest.approx(-KP * 10.0 * DEG, rel=0.02)
     # This vehicle does not turn (a fake): F learns it, the reference grows, within
     # the loop's 220 deg/s.
     rolls = [r[0] for r in rates]
@@ -101,7 +103,7 @@ async def test_full_right_stick_on_a_level_vehicle_rolls_right(start: Start) -> 
         estimate_and_imu(f, rolled(0.0))
         await settle(2)
     roll = body_rates(f)[n:][0][0]
-    assert roll == pytest.approx(4.0 * 35.0 * DEG, rel=0.02)
+    assert roll == pytest.approx(KP * 35.0 * DEG, rel=0.02)
 
 
 async def test_engagement_waits_for_an_estimate(start: Start) -> None:

@@ -37,9 +37,11 @@ def estimates_and_imu(
     f.imu(gyro)
 
 
-async def engaged(start: Start, mode: str, **opts: object) -> Flight:
+async def engaged(
+    start: Start, mode: str, *, output_override: str = "rates", **opts: object
+) -> Flight:
     # The fake sends no position of its own (position=False): these tests stream it.
-    f = await start(engage="auto", output="rates", mode=mode, position=False, **opts)
+    f = await start(engage="auto", output=output_override, mode=mode, position=False, **opts)
     await streams_requested(f)
     await f.fake.wait_until(
         lambda: (
@@ -213,3 +215,25 @@ async def test_on_the_ground_the_rate_law_forgets_what_it_learnt_in_the_air(
         await settle(2)
     ground = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
     assert abs(ground.body_roll_rate) < 1e-3
+
+
+@pytest.mark.parametrize("output", ["actuator", "rates"])
+async def test_the_outer_gains_back_off_only_when_our_own_rate_loop_saturates(
+    start: Start, output: str
+) -> None:
+    # A roll rate far beyond what the law can answer within its output: with the
+    # actuator output our mixer saturates and the outer gains back off; with the
+    # rates output the autopilot's mixer is not seen, and they stay as they are.
+    f = await engaged(start, "position", output_override=output)
+    hold = f.companion.hold
+    assert hold is not None
+    for _ in range(150):
+        estimates_and_imu(f, gyro=(8.0, -8.0, 0.0))
+        await settle(2)
+    outer = hold.outer
+    if output == "actuator":
+        assert outer.rate_saturation[0] > 0.1
+        assert outer.gain_scale < 1.0
+    else:
+        assert outer.rate_saturation == (0.0, 0.0)
+        assert outer.gain_scale == 1.0

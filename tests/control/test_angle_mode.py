@@ -70,3 +70,23 @@ def test_a_non_finite_stick_or_yaw_rate_is_centred() -> None:
 def test_a_tilt_beyond_sense_is_refused(deg: float) -> None:
     with pytest.raises(ValueError, match="max_tilt_deg"):
         AngleMode(max_tilt_deg=deg)
+
+
+def test_a_saturated_rate_loop_backs_the_roll_and_pitch_gain_off() -> None:
+    # Roll saturated for good: the backoff's floor (0.55); the first sample after a
+    # reset is K_P s times the error. Not known (rates output): no backoff.
+    kp = DEFAULT_ATTITUDE_GAINS.kp_roll_pitch_1_s
+    for sat, scale in (((True, False, False), 0.55), (None, 1.0)):
+        mode = AngleMode()
+        for _ in range(2000):
+            mode.reference(0.004, LEVEL, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0,
+                           on_ground=False, rate_saturated=sat)  # fmt: skip
+        assert mode.backoff.scale == pytest.approx(scale)
+        mode.loop.reset()  # the estimate afresh, the backoff kept
+        first = mode.reference(
+            0.004, LEVEL, (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 0.0, on_ground=False,
+            rate_saturated=sat,
+        )  # fmt: skip
+        assert first[0] == pytest.approx(kp * scale * 0.5 * MAX)
+    mode.reset()
+    assert mode.backoff.scale == 1.0 and mode.loop.gain_scale == 1.0

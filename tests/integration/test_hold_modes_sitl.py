@@ -104,8 +104,9 @@ def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> N
     outer = json.loads((out / "metrics.json").read_text(encoding="utf-8"))["outer"]
     assert outer["mode"] == "position" and not outer["crashed"]
     assert outer["mission"]["reached"] == outer["mission"]["waypoints"] == 4
-    # Measured 0.63 m RMS, 1.52 m at most (no acceleration feedforward at the corners;
-    # 0.66 m and 1.46 m with the former position gain, 0.4 1/s).
+    # Measured 0.44 m RMS, 1.22 m at most (no acceleration feedforward at the corners;
+    # 0.64 m and 1.56 m with the former outer gains, 0.66 m and 1.46 m with a position
+    # gain of 0.4 1/s).
     err = outer["mission"]["path_error_m"]
     assert err["rms"] < 1.0 and err["max"] < 2.5, err
     assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
