@@ -170,12 +170,13 @@ class ModePath(Engagement):
         q = self._att_q
         assert q is not None
         on_ground = bool(self.controller.on_ground)
-        if on_ground:
+        if self.controller.held_on_ground:
             # On its legs the rate law starts afresh (MfcController.on_ground: the MFC
             # law does it itself; a PID restarts here): its F from the air (a damaged
             # motor's torque) would hold that torque on the ground, saturate the
             # mixer and cut the collective, and a vehicle that touched down after a
-            # hop never lifted off.
+            # hop never lifted off. Only while the legs visibly hold it
+            # (MfcController.held_on_ground): the landed state comes late.
             self.controller.reset()
         if self.angle is not None:
             return self.angle.reference(

@@ -122,6 +122,14 @@ def _hold_output(last: ControlOutput | None, mixer: Mixer) -> ControlOutput:
 _new_tuple = tuple.__new__  # see companion.control.mixer: cheaper than NamedTuple(...)
 _isfinite = math.isfinite
 
+LEGS_HOLD_RATE_RAD_S = 0.35
+"""A vehicle its legs hold turns slower than this (20 deg/s, ten times the gyro's
+noise on the legs with the motors spinning). Faster, with the landed state still
+set, it is lifting off and tipping, or bouncing, and the rate law must fly it."""
+LEGS_HOLD_QUIET_S = 0.5
+"""How long the gyro must stay under :data:`LEGS_HOLD_RATE_RAD_S`, landed, before
+the rate law starts afresh again (two periods of the 4 Hz landed state)."""
+
 
 def _all_finite(dt_s: float, a: Vec3, b: Vec3, thrust: float) -> bool:
     # Summing is the cheapest finiteness test: inf/nan anywhere poisons the sum.
@@ -175,7 +183,20 @@ class MfcController:
         landed state comes late (4 Hz, and the autopilot's detector), so a hop
         teaches it from samples on the legs, and a thrust-limited vehicle kept
         that too-small alpha and hopped on (docs/research/outer.md). Not reset by
-        :meth:`reset`: it is the autopilot's state, not the controller's."""
+        :meth:`reset`: it is the autopilot's state, not the controller's.
+
+        The landed state comes late, so the law starts afresh only while the legs
+        visibly hold the vehicle (:attr:`held_on_ground`): a weak motor tips a
+        vehicle at lift-off by 90 deg/s within the 0.25 s the flag takes, and a
+        law restarted on every one of those samples never stopped it."""
+        self._quiet_s = math.inf
+        """Time since the gyro last read faster than :data:`LEGS_HOLD_RATE_RAD_S`."""
+
+    @property
+    def held_on_ground(self) -> bool:
+        """:attr:`on_ground`, and the gyro quiet for :data:`LEGS_HOLD_QUIET_S`: the
+        legs hold the vehicle, and the law starts afresh on every sample."""
+        return self.on_ground and self._quiet_s >= LEGS_HOLD_QUIET_S
 
     def reset(self) -> None:
         """Forget all state (on disarm, hand-back, and every sample on the ground)."""
@@ -186,6 +207,7 @@ class MfcController:
         self._prev_ref = None
         self._applied = _ZERO3
         self._last = None
+        self._quiet_s = math.inf
 
     @property
     def reference_rate_dot(self) -> Vec3:
@@ -248,7 +270,12 @@ class MfcController:
         # 2. The law on each axis, in command units. Teach the estimators what
         # was applied last time, not what was asked.
         a0, a1, a2 = self._axes
-        if self.on_ground:  # the law starts afresh on the legs (on_ground)
+        lim = LEGS_HOLD_RATE_RAD_S
+        if -lim < w0 < lim and -lim < w1 < lim and -lim < w2 < lim:
+            self._quiet_s += dt_s
+        else:
+            self._quiet_s = 0.0
+        if self.held_on_ground:  # the law starts afresh on the legs (on_ground)
             self.reset()
         if self._any_adapt:
             on = thrust >= self._adapt_thrust and not self.on_ground
@@ -302,6 +329,12 @@ class PidController:
         """Same attribute as :attr:`MfcController.on_ground`: while True the integrator
         is held (a vehicle on its legs cannot turn, so a rate error there is no
         torque to trim; PX4's rate controller holds its integrator while landed)."""
+
+    @property
+    def held_on_ground(self) -> bool:
+        """:attr:`on_ground` (same interface as :attr:`MfcController.held_on_ground`;
+        the baseline's, as PX4 flies it, has no gyro gate)."""
+        return self.on_ground
 
     def reset(self) -> None:
         self._pid.reset()

@@ -484,8 +484,10 @@ def simulate_outer_flight(
             # integrators while landed).
             outer.attitude.reset()
             outer.horizontal.reset()
-            # The rate law starts afresh too, as in the app (companion/modes.py).
-            controller.reset()
+            # The rate law starts afresh too, as in the app (companion/modes.py),
+            # while the legs visibly hold the vehicle.
+            if controller.held_on_ground:
+                controller.reset()
             att_sp = AttitudeSetpoint(0.0, 0.0, sp.yaw_rad)
             rate_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         elif angle_mode:

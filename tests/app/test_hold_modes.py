@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from companion.control.mfc import LEGS_HOLD_QUIET_S
 from companion.errors import EXIT_ERROR
 from companion.mission import Mission, Waypoint
 from companion.records import read_columnar
@@ -210,9 +211,15 @@ async def test_on_the_ground_the_rate_law_forgets_what_it_learnt_in_the_air(
     assert abs(air.body_roll_rate) > 0.05
     f.fake.extended_sys_state(1)  # MAV_LANDED_STATE_ON_GROUND
     await f.feed_until(lambda: f.companion.controller.on_ground, send=lambda: estimates_and_imu(f))
-    for _ in range(5):  # on the legs, no rate: nothing held from the air
+    for _ in range(5):  # just down: the legs may not hold it yet (a bounce is flown)
         estimates_and_imu(f)
         await settle(2)
+    assert not f.companion.controller.held_on_ground
+    assert abs(f.fake.of_type("SET_ATTITUDE_TARGET")[-1].body_roll_rate) > 0.05
+    for _ in range(round(LEGS_HOLD_QUIET_S / 0.004)):  # quiet on the legs: nothing held
+        estimates_and_imu(f)
+        await settle(2)
+    assert f.companion.controller.held_on_ground
     ground = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
     assert abs(ground.body_roll_rate) < 1e-3
 
