@@ -45,7 +45,7 @@ Vec3 = tuple[float, float, float]
 
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 _NAN = math.nan
-NO_OUTER_LOG: tuple[float, ...] = (_NAN,) * 12
+NO_OUTER_LOG: tuple[float, ...] = (_NAN,) * 13
 """The control log's outer-loop columns when nothing is known (``--mode rates``)."""
 
 
@@ -290,16 +290,20 @@ class ModePath(Engagement):
     def _mode_log(self) -> tuple[float, ...]:
         """The control log's outer-loop columns (``companion.records.columns``): the
         attitude setpoint and the attitude estimate (roll, pitch, heading, rad),
-        the position setpoint and the position estimate (north, east, up, m);
-        NaN for what this mode does not hold or has not got. Off the latency path."""
+        the position setpoint and the position estimate (north, east, up, m), the
+        outer gains' scale; NaN for what this mode does not hold or has not got.
+        Off the latency path."""
         if self.flight_mode == "rates":
             return NO_OUTER_LOG
         att = None
         pos_sp: tuple[float, float, float] = (_NAN, _NAN, _NAN)
+        scale = _NAN
         if self.angle is not None:
             att = self.angle.setpoint
+            scale = self.angle.backoff.scale
         elif self.hold is not None:
             att = self.hold.attitude_setpoint
+            scale = self.hold.outer.gain_scale
             sp = self.hold.setpoint
             ne = sp.horizontal.position_ne_m
             up = sp.vertical.up_m
@@ -324,7 +328,7 @@ class ModePath(Engagement):
                 math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)),
             )
         est_pos = (_NAN, _NAN, _NAN) if self._pos is None else self._pos[0]
-        return (*sp_att, *est_att, *pos_sp, est_pos[0], est_pos[1], -est_pos[2])
+        return (*sp_att, *est_att, *pos_sp, est_pos[0], est_pos[1], -est_pos[2], scale)
 
     def _flush_mode_events(self) -> None:
         """Record this sample's events (called once its command has left)."""

@@ -47,8 +47,10 @@ def columns(n_motors: int) -> list[str]:
     setpoint; the heading NaN while the yaw stick is a rate), ``est_roll_rad``,
     ``est_pitch_rad``, ``est_yaw_rad`` (the autopilot's attitude estimate),
     ``sp_north_m``, ``sp_east_m``, ``sp_up_m`` (the position and altitude held,
-    NaN while a stick moves it or on the ground) and ``est_north_m``,
-    ``est_east_m``, ``est_up_m`` (the autopilot's local position estimate).
+    NaN while a stick moves it or on the ground), ``est_north_m``,
+    ``est_east_m``, ``est_up_m`` (the autopilot's local position estimate) and
+    ``outer_gain_scale`` (the outer gains' backoff while the rate loop saturates:
+    1 as shipped, down to the backoff's floor).
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -69,6 +71,7 @@ def columns(n_motors: int) -> list[str]:
     cols += ["on_ground", "link_rtt_ms", "sample_age_ms"]
     cols += [f"sp_{a}_rad" for a in AXES] + [f"est_{a}_rad" for a in AXES]
     cols += [f"{w}_{d}_m" for w in ("sp", "est") for d in ("north", "east", "up")]
+    cols += ["outer_gain_scale"]
     return cols
 
 

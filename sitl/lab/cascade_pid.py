@@ -714,6 +714,11 @@ class CascadePid:
             rates = self.attitude.update_q(q, euler_to_quat(0.0, 0.0, heading), yaw_rate)
         return OuterOutput(rates, t, att_sp, t, g.tilt_max_rad, False, True)
 
+    @property
+    def gain_scale(self) -> float:
+        """PX4's gains do not back off: 1 (as :attr:`OuterController.gain_scale`)."""
+        return 1.0
+
     def note_rate_saturation(
         self, dt_s: float, rate_saturated: tuple[bool, bool, bool] | None
     ) -> float:

@@ -436,7 +436,8 @@ def simulate_outer_flight(
     names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
              "sp_up_m",
              "sp_att_rad", "thrust", "thrust_applied", "rate_ref_rad_s", "gyro_rad_s", "torque",
-             "hover_thrust", "rate_sat", "thrust_sat", "tilt_limited", "airborne")  # fmt: skip
+             "hover_thrust", "rate_sat", "thrust_sat", "tilt_limited", "airborne",
+             "gain_scale")  # fmt: skip
     cols: dict[str, list[Any]] = {k: [] for k in names}
 
     def setpoints(t: float) -> tuple[Setpoints, bool]:
@@ -534,6 +535,7 @@ def simulate_outer_flight(
         cols["thrust_sat"].append(vert.saturated)
         cols["tilt_limited"].append(tilt_limited)
         cols["airborne"].append(not st.landed)
+        cols["gain_scale"].append(outer.gain_scale)
         return sent
 
     wall0 = time.perf_counter()
@@ -594,9 +596,10 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     ``est_rms_h_m``, ``est_rms_v_m`` (the estimate flown on against the setpoint:
     the loops' own error, without the estimator's); ``att_mae_deg`` (roll and pitch, mean of
     both), ``yaw_mae_deg``, ``rate_sat_s``, ``thrust_sat_s``, ``tilt_limited_s``,
-    ``crashed``, ``crashed_at_s``; for altitude steps ``step_reach_s``: per step,
-    the time after it to come within 10 % of its size of the new altitude
-    (None: never).
+    ``gain_scale_min`` and ``backed_off_s`` (the least scale on the outer gains and
+    the time it was below 1), ``crashed``, ``crashed_at_s``; for altitude steps
+    ``step_reach_s``: per step, the time after it to come within 10 % of its size
+    of the new altitude (None: never).
     """
     c, m = flight.columns, flight.meta
     t = c["t_s"]
@@ -616,6 +619,7 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
         for k in ("att_mae_deg", "yaw_mae_deg", "path_rms_m", "path_max_m"):
             out[k] = None
         out.update(rate_sat_s=None, thrust_sat_s=None, tilt_limited_s=None, step_reach_s=None)
+        out.update(gain_scale_min=None, backed_off_s=None)
         return out
     dt_s = float(np.median(np.diff(t)))
     pos = c["pos_ned_m"][sel]
@@ -642,6 +646,8 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     out["rate_sat_s"] = float(c["rate_sat"][sel].sum() * dt_s)
     out["thrust_sat_s"] = float(c["thrust_sat"][sel].sum() * dt_s)
     out["tilt_limited_s"] = float(c["tilt_limited"][sel].sum() * dt_s)
+    out["gain_scale_min"] = float(c["gain_scale"][sel].min())
+    out["backed_off_s"] = float((c["gain_scale"][sel] < 1.0).sum() * dt_s)
     reach: list[float | None] = []
     up = -c["pos_ned_m"][:, 2]
     for ts in scenario.step_times_s:

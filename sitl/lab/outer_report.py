@@ -5,12 +5,14 @@ with a mission, against its plan: the waypoints from where the mission started
 (the companion's ``mission_started`` event: its position estimate then).
 
 ``metrics.json`` gains ``outer``: ``mode``, ``engaged_s``, ``airborne_s``,
-``crashed``, and with a mission ``mission``: ``waypoints``, ``reached`` (the
-companion's ``mission_waypoint`` events), and ``path_error_m``, the distance from
-the true position to the planned path (the straight legs between the start and
-the waypoints) while airborne: ``rms``, ``max``, ``horizontal_rms`` (to the legs
-seen from above), ``vertical_rms`` (from the planned height at the closest
-point). ``path.png`` draws the path flown against the plan.
+``crashed``, ``gain_scale_min`` and ``backed_off_s`` (from the companion's control
+log: the least scale on the outer gains while engaged and the time it was below
+1, the backoff while our rate loop saturated), and with a mission ``mission``:
+``waypoints``, ``reached`` (the companion's ``mission_waypoint`` events), and
+``path_error_m``, the distance from the true position to the planned path (the
+straight legs between the start and the waypoints) while airborne: ``rms``,
+``max``, ``horizontal_rms`` (to the legs seen from above), ``vertical_rms`` (from
+the planned height at the closest point). ``path.png`` draws the path flown against the plan.
 """
 
 from __future__ import annotations
@@ -72,6 +74,30 @@ def segment_distances(points: np.ndarray, plan: np.ndarray) -> tuple[np.ndarray,
     return best, closest
 
 
+def _backoff(flight: FlightProcesses) -> dict[str, float | None]:
+    """The outer gains' backoff while engaged, from the companion's control log
+    (None where the log or its column is missing)."""
+    from companion.records import read_columnar
+
+    none: dict[str, float | None] = {"gain_scale_min": None, "backed_off_s": None}
+    if not flight.control_log.exists():
+        return none
+    cols, _ = read_columnar(flight.control_log)
+    scale = cols.get("outer_gain_scale")
+    if scale is None:
+        return none
+    eng = (cols["engaged"] > 0.5) & np.isfinite(scale)
+    if not eng.any():
+        return none
+    t = cols["t_s"][eng]
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    s = scale[eng]
+    return {
+        "gain_scale_min": round(float(s.min()), 3),
+        "backed_off_s": round(float((s < 1.0).sum()) * dt, 2),
+    }
+
+
 def _engaged(flight: FlightProcesses) -> tuple[float, float] | None:
     ev = flight.companion_events
     t0 = next((float(e["t_s"]) for e in ev if e.get("kind") == "engaged"), None)
@@ -97,6 +123,7 @@ def outer_metrics(
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
     out["engaged_s"] = round(float(sel.sum()) * dt, 2)
     out["airborne_s"] = round(float(airborne.sum()) * dt, 2)
+    out.update(_backoff(flight))
     if mission is None:
         return out
     events = flight.companion_events

@@ -228,3 +228,6 @@ async def test_the_control_log_holds_the_angle_asked_and_the_estimate(
     assert last["est_roll_rad"] == pytest.approx(10.0 * DEG, abs=1e-6)  # a float32 quaternion
     # Angle mode holds no position and asks for none.
     assert all(math.isnan(last[k]) for k in ("sp_north_m", "sp_up_m", "est_north_m", "est_up_m"))
+    # The gain's backoff, logged as the mode keeps it.
+    angle = f.companion.angle
+    assert angle is not None and last["outer_gain_scale"] == angle.backoff.scale

@@ -195,8 +195,8 @@ async def test_in_rates_mode_the_outer_columns_are_nan(start: Start, tmp_path: P
     await f.finish()
     cols, _ = read_columnar(tmp_path / "control.bin")
     assert len(cols["t_s"]) >= 10
-    outer = [k for k in cols if k.startswith(("sp_", "est_"))]
-    assert len(outer) == 12
+    outer = [k for k in cols if k.startswith(("sp_", "est_", "outer_"))]
+    assert len(outer) == 13
     assert all(np.isnan(cols[k]).all() for k in outer)
 
 
@@ -226,12 +226,12 @@ async def test_on_the_ground_the_rate_law_forgets_what_it_learnt_in_the_air(
 
 @pytest.mark.parametrize("output", ["actuator", "rates"])
 async def test_the_outer_gains_back_off_only_when_our_own_rate_loop_saturates(
-    start: Start, output: str
+    start: Start, output: str, tmp_path: Path
 ) -> None:
     # A roll rate far beyond what the law can answer within its output: with the
     # actuator output our mixer saturates and the outer gains back off; with the
     # rates output the autopilot's mixer is not seen, and they stay as they are.
-    f = await engaged(start, "position", output_override=output)
+    f = await engaged(start, "position", output_override=output, log_dir=tmp_path)
     hold = f.companion.hold
     assert hold is not None
     for _ in range(150):
@@ -244,3 +244,10 @@ async def test_the_outer_gains_back_off_only_when_our_own_rate_loop_saturates(
     else:
         assert outer.rate_saturation == (0.0, 0.0)
         assert outer.gain_scale == 1.0
+    scale = outer.gain_scale
+    f.companion._stop.set()
+    await f.finish()
+    cols, _ = read_columnar(tmp_path / "control.bin")
+    logged = cols["outer_gain_scale"][cols["engaged"] > 0.5]
+    assert logged[-1] == scale  # the log says how far the gains backed off
+    assert (logged.min() < 1.0) == (output == "actuator")

@@ -104,6 +104,8 @@ def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> N
     outer = json.loads((out / "metrics.json").read_text(encoding="utf-8"))["outer"]
     assert outer["mode"] == "position" and not outer["crashed"]
     assert outer["mission"]["reached"] == outer["mission"]["waypoints"] == 4
+    # The backoff, from the companion's control log.
+    assert 0.55 <= outer["gain_scale_min"] <= 1.0 and outer["backed_off_s"] >= 0.0
     # Measured 0.44 m RMS, 1.22 m at most (no acceleration feedforward at the corners;
     # 0.64 m and 1.56 m with the former outer gains, 0.66 m and 1.46 m with a position
     # gain of 0.4 1/s).

@@ -85,7 +85,7 @@ def write_log(
                 ]
             row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan, 0.0]
             row += [np.nan, np.nan]  # link_rtt_ms, sample_age_ms: no TIMESYNC answer
-            row += [np.nan] * 12  # the outer loops': --mode rates
+            row += [np.nan] * 13  # the outer loops': --mode rates
             log.append(row)
 
 
