@@ -20,6 +20,26 @@ Sticks (PX4's defaults, 1.14)
   the position where the sticks came back is held.
 * Yaw: a yaw rate (the stick's rate curve); no heading is held.
 
+Smoothing, and where the hold locks
+-----------------------------------
+The loops never fly a stick's step. The climb-rate setpoint follows the stick's
+climb at most ``MPC_ACC_UP_MAX`` (4 m/s^2) faster upwards and
+``MPC_ACC_DOWN_MAX`` (3 m/s^2) downwards; the horizontal velocity setpoint follows
+the sticks' velocity, as one vector, at most ``MPC_ACC_HOR_MAX`` (5 m/s^2, PX4's
+limit for its smoothed-velocity Position mode, accelerating and braking). The
+slope is flown as the acceleration feedforward. Slammed, full stick reaches 10 m/s
+in 2 s, and the tilt asked is the ramp's 5 m/s^2 with the drag and the loops'
+corrections (36 deg at most on the tests' plant), not the 45 deg limit at once.
+
+A hold locks where the vehicle is when the smoothed setpoint has come back to
+zero with the stick centred, not where the stick came back: released at speed,
+the vehicle brakes along the ramp and stops, rather than being pulled back to
+the point of release. Leaving a hold, the ramp starts from the reference the
+hold was flying, so the stick moves the setpoint without a jump. After
+:meth:`HoldMode.reset` (an engagement) the ramps start from the estimated
+velocity, bounded to what the sticks can ask: a vehicle handed over while moving
+brakes along them.
+
 On the ground (the autopilot's landed state) only the vertical loop runs, on the
 throttle's climb rate and never an altitude to hold: the vehicle lifts off when
 the climb asked raises the collective enough, and sits at the lowest collective
@@ -43,6 +63,9 @@ from companion.control.quaternion import Quat, Vec3, normalise_or_none, yaw_rad
 from companion.control.vertical import VerticalSetpoint
 
 __all__ = [
+    "ACCEL_DOWN_MAX_M_S2",
+    "ACCEL_HORIZONTAL_MAX_M_S2",
+    "ACCEL_UP_MAX_M_S2",
     "CLIMB_MAX_DOWN_M_S",
     "CLIMB_MAX_UP_M_S",
     "HOLD_DEADBAND",
@@ -62,6 +85,12 @@ CLIMB_MAX_DOWN_M_S = 1.5
 """Zero throttle's descent rate, m/s (PX4 ``MPC_Z_VEL_MAX_DN``)."""
 VELOCITY_MAX_M_S = 10.0
 """Full stick's horizontal speed, m/s (PX4 ``MPC_VEL_MANUAL``)."""
+ACCEL_UP_MAX_M_S2 = 4.0
+"""The climb setpoint's largest rise, m/s^2 (PX4 ``MPC_ACC_UP_MAX``)."""
+ACCEL_DOWN_MAX_M_S2 = 3.0
+"""The climb setpoint's largest fall, m/s^2 (PX4 ``MPC_ACC_DOWN_MAX``)."""
+ACCEL_HORIZONTAL_MAX_M_S2 = 5.0
+"""The horizontal velocity setpoint's largest change, m/s^2 (PX4 ``MPC_ACC_HOR_MAX``)."""
 
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
@@ -100,6 +129,28 @@ def stick_velocity_ne_m_s(
     return (forward * c - right * s, forward * s + right * c)
 
 
+def slew_climb(current: float, target: float, dt_s: float) -> float:
+    """``current`` moved toward ``target`` by at most :data:`ACCEL_UP_MAX_M_S2`
+    (upwards) or :data:`ACCEL_DOWN_MAX_M_S2` (downwards) times ``dt_s``."""
+    if target > current:
+        return min(target, current + ACCEL_UP_MAX_M_S2 * dt_s)
+    return max(target, current - ACCEL_DOWN_MAX_M_S2 * dt_s)
+
+
+def slew_velocity(
+    current: tuple[float, float], target: tuple[float, float], dt_s: float
+) -> tuple[float, float]:
+    """``current`` moved toward ``target`` along the difference, by at most
+    :data:`ACCEL_HORIZONTAL_MAX_M_S2` times ``dt_s`` in length."""
+    dn, de = target[0] - current[0], target[1] - current[1]
+    step = ACCEL_HORIZONTAL_MAX_M_S2 * dt_s
+    d = math.hypot(dn, de)
+    if d <= step:
+        return target
+    k = step / d
+    return (current[0] + dn * k, current[1] + de * k)
+
+
 TAKEOFF_CLIMB_M_S = 1.0
 """The climb asked on the ground when a given setpoint is above (:meth:`HoldMode.fly`)."""
 
@@ -135,6 +186,9 @@ class HoldMode:
         """What the attitude loop was last asked (None: on the ground, not flown)."""
         self._up_hold: float | None = None
         self._ne_hold: tuple[float, float] | None = None
+        self._climb_sp = 0.0
+        self._vel_sp: tuple[float, float] = (0.0, 0.0)
+        self._ramps_from_estimate = True
 
     @property
     def on_ground(self) -> bool:
@@ -151,6 +205,58 @@ class HoldMode:
         self.attitude_setpoint = None
         self._up_hold = None
         self._ne_hold = None
+        self._climb_sp = 0.0
+        self._vel_sp = (0.0, 0.0)
+        self._ramps_from_estimate = True
+
+    def _climb_setpoint(
+        self, dt_s: float, throttle: float, up_now: float, climb_now: float
+    ) -> VerticalSetpoint:
+        """The throttle's climb, smoothed, and the altitude hold (module docstring)."""
+        if self._ramps_from_estimate and math.isfinite(climb_now):
+            self._climb_sp = min(max(climb_now, -CLIMB_MAX_DOWN_M_S), CLIMB_MAX_UP_M_S)
+        stick = stick_climb_m_s(throttle)
+        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+        if stick is not None and self._up_hold is not None:
+            ref = self.outer.vertical.climb_ref_m_s  # leave the hold smoothly
+            self._climb_sp = ref if math.isfinite(ref) else 0.0
+        prev = self._climb_sp
+        c = self._climb_sp = slew_climb(prev, 0.0 if stick is None else stick, dt)
+        if stick is not None or self.on_ground or not math.isfinite(up_now):
+            self._up_hold = None
+        elif self._up_hold is None and c == 0.0:
+            self._up_hold = up_now  # centred, and the ramp has come back: hold here
+        if self._up_hold is not None:
+            return VerticalSetpoint(0.0, self._up_hold)
+        return VerticalSetpoint(c, None, (c - prev) / dt if dt > 0.0 else 0.0)
+
+    def _velocity_setpoint(
+        self,
+        dt_s: float,
+        deflection: tuple[float, float, float],
+        heading: float,
+        ne_now: tuple[float, float],
+        vel_now: tuple[float, float],
+    ) -> HorizontalSetpoint:
+        """The sticks' velocity, smoothed, and the position hold (module docstring)."""
+        if self._ramps_from_estimate and math.isfinite(vel_now[0] + vel_now[1]):
+            k = min(1.0, VELOCITY_MAX_M_S / max(math.hypot(*vel_now), 1e-9))
+            self._vel_sp = (vel_now[0] * k, vel_now[1] * k)
+        stick = stick_velocity_ne_m_s(deflection[0], deflection[1], heading)
+        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+        if stick is not None and self._ne_hold is not None:
+            ref = self.outer.horizontal.velocity_ref_ne_m_s  # leave the hold smoothly
+            self._vel_sp = ref if math.isfinite(ref[0] + ref[1]) else (0.0, 0.0)
+        prev = self._vel_sp
+        v = self._vel_sp = slew_velocity(prev, (0.0, 0.0) if stick is None else stick, dt)
+        if stick is not None or not math.isfinite(ne_now[0] + ne_now[1]):
+            self._ne_hold = None
+        elif self._ne_hold is None and v == (0.0, 0.0):
+            self._ne_hold = ne_now  # centred, and the ramp has come back: hold here
+        if self._ne_hold is not None:
+            return HorizontalSetpoint((0.0, 0.0), self._ne_hold)
+        acc = ((v[0] - prev[0]) / dt, (v[1] - prev[1]) / dt) if dt > 0.0 else (0.0, 0.0)
+        return HorizontalSetpoint(v, None, acc)
 
     def update(
         self,
@@ -170,18 +276,14 @@ class HoldMode:
         ``throttle`` and ``yaw_rate_rad_s``: the pilot's sticks)."""
         outer = self.outer
         yaw_rate = yaw_rate_rad_s if math.isfinite(yaw_rate_rad_s) else 0.0
-        climb = stick_climb_m_s(throttle)
-        up_now = -position_ned_m[2]
-        if climb is not None or self.on_ground or not math.isfinite(up_now):
-            self._up_hold = None
-        elif self._up_hold is None:
-            self._up_hold = up_now  # the stick came back to centre: hold here
-        vsp = VerticalSetpoint(0.0 if climb is None else climb, self._up_hold)
+        vsp = self._climb_setpoint(dt_s, throttle, -position_ned_m[2], -velocity_ned_m_s[2])
         q = normalise_or_none(q_wxyz)
         cos_tilt = 1.0 if q is None else 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
 
         if self.on_ground or not self.position:
             self._ne_hold = None
+            self._vel_sp = (0.0, 0.0)
+            self._ramps_from_estimate = False
             thrust = outer.vertical.update(
                 dt_s, position_ned_m[2], velocity_ned_m_s[2], vsp, cos_tilt=cos_tilt,
                 applied=applied_thrust,
@@ -200,13 +302,11 @@ class HoldMode:
             return HoldCommand(rate_ref, thrust)
 
         heading = yaw_rad(q) if q is not None else math.nan
-        vel = stick_velocity_ne_m_s(deflection[0], deflection[1], heading)
-        ne_now = (position_ned_m[0], position_ned_m[1])
-        if vel is not None or not math.isfinite(ne_now[0] + ne_now[1]):
-            self._ne_hold = None
-        elif self._ne_hold is None:
-            self._ne_hold = ne_now  # the sticks came back to centre: hold here
-        hsp = HorizontalSetpoint((0.0, 0.0) if vel is None else vel, self._ne_hold)
+        hsp = self._velocity_setpoint(
+            dt_s, deflection, heading, (position_ned_m[0], position_ned_m[1]),
+            (velocity_ned_m_s[0], velocity_ned_m_s[1]),
+        )  # fmt: skip
+        self._ramps_from_estimate = False
         self.setpoint = OuterSetpoint(hsp, vsp, None, yaw_rate)
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
@@ -235,6 +335,7 @@ class HoldMode:
         flown to is above), else the lowest collective (a descent asked)."""
         outer = self.outer
         self._up_hold = self._ne_hold = None
+        self._ramps_from_estimate = True  # sticks after a mission start from the estimate
         if self.on_ground:
             vsp = VerticalSetpoint(TAKEOFF_CLIMB_M_S if take_off else -CLIMB_MAX_DOWN_M_S)
             q = normalise_or_none(q_wxyz)
