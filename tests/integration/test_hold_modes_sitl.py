@@ -16,8 +16,8 @@ import pytest
 from click.testing import CliRunner
 
 from companion.cli import cli
-from sitl.flight_log import read_log
-from sitl.lab.fly import fly_mavlink
+from sitl.flight_log import FlightLog, read_log
+from sitl.lab.fly import FlightProcesses, fly_mavlink
 
 pytestmark = pytest.mark.integration
 
@@ -45,19 +45,27 @@ def engaged_end(events: list[dict[str, object]]) -> float:
     return next(float(str(e["t_s"])) for e in events if e["kind"] == "duration")
 
 
-def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> None:
-    sticks = tmp_path / "centred.yaml"
-    sticks.write_text(SCRIPT, encoding="utf-8")
-    scenario = tmp_path / "position-hold.yaml"
-    scenario.write_text(SCENARIO.format(pilot=sticks), encoding="utf-8")
+def fly_position_mode(
+    tmp_path: Path, script: str, scenario: str, duration_s: float
+) -> tuple[FlightProcesses, FlightLog]:
+    """The F450 in ``--mode position`` with the stick script and the scenario
+    (``{pilot}`` in it: the script's path), no failsafe on the way."""
+    sticks = tmp_path / "sticks.yaml"
+    sticks.write_text(script, encoding="utf-8")
+    path = tmp_path / "scenario.yaml"
+    path.write_text(scenario.format(pilot=sticks), encoding="utf-8")
     flight = fly_mavlink(
-        ROOT / "vehicle_profiles" / "f450.yaml", str(scenario), tmp_path / "flight",
-        duration_s=10.0, companion_args=("--mode", "position"),
+        ROOT / "vehicle_profiles" / "f450.yaml", str(path), tmp_path / "flight",
+        duration_s=duration_s, companion_args=("--mode", "position"),
     )  # fmt: skip
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     kinds = [e["kind"] for e in flight.companion_events]
     assert not any(k.startswith("failsafe") for k in kinds), kinds
-    log = read_log(flight.sitl_log)
+    return flight, read_log(flight.sitl_log)
+
+
+def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> None:
+    flight, log = fly_position_mode(tmp_path, SCRIPT, SCENARIO, 10.0)
     pos = log["pos_ned_m"]
     t = log["t_s"]
     airborne = pos[:, 2] < -0.5
@@ -71,6 +79,38 @@ def test_position_mode_takes_off_and_holds_against_the_wind(tmp_path: Path) -> N
     drift = np.hypot(held[:, 0], held[:, 1])
     # Measured 0.45 m at most (scripts/position_hold.py, 30 s, the same wind).
     assert float(np.max(drift)) < 1.0, float(np.max(drift))
+
+
+SLAM = """\
+duration_s: 24
+altitude_m: 5
+segments:
+  - {t_s: 0.0, rate_deg_s: [0, 0, 0]}
+  - {t_s: 9.0, rate_deg_s: [0, -720, 0], step: true}
+  - {t_s: 12.0, rate_deg_s: [0, 0, 0], step: true}
+"""
+
+
+def test_position_mode_ramps_a_slammed_stick_and_holds_where_the_vehicle_stops(
+    tmp_path: Path,
+) -> None:
+    """The pitch stick slammed full forward for 3 s, then centred: the companion ramps
+    the velocity (5 m/s^2), brakes along the ramp and holds where the vehicle stopped.
+    Measured over this flight: before the ramps, 47 deg of tilt at the slam and again
+    at the release, and the hold at the point of release pulled the vehicle 7.3 m
+    back; with them, 36 deg at most and 0.3 m back (the estimate's drift)."""
+    scenario = "name: slam\nseed: 13\npilot: {pilot}\nfree_flight: true\n"
+    flight, log = fly_position_mode(tmp_path, SLAM, scenario, 20.0)
+    engaged = log["t_s"] <= engaged_end(flight.companion_events)
+    q = log["q_wxyz"][engaged]
+    tilt_deg = np.degrees(np.arccos(np.clip(1.0 - 2.0 * (q[:, 1] ** 2 + q[:, 2] ** 2), -1, 1)))
+    north = log["pos_ned_m"][engaged, 0]
+    assert float(np.max(north)) > 20.0  # it flew the stick: about 10 m/s for 2 s
+    assert float(np.max(tilt_deg)) < 40.0, float(np.max(tilt_deg))
+    farthest = int(np.argmax(north))
+    assert farthest < len(north) - 2000  # stopped with seconds of the hold still to fly
+    back = float(north[farthest] - np.min(north[farthest:]))
+    assert back < 1.0, back
 
 
 MISSION = """\
