@@ -175,20 +175,20 @@ class MfcController:
         then learn nothing, whatever the collective. On the ground the command
         answers the gyro's noise and the "response" is that noise again, which a
         least-squares slope reads as a small input gain, the most aggressive alpha
-        (docs/research/gains.md, point 9). And every sample on the ground the law
-        starts afresh (:meth:`reset`): an F learnt in the air (a damaged motor's
-        torque) would hold its torque on the legs, saturate the mixer and cut the
-        collective, and one integrated on the ground (the legs' reaction, the
-        gyro's noise) would be flown at take-off. What it identified goes too: the
-        landed state comes late (4 Hz, and the autopilot's detector), so a hop
-        teaches it from samples on the legs, and a thrust-limited vehicle kept
-        that too-small alpha and hopped on (docs/research/outer.md). Not reset by
-        :meth:`reset`: it is the autopilot's state, not the controller's.
+        (docs/research/gains.md, point 9). Not reset by :meth:`reset`: it is the
+        autopilot's state, not the controller's.
 
-        The landed state comes late, so the law starts afresh only while the legs
-        visibly hold the vehicle (:attr:`held_on_ground`): a weak motor tips a
-        vehicle at lift-off by 90 deg/s within the 0.25 s the flag takes, and a
-        law restarted on every one of those samples never stopped it."""
+        While the legs visibly hold the vehicle (:attr:`held_on_ground`: this flag
+        and a quiet gyro), the law starts afresh every sample (:meth:`reset`), and
+        what it identified goes too: an F learnt in the air (a damaged motor's
+        torque) would hold its torque on the legs, saturate the mixer and cut the
+        collective; one integrated on the ground (the legs' reaction, the gyro's
+        noise) would be flown at take-off; and an alpha taught by a hop, from
+        samples on the legs, kept a thrust-limited vehicle hopping
+        (docs/research/outer.md). The flag alone is not enough: it comes late (4
+        Hz, and the autopilot's detector), and a weak motor tips a vehicle at
+        lift-off by 90 deg/s within the 0.25 s it takes to clear, which a law
+        restarted on every one of those samples never stopped."""
         self._quiet_s = math.inf
         """Time since the gyro last read faster than :data:`LEGS_HOLD_RATE_RAD_S`."""
 
