@@ -209,14 +209,20 @@ class HoldMode:
         self._vel_sp = (0.0, 0.0)
         self._ramps_from_estimate = True
 
-    def _climb_setpoint(
-        self, dt_s: float, throttle: float, up_now: float, climb_now: float
-    ) -> VerticalSetpoint:
-        """The throttle's climb, smoothed, and the altitude hold (module docstring)."""
-        if self._ramps_from_estimate and math.isfinite(climb_now):
-            self._climb_sp = min(max(climb_now, -CLIMB_MAX_DOWN_M_S), CLIMB_MAX_UP_M_S)
+    def _start_ramps(self, velocity_ned_m_s: Vec3) -> None:
+        """The ramps from the estimated velocity (the first sample after a reset or
+        a mission), bounded to what the sticks can ask; non-finite: left as they are."""
+        vn, ve, vd = velocity_ned_m_s
+        if math.isfinite(vd):
+            self._climb_sp = min(max(-vd, -CLIMB_MAX_DOWN_M_S), CLIMB_MAX_UP_M_S)
+        if math.isfinite(vn + ve):
+            k = min(1.0, VELOCITY_MAX_M_S / max(math.hypot(vn, ve), 1e-9))
+            self._vel_sp = (vn * k, ve * k)
+
+    def _climb_setpoint(self, dt: float, throttle: float, up_now: float) -> VerticalSetpoint:
+        """The throttle's climb, smoothed, and the altitude hold (module docstring);
+        ``dt`` 0 for no step."""
         stick = stick_climb_m_s(throttle)
-        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
         if stick is not None and self._up_hold is not None:
             ref = self.outer.vertical.climb_ref_m_s  # leave the hold smoothly
             self._climb_sp = ref if math.isfinite(ref) else 0.0
@@ -232,18 +238,14 @@ class HoldMode:
 
     def _velocity_setpoint(
         self,
-        dt_s: float,
+        dt: float,
         deflection: tuple[float, float, float],
         heading: float,
         ne_now: tuple[float, float],
-        vel_now: tuple[float, float],
     ) -> HorizontalSetpoint:
-        """The sticks' velocity, smoothed, and the position hold (module docstring)."""
-        if self._ramps_from_estimate and math.isfinite(vel_now[0] + vel_now[1]):
-            k = min(1.0, VELOCITY_MAX_M_S / max(math.hypot(*vel_now), 1e-9))
-            self._vel_sp = (vel_now[0] * k, vel_now[1] * k)
+        """The sticks' velocity, smoothed, and the position hold (module docstring);
+        ``dt`` 0 for no step."""
         stick = stick_velocity_ne_m_s(deflection[0], deflection[1], heading)
-        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
         if stick is not None and self._ne_hold is not None:
             ref = self.outer.horizontal.velocity_ref_ne_m_s  # leave the hold smoothly
             self._vel_sp = ref if math.isfinite(ref[0] + ref[1]) else (0.0, 0.0)
@@ -276,14 +278,17 @@ class HoldMode:
         ``throttle`` and ``yaw_rate_rad_s``: the pilot's sticks)."""
         outer = self.outer
         yaw_rate = yaw_rate_rad_s if math.isfinite(yaw_rate_rad_s) else 0.0
-        vsp = self._climb_setpoint(dt_s, throttle, -position_ned_m[2], -velocity_ned_m_s[2])
+        if self._ramps_from_estimate:
+            self._start_ramps(velocity_ned_m_s)
+            self._ramps_from_estimate = False
+        dt = dt_s if math.isfinite(dt_s) and dt_s > 0.0 else 0.0
+        vsp = self._climb_setpoint(dt, throttle, -position_ned_m[2])
         q = normalise_or_none(q_wxyz)
         cos_tilt = 1.0 if q is None else 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
 
         if self.on_ground or not self.position:
             self._ne_hold = None
             self._vel_sp = (0.0, 0.0)
-            self._ramps_from_estimate = False
             thrust = outer.vertical.update(
                 dt_s, position_ned_m[2], velocity_ned_m_s[2], vsp, cos_tilt=cos_tilt,
                 applied=applied_thrust,
@@ -303,10 +308,8 @@ class HoldMode:
 
         heading = yaw_rad(q) if q is not None else math.nan
         hsp = self._velocity_setpoint(
-            dt_s, deflection, heading, (position_ned_m[0], position_ned_m[1]),
-            (velocity_ned_m_s[0], velocity_ned_m_s[1]),
-        )  # fmt: skip
-        self._ramps_from_estimate = False
+            dt, deflection, heading, (position_ned_m[0], position_ned_m[1])
+        )
         self.setpoint = OuterSetpoint(hsp, vsp, None, yaw_rate)
         o = outer.update(
             dt_s, q_wxyz, gyro_frd_rad_s, position_ned_m, velocity_ned_m_s, self.setpoint,
