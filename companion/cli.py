@@ -27,6 +27,8 @@ from companion.errors import EXIT_ERROR, ConfigError, MfcError
 from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
 from companion.options import (
     EXIT_BAD_INPUT,
+    RUN_DURATION_MAX_S,
+    WORKERS,
     Finite,
     controller_opt,
     fail_config,
@@ -48,11 +50,23 @@ _FAILSAFE = FailsafeConfig()
 """The failsafes' defaults: the options below show and use these."""
 
 
-def _failsafe_opt(name: str, field: str, help_: str) -> Callable[[Callable[..., Any]], Any]:
-    """A failsafe's threshold (a positive, finite number), defaulting to FailsafeConfig's."""
+_THRESHOLD_HARD_MAX_S = 3600.0
+"""The most any failsafe's time may be, even with ``--beyond-bounds``: an hour is
+past any use (:data:`THRESHOLD_MAX` holds the bounds within which they protect)."""
+
+_ERROR_HARD_MAX_DEG_S = 4000.0
+"""``--envelope-error-deg-s``, even with ``--beyond-bounds``: the widest gyro range
+made (+-4000 deg/s); no error beyond it is measured."""
+
+
+def _failsafe_opt(
+    name: str, field: str, help_: str, max_: float = _THRESHOLD_HARD_MAX_S
+) -> Callable[[Callable[..., Any]], Any]:
+    """A failsafe's threshold (a positive, finite number up to ``max_``), defaulting
+    to FailsafeConfig's."""
     return click.option(
         name,
-        type=Finite(min=0.0, min_open=True),
+        type=Finite(min=0.0, min_open=True, max=max_),
         default=getattr(_FAILSAFE, field),
         show_default=True,
         help=help_,
@@ -163,7 +177,7 @@ _autopilot_sysid_opt = click.option(
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=1,
     show_default=True,
     help="Processes for --fly's flights (the result does not depend on it).",
@@ -356,10 +370,10 @@ def preflight(
 @signing_key_opt("MAVLink 2 signing key file (see docs/signing.md).")
 @click.option(
     "--duration",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=RUN_DURATION_MAX_S),
     default=None,
     help="Stop after this long engaged (sample time, s), handing back; in shadow mode "
-    "(--engage none), after this long since the first sample.",
+    "(--engage none), after this long since the first sample. At most a week.",
 )
 @click.option(
     "--on-failsafe",
@@ -396,7 +410,7 @@ def preflight(
 )
 @click.option(
     "--hand-back-watch-s",
-    type=Finite(min=0.0),
+    type=Finite(min=0.0, max=_THRESHOLD_HARD_MAX_S),
     default=_FAILSAFE.hand_back_watch_s,
     show_default=True,
     help="After a hand-back, watch the autopilot's mode this long: if it leaves the safe "
@@ -473,15 +487,17 @@ def preflight(
 )
 @click.option(
     "--heartbeat-timeout-s",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=3600.0),
     default=10.0,
     show_default=True,
-    help="How long to wait for the autopilot's first heartbeat (exit 1 after).",
+    help="How long to wait for the autopilot's first heartbeat (exit 1 after; at most "
+    "an hour, for an autopilot powered long after the companion).",
 )
 @_failsafe_opt(
     "--envelope-error-deg-s",
     "tracking_error_max_deg_s",
     "Failsafe when the tracking error averaged over 0.5 s exceeds this.",
+    max_=_ERROR_HARD_MAX_DEG_S,
 )
 @click.option(
     "--beyond-bounds",

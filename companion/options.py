@@ -2,7 +2,10 @@
 
 click's ``FloatRange`` lets ``nan`` through every bound (it compares false with
 anything) and ``inf`` past an open end; a watchdog given ``--stale-imu-s nan``
-would never fire. :class:`Finite` closes that. :func:`usable_out_dir` checks an
+would never fire. :class:`Finite` closes that. Every number a command takes has
+both ends: a value no user needs (``--duration 1e308``) is refused with click's
+message naming the option, exit 2, before anything starts; the constants below
+hold the ends several commands share. :func:`usable_out_dir` checks an
 output folder before any work starts (making it and a file in it, then undoing
 that), so a bad ``--out`` fails at once rather than after a long run.
 :func:`keep_earlier` moves an earlier run's outputs aside before a command
@@ -11,6 +14,7 @@ writes its own: no command overwrites one.
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import math
 import os
@@ -26,8 +30,12 @@ from companion.errors import EXIT_BAD_INPUT, ConfigError
 
 __all__ = [
     "EXIT_BAD_INPUT",
+    "RUN_DURATION_MAX_S",
     "SEED",
+    "SIM_DURATION_MAX_S",
+    "WORKERS",
     "Finite",
+    "argparse_type",
     "controller_opt",
     "fail_config",
     "keep_earlier",
@@ -40,8 +48,20 @@ __all__ = [
     "usable_out_file",
 ]
 
-SEED = click.IntRange(min=0)
-"""A seed: numpy's generators take a non-negative integer."""
+SEED = click.IntRange(min=0, max=2**32 - 1)
+"""A seed: numpy's generators take a non-negative integer; below 2**32 as a
+campaign file's seeds (``sitl.lab.campaign_file``) and numpy's legacy seeds are."""
+
+WORKERS = click.IntRange(min=1, max=1024)
+"""Worker processes on this machine: more than any one machine has cores."""
+
+RUN_DURATION_MAX_S = 7 * 24 * 3600.0
+"""``companion run --duration``: a week. A battery flight lasts under an hour; a
+tethered multirotor flies for days; nothing flies longer unattended."""
+
+SIM_DURATION_MAX_S = 3600.0
+"""A simulated flight's ``--duration``: an hour, the longest a scenario may be
+(``sitl.scenario``); the lab and ``sitl run --log`` keep every step in memory."""
 
 
 class Finite(click.FloatRange):
@@ -50,10 +70,25 @@ class Finite(click.FloatRange):
     name = "finite float range"
 
     def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
-        rv = super().convert(value, param, ctx)
-        if not math.isfinite(rv):
+        # Finite first: "inf is not a finite number" says more than "not in the range".
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
-        return rv
+        return super().convert(number, param, ctx)
+
+
+def argparse_type(param_type: click.ParamType[Any, Any]) -> Callable[[str], Any]:
+    """A click type (a :class:`Finite` range, :data:`SEED`) as an argparse ``type=``,
+    so the scripts' numbers have the same ends and messages as the commands'."""
+
+    def convert(text: str) -> Any:
+        try:
+            return param_type.convert(text, None, None)
+        except click.BadParameter as exc:
+            raise argparse.ArgumentTypeError(exc.message) from None
+
+    convert.__name__ = param_type.name  # argparse names the type in its own messages
+    return convert
 
 
 def out_dir_problem(value: str | Path) -> str | None:

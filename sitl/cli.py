@@ -30,6 +30,7 @@ import click
 from companion.errors import ConfigError, SigningError
 from companion.options import (
     SEED,
+    SIM_DURATION_MAX_S,
     Finite,
     find_profile,
     keep_earlier,
@@ -40,6 +41,10 @@ from companion.options import (
 from companion.profile import load_profile
 from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 from sitl.personality import FirmwareVersion
+from sitl.scenario import GUST_SIGMA_MAX_M_S
+
+ENVELOPE_N_MAX = 10_000
+"""``--n``: the envelope study samples 30 vehicles; ten thousand is a campaign's worth."""
 
 __all__ = ["cli", "main"]
 
@@ -109,18 +114,19 @@ def cli(verbose: int) -> None:
 @click.option(
     "--duration",
     "duration_s",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=SIM_DURATION_MAX_S),
     default=None,
-    help="Simulated seconds [default: the pilot's duration, else until SIGINT/SIGTERM].",
+    help="Simulated seconds, at most an hour [default: the pilot's duration, else until "
+    "SIGINT/SIGTERM].",
 )
 @click.option("--test-stand", is_flag=True, help="Vehicle on a gimbal rig: attitude only.")
 @click.option(
     "--wind-gust",
     "wind_gust_m_s",
-    type=Finite(min=0.0),
+    type=Finite(min=0.0, max=GUST_SIGMA_MAX_M_S),
     default=0.0,
     show_default=True,
-    help="Turbulence intensity, m/s (per-axis sigma).",
+    help="Turbulence intensity, m/s (per-axis sigma; at most a scenario's bound).",
 )
 @click.option(
     "--log",
@@ -134,18 +140,20 @@ def cli(verbose: int) -> None:
 @click.option(
     "--offboard-timeout",
     "offboard_timeout_s",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=60.0),
     default=1.0,
     show_default=True,
-    help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T; --param COM_OF_LOSS_T wins).",
+    help="Offboard loss failsafe timeout, s (PX4 COM_OF_LOSS_T, whose range is 0-60 s; "
+    "--param COM_OF_LOSS_T wins).",
 )
 @click.option(
     "--lockstep-timeout",
     "lockstep_timeout_s",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=60.0),
     default=0.5,
     show_default=True,
-    help="Longest wall-clock wait for a setpoint in lockstep, s.",
+    help="Longest wall-clock wait for a setpoint in lockstep, s (at most a minute: a "
+    "companion silent that long has stopped).",
 )
 @click.option(
     "--mode",
@@ -374,7 +382,7 @@ def run(
 @click.option(
     "--n",
     "n",
-    type=click.IntRange(min=0),
+    type=click.IntRange(min=0, max=ENVELOPE_N_MAX),
     default=30,
     show_default=True,
     help="Vehicles sampled from the envelope (Latin hypercube).",
@@ -433,14 +441,21 @@ def _check_param_names(
             )
 
 
+_FLOAT32_MAX = 3.4028234663852886e38
+"""The largest float32: MAVLink carries a parameter's value as one (PARAM_VALUE)."""
+
+
 def _parse_param(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
     try:
         if not sep or not name.strip():
             raise ValueError
-        return name.strip().upper(), float(value)
+        number = float(value)
     except ValueError:
         raise ValueError(f"--param {text!r}: expected NAME=NUMBER") from None
+    if abs(number) > _FLOAT32_MAX:  # nan and inf pass here: the personality names them
+        raise ValueError(f"--param {text!r}: beyond a float32, which MAVLink carries it in")
+    return name.strip().upper(), number
 
 
 def main() -> None:

@@ -19,6 +19,7 @@ from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 from sitl.wind import WindConfig
 
 __all__ = [
+    "GUST_SIGMA_MAX_M_S",
     "ImuOverride",
     "Scenario",
     "WindSpec",
@@ -29,10 +30,14 @@ __all__ = [
 
 SCENARIO_DIR = Path(str(files("sitl") / "scenarios"))
 
+GUST_SIGMA_MAX_M_S = 20.0
+"""The strongest turbulence a flight is given (per-axis sigma, m/s): a storm no
+multirotor is flown in."""
+
 
 class WindSpec(StrictModel):
     steady_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gust_sigma_m_s: float = Field(0.0, ge=0.0, le=20.0)
+    gust_sigma_m_s: float = Field(0.0, ge=0.0, le=GUST_SIGMA_MAX_M_S)
     gust_length_m: float = Field(50.0, gt=0.0, le=2000.0)
 
     def config(self) -> WindConfig:

@@ -27,10 +27,12 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import click
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller
+from companion.options import SEED, WORKERS, argparse_type
 from companion.profile import load_profile
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -169,13 +171,24 @@ def campaign(seed: int, n: int, workers: int) -> dict[str, Any]:
             "records": records}  # fmt: skip
 
 
-def main(argv: list[str] | None = None) -> int:
+MAX_MUTANTS = 100_000
+"""``--n``: each mutant is flown for seconds; a hundred thousand is days of flights."""
+
+
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``scripts/fuzz.py config``."""
     ap = argparse.ArgumentParser(prog="fuzz.py config", description=__doc__.split("\n")[0])
-    ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--n", type=int, default=100, help="mutants")
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--seed", type=argparse_type(SEED), default=1)
+    ap.add_argument(
+        "--n", type=argparse_type(click.IntRange(0, MAX_MUTANTS)), default=100, help="mutants"
+    )
+    ap.add_argument("--workers", type=argparse_type(WORKERS), default=2)
     ap.add_argument("--json", action="store_true", help="print the report as one JSON object")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     report = campaign(args.seed, args.n, args.workers)
     if args.json:
         print(json.dumps(report))

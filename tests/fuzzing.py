@@ -105,6 +105,8 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion.failsafe import THRESHOLD_MAX
+from companion.options import SEED, SIM_DURATION_MAX_S, Finite, argparse_type
 from sitl.lab.fly import free_udp_port
 
 __all__ = [
@@ -132,6 +134,10 @@ PX4_OFFBOARD = 6 << 16  # PX4 custom_mode: main mode 6 in bits 16..23
 PX4_POSCTL = 3 << 16
 ARMED_CUSTOM = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 FULL_RUN_CASES = 100_000
+MAX_CASES = 10 * FULL_RUN_CASES
+"""``--cases``: ten full runs in one go; a longer campaign is several runs."""
+MAX_RATE_HZ = 100_000.0
+"""``--rate``: more datagrams a second than loopback UDP delivers to a Python reader."""
 MAE_RATIO_MAX = 1.2
 EXIT_FAILSAFE = 3  # companion.app.EXIT_FAILSAFE
 MAX_UDP_PAYLOAD = 65_507
@@ -1370,7 +1376,9 @@ def _parser() -> argparse.ArgumentParser:
         "UDP) while injecting malformed MAVLink; exit 0 when the targets are met.",
     )
     p.add_argument("--json", action="store_true", help="Print the report as JSON.")
-    p.add_argument("--seed", type=int, default=1, help="Seed of the flight and of every case.")
+    p.add_argument(
+        "--seed", type=argparse_type(SEED), default=1, help="Seed of the flight and of every case."
+    )
     p.add_argument(
         "--cases",
         default="2000",
@@ -1379,7 +1387,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--rate",
-        type=float,
+        type=argparse_type(Finite(min=0.0, min_open=True, max=MAX_RATE_HZ)),
         default=2000.0,
         help="Datagrams per second, at most (fewer cases than a flight holds are spread over it).",
     )
@@ -1397,12 +1405,15 @@ def _parser() -> argparse.ArgumentParser:
         help="One flight per kind, or kinds mixed (default; 'kind' with --cases full).",
     )
     p.add_argument(
-        "--duration", type=float, default=12.0, help="Engaged flight time per flight, s."
+        "--duration",
+        type=argparse_type(Finite(min=2.0, min_open=True, max=SIM_DURATION_MAX_S)),
+        default=12.0,
+        help="Engaged flight time per flight, s.",
     )
     p.add_argument("--output", choices=["actuator", "rates"], default="actuator")
     p.add_argument(
         "--stale-imu-s",
-        type=float,
+        type=argparse_type(Finite(min=0.0, min_open=True, max=THRESHOLD_MAX["--stale-imu-s"][0])),
         default=0.5,
         help="The companion's stale-IMU watchdog (companion fly's setting).",
     )
@@ -1424,8 +1435,8 @@ def _options(p: argparse.ArgumentParser, a: argparse.Namespace) -> Options:
         cases = FULL_RUN_CASES if full else int(a.cases)
     except ValueError:
         p.error(f"--cases: an integer or 'full', got {a.cases!r}")
-    if cases < 0 or not a.rate > 0 or not a.duration > 2.0:
-        p.error("--cases must be >= 0, --rate > 0 and --duration > 2 s")
+    if not 0 <= cases <= MAX_CASES:
+        p.error(f"--cases: expected 0..{MAX_CASES} or 'full', got {cases}")
     if a.kinds:
         kinds = tuple(k.strip() for k in a.kinds.split(",") if k.strip())
         unknown = [k for k in kinds if k not in KINDS]

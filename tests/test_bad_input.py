@@ -9,7 +9,10 @@ pilot in a scenario, a negative seed, an output folder that cannot be made.
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
+import subprocess
 from pathlib import Path
 
 import click
@@ -18,7 +21,8 @@ from click.testing import CliRunner, Result
 
 from companion.cli import cli as companion_cli
 from companion.errors import ConfigError
-from companion.options import out_dir_problem, usable_out_dir
+from companion.failsafe import THRESHOLD_MAX
+from companion.options import Finite, out_dir_problem, usable_out_dir
 from sitl.cli import cli as sitl_cli
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,11 +65,12 @@ def test_run_refuses_a_non_finite_number(flag: str, value: str) -> None:
         (("--wind-gust", "nan"), ("--wind-gust", "not a finite number")),
         (("--clock", "lockstep", "--lockstep-timeout", "nan"), ("--lockstep-timeout",)),
         (("--duration", "inf"), ("--duration", "not a finite number")),
-        (("--seed", "-1"), ("--seed", "-1 is not in the range x>=0")),
+        (("--seed", "-1"), ("--seed", "-1 is not in the range 0<=x<=4294967295")),
         (("--log", ""), ("--log", "expected a file path")),
         (("--fault", "motor-fail@1"), ("motor-fail@SECONDS:MOTOR",)),
         (("--pilot", ""), ("--pilot", "expected a maneuver name")),
         (("--autopilot", "ardupilot", "--param", "SCHED_LOOP_RATE=fast"), ("NAME=NUMBER",)),
+        (("--param", "COM_OF_LOSS_T=1e308"), ("--param", "beyond a float32")),
     ],
 )
 def test_sitl_run_refuses(args: tuple[str, ...], words: tuple[str, ...]) -> None:
@@ -198,8 +203,11 @@ THRESHOLDS = (
 
 @pytest.mark.parametrize("flag", THRESHOLDS)
 def test_run_refuses_a_failsafe_threshold_beyond_its_bound(flag: str) -> None:
-    res = companion("run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450), flag, "1e9")
-    refused(res, flag, "1e+09: beyond", "no longer protects", f"--beyond-bounds {flag}")
+    value = 1.5 * THRESHOLD_MAX[flag][0]  # past the bound, within the option's own range
+    res = companion(
+        "run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450), flag, f"{value:g}"
+    )  # fmt: skip
+    refused(res, flag, f"{value:g}: beyond", "no longer protects", f"--beyond-bounds {flag}")
 
 
 def test_a_bound_lifted_on_purpose_is_recorded(tmp_path: Path) -> None:
@@ -220,3 +228,96 @@ def test_a_bound_lifted_on_purpose_is_recorded(tmp_path: Path) -> None:
         "--stale-imu-s", "60", "--beyond-bounds", "--link-timeout-s",
     )  # fmt: skip
     refused(res, "--stale-imu-s 60: beyond 1")
+
+
+def _numeric_options() -> list[tuple[str, click.Parameter]]:
+    """Every option of every ``companion`` and ``sitl`` command that takes a number
+    (a ``-v`` count aside: each ``-v`` adds one, there is no value to bound)."""
+    found = []
+    for prog, group in (("companion", companion_cli), ("sitl", sitl_cli)):
+        ctx = click.Context(group)
+        for name in group.list_commands(ctx):
+            command = group.get_command(ctx, name)
+            assert command is not None
+            for param in command.params:
+                numeric = isinstance(
+                    param.type, click.types.IntParamType | click.types.FloatParamType
+                )
+                if numeric and not getattr(param, "count", False):
+                    found.append((f"{prog} {name} {param.opts[-1]}", param))
+    return found
+
+
+NUMERIC_OPTIONS = _numeric_options()
+
+
+def test_the_walk_finds_the_numeric_options() -> None:
+    names = {name for name, _ in NUMERIC_OPTIONS}
+    assert {"companion run --duration", "companion fly --duration", "sitl run --duration",
+            "companion campaign --seeds", "sitl envelope --n"} <= names  # fmt: skip
+    assert len(names) == len(NUMERIC_OPTIONS) > 40
+
+
+@pytest.mark.parametrize(
+    "param", [p for _, p in NUMERIC_OPTIONS], ids=[n for n, _ in NUMERIC_OPTIONS]
+)
+def test_every_numeric_option_has_two_finite_ends(param: click.Parameter) -> None:
+    """A number no user needs (``--duration 1e308``) is refused by click, naming the
+    option, before anything starts; a float also refuses nan (:class:`Finite`)."""
+    t = param.type
+    assert isinstance(t, click.IntRange | click.FloatRange), f"{t!r} has no range"
+    assert t.min is not None and t.max is not None, f"{t!r}: both ends"
+    assert math.isfinite(t.min) and math.isfinite(t.max) and t.min <= t.max
+    if isinstance(t, click.FloatRange):
+        assert isinstance(t, Finite), f"{t!r} lets nan through"
+
+
+def _script_parsers() -> list[tuple[str, argparse.ArgumentParser]]:
+    from tests.config_fuzzing import parser as config_fuzz_parser
+    from tests.fuzzing import _parser as fuzz_parser
+
+    return [("fuzz.py", fuzz_parser()), ("fuzz.py config", config_fuzz_parser())]
+
+
+def test_the_scripts_numbers_are_bounded(capsys: pytest.CaptureFixture[str]) -> None:
+    """scripts/fuzz.py's numbers: each a bounded type, 1e308 refused naming the option."""
+    checked = []
+    for prog, ap in _script_parsers():
+        for action in ap._actions:
+            if action.type in (None, str, Path) or not action.option_strings:
+                continue  # --cases, a number or 'full', is checked below
+            assert action.type not in (int, float), f"{prog} {action.option_strings}: unbounded"
+            flag = action.option_strings[-1]
+            with pytest.raises(SystemExit) as exc:
+                ap.parse_args([flag, "1e308"])
+            assert exc.value.code == EXIT_BAD_INPUT
+            assert f"argument {flag}" in capsys.readouterr().err
+            checked.append(f"{prog} {flag}")
+    assert {"fuzz.py --rate", "fuzz.py --duration", "fuzz.py config --n"} <= set(checked)
+    from tests.fuzzing import _options
+
+    ap = _script_parsers()[0][1]
+    with pytest.raises(SystemExit) as exc:
+        _options(ap, ap.parse_args(["--cases", "10000000000"]))
+    assert exc.value.code == EXIT_BAD_INPUT and "--cases: expected 0.." in capsys.readouterr().err
+
+
+def test_run_and_fly_refuse_a_duration_of_1e308_and_start_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Found by an outside campaign: ``run --duration 1e308`` raised an OverflowError
+    once started, and ``fly`` left a traceback in companion.stderr."""
+
+    def no_process(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"a process was started: {args}")
+
+    monkeypatch.setattr(subprocess, "Popen", no_process)
+    logs, out = tmp_path / "logs", tmp_path / "fly"
+    res = companion(
+        "run", "--connect", "udpout:127.0.0.1:9", "--profile", str(F450),
+        "--log-dir", str(logs), "--duration", "1e308",
+    )  # fmt: skip
+    refused(res, "--duration", "1e+308 is not in the range")
+    res = companion("fly", "--duration", "1e308", "--out", str(out), "--no-progress")
+    refused(res, "--duration", "1e+308 is not in the range")
+    assert list(tmp_path.iterdir()) == []  # neither the log folder nor the output folder

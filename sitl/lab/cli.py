@@ -16,7 +16,6 @@ import contextlib
 import importlib.util
 import json
 import logging
-import math
 import os
 import sys
 import time
@@ -31,6 +30,8 @@ from companion.errors import ConfigError
 from companion.options import (
     EXIT_BAD_INPUT,
     SEED,
+    SIM_DURATION_MAX_S,
+    WORKERS,
     Finite,
     controller_opt,
     fail_config,
@@ -42,7 +43,10 @@ from companion.options import (
     profile_opt,
     usable_out_dir,
 )
+from sitl.cli import ENVELOPE_N_MAX
+from sitl.lab.campaign_file import MAX_FLIGHTS
 from sitl.link_model import LinkSpec
+from sitl.scenario import GUST_SIGMA_MAX_M_S
 
 __all__ = ["campaign", "envelope", "fly", "simulate"]
 
@@ -383,9 +387,9 @@ def _simulate_outer(
 @output_opt
 @click.option(
     "--duration",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=SIM_DURATION_MAX_S),
     default=None,
-    help="Engaged flight time, s [default: the scenario's].",
+    help="Engaged flight time, s, at most an hour [default: the scenario's].",
 )
 @_controller_profile_opt("Give the companion this profile instead of the flown one.")
 @click.option(
@@ -588,17 +592,17 @@ _GRID_OPTIONS = (
 @click.option(
     "--gusts", default="0,2", show_default=True, help="Wind gust sigmas, m/s (comma-separated)."
 )
-@click.option("--seeds", type=click.IntRange(min=1), default=3, show_default=True)
+@click.option("--seeds", type=click.IntRange(min=1, max=MAX_FLIGHTS), default=3, show_default=True)
 @click.option(
     "--seed-base",
-    type=click.IntRange(min=0),
+    type=SEED,
     default=1000,
     show_default=True,
     help="Seeds are seed-base .. seed-base + seeds - 1 (no tuning used these).",
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=None,
     help="Parallel flights: local worker processes [default: os.cpu_count()]; with "
     "--scheduler, the cluster's workers fly instead.",
@@ -606,10 +610,10 @@ _GRID_OPTIONS = (
 @_scheduler_opt
 @click.option(
     "--duration",
-    type=Finite(min=0.0, min_open=True),
+    type=Finite(min=0.0, min_open=True, max=SIM_DURATION_MAX_S),
     default=20.0,
     show_default=True,
-    help="Fly only the first S seconds of the scenario.",
+    help="Fly only the first S seconds of the scenario (at most an hour).",
 )
 @click.option(
     "--scenario",
@@ -720,8 +724,10 @@ def campaign(
             raise click.BadParameter("--damage and --gusts need at least one value each")
         if not all(0.0 < d <= 1.0 for d in damages):
             raise click.BadParameter(f"--damage: expected efficiencies in (0, 1], got {damage}")
-        if not all(math.isfinite(g) and g >= 0.0 for g in gust_list):
-            raise click.BadParameter(f"--gusts: expected finite sigmas >= 0 m/s, got {gusts}")
+        if not all(0.0 <= g <= GUST_SIGMA_MAX_M_S for g in gust_list):  # nan fails too
+            raise click.BadParameter(
+                f"--gusts: expected finite sigmas in 0..{GUST_SIGMA_MAX_M_S:g} m/s, got {gusts}"
+            )
         prof_names, ctrl_names = _split_list(profiles), _split_list(controllers)
         for flag, given_raw, names in (
             ("--profiles", profiles, prof_names),
@@ -824,7 +830,7 @@ def campaign(
 )
 @click.option(
     "--n",
-    type=click.IntRange(min=0),
+    type=click.IntRange(min=0, max=ENVELOPE_N_MAX),
     default=30,
     show_default=True,
     help="Latin-hypercube vehicles, on top of the named corners.",
@@ -845,17 +851,17 @@ def campaign(
 )
 @click.option(
     "--damage-on",
-    type=click.IntRange(min=0),
+    type=click.IntRange(min=0, max=ENVELOPE_N_MAX),
     default=8,
     show_default=True,
     help="How many vehicles get the damage variants: the first K, corners first.",
 )
 @click.option(
     "--tune-budget",
-    type=click.IntRange(min=1),
+    type=click.IntRange(min=1, max=10_000),
     default=40,
     show_default=True,
-    help="PID tuning flights per vehicle and case.",
+    help="PID tuning flights per vehicle and case (at most ten thousand).",
 )
 @click.option(
     "--train-scenario",
@@ -881,14 +887,14 @@ def campaign(
 @click.option(
     "--worst",
     "worst_k",
-    type=click.IntRange(min=0),
+    type=click.IntRange(min=0, max=1000),
     default=3,
     show_default=True,
     help="How many worst cases to re-fly and plot.",
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=WORKERS,
     default=None,
     help="Parallel cases [default: os.cpu_count()].",
 )
