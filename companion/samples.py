@@ -34,8 +34,18 @@ _TIME_JUMP_S = 1.0
 """An IMU time step beyond this, either way, is a discontinuity, not a late
 sample or a gap (stale IMU fires after ``stale_imu_s``, far less)."""
 _NEW_CLOCK_SAMPLES = 3
-"""Samples in a row that must follow on from a jump before it is a new clock
-(an autopilot reboot) rather than one corrupt timestamp: 12 ms at 250 Hz."""
+"""Samples in a row that must follow on from a jump before it is real (a gap,
+or a new clock: an autopilot reboot) rather than one corrupt timestamp: 12 ms
+at 250 Hz."""
+_STEP_AHEAD_S = 0.02
+"""How far one IMU step may run ahead of the wall clock between the two
+samples' arrivals and still be flown at once; also the longest step by which
+samples follow on from a jump. A longer step is a gap only if the wall clock
+took it too, or if the next samples continue from it. 20 ms is five samples at
+250 Hz (a few lost in a row pass as they come, even where a lockstep
+simulator's clock outruns the wall's), the rate law's own longest time step
+(``dt_max_s``), and bounds what one wrong stamp can cost: the genuine samples
+it puts behind it are at most this much of the stream."""
 
 # MAVLink numbers used here (common.xml).
 _MSG_HEARTBEAT = 0
@@ -182,15 +192,16 @@ class SamplePath(ModePath):
             dt = 0.0
         else:
             dt = t_s - t_prev
-            if 0.0 < dt <= _TIME_JUMP_S:
+            if 0.0 < dt <= _STEP_AHEAD_S:
                 dt = whole_us(dt)  # HIGHRES_IMU's stamps are whole us, ATTITUDE's ms
-            if not 0.0 < dt <= _TIME_JUMP_S:  # also a NaN timestamp
-                if not self._on_time_anomaly(t_s, dt, t0):
+                if self._clock_candidate is not None:
+                    self._clock_candidate = None  # the old clock goes on: it was one outlier
+                    self.n_imu_time_outliers += 1
+            else:  # late, a gap, a jump; also a NaN timestamp
+                taken = self._on_time_anomaly(t_s, dt, t0)
+                if taken is None:
                     return
-                dt = 0.0
-            elif self._clock_candidate is not None:
-                self._clock_candidate = None  # the old clock goes on: it was one outlier
-                self.n_imu_time_outliers += 1
+                dt = taken
             if self._restart_dt:
                 dt = 0.0
         self._restart_dt = False
@@ -205,45 +216,54 @@ class SamplePath(ModePath):
         # The stale-IMU clock counts samples the law has processed, not samples seen.
         self._last_imu_wall = t0
 
-    def _on_time_anomaly(self, t_s: float, dt: float, t_wall: float) -> bool:
-        """A sample whose time is not just after the last one's; True: take it
-        (with no time step: the next one primes ``dt``).
+    def _on_time_anomaly(self, t_s: float, dt: float, t_wall: float) -> float | None:
+        """A sample whose time is not just after the last one's: the time step to
+        fly it with, or None: dropped.
 
         A step back within ``_TIME_JUMP_S`` is a duplicate or a late sample
         (reordered on the link): dropped. A step forward that the wall clock
-        also took (within ``_TIME_JUMP_S``) is a gap in the stream: taken. Any
-        other jump may be one corrupt timestamp: the sample is dropped, and only
-        when ``_NEW_CLOCK_SAMPLES`` samples in a row follow on from it is the
-        jump real: forward, a gap after all (a simulator's clock can outrun the
-        wall's); backward, a new clock (the autopilot rebooted). A sample that
-        follows the old clock again makes the jump an outlier, and nothing
-        changes.
+        also took, give or take ``_STEP_AHEAD_S`` (the datagrams' arrivals are
+        as far apart as the stamps), is a gap in the stream: flown at once. Any
+        other step may be one corrupt timestamp, and a sample whose time is
+        unknown is not flown (the law would differentiate its rate over a time
+        it may have faked; a NaN sample would stretch the invalid-IMU run): it
+        is dropped and becomes a candidate. Only when ``_NEW_CLOCK_SAMPLES``
+        samples in a row follow on from it is the jump real: forward, a gap
+        after all (a lockstep simulator's clock outruns the wall's); backward,
+        a new clock (the autopilot rebooted). A sample that follows the old
+        clock again makes the candidate an outlier, and nothing changes: one
+        forward stamp costs that one sample, a real gap the wall did not see
+        two more.
         """
         if dt != dt or -_TIME_JUMP_S <= dt <= 0.0:
             self.n_imu_duplicate_or_late += 1
-            return False
+            return None
+        # The step to fly a gap with: the law clamps it; beyond _TIME_JUMP_S it starts over.
+        gap_dt = whole_us(dt) if dt <= _TIME_JUMP_S else 0.0
         last_wall = self._last_imu_wall
-        if dt > 0.0 and last_wall is not None and dt <= t_wall - last_wall + _TIME_JUMP_S:
-            self.n_imu_gaps += 1
-            self._clock_candidate = None
-            return True
         cand = self._clock_candidate
-        if cand is not None and 0.0 < t_s - cand[0] <= _TIME_JUMP_S:
+        if dt > 0.0 and last_wall is not None and dt <= t_wall - last_wall + _STEP_AHEAD_S:
+            self.n_imu_gaps += 1
+            if cand is not None:
+                self._clock_candidate = None
+                self.n_imu_time_outliers += 1  # the old clock went on, through a gap
+            return gap_dt
+        if cand is not None and 0.0 < t_s - cand[0] <= _STEP_AHEAD_S:
             self._clock_candidate = (t_s, cand[1] + 1)
             if cand[1] + 1 < _NEW_CLOCK_SAMPLES:
-                return False
+                return None
             self._clock_candidate = None
-            if t_s > self._t_prev:  # type: ignore[operator]
+            if dt > 0.0:
                 self.n_imu_gaps += 1
                 self._event("imu_gap", f"IMU time went on from {self._t_prev:.6f} s to {t_s:.6f} s")
-            else:
-                self._new_clock(t_s)
-            return True
+                return gap_dt
+            self._new_clock(t_s)
+            return 0.0
         if cand is not None:
             self.n_imu_time_outliers += 1  # the previous candidate led nowhere
         self._clock_candidate = (t_s, 1)
         self.n_imu_time_jumps += 1
-        return False
+        return None
 
     def _new_clock(self, t_s: float) -> None:
         """The autopilot's IMU clock restarted (a reboot): start over.

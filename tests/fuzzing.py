@@ -53,7 +53,9 @@ companion
     ``foreign_sysid``, ``mavlink1``, ``burst`` (5-30 datagrams back to back),
     ``huge`` (10-60 kB datagrams), ``spoofed_heartbeat`` (the autopilot's ids,
     OFFBOARD and armed, from X), ``imu_timestamps`` (valid samples, repeated or
-    older timestamps); opt-in: ``imu_time_jump`` (a valid sample seconds ahead).
+    older timestamps), ``imu_ahead`` (one sample, its gyro valid or not, stamped
+    30 ms to 1 s ahead: dropped, so judged as garbage); opt-in: ``imu_time_jump``
+    (a valid sample seconds ahead).
 sitl
     ``sitl_random``, ``sitl_truncated``, ``sitl_bad_crc``, ``sitl_huge``,
     ``sitl_foreign``.
@@ -571,6 +573,21 @@ class ImuTimeJump(CaseKind):
         return [_PACKER.frame(_highres_imu(t, st.gyro_rad_s, rng), AUTOPILOT_IDS, 0)]
 
 
+class ImuAhead(CaseKind):
+    name, target, paths = "imu_ahead", "companion", _TO_COMPANION
+    description = (
+        "a HIGHRES_IMU from the autopilot's ids stamped 30 ms to 1 s ahead of the last "
+        "real sample (a serial link, a radio modem, a glitching autopilot), its gyro as "
+        "the real one read or NaN, inf or 1e30: the companion drops it (its time is "
+        "unknown), so the targets apply"
+    )
+
+    def datagrams(self, rng: np.random.Generator, st: StreamState) -> list[bytes]:
+        t = st.imu_time_usec + int(10 ** _u(rng, 4.5, 6.0))
+        gyro = _bad_gyro(rng, st) if rng.random() < 0.5 else st.gyro_rad_s
+        return [_PACKER.frame(_highres_imu(t, gyro, rng), AUTOPILOT_IDS, _i(rng, 0, 255))]
+
+
 class SitlRandom(CaseKind):
     name, target, paths = "sitl_random", "sitl", _TO_SITL
     description = "1-300 random bytes into the SITL's port"
@@ -632,6 +649,7 @@ KINDS: dict[str, CaseKind] = {
         SpoofedHeartbeat(),
         ImuTimestamps(),
         ImuTimeJump(),
+        ImuAhead(),
         SitlRandom(),
         SitlTruncated(),
         SitlBadCrc(),

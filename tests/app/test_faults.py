@@ -392,6 +392,102 @@ async def test_one_sample_stamped_10_s_ahead_is_an_outlier_not_a_new_clock(start
     assert not [k for k in f.kinds() if k.startswith("failsafe")]
 
 
+@pytest.mark.parametrize("ahead_s", [0.06, 0.3, 0.6, 0.95])
+async def test_one_sample_stamped_ahead_costs_that_sample_only(
+    start: Start, ahead_s: float
+) -> None:
+    """A serial link, a radio modem or a glitching autopilot stamps one sample
+    0.06-1 s ahead: the genuine samples after it all fly."""
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    n0 = len(f.fake.setpoints())
+    f.fake.highres_imu(f.t_us + 4000 + round(ahead_s * 1e6), (0.0, 0.0, 0.0))
+    await settle()
+    sent = []
+    for _ in range(round(ahead_s * 250) + 20):
+        sent.append(f.imu())
+        await settle(3)
+    await settle()
+    assert setpoint_times(f.fake.setpoints()[n0:]) == sent  # every genuine sample flown
+    assert f.companion.counters["imu_time_outliers"] == 1
+    assert f.companion.counters["imu_duplicate_or_late"] == 0
+    assert f.companion.counters["imu_gaps"] == 0
+    assert f.companion.engaged
+
+
+async def test_a_sample_stamped_300_ms_ahead_in_real_time_is_no_stale_imu(start: Start) -> None:
+    """In real time, with the stale-IMU bound at its default (0.1 s): the stream
+    the forward stamp would have blanked for 0.3 s flies on."""
+    fs = replace(LOOSE, stale_imu_s=0.1)
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+    await f.feed_until(lambda: len(f.fake.setpoints()) >= 30)
+    n0 = len(f.fake.setpoints())
+    f.fake.highres_imu(f.t_us + 4000 + 300_000, (0.0, 0.0, 0.0))
+    t_end = time.perf_counter() + 0.6
+    sent: list[int] = []
+    await f.feed_until(lambda: time.perf_counter() > t_end, send=lambda: sent.append(f.imu()))
+    await settle()
+    assert "failsafe_stale_imu" not in f.kinds()
+    assert f.companion.engaged
+    assert setpoint_times(f.fake.setpoints()[n0:]) == sent
+    assert f.companion.counters["imu_time_outliers"] == 1
+
+
+async def test_two_nan_samples_the_second_stamped_ahead_are_no_invalid_imu(start: Start) -> None:
+    """The second NaN sample, stamped 60 ms ahead, must not stretch the run of
+    invalid samples past ``invalid_imu_s`` (0.05 s)."""
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    f.imu((math.nan, 0.0, 0.0))
+    await settle()
+    f.fake.highres_imu(f.t_us + 4000 + 60_000, (math.nan, math.nan, math.nan))
+    await settle()
+    await fly(f, 30, (0.1, 0.0, 0.0))
+    assert "failsafe_invalid_imu" not in f.kinds()
+    assert f.companion.engaged
+    assert f.companion.counters["imu_invalid"] == 1
+    assert f.companion.counters["imu_time_outliers"] == 1
+
+
+async def test_a_gap_in_real_time_is_taken_at_once(start: Start) -> None:
+    """The link lost 50 ms of datagrams; the samples resume with stamps matching
+    the wall time that passed: the first one after the gap flies."""
+    fs = replace(LOOSE, stale_imu_s=0.1)
+    f = await start(engage="auto", output="actuator", failsafe=fs)
+    await engage_px4_auto(f)
+    await f.feed_until(lambda: len(f.fake.setpoints()) >= 30)
+    n0 = len(f.fake.setpoints())
+    await asyncio.sleep(0.05)
+    f.t_us += 50_000
+    sent: list[int] = []
+    t_end = time.perf_counter() + 0.1
+    await f.feed_until(lambda: time.perf_counter() > t_end, send=lambda: sent.append(f.imu()))
+    await settle()
+    assert setpoint_times(f.fake.setpoints()[n0:]) == sent
+    assert f.companion.counters["imu_gaps"] == 1
+    assert f.companion.counters["imu_time_outliers"] == 0
+    assert "failsafe_stale_imu" not in f.kinds()
+
+
+async def test_a_gap_faster_than_the_wall_costs_two_samples(start: Start) -> None:
+    """In lockstep the simulator's clock outruns the wall's: a 50 ms gap arrives
+    at once, is a candidate, and is taken when two more samples follow on."""
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    await fly(f, 5)
+    n0 = len(f.fake.setpoints())
+    f.t_us += 50_000
+    sent = [f.imu() for _ in range(20)]
+    await settle()
+    assert setpoint_times(f.fake.setpoints()[n0:]) == sent[2:]
+    assert f.companion.counters["imu_gaps"] == 1
+    assert f.companion.counters["imu_time_outliers"] == 0
+    assert f.companion.engaged
+
+
 # ---------------------------------------------------------- intermittent gyro
 
 
