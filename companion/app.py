@@ -98,6 +98,9 @@ _LINK_REPORT_PERIOD_S = 1.0
 _EVENTS_KEPT = 1000
 """Events kept in memory (``Companion.events``); the events file has them all."""
 
+_WARNING_EVENTS = frozenset({"fly_check_skipped"})
+"""Events logged as warnings, as the failsafes are: the pilot should see them."""
+
 __all__ = [
     "EXIT_BAD_INPUT",
     "EXIT_ERROR",
@@ -182,6 +185,10 @@ class RunOptions:
     reference: ReferenceScript | None = None
     """Scripted rates (and maybe thrust) from engagement on, instead of the sticks."""
     heartbeat_timeout_s: float = 10.0
+    fly_check_event: tuple[str, str] | None = None
+    """The controller file's fly check (:mod:`companion.fly_check`) as an event
+    ``(kind, detail)`` recorded at the start: ``fly_check_passed``, or
+    ``fly_check_skipped`` (a warning too); None for a shipped file."""
     autopilot_sysid: int | None = None
     autopilot_compid: int | None = None
     """Pin the autopilot; ``None``: learn it from its first HEARTBEAT."""
@@ -299,7 +306,8 @@ class Companion(SamplePath):
         fails is counted (``event_errors``) and logged once."""
         t = self._t_prev if self._t_prev is not None else 0.0
         ev = {"t_s": round(t, 6), "wall": time.time(), "kind": kind, "detail": detail}
-        level = logging.WARNING if kind.startswith("failsafe") else logging.INFO
+        warn = kind.startswith("failsafe") or kind in _WARNING_EVENTS
+        level = logging.WARNING if warn else logging.INFO
         _log.log(level, "%s: %s", kind, detail)
         try:
             self._events_file.append(ev)  # memory, and a buffer the writer thread empties
@@ -608,6 +616,8 @@ class Companion(SamplePath):
                 "thresholds beyond their bounds (--beyond-bounds): "
                 + "; ".join(opts.failsafe.bounds_lifted),
             )
+        if opts.fly_check_event is not None:
+            self._event(*opts.fly_check_event)
         if self.flight_mode != "rates":
             self._event("mode", _MODE_TEXT[self.flight_mode])
         on_raw = self._tlog.write if self._tlog is not None else None

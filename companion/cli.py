@@ -18,7 +18,7 @@ import logging
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -41,6 +41,9 @@ from companion.options import (
     usable_out_dir,
     usable_out_file,
 )
+
+if TYPE_CHECKING:
+    from companion.fly_check import FlyCheck
 
 __all__ = ["main"]
 
@@ -162,6 +165,77 @@ _autopilot_sysid_opt = click.option(
     default=None,
     help="Listen only to this system [default: learnt from the first autopilot heartbeat].",
 )
+_skip_fly_check_opt = click.option(
+    "--skip-fly-check",
+    is_flag=True,
+    help="Fly a controller file that has not passed `companion check-config --controller "
+    "FILE --fly` on this computer (its content, by hash) anyway; the run records that the "
+    "check was skipped (event fly_check_skipped). Without it such a file is refused (exit "
+    "2), unless --engage none. Shipped files need no check.",
+)
+
+
+def _fly_check(ctrl_path: Path) -> FlyCheck:
+    """What this computer knows of the controller file's fly check
+    (:func:`companion.fly_check.fly_check_of`); an unreadable file exits 2."""
+    from companion.fly_check import fly_check_of
+
+    try:
+        return fly_check_of(ctrl_path)
+    except ConfigError as exc:
+        fail_config(exc)
+
+
+def _fly_check_event(check: FlyCheck, engage: str, skip_fly_check: bool) -> tuple[str, str] | None:
+    """The run's event for its controller's fly check, or None for a shipped file;
+    exits 2 (nothing opened) for a file that may not fly unchecked."""
+    if check.status == "shipped":
+        return None
+    digest = f"(sha256 {check.sha256[:16]})"
+    if check.may_fly:
+        return ("fly_check_passed", f"{check.describe()} {digest}")
+    if engage == "none":
+        return (
+            "fly_check_skipped",
+            f"{check.describe()} {digest}: flown in shadow mode (--engage none), which "
+            "sends nothing",
+        )
+    if skip_fly_check:
+        return (
+            "fly_check_skipped",
+            f"{check.describe()} {digest}: flown anyway (--skip-fly-check)",
+        )
+    click.echo(
+        f"error: {check.describe()}. A controller file other than the shipped ones flies "
+        f"only after it passed the fly check on this computer; {check.advice}, or fly it "
+        "unchecked with --skip-fly-check",
+        err=True,
+    )
+    sys.exit(EXIT_BAD_INPUT)
+
+
+def _remember_fly_check(check: FlyCheck, problems: list[str]) -> None:
+    """Record ``check-config --fly``'s verdict for ``companion run`` (stderr says where)."""
+    from companion.fly_check import record_fly_check
+
+    verdict = "failed" if problems else "passed"
+    try:
+        path, note = record_fly_check(check, passed=not problems, problems=problems)
+    except (OSError, RuntimeError) as exc:  # RuntimeError: no home folder
+        click.echo(
+            f"warning: {check.path}: {verdict}, but the verdict cannot be recorded ({exc}): "
+            "companion run will not know it",
+            err=True,
+        )
+        return
+    if note:
+        click.echo(f"warning: {note}: replaced", err=True)
+    then = "companion run flies it" if not problems else "companion run refuses it"
+    click.echo(
+        f"{check.path}: {verdict} the fly check (sha256 {check.sha256[:16]}), recorded in "
+        f"{path}: {then}",
+        err=True,
+    )
 
 
 @cli.command("check-config")
@@ -188,6 +262,7 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path)
     _warn_profile(profile, profile_path)
+    check = _fly_check(ctrl_path)  # its hash before the flights
     mixer = build_mixer(profile)
     roll_f, pitch_f, yaw_f = mixer.factors()
     doc: dict[str, Any] = {
@@ -203,6 +278,11 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
         doc["flight_check"] = [f.as_dict() for f in flights]
         failed = [p for f in flights for p in f.problems]
     click.echo(json.dumps(doc, indent=2))
+    if fly and check.status != "shipped":
+        _remember_fly_check(check, failed)
+    elif not fly and not check.may_fly:
+        click.echo(f"note: {check.describe()}: companion run refuses it; {check.advice}",
+                   err=True)  # fmt: skip
     if failed:
         click.echo(f"error: {ctrl_path}: flown in the simulator, it fails:", err=True)
         for problem in failed:
@@ -220,6 +300,7 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
 @_rate_hz_opt
 @signing_key_opt("MAVLink 2 signing key file (as companion run will use).")
 @_autopilot_sysid_opt
+@_skip_fly_check_opt
 @click.option(
     "--watch-s",
     type=Finite(min=1.0, max=120.0),
@@ -245,6 +326,7 @@ def preflight(
     rate_hz: float,
     signing_key: Path | None,
     autopilot_sysid: int | None,
+    skip_fly_check: bool,
     watch_s: float,
     heartbeat_timeout_s: float,
     as_json: bool,
@@ -253,9 +335,10 @@ def preflight(
 
     Reads the stack and its version, the parameters a safe offboard flight
     needs, the IMU rate and the link's round trip, the radio and the engage
-    switch, signing, the landed state and the position estimate, and times the
-    control law here. Each line passes, warns or fails with the fix. Exit 0 when
-    nothing fails, 1 otherwise, 2 for bad input.
+    switch, signing, the landed state and the position estimate, says whether the
+    controller file passed the fly check here, and times the control law here. Each
+    line passes, warns or fails with the fix. Exit 0 when nothing fails, 1
+    otherwise, 2 for bad input.
     """
     import asyncio
 
@@ -266,8 +349,9 @@ def preflight(
     from companion.link.transport import open_transport
     from companion.preflight import Plan, as_data, judge, measure_core, observe, summary
 
-    profile, cfg, _ = load_inputs(profile_path, controller_path, output)
+    profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, output)
     _warn_profile(profile, profile_path)
+    fly_check = _fly_check(ctrl_path)
     try:
         transport = open_transport(connect)
         signing = load_signing_key(signing_key) if signing_key else None
@@ -285,6 +369,8 @@ def preflight(
         serial=connect.startswith("serial:"),
         source_system=link.source_system,
         source_component=link.source_component,
+        fly_check=fly_check,
+        skip_fly_check=skip_fly_check,
     )
 
     async def observed() -> Any:
@@ -499,6 +585,7 @@ def preflight(
     "Failsafe when the tracking error averaged over 0.5 s exceeds this.",
     max_=_ERROR_HARD_MAX_DEG_S,
 )
+@_skip_fly_check_opt
 @click.option(
     "--beyond-bounds",
     "beyond_bounds",
@@ -543,9 +630,15 @@ def run(
     reference_path: Path | None,
     heartbeat_timeout_s: float,
     envelope_error_deg_s: float,
+    skip_fly_check: bool,
     beyond_bounds: tuple[str, ...],
 ) -> None:
-    """Fly the vehicle's rates with the controller over MAVLink."""
+    """Fly the vehicle's rates with the controller over MAVLink.
+
+    A controller file other than the shipped ones flies only after it passed
+    ``companion check-config --controller FILE --fly`` on this computer (or with
+    --skip-fly-check, or in shadow mode: either is recorded as an event).
+    """
     import asyncio
 
     from companion.app import Companion, RunOptions
@@ -614,6 +707,7 @@ def run(
     except (ValueError, MfcError) as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)
+    fly_check_event = _fly_check_event(_fly_check(ctrl_path), engage, skip_fly_check)
     opts = RunOptions(
         connect=connect,
         profile=profile,
@@ -636,6 +730,7 @@ def run(
         signing_key=signing_key,
         duration_s=duration,
         heartbeat_timeout_s=heartbeat_timeout_s,
+        fly_check_event=fly_check_event,
         reference=reference,
         autopilot_sysid=autopilot_sysid,
         autopilot_compid=autopilot_compid,

@@ -17,6 +17,8 @@ header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -64,3 +66,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         elif item.get_closest_marker("regression") is not None:
             tier = "regression"
         item.add_marker(tier)
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_fly_check_record(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The controller fly-check record (companion.fly_check) in a folder of the test
+    session's own, for the commands run in process and as subprocesses: no test reads
+    or writes the user's, and none passes a file because of it."""
+    from companion.fly_check import STATE_DIR_ENV
+
+    before = os.environ.get(STATE_DIR_ENV)
+    os.environ[STATE_DIR_ENV] = str(tmp_path_factory.mktemp("mfc-state"))
+    yield
+    if before is None:
+        del os.environ[STATE_DIR_ENV]
+    else:
+        os.environ[STATE_DIR_ENV] = before

@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import dataclasses
 import struct
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
+from companion.fly_check import FlyCheck
 from companion.link.requests import param_value
 from companion.link.timesync import LinkStats
 from companion.preflight import Check, CoreCost, Observed, Plan, judge, summary
@@ -333,3 +335,50 @@ def test_parameter_values_decode_by_encoding(
 ) -> None:
     msg = SimpleNamespace(param_type=param_type, param_value=value)
     assert param_value(msg, bytewise=bytewise) == expected
+
+
+_MINE = "my_gains.yaml"
+_FIX = f"companion check-config --controller {_MINE} --fly"
+
+
+@pytest.mark.parametrize(
+    ("status", "engage", "skip", "expected"),
+    [
+        ("shipped", "rc-switch", False, ("pass", f"{_MINE}: a shipped controller", "")),
+        ("passed", "rc-switch", False,
+         ("pass", f"{_MINE}: passed the fly check on 2025-06-01 14:02 UTC", "")),
+        ("unchecked", "rc-switch", False,
+         ("fail", f"{_MINE}: not checked in the simulator on this computer; companion run "
+          "refuses it", f"fly it in the simulator first: `{_FIX}` (or fly it with "
+          "--skip-fly-check)")),
+        ("failed", "auto", False,
+         ("fail", f"{_MINE}: failed the fly check on 2025-06-01 14:02 UTC: heavy-weak: crashed; "
+          "companion run refuses it", f"do not fly it as it is: change it, then check it again "
+          f"with `{_FIX}` (or fly it with --skip-fly-check)")),
+        ("unchecked", "rc-switch", True,
+         ("warn", f"{_MINE}: not checked in the simulator on this computer; flown anyway "
+          "(--skip-fly-check)", f"fly it in the simulator first: `{_FIX}`")),
+        ("unchecked", "none", False,
+         ("warn", f"{_MINE}: not checked in the simulator on this computer; shadow mode "
+          "(--engage none) flies it, sending nothing",
+          f"before it flies the vehicle, fly it in the simulator first: `{_FIX}`")),
+    ],
+)  # fmt: skip
+def test_the_controller_line_says_whether_the_file_passed_the_fly_check(
+    status: str, engage: str, skip: bool, expected: tuple[str, str, str]
+) -> None:
+    dated = status in ("passed", "failed")
+    check = FlyCheck(
+        Path(_MINE), "ab" * 32, status,  # type: ignore[arg-type]
+        date="2025-06-01T14:02:07Z" if dated else "",
+        problems=("heavy-weak: crashed",) if status == "failed" else (),
+    )  # fmt: skip
+    run = plan(fly_check=check, engage=engage, skip_fly_check=skip)
+    c = line(judge(observed(), run, GOOD_CORE), "controller")
+    assert (c.status, c.detail, c.fix) == expected
+    # Judged whatever the autopilot showed: with no autopilot at all too.
+    assert line(judge(Observed(), run), "controller") == c
+
+
+def test_no_controller_line_without_a_fly_check() -> None:
+    assert "controller" not in [c.name for c in judge(observed(), plan(), GOOD_CORE)]

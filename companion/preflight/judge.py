@@ -69,14 +69,10 @@ def judge(obs: Observed, plan: Plan, core: CoreCost | None = None) -> list[Check
     checks.append(_check_link_up(obs, plan))
     stack = obs.stack
     if stack is None:
-        if core is not None:
-            checks.append(_check_core(core, plan))
-        return checks
+        return checks + _here(plan, core)
     if obs.frames_signed and not plan.signing:
         checks.append(_check_signing(obs, plan))
-        if core is not None:
-            checks.append(_check_core(core, plan))
-        return checks
+        return checks + _here(plan, core)
     checks.append(_check_output(obs, plan, stack))
     checks.append(_check_armed(obs))
     checks.extend(_check_ids(obs, plan))
@@ -90,9 +86,34 @@ def judge(obs: Observed, plan: Plan, core: CoreCost | None = None) -> list[Check
     checks.append(_check_signing(obs, plan))
     checks.append(_check_landed_state(obs))
     checks.append(_check_position(obs))
+    return checks + _here(plan, core)
+
+
+def _here(plan: Plan, core: CoreCost | None) -> list[Check]:
+    """The lines about this computer, whatever the autopilot showed: the controller
+    file's fly check and the law's cost."""
+    out = []
+    if plan.fly_check is not None:
+        out.append(_check_controller(plan))
     if core is not None:
-        checks.append(_check_core(core, plan))
-    return checks
+        out.append(_check_core(core, plan))
+    return out
+
+
+def _check_controller(plan: Plan) -> Check:
+    """Shipped, passed the fly check here, or not (companion run then refuses it)."""
+    check = plan.fly_check
+    assert check is not None
+    if check.may_fly:
+        return Check("controller", "pass", check.describe())
+    if plan.engage == "none":
+        text = f"{check.describe()}; shadow mode (--engage none) flies it, sending nothing"
+        return Check("controller", "warn", text, f"before it flies the vehicle, {check.advice}")
+    if plan.skip_fly_check:
+        text = f"{check.describe()}; flown anyway (--skip-fly-check)"
+        return Check("controller", "warn", text, check.advice)
+    text = f"{check.describe()}; companion run refuses it"
+    return Check("controller", "fail", text, f"{check.advice} (or fly it with --skip-fly-check)")
 
 
 def summary(checks: Iterable[Check]) -> dict[str, int]:

@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from companion.link.timesync import LinkStats
 from companion.stacks import FlightStack, stack_for
+
+if TYPE_CHECKING:
+    from companion.fly_check import FlyCheck
 
 __all__ = ["ARDUPILOT_PARAMS", "PX4_PARAMS", "Check", "CoreCost", "Observed", "Plan", "Status"]
 
@@ -73,6 +76,10 @@ class Plan:
     """The link is a serial port (no one else on it), not a network."""
     source_system: int = 1
     source_component: int = 191
+    fly_check: FlyCheck | None = None
+    """What this computer knows of the controller file's fly check (None: not judged)."""
+    skip_fly_check: bool = False
+    """``--skip-fly-check``: the run flies a file without a passed check anyway."""
 
 
 @dataclass(frozen=True)

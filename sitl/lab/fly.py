@@ -211,6 +211,9 @@ def fly_mavlink(
         # than its 1 Hz heartbeat and 0.5-1 s failsafes need only delays the report.
         "--hand-back-watch-s", "1.5",
         *(["--controller", str(controller_path)] if controller_path else []),
+        # A lab flight is itself a simulator flight: a controller file that has not
+        # passed check-config --fly flies here, and its events say so.
+        "--skip-fly-check",
         *companion_args,
     ]  # fmt: skip
     t0 = time.monotonic()
