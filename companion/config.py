@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from importlib.resources import files
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -27,8 +27,8 @@ from companion.control import (
     PidGains,
     StickMap,
 )
-from companion.profile import VehicleProfile
-from companion.schema import StrictModel, load_yaml_model
+from companion.profile import RateLimitDegS, VehicleProfile, rate_limit_validator
+from companion.schema import StrictModel, load_yaml_model, real_number
 
 __all__ = [
     "DEFAULT_CONTROLLER",
@@ -58,10 +58,12 @@ PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default
 
 class AxisRatesConfig(StrictModel):
     curve: Literal["linear", "betaflight"] = "linear"
-    max_deg_s: float = Field(720.0, gt=0.0, le=2000.0)
+    max_deg_s: RateLimitDegS = Field(720.0, description="rate at full stick (linear curve), deg/s")
     rc_rate: float = Field(1.0, gt=0.0, le=3.0)
     super_rate: float = Field(0.7, ge=0.0, lt=1.0)
     expo: float = Field(0.0, ge=0.0, le=1.0)
+
+    _rate = rate_limit_validator("max_deg_s", "a rate at full stick in %s deg/s")
 
 
 class SticksConfig(StrictModel):
@@ -69,7 +71,9 @@ class SticksConfig(StrictModel):
     roll: AxisRatesConfig = AxisRatesConfig(max_deg_s=720.0)
     pitch: AxisRatesConfig = AxisRatesConfig(max_deg_s=720.0)
     yaw: AxisRatesConfig = AxisRatesConfig(max_deg_s=360.0)
-    deadband_us: float = Field(0.0, ge=0.0, le=100.0)
+    deadband_us: float = Field(
+        0.0, ge=0.0, le=100.0, description="stick dead band around centre, us"
+    )
 
     @field_validator("channels")
     @classmethod
@@ -77,6 +81,10 @@ class SticksConfig(StrictModel):
         if len(set(v)) != 4 or not all(1 <= c <= 18 for c in v):
             raise ValueError("expected four distinct channel numbers in 1..18")
         return v
+
+
+_LagS = Annotated[float, Field(ge=0.0, le=0.5)]
+_DelayS = Annotated[float, Field(ge=0.0, le=MAX_DELAY_S)]
 
 
 class AlphaAdaptConfig(StrictModel):
@@ -88,8 +96,18 @@ class AlphaAdaptConfig(StrictModel):
     memory_s: float = Field(2.0, gt=0.0, le=600.0)
     highpass_s: float = Field(0.05, gt=0.0, le=10.0)
     min_excitation_us: float = Field(10.0, ge=0.0, le=1000.0)
-    min_samples_weight_us2: float = Field(2.0e4, ge=0.0)
-    tau_candidates_s: tuple[float, ...] = Field((), max_length=8)
+    min_samples_weight_us2: float = Field(
+        2.0e4,
+        ge=0.0,
+        le=1e8,
+        description="excitation needed before a slope is used, us^2 (1e8: 100 us over "
+        "10 000 samples)",
+    )
+    tau_candidates_s: tuple[_LagS, ...] = Field(
+        (),
+        max_length=8,
+        description="actuator lags the identifier chooses from, s (empty: actuator_tau_s only)",
+    )
     min_response_rad_s2: float = Field(
         2.0,
         ge=0.0,
@@ -104,10 +122,10 @@ class AlphaAdaptConfig(StrictModel):
         description="lowest margin on a lag slower than actuator_tau_s (falls as "
         "sqrt(actuator_tau_s/tau), eased on weak vehicles); 0: constant margin",
     )
-    delay_candidates_s: tuple[float, ...] = Field(
+    delay_candidates_s: tuple[_DelayS, ...] = Field(
         (),
         max_length=12,
-        description="loop delays (the link both ways) the identifier chooses from; "
+        description="loop delays (the link both ways) the identifier chooses from, s; "
         "empty: none identified",
     )
     delay_margin_slope: float = Field(
@@ -122,20 +140,6 @@ class AlphaAdaptConfig(StrictModel):
     delay_margin_max: float = Field(
         0.0, ge=0.0, le=10.0, description="highest margin a delay raises it to"
     )
-
-    @field_validator("delay_candidates_s")
-    @classmethod
-    def _delays(cls, v: tuple[float, ...]) -> tuple[float, ...]:
-        if not all(0.0 <= d <= MAX_DELAY_S for d in v):
-            raise ValueError(f"expected delays in [0, {MAX_DELAY_S}] s")
-        return v
-
-    @field_validator("tau_candidates_s")
-    @classmethod
-    def _taus(cls, v: tuple[float, ...]) -> tuple[float, ...]:
-        if not all(0.0 <= t <= 0.5 for t in v):
-            raise ValueError("expected lags in [0, 0.5] s")
-        return v
 
     @model_validator(mode="after")
     def _range(self) -> AlphaAdaptConfig:
@@ -154,8 +158,10 @@ class AlphaAdaptConfig(StrictModel):
 class MfcAxisConfig(StrictModel):
     order: Literal[1, 2]
     alpha: float = Field(
+        ge=1e-6,
+        le=1e6,
         description="(rad/s^m) per us; positive: a positive command accelerates the axis "
-        "positively (the mixer's convention), so a negative alpha is positive feedback"
+        "positively (the mixer's convention), so a negative alpha is positive feedback",
     )
     window_s: float = Field(gt=0.0, le=0.5)
     kp: float = Field(ge=0.0, le=1000.0)
@@ -231,15 +237,16 @@ class MfcAxisConfig(StrictModel):
             raise ValueError("delay_kd_limit needs alpha_adapt.delay_candidates_s")
         return self
 
-    @field_validator("alpha")
+    @field_validator("alpha", mode="before")
     @classmethod
-    def _alpha(cls, v: float) -> float:
-        if not (1e-6 <= v <= 1e6):
+    def _alpha(cls, raw: Any) -> Any:
+        # Before pydantic's range: a sign error is named as such.
+        if (v := real_number(raw)) is not None and v <= 0.0:
             raise ValueError(
                 "expected a positive value in [1e-6, 1e6] (a negative alpha turns the law's "
                 "feedback positive)"
             )
-        return v
+        return raw
 
     @model_validator(mode="after")
     def _alpha_in_adapt_range(self) -> MfcAxisConfig:

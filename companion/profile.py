@@ -12,17 +12,20 @@ A profile holds three sections:
     IMU). The companion never uses these numbers: that is the point of
     model-free control.
 
-Loading rejects unknown keys, missing keys, wrong types (``true`` where a number
-belongs among them: YAML reads ``true``, ``yes`` and ``on`` as booleans, and a
-boolean would pass as 1) and non-physical values with a
-:class:`~companion.errors.ConfigError` naming the file and key path.
+Loading rejects unknown keys, missing keys, wrong types (``true`` or ``"1.5"``
+where a number belongs among them: YAML reads ``true``, ``yes`` and ``on`` as
+booleans and a quoted number as text, which pydantic would pass as 1 and 1.5)
+and non-physical values with a :class:`~companion.errors.ConfigError` naming the
+file and key path.
 
 Plausibility
 ------------
-A profile must describe a multirotor of some 100 g to 100 kg, so a number of the
-wrong unit is refused by its magnitude, the message naming the likely mistake:
-rate limits or a gyro range in rad/s, motor positions in millimetres, a mass in
-grams, ``kf`` or rotor speeds no propeller has. The sections must also agree:
+A profile must describe a multirotor of some 100 g to 100 kg, so every number with
+a unit has a range (in the field, shown in ``docs/reference/config.md``) and a
+number of the wrong unit is refused by its magnitude, the message naming the
+likely mistake: rate limits or a gyro range in rad/s, motor positions in
+millimetres, a mass in grams, ``kf`` or rotor speeds no propeller has. The
+sections must also agree:
 thrust-to-weight at most :data:`THRUST_TO_WEIGHT_MAX`, each inertia within
 :data:`INERTIA_RANGE_PER_M_ARM2` of ``m L^2`` (``L`` the mean motor distance
 from the centre), a ``layout`` matching the motors. Each bound is a module
@@ -35,28 +38,44 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from companion.errors import ConfigError
-from companion.schema import Count, Real, StrictModel, load_yaml_model
+from companion.schema import (
+    Count,
+    Real,
+    StrictModel,
+    load_yaml_model,
+    range_problem,
+    real_number,
+)
 
 __all__ = [
+    "ANGULAR_DRAG_MAX_N_M_PER_RAD_S",
+    "DRAG_LINEAR_MAX_N_PER_M_S",
+    "DRAG_QUADRATIC_MAX_N_PER_M2_S2",
+    "FLIGHT_MAX_S",
+    "GYRO_BIAS_WALK_MAX_RAD_S2_SQRT_HZ",
+    "GYRO_NOISE_DENSITY_MAX_RAD_S_SQRT_HZ",
     "GYRO_RANGE_MAX_DEG_S",
     "GYRO_RANGE_MIN_DEG_S",
+    "INERTIA_MAX_KG_M2",
     "INERTIA_RANGE_PER_M_ARM2",
     "INERTIA_TYPICAL_PER_M_ARM2",
     "KF_RANGE_N_PER_RAD_S2",
     "KM_MAX_M",
     "KM_MIN_TYPICAL_M",
     "MASS_MAX_KG",
+    "MASS_MIN_KG",
     "MOTOR_DISTANCE_MAX_M",
     "MOTOR_W_MAX_RANGE_RAD_S",
     "RATE_LIMIT_MAX_DEG_S",
     "RATE_LIMIT_MIN_DEG_S",
+    "ROTOR_INERTIA_MAX_KG_M2",
     "THRUST_TO_WEIGHT_MAX",
     "THRUST_TO_WEIGHT_TYPICAL",
     "Damage",
@@ -69,6 +88,8 @@ __all__ = [
     "VehicleProfile",
     "load_profile",
     "profile_warnings",
+    "rate_limit_problem",
+    "rate_limit_validator",
 ]
 
 _G_M_S2 = 9.80665  # standard gravity
@@ -98,6 +119,9 @@ across, have arms near 1.1 m; in millimetres even a 100 g quad's 50 mm arm reads
 MASS_MAX_KG = 100.0
 """Heaviest vehicle: the top of the 0.1-100 kg multirotors the bounds here are derived for."""
 
+MASS_MIN_KG = 0.1
+"""Lightest vehicle: the bottom of those 0.1-100 kg (the envelope's lightest is 0.25 kg)."""
+
 KF_RANGE_N_PER_RAD_S2 = (1e-9, 0.1)
 """Thrust constant ``kf = C_T rho pi r^4`` for C_T 0.01-0.03 (F450: 0.0168) and props of
 1.6 to 60 inches (r 0.02-0.75 m): 6e-9 to 0.037 N/(rad/s)^2, with margin either side."""
@@ -120,6 +144,38 @@ INERTIA_RANGE_PER_M_ARM2 = (0.0025, 4.0)
 a radius of gyration beyond 2 L, past the prop tips (<= 1.7 L). A g m^2 or kg cm^2
 unit is 1000 or 10 000 times too big."""
 
+INERTIA_MAX_KG_M2 = MASS_MAX_KG * MOTOR_DISTANCE_MAX_M**2 * INERTIA_RANGE_PER_M_ARM2[1]
+"""Largest inertia entry (1600 kg m^2): the heaviest vehicle with motors at the farthest, at
+the top of :data:`INERTIA_RANGE_PER_M_ARM2`."""
+
+ROTOR_INERTIA_MAX_KG_M2 = 1.0
+"""Largest rotor inertia: a 60-inch prop of 1 kg taken as a rod, ``m r^2 / 3``, is 0.2
+kg m^2 (the bundled 10-15 inch props 6e-5 to 3e-4)."""
+
+DRAG_LINEAR_MAX_N_PER_M_S = 100.0
+"""Largest linear (rotor) drag per axis: the bundled ones 0.07-0.08 N/(m/s) per kg of
+vehicle, 7 for 100 kg."""
+
+DRAG_QUADRATIC_MAX_N_PER_M2_S2 = 10.0
+"""Largest quadratic drag per axis, ``rho Cd A / 2``: 1.2 for a 100 kg octocopter's 2 m^2
+frontal area at Cd 1 (the bundled ones 0.02-0.08)."""
+
+ANGULAR_DRAG_MAX_N_M_PER_RAD_S = 10.0
+"""Largest angular damping per axis: the F450's 5e-4 scaled by ``m L^2`` to 100 kg and
+1.1 m arms is 0.8."""
+
+GYRO_NOISE_DENSITY_MAX_RAD_S_SQRT_HZ = 0.1
+"""Noisiest gyro: at 1 kHz, 0.1 rad/s/sqrt(Hz) is a 180 deg/s sigma, beyond any frame's
+vibration (MEMS datasheets: 6e-5 to 9e-5; the vibrating scenarios: 1e-3)."""
+
+GYRO_BIAS_WALK_MAX_RAD_S2_SQRT_HZ = 0.1
+"""Fastest bias random walk: 0.1 rad/s^2/sqrt(Hz) wanders 1 rad/s in 100 s, a broken gyro
+(the bundled profiles: 1e-5)."""
+
+FLIGHT_MAX_S = 36_000.0
+"""Latest time into a flight a file may name (a motor's failure, a stick script's end, a
+reference's row): ten hours, longer than any multirotor flies."""
+
 # --- Bounds: warnings (possible, but unlike any multirotor) ---
 
 THRUST_TO_WEIGHT_TYPICAL = (1.5, 15.0)
@@ -136,6 +192,51 @@ KM_MIN_TYPICAL_M = 1e-3
 
 
 Vec3 = tuple[Real, Real, Real]
+
+RateLimitDegS = Annotated[float, Field(ge=RATE_LIMIT_MIN_DEG_S, le=RATE_LIMIT_MAX_DEG_S)]
+"""A body-rate limit or a full-stick rate, deg/s; :func:`rate_limit_validator` says why one
+is refused."""
+
+# The IMU model's fields, shared with a scenario's override of them.
+GyroNoiseDensity = Annotated[float, Field(ge=0.0, le=GYRO_NOISE_DENSITY_MAX_RAD_S_SQRT_HZ)]
+GyroBiasWalk = Annotated[float, Field(ge=0.0, le=GYRO_BIAS_WALK_MAX_RAD_S2_SQRT_HZ)]
+ImuRateHz = Annotated[float, Field(gt=0.0, le=8000.0)]
+ImuLatencyS = Annotated[float, Field(ge=0.0, le=0.05)]
+FilterWeight = Annotated[float, Field(gt=0.0, le=1.0)]
+
+
+def rate_limit_problem(value: Any, what: str) -> str | None:
+    """Why ``value`` (a field's input, a number or a list of them) is no rate limit in
+    deg/s (:data:`RATE_LIMIT_MIN_DEG_S` to :data:`RATE_LIMIT_MAX_DEG_S`), or None.
+
+    Run before pydantic's range check, so a rate written in rad/s is named as such
+    (below the range, every allowed rate in rad/s falls). ``what`` is as in
+    :func:`~companion.schema.range_problem`. Anything but a finite number is left to
+    pydantic.
+    """
+    for v in value if isinstance(value, (list, tuple)) else (value,):
+        x = real_number(v)
+        if x is None:
+            continue
+        hint = f"{x:g} looks like rad/s ({math.degrees(x):.4g} deg/s)" if x > 0.0 else ""
+        problem = range_problem(x, (RATE_LIMIT_MIN_DEG_S, RATE_LIMIT_MAX_DEG_S), what, hint, "")
+        if problem is not None:
+            return problem
+    return None
+
+
+def rate_limit_validator(field: str, what: str) -> Any:
+    """A validator of a model's ``field`` (a :data:`RateLimitDegS` or a tuple of them),
+    raising :func:`rate_limit_problem`'s ``what`` before pydantic's range check, so a
+    rate written in rad/s is named as such: ``_rates = rate_limit_validator(...)`` in
+    the class body."""
+
+    def check(cls: type, v: Any) -> Any:
+        if (problem := rate_limit_problem(v, what)) is not None:
+            raise ValueError(problem)
+        return v
+
+    return field_validator(field, mode="before")(classmethod(check))
 
 
 def _problems(title: str, items: list[tuple[tuple[str | int, ...], str, Any]]) -> ValidationError:
@@ -154,31 +255,26 @@ def _problems(title: str, items: list[tuple[tuple[str | int, ...], str, Any]]) -
     )
 
 
-def _range_problem(
-    value: float, bounds: tuple[float, float], what: str, low_hint: str, high_hint: str
-) -> str | None:
-    """Why ``value`` is outside the closed ``bounds``, the hint for its side first, or None.
-
-    ``what`` says what was expected, ``%s`` where the range goes: ``"a speed in %s rad/s"``.
-    """
-    lo, hi = bounds
-    if lo <= value <= hi:
-        return None
-    hint = low_hint if value < lo else high_hint
-    return (f"{hint}: " if hint else "") + "expected " + what % f"[{lo:g}, {hi:g}]"
+_Coordinate = Annotated[float, Field(ge=-MOTOR_DISTANCE_MAX_M, le=MOTOR_DISTANCE_MAX_M)]
 
 
 class MotorSpec(StrictModel):
     """One rotor: where it is and which way it spins (seen from above)."""
 
-    position_frd_m: Vec3
+    position_frd_m: tuple[_Coordinate, _Coordinate, _Coordinate] = Field(
+        description="x forward, y right, z down from the geometric centre, m; at most "
+        f"{MOTOR_DISTANCE_MAX_M:g} m from it"
+    )
     spin: Literal["cw", "ccw"]
 
-    @field_validator("position_frd_m")
+    @field_validator("position_frd_m", mode="before")
     @classmethod
-    def _finite(cls, v: Vec3) -> Vec3:
-        if not all(math.isfinite(x) for x in v):
-            raise ValueError("expected three finite numbers")
+    def _distance(cls, raw: Any) -> Any:
+        # Before pydantic's range: a motor in millimetres is named as such.
+        given = [real_number(x) for x in raw] if isinstance(raw, (list, tuple)) else []
+        v = [x for x in given if x is not None]
+        if len(given) != 3 or len(v) != 3:
+            return raw  # pydantic says what is wrong
         if math.hypot(v[0], v[1]) < 0.01:
             raise ValueError("expected a motor at least 0.01 m from the centre in the x-y plane")
         d = math.sqrt(sum(x * x for x in v))
@@ -188,7 +284,7 @@ class MotorSpec(StrictModel):
                 f"centimetres ({d / 100:.4g} m): expected metres, a motor at most "
                 f"{MOTOR_DISTANCE_MAX_M:g} m from the centre"
             )
-        return v
+        return raw
 
 
 def _layout_problem(layout: str, motors: list[MotorSpec]) -> str | None:
@@ -256,24 +352,13 @@ class Frame(StrictModel):
 class Limits(StrictModel):
     """Limits the companion enforces whatever the controller asks."""
 
-    rate_max_deg_s: Vec3 = (1080.0, 1080.0, 720.0)
+    rate_max_deg_s: tuple[RateLimitDegS, RateLimitDegS, RateLimitDegS] = Field(
+        (1080.0, 1080.0, 720.0),
+        description="roll, pitch, yaw rate limits, deg/s: the envelope failsafe's",
+    )
     motor_idle: Real = Field(0.05, ge=0.0, le=0.3)
 
-    @field_validator("rate_max_deg_s")
-    @classmethod
-    def _positive(cls, v: Vec3) -> Vec3:
-        for x in v:
-            hint = f"{x:g} looks like rad/s ({math.degrees(x):.4g} deg/s)" if x > 0.0 else ""
-            problem = _range_problem(
-                x,
-                (RATE_LIMIT_MIN_DEG_S, RATE_LIMIT_MAX_DEG_S),
-                "three rates (roll, pitch, yaw) in %s deg/s",
-                hint,
-                "",
-            )
-            if problem is not None:
-                raise ValueError(problem)
-        return v
+    _rates = rate_limit_validator("rate_max_deg_s", "three rates (roll, pitch, yaw) in %s deg/s")
 
 
 class MotorDamage(StrictModel):
@@ -285,39 +370,56 @@ class MotorDamage(StrictModel):
     imbalance_n: Real = Field(
         0.0, ge=0.0, le=50.0, description="once-per-revolution radial force amplitude at max speed"
     )
-    fail_at_s: Real | None = Field(None, ge=0.0, description="time the motor degrades")
+    fail_at_s: Annotated[float, Field(ge=0.0, le=FLIGHT_MAX_S)] | None = Field(
+        None, description="time the motor degrades, s from the start of the flight"
+    )
     efficiency_after_fail: Real = Field(0.0, ge=0.0, le=1.0)
+
+
+_InertiaEntry = Annotated[float, Field(ge=-INERTIA_MAX_KG_M2, le=INERTIA_MAX_KG_M2)]
+_Inertia = tuple[_InertiaEntry, _InertiaEntry, _InertiaEntry]
 
 
 class Damage(StrictModel):
     """Asymmetries of a damaged or oddly loaded vehicle."""
 
     motors: list[MotorDamage] = Field(default_factory=list)
-    cg_offset_frd_m: Vec3 = (0.0, 0.0, 0.0)
-    inertia_delta_kg_m2: tuple[Vec3, Vec3, Vec3] = ((0.0,) * 3, (0.0,) * 3, (0.0,) * 3)
+    cg_offset_frd_m: tuple[_Coordinate, _Coordinate, _Coordinate] = Field(
+        (0.0, 0.0, 0.0),
+        description="centre of mass offset from the geometric centre, FRD, m; no farther "
+        "than a motor may be",
+    )
+    inertia_delta_kg_m2: tuple[_Inertia, _Inertia, _Inertia] = Field(
+        ((0.0,) * 3, (0.0,) * 3, (0.0,) * 3),
+        description="added to physics.inertia_kg_m2, kg m^2",
+    )
 
 
 class ImuModel(StrictModel):
     """Gyro model (and the paper's first-stage filter)."""
 
-    rate_hz: Real = Field(1000.0, gt=0.0, le=8000.0)
-    gyro_noise_density_rad_s_sqrt_hz: Real = Field(
-        0.0, ge=0.0, description="white noise density; sigma = density * sqrt(rate_hz)"
+    rate_hz: ImuRateHz = Field(1000.0, description="sample rate, Hz")
+    gyro_noise_density_rad_s_sqrt_hz: GyroNoiseDensity = Field(
+        0.0, description="white noise density, rad/s/sqrt(Hz); sigma = density * sqrt(rate_hz)"
     )
-    gyro_bias_random_walk_rad_s2_sqrt_hz: Real = Field(0.0, ge=0.0)
-    gyro_range_deg_s: Real = Field(2000.0, gt=0.0)
-    latency_s: Real = Field(0.0, ge=0.0, le=0.05)
-    first_stage_filter_weight: Real = Field(
+    gyro_bias_random_walk_rad_s2_sqrt_hz: GyroBiasWalk = Field(
+        0.0, description="bias random walk, rad/s^2/sqrt(Hz)"
+    )
+    gyro_range_deg_s: Real = Field(
+        2000.0, ge=GYRO_RANGE_MIN_DEG_S, le=GYRO_RANGE_MAX_DEG_S, description="full scale, deg/s"
+    )
+    latency_s: ImuLatencyS = Field(0.0, description="delay of each sample, s")
+    first_stage_filter_weight: FilterWeight = Field(
         1.0,
-        gt=0.0,
-        le=1.0,
         description="paper's complementary filter: out = w*new + (1-w)*previous out; 1 disables",
     )
 
-    @field_validator("gyro_range_deg_s")
+    @field_validator("gyro_range_deg_s", mode="before")
     @classmethod
-    def _gyro_range(cls, v: float) -> float:
-        problem = _range_problem(
+    def _gyro_range(cls, raw: Any) -> Any:
+        if (v := real_number(raw)) is None:
+            return raw
+        problem = range_problem(
             v,
             (GYRO_RANGE_MIN_DEG_S, GYRO_RANGE_MAX_DEG_S),
             "a full scale in %s deg/s",
@@ -326,24 +428,52 @@ class ImuModel(StrictModel):
         )
         if problem is not None:
             raise ValueError(problem)
-        return v
+        return raw
+
+
+_DragLinear = Annotated[float, Field(ge=0.0, le=DRAG_LINEAR_MAX_N_PER_M_S)]
+_DragQuadratic = Annotated[float, Field(ge=0.0, le=DRAG_QUADRATIC_MAX_N_PER_M2_S2)]
+_AngularDrag = Annotated[float, Field(ge=0.0, le=ANGULAR_DRAG_MAX_N_M_PER_RAD_S)]
 
 
 class Physics(StrictModel):
     """Rigid body, rotors and drag; read only by the simulator."""
 
-    mass_kg: Real = Field(gt=0.0)
-    inertia_kg_m2: tuple[Vec3, Vec3, Vec3]
-    kf_n_per_rad_s2: Real = Field(gt=0.0, description="thrust = kf * w^2")
-    km_m: Real = Field(gt=0.0, description="reaction torque = km * thrust")
-    motor_w_max_rad_s: Real = Field(gt=0.0)
-    motor_w_idle_rad_s: Real = Field(ge=0.0)
+    mass_kg: Real = Field(ge=MASS_MIN_KG, le=MASS_MAX_KG, description="take-off mass, kg")
+    inertia_kg_m2: tuple[_Inertia, _Inertia, _Inertia] = Field(
+        description="3x3 inertia about the centre of mass, FRD, kg m^2"
+    )
+    kf_n_per_rad_s2: Real = Field(
+        ge=KF_RANGE_N_PER_RAD_S2[0],
+        le=KF_RANGE_N_PER_RAD_S2[1],
+        description="thrust = kf * w^2, N/(rad/s)^2",
+    )
+    km_m: Real = Field(gt=0.0, le=KM_MAX_M, description="reaction torque = km * thrust, m")
+    motor_w_max_rad_s: Real = Field(
+        ge=MOTOR_W_MAX_RANGE_RAD_S[0],
+        le=MOTOR_W_MAX_RANGE_RAD_S[1],
+        description="rotor speed at full command, rad/s",
+    )
+    motor_w_idle_rad_s: Real = Field(
+        ge=0.0, le=MOTOR_W_MAX_RANGE_RAD_S[1], description="rotor speed at idle, rad/s"
+    )
     motor_tau_up_s: Real = Field(gt=0.0, le=0.5)
     motor_tau_down_s: Real = Field(gt=0.0, le=0.5)
-    rotor_inertia_kg_m2: Real = Field(0.0, ge=0.0)
-    drag_linear_n_per_m_s: Vec3 = (0.0, 0.0, 0.0)
-    drag_quadratic_n_per_m2_s2: Vec3 = (0.0, 0.0, 0.0)
-    angular_drag_n_m_per_rad_s: Vec3 = (0.0, 0.0, 0.0)
+    rotor_inertia_kg_m2: Real = Field(
+        0.0,
+        ge=0.0,
+        le=ROTOR_INERTIA_MAX_KG_M2,
+        description="one rotor's inertia (spin-up reaction torque), kg m^2",
+    )
+    drag_linear_n_per_m_s: tuple[_DragLinear, _DragLinear, _DragLinear] = Field(
+        (0.0, 0.0, 0.0), description="linear drag per body axis, N/(m/s)"
+    )
+    drag_quadratic_n_per_m2_s2: tuple[_DragQuadratic, _DragQuadratic, _DragQuadratic] = Field(
+        (0.0, 0.0, 0.0), description="quadratic drag per body axis, N/(m/s)^2"
+    )
+    angular_drag_n_m_per_rad_s: tuple[_AngularDrag, _AngularDrag, _AngularDrag] = Field(
+        (0.0, 0.0, 0.0), description="angular damping per body axis, N m/(rad/s)"
+    )
     mixer: Literal["geometry", "paper"] = Field(
         "geometry",
         description="how the simulated autopilot allocates actuator-control torques to motors",
@@ -351,19 +481,23 @@ class Physics(StrictModel):
     damage: Damage = Field(default_factory=Damage)
     imu: ImuModel = Field(default_factory=ImuModel)
 
-    @field_validator("mass_kg")
+    # The checks below run before pydantic's range, to name the likely mistake.
+
+    @field_validator("mass_kg", mode="before")
     @classmethod
-    def _mass(cls, v: float) -> float:
-        if v > MASS_MAX_KG:
+    def _mass(cls, raw: Any) -> Any:
+        if (v := real_number(raw)) is not None and v > MASS_MAX_KG:
             raise ValueError(
                 f"{v:g} looks like grams ({v / 1000:g} kg): expected kg, at most {MASS_MAX_KG:g}"
             )
-        return v
+        return raw
 
-    @field_validator("kf_n_per_rad_s2")
+    @field_validator("kf_n_per_rad_s2", mode="before")
     @classmethod
-    def _kf(cls, v: float) -> float:
-        problem = _range_problem(
+    def _kf(cls, raw: Any) -> Any:
+        if (v := real_number(raw)) is None or v <= 0.0:
+            return raw
+        problem = range_problem(
             v,
             KF_RANGE_N_PER_RAD_S2,
             "a thrust constant in %s N/(rad/s)^2 (props of 1.6 to 60 inches)",
@@ -373,22 +507,24 @@ class Physics(StrictModel):
         )
         if problem is not None:
             raise ValueError(problem)
-        return v
+        return raw
 
-    @field_validator("km_m")
+    @field_validator("km_m", mode="before")
     @classmethod
-    def _km(cls, v: float) -> float:
-        if v > KM_MAX_M:
+    def _km(cls, raw: Any) -> Any:
+        if (v := real_number(raw)) is not None and v > KM_MAX_M:
             raise ValueError(
                 f"{v:g} looks like millimetres ({v / 1000:g} m): expected metres, at most "
                 f"{KM_MAX_M:g} (reaction torque over thrust, ~0.13 prop radius)"
             )
-        return v
+        return raw
 
-    @field_validator("motor_w_max_rad_s")
+    @field_validator("motor_w_max_rad_s", mode="before")
     @classmethod
-    def _w_max(cls, v: float) -> float:
-        problem = _range_problem(
+    def _w_max(cls, raw: Any) -> Any:
+        if (v := real_number(raw)) is None or v <= 0.0:
+            return raw
+        problem = range_problem(
             v,
             MOTOR_W_MAX_RANGE_RAD_S,
             "a full speed in %s rad/s",
@@ -397,7 +533,7 @@ class Physics(StrictModel):
         )
         if problem is not None:
             raise ValueError(problem)
-        return v
+        return raw
 
     @field_validator("inertia_kg_m2")
     @classmethod

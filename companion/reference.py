@@ -9,10 +9,12 @@ A CSV file with a header line and one row per breakpoint::
     3.0,180,0,0
     3.1,0,0,0
 
-``t_s`` counts from engagement and must increase; rates are linearly
-interpolated between rows and held after the last one. Without a ``thrust``
-column the collective still comes from the pilot's throttle stick (so a person
-or the SITL's pilot keeps the altitude); with one, the file sets it (0..1).
+``t_s`` counts from engagement (s, at most
+:data:`~companion.profile.FLIGHT_MAX_S`) and must increase; rates (deg/s,
+within +/-2000) are linearly interpolated between rows and held after the last
+one. Without a ``thrust`` column the collective still comes from the pilot's
+throttle stick (so a person or the SITL's pilot keeps the altitude); with one,
+the file sets it (0..1).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from companion.errors import ConfigError
+from companion.profile import FLIGHT_MAX_S, RATE_LIMIT_MAX_DEG_S
 from companion.schema import read_text
 
 __all__ = ["ReferenceScript", "load_reference"]
@@ -109,11 +112,11 @@ def load_reference(path: str | Path) -> ReferenceScript:
         if ts and vals[0] <= ts[-1]:
             problems.append(f"line {n}: t_s must increase (got {vals[0]} after {ts[-1]})")
             continue
-        if vals[0] < 0.0:
-            problems.append(f"line {n}: t_s must be >= 0")
+        if not 0.0 <= vals[0] <= FLIGHT_MAX_S:
+            problems.append(f"line {n}: t_s must be in [0, {FLIGHT_MAX_S:g}] s, got {vals[0]:g}")
             continue
-        if any(abs(v) > 2000.0 for v in vals[1:4]):
-            problems.append(f"line {n}: rates beyond +/-2000 deg/s")
+        if any(abs(v) > RATE_LIMIT_MAX_DEG_S for v in vals[1:4]):
+            problems.append(f"line {n}: rates beyond +/-{RATE_LIMIT_MAX_DEG_S:g} deg/s")
             continue
         if has_thrust and not 0.0 <= vals[4] <= 1.0:
             problems.append(f"line {n}: thrust must be in [0, 1], got {vals[4]}")

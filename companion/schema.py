@@ -7,27 +7,28 @@ FIFO would block, ``/dev/zero`` never ends), it holds at most
 :data:`MAX_YAML_CHARS` and :data:`MAX_YAML_DEPTH` once aliases are expanded
 (a "billion laughs" is 2 KB of text and 10**9 values), and an error shows a
 cut-down excerpt of a value, never the whole of it.
+
+Numbers in a file are numbers: a :class:`StrictModel` refuses a boolean
+(``true``, ``yes``, ``on``) and a quoted number (``"1.5"``) where a number
+belongs, though pydantic would read them as 1 and 1.5; an int stands for a
+float. YAML numbers are read as YAML 1.2 writes them: ``1e-5`` is a number, as
+it is to every YAML 1.2 reader (PyYAML, a YAML 1.1 reader, would make it text).
 """
 
 from __future__ import annotations
 
+import math
 import os
+import re
 import reprlib
 import stat
-import types
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, TypeVar, Union, get_args, get_origin
+from typing import Annotated, Any, TypeVar
 
 import yaml
-from pydantic import (
-    BaseModel,
-    BeforeValidator,
-    ConfigDict,
-    ValidationError,
-    ValidationInfo,
-    field_validator,
-)
+from pydantic import BaseModel, BeforeValidator, ConfigDict, GetCoreSchemaHandler, ValidationError
+from pydantic_core import CoreSchema, core_schema
 
 from companion.errors import ConfigError
 
@@ -43,9 +44,11 @@ __all__ = [
     "StrictModel",
     "format_validation_error",
     "load_yaml_model",
+    "range_problem",
     "read_text",
     "read_yaml",
-    "refuse_bool",
+    "real_number",
+    "require_number",
 ]
 
 MAX_FILE_BYTES = 1024 * 1024
@@ -92,64 +95,91 @@ def _clip(text: str, limit: int = MAX_MESSAGE_CHARS) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def refuse_bool(v: object) -> object:
-    """Refuse a boolean where a number belongs (pydantic would read ``true`` as 1)."""
+def require_number(v: object) -> object:
+    """Refuse a boolean or a quoted number where a number belongs (pydantic would read
+    ``true`` as 1 and ``"1.5"`` as 1.5); pass anything else on, other text for
+    pydantic to refuse in its own words."""
     if isinstance(v, bool):
         raise ValueError(
             "expected a number, not a boolean (YAML reads true/false, yes/no, on/off as booleans)"
         )
+    if isinstance(v, (str, bytes)):
+        try:
+            float(v)
+        except ValueError:
+            return v
+        raise ValueError(
+            'expected a number, not text (YAML reads a quoted number as text: write 1.5, not "1.5")'
+        )
     return v
 
 
-Real = Annotated[float, BeforeValidator(refuse_bool)]
-"""A float that refuses booleans, element by element in a tuple (an error names the
-index); ints and numeric strings (YAML 1.1 reads ``1e-5`` as one) pass."""
+Real = Annotated[float, BeforeValidator(require_number)]
+"""A float that refuses booleans and quoted numbers, element by element in a tuple (an
+error names the index), in any model; ints pass. A :class:`StrictModel`'s plain
+``float`` does the same: prefer it in a bound alias, ``Annotated[float, Field(ge=0)]``
+(around Real's validator, pydantic leaves the bound out of the JSON schema)."""
 
-Count = Annotated[int, BeforeValidator(refuse_bool)]
-"""An int that refuses booleans."""
-
-
-def _numeric(tp: Any) -> bool:
-    """Whether a field annotation is a number (int or float), maybe optional."""
-    if tp in (int, float):
-        return True
-    origin, args = get_origin(tp), get_args(tp)
-    if origin is Annotated:
-        return _numeric(args[0])
-    if origin in (Union, types.UnionType):
-        kinds = [a for a in args if a is not type(None)]
-        return bool(kinds) and all(_numeric(a) for a in kinds)
-    return False
+Count = Annotated[int, BeforeValidator(require_number)]
+"""An int that refuses booleans and quoted numbers."""
 
 
-def _numbers(tp: Any) -> bool:
-    """Whether a field annotation is a tuple of plain numbers (a vector, a list of
-    candidates); elements with validators of their own (Annotated) judge themselves."""
-    origin, args = get_origin(tp), get_args(tp)
-    if origin is Annotated:
-        return _numbers(args[0])
-    elements = [a for a in args if a is not ...]
-    return origin is tuple and bool(elements) and all(a in (int, float) for a in elements)
+def real_number(v: object) -> float | None:
+    """``v`` when it is a finite int or float (not a boolean), else None: what a check
+    run before pydantic's (``mode="before"``, to say the likely mistake first) may
+    judge; anything else is pydantic's to refuse."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return None
+    x = float(v)
+    return x if math.isfinite(x) else None
+
+
+def range_problem(
+    value: float, bounds: tuple[float, float], what: str, low_hint: str, high_hint: str
+) -> str | None:
+    """Why ``value`` is outside the closed ``bounds``, the hint for its side first, or None.
+
+    ``what`` says what was expected, ``%s`` where the range goes: ``"a speed in %s rad/s"``.
+    """
+    lo, hi = bounds
+    if lo <= value <= hi:
+        return None
+    hint = low_hint if value < lo else high_hint
+    return (f"{hint}: " if hint else "") + "expected " + what % f"[{lo:g}, {hi:g}]"
+
+
+def _numbers_only(schema: Any) -> Any:
+    """``schema`` (a pydantic core schema) with :func:`require_number` before each int
+    and float in it: a field's, a tuple's or a list's element, an optional's."""
+    if isinstance(schema, list):
+        return [_numbers_only(s) for s in schema]
+    if not isinstance(schema, dict):
+        return schema
+    kind = schema.get("type")
+    if kind in ("int", "float"):
+        return core_schema.no_info_before_validator_function(require_number, schema)
+    if kind == "function-before" and schema["function"].get("function") is require_number:
+        return schema  # a nested model's, done when it was built
+    # Metadata and serialisation hold no validation.
+    return {
+        k: v if k in ("metadata", "serialization") else _numbers_only(v) for k, v in schema.items()
+    }
 
 
 class StrictModel(BaseModel):
-    """Frozen, rejects unknown keys, non-finite numbers (``.nan``, ``.inf``) and
-    booleans where a number belongs (pydantic would read ``true`` as 1)."""
+    """Frozen, rejects unknown keys, non-finite numbers (``.nan``, ``.inf``), booleans
+    and quoted numbers where a number belongs (:func:`require_number`: pydantic would
+    read ``true`` as 1 and ``"1.5"`` as 1.5), wherever the number is (a field, an
+    element of a tuple or a list)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=False, allow_inf_nan=False)
 
-    @field_validator("*", mode="before")
     @classmethod
-    def _no_boolean_numbers(cls, value: Any, info: ValidationInfo) -> Any:
-        if info.field_name is None:
-            return value
-        tp = cls.model_fields[info.field_name].annotation
-        if _numeric(tp):
-            return refuse_bool(value)
-        if _numbers(tp) and isinstance(value, (list, tuple)):
-            for v in value:
-                refuse_bool(v)
-        return value
+    def __get_pydantic_core_schema__(
+        cls, source: type[BaseModel], handler: GetCoreSchemaHandler
+    ) -> CoreSchema:
+        schema: CoreSchema = _numbers_only(handler(source))
+        return schema
 
 
 _NOT_REGULAR: tuple[tuple[Callable[[int], bool], str], ...] = (
@@ -223,8 +253,8 @@ def _where(mark: Any) -> str:
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping and a
-    document over the limits once aliases are expanded.
+    """PyYAML's safe loader, reading numbers as YAML 1.2 does, refusing a key given
+    twice in one mapping and a document over the limits once aliases are expanded.
 
     The composer builds an alias as a second reference to the node it names;
     everything downstream (pydantic, ``repr``, JSON) walks it as a copy. So each
@@ -303,6 +333,16 @@ class _UniqueKeyLoader(yaml.SafeLoader):
             except TypeError:
                 continue
         return super().construct_mapping(node, deep=deep)
+
+
+# YAML 1.2 numbers PyYAML's YAML 1.1 resolver reads as text: an exponent without a
+# dot or without a sign (``1e-5``, ``1.0e5``). In a file they are numbers; read as
+# text they would be refused as quoted numbers.
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
 
 
 def read_yaml(path: str | Path) -> Any:

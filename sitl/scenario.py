@@ -9,17 +9,26 @@ from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import Field, field_validator
 
-from companion.profile import ImuModel, VehicleProfile
+from companion.profile import (
+    FilterWeight,
+    GyroBiasWalk,
+    GyroNoiseDensity,
+    ImuLatencyS,
+    ImuModel,
+    ImuRateHz,
+    VehicleProfile,
+)
 from companion.schema import StrictModel, load_yaml_model
 from sitl.link_model import LINK_PROFILES, LinkSpec, parse_link
 from sitl.wind import WindConfig
 
 __all__ = [
     "GUST_SIGMA_MAX_M_S",
+    "STEADY_WIND_MAX_M_S",
     "ImuOverride",
     "Scenario",
     "WindSpec",
@@ -34,9 +43,17 @@ GUST_SIGMA_MAX_M_S = 20.0
 """The strongest turbulence a flight is given (per-axis sigma, m/s): a storm no
 multirotor is flown in."""
 
+STEADY_WIND_MAX_M_S = 30.0
+"""The strongest steady wind a flight is given, per axis (m/s): a violent storm
+(Beaufort 11); multirotors are rated for some 10-15 m/s."""
+
+_WindMS = Annotated[float, Field(ge=-STEADY_WIND_MAX_M_S, le=STEADY_WIND_MAX_M_S)]
+
 
 class WindSpec(StrictModel):
-    steady_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    steady_ned_m_s: tuple[_WindMS, _WindMS, _WindMS] = Field(
+        (0.0, 0.0, 0.0), description="steady wind, NED, m/s (the air's velocity)"
+    )
     gust_sigma_m_s: float = Field(0.0, ge=0.0, le=GUST_SIGMA_MAX_M_S)
     gust_length_m: float = Field(50.0, gt=0.0, le=2000.0)
 
@@ -47,11 +64,15 @@ class WindSpec(StrictModel):
 class ImuOverride(StrictModel):
     """Fields replacing those of the profile's IMU model for this scenario."""
 
-    rate_hz: float | None = Field(None, gt=0.0, le=8000.0)
-    gyro_noise_density_rad_s_sqrt_hz: float | None = Field(None, ge=0.0)
-    gyro_bias_random_walk_rad_s2_sqrt_hz: float | None = Field(None, ge=0.0)
-    latency_s: float | None = Field(None, ge=0.0, le=0.05)
-    first_stage_filter_weight: float | None = Field(None, gt=0.0, le=1.0)
+    rate_hz: ImuRateHz | None = Field(None, description="as the profile's imu.rate_hz, Hz")
+    gyro_noise_density_rad_s_sqrt_hz: GyroNoiseDensity | None = Field(
+        None, description="as the profile's, rad/s/sqrt(Hz)"
+    )
+    gyro_bias_random_walk_rad_s2_sqrt_hz: GyroBiasWalk | None = Field(
+        None, description="as the profile's, rad/s^2/sqrt(Hz)"
+    )
+    latency_s: ImuLatencyS | None = Field(None, description="as the profile's, s")
+    first_stage_filter_weight: FilterWeight | None = Field(None, description="as the profile's")
 
     def apply(self, model: ImuModel) -> ImuModel:
         update = {k: v for k, v in self.model_dump().items() if v is not None}

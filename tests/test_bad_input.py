@@ -12,18 +12,28 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import subprocess
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import click
 import pytest
 from click.testing import CliRunner, Result
+from pydantic import BaseModel
 
 from companion.cli import cli as companion_cli
+from companion.config import MfcConfig, PidConfig, load_controller
 from companion.errors import ConfigError
 from companion.failsafe import THRESHOLD_MAX
+from companion.mission import Mission, load_mission
 from companion.options import Finite, out_dir_problem, usable_out_dir
+from companion.profile import VehicleProfile, load_profile
 from sitl.cli import cli as sitl_cli
+from sitl.lab.campaign_file import CampaignFile, load_campaign_file
+from sitl.pilot.scripts import _ScriptModel, load_stick_script
+from sitl.scenario import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 F450 = ROOT / "vehicle_profiles" / "f450.yaml"
@@ -321,3 +331,150 @@ def test_run_and_fly_refuse_a_duration_of_1e308_and_start_nothing(
     res = companion("fly", "--duration", "1e308", "--out", str(out), "--no-progress")
     refused(res, "--duration", "1e+308 is not in the range")
     assert list(tmp_path.iterdir()) == []  # neither the log folder nor the output folder
+
+
+# ------------------------------------------ numbers in files: numbers, in a plausible range
+
+UNIT = re.compile(r"_(kg|m|m2|s|s2|hz|us|us2|rad|n)$")
+"""A field name ending in a unit: ``mass_kg``, ``t_s``, ``rate_hz``, ``kf_n_per_rad_s2``,
+``aux_us``, ``error_limit_rad``, ``imbalance_n``..."""
+
+UNIT_IN_DOC = {
+    "AlphaAdaptConfig.alpha_max",
+    "AlphaAdaptConfig.alpha_min",
+    "MfcAxisConfig.alpha",
+    "MfcAxisConfig.lag_scaling_authority_ref",
+}
+"""Fields whose unit is in their description, not their name ((rad/s^m) per us)."""
+
+CONFIG_MODELS: tuple[type[BaseModel], ...] = (
+    MfcConfig, PidConfig, VehicleProfile, Scenario, Mission, CampaignFile, _ScriptModel,
+)  # fmt: skip
+"""The top of every kind of file: controller, profile, scenario, mission, campaign,
+stick script (the models under them are walked from these)."""
+
+
+def _number_schemas(schema: dict[str, Any]) -> Iterator[dict[str, Any]]:
+    """The JSON schemas of the numbers in a field: itself, an optional's, a tuple's or
+    a list's elements (a nested model is walked as a model of its own)."""
+    if schema.get("type") in ("number", "integer"):
+        yield schema
+        return
+    for sub in [*schema.get("anyOf", ()), *schema.get("prefixItems", ())]:
+        yield from _number_schemas(sub)
+    if isinstance(schema.get("items"), dict):
+        yield from _number_schemas(schema["items"])
+
+
+def _unit_fields() -> dict[str, list[dict[str, Any]]]:
+    """``Model.field`` of every numeric field with a unit, and its numbers' schemas."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for root in CONFIG_MODELS:
+        js = root.model_json_schema()
+        for model in [js, *js.get("$defs", {}).values()]:
+            for name, schema in model.get("properties", {}).items():
+                key = f"{model['title']}.{name}"
+                numbers = list(_number_schemas(schema))
+                if numbers and (UNIT.search(name) or key in UNIT_IN_DOC):
+                    out[key] = numbers
+    return out
+
+
+UNIT_FIELDS = _unit_fields()
+
+
+def test_the_walk_finds_the_fields_with_units() -> None:
+    assert len(UNIT_FIELDS) > 80
+    for key in ("Physics.mass_kg", "AxisRatesConfig.max_deg_s", "Waypoint.speed_m_s",
+                "CampaignFile.gust_sigma_m_s", "_SegmentModel.aux_us", "LinkSpec.up_delay_s",
+                "Limits.rate_max_deg_s", "MfcAxisConfig.alpha"):  # fmt: skip
+        assert key in UNIT_FIELDS, key
+
+
+@pytest.mark.parametrize("key", sorted(UNIT_FIELDS))
+def test_every_number_with_a_unit_has_both_bounds(key: str) -> None:
+    for schema in UNIT_FIELDS[key]:
+        assert "minimum" in schema or "exclusiveMinimum" in schema, (key, schema)
+        assert "maximum" in schema or "exclusiveMaximum" in schema, (key, schema)
+
+
+SHIPPED: dict[str, Callable[[Path], object]] = {
+    "vehicle_profiles": lambda p: load_profile(p, simulated=True),
+    "companion/data": load_controller,
+    "sitl/scenarios": load_scenario,
+    "sitl/sticks": load_stick_script,
+    "campaigns": load_campaign_file,
+}
+SHIPPED_FILES = [p for folder in SHIPPED for p in sorted((ROOT / folder).glob("*.yaml"))]
+
+
+def test_every_folder_of_shipped_files_has_some() -> None:
+    for folder in SHIPPED:
+        assert any(p.parent == ROOT / folder for p in SHIPPED_FILES), folder
+
+
+@pytest.mark.parametrize("path", SHIPPED_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_shipped_file_loads(path: Path) -> None:
+    SHIPPED[str(path.parent.relative_to(ROOT))](path)
+
+
+MISSION = "speed_m_s: 2.0\nwaypoints:\n  - {north_m: 10, east_m: 0, up_m: 5, hold_s: 2}\n"
+
+
+@pytest.mark.parametrize(
+    ("source", "old", "new", "load", "key_path"),
+    [
+        ("sitl/scenarios/paper-acro.yaml", "physics_dt_s: 0.001", 'physics_dt_s: "0.001"',
+         load_scenario, "physics_dt_s"),
+        ("sitl/scenarios/paper-acro.yaml", "steady_ned_m_s: [2.0,", "steady_ned_m_s: ['2.0',",
+         load_scenario, "wind.steady_ned_m_s.0"),
+        ("sitl/sticks/example_sticks.yaml", "duration_s: 30", 'duration_s: "30"',
+         load_stick_script, "duration_s"),
+        ("campaigns/seeds-1000.yaml", "duration_s: 20", "duration_s: '20'",
+         load_campaign_file, "duration_s"),
+        ("campaigns/seeds-1000.yaml", "count: 1000}", "count: '1000'}",
+         load_campaign_file, "seeds.range.count"),
+        (None, "up_m: 5", "up_m: '5'", load_mission, "waypoints.0.up_m"),
+    ],
+    ids=["scenario", "scenario-vector", "stick-script", "campaign", "campaign-seeds", "mission"],
+)  # fmt: skip
+def test_a_quoted_number_is_refused_in_every_kind_of_file(
+    tmp_path: Path,
+    source: str | None,
+    old: str,
+    new: str,
+    load: Callable[[Path], object],
+    key_path: str,
+) -> None:
+    text = MISSION if source is None else (ROOT / source).read_text(encoding="utf-8")
+    assert old in text
+    path = tmp_path / "file.yaml"
+    path.write_text(text.replace(old, new, 1), encoding="utf-8")
+    with pytest.raises(ConfigError) as info:
+        load(path)
+    assert info.value.path == str(path)
+    lines = [p for p in info.value.problems if p.startswith(f"{key_path}:")]
+    assert lines, info.value.problems
+    assert "expected a number, not text" in lines[0]
+
+
+@pytest.mark.parametrize(
+    ("text", "key_path", "words"),
+    [
+        ("rate_full_scale_deg_s: [720, 12.6, 360]", "rate_full_scale_deg_s",
+         ("12.6 looks like rad/s (721.9 deg/s)", "[35, 2000] deg/s")),
+        ("aux_us: [1000, 20000]", "aux_us.1", ("less than or equal to 2000",)),
+    ],
+    ids=["rates-in-rad-s", "aux-out-of-range"],
+)  # fmt: skip
+def test_a_stick_script_out_of_range_names_the_key(
+    tmp_path: Path, text: str, key_path: str, words: tuple[str, ...]
+) -> None:
+    path = tmp_path / "sticks.yaml"
+    path.write_text(f"duration_s: 5\n{text}\nsegments:\n  - {{t_s: 0, level: true}}\n")
+    with pytest.raises(ConfigError) as info:
+        load_stick_script(path)
+    lines = [p for p in info.value.problems if p.startswith(f"{key_path}:")]
+    assert lines, info.value.problems
+    for w in words:
+        assert w in lines[0], lines[0]

@@ -207,9 +207,50 @@ def test_a_boolean_in_a_vector_or_an_index_is_refused(tmp_path: Path) -> None:
     refused(write(tmp_path, data), "physics.damage.motors.0.motor", "not a boolean")
 
 
-def test_ints_and_yaml_strings_still_pass_as_floats(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("line", "quoted", "key_path"),
+    [
+        ("  mass_kg: 1.5 ", '  mass_kg: "1.5" ', "physics.mass_kg"),
+        ("  kf_n_per_rad_s2: 1.68e-5", "  kf_n_per_rad_s2: '1.68e-5'", "physics.kf_n_per_rad_s2"),
+        (
+            "rate_max_deg_s: [1080.0, 1080.0, 720.0]",
+            'rate_max_deg_s: [1080.0, "1080", 720.0]',
+            "limits.rate_max_deg_s.1",
+        ),
+        (
+            "    - {position_frd_m: [0.159,",
+            "    - {position_frd_m: ['0.159',",
+            "frame.motors.0.position_frd_m.0",
+        ),
+    ],
+    ids=["mass", "kf", "vector-element", "motor-position"],
+)
+def test_a_quoted_number_is_not_a_number(
+    tmp_path: Path, line: str, quoted: str, key_path: str
+) -> None:
+    # YAML reads a quoted number as text; pydantic would then read "1.5" as 1.5.
     text = F450.read_text(encoding="utf-8")
-    # mass_kg: 2 is an int; 1.68e-5 without its dot is a string to YAML 1.1.
+    assert line in text
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(text.replace(line, quoted, 1), encoding="utf-8")
+    refused(path, key_path, "expected a number, not text", "write 1.5")
+
+
+def test_check_config_refuses_a_quoted_mass(tmp_path: Path) -> None:
+    text = F450.read_text(encoding="utf-8")
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(text.replace("  mass_kg: 1.5 ", '  mass_kg: "1.5" ', 1), encoding="utf-8")
+    res = CliRunner().invoke(companion_cli, ["check-config", "--profile", str(path)])
+    assert res.exit_code == EXIT_BAD_INPUT, (res.exit_code, res.output, res.exception)
+    assert "Traceback" not in res.output
+    assert str(path) in res.output
+    assert "physics.mass_kg: expected a number, not text" in res.output
+    assert "got '1.5'" in res.output
+
+
+def test_ints_and_yaml_1_2_exponents_pass_as_floats(tmp_path: Path) -> None:
+    text = F450.read_text(encoding="utf-8")
+    # mass_kg: 2 is an int; 168e-7 (no dot) is a number in YAML 1.2, text to YAML 1.1.
     text = text.replace("mass_kg: 1.5 ", "mass_kg: 2 ", 1)
     text = text.replace("kf_n_per_rad_s2: 1.68e-5", "kf_n_per_rad_s2: 168e-7", 1)
     path = tmp_path / "vehicle.yaml"

@@ -25,9 +25,11 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+from pydantic import Discriminator, Field, Tag, field_validator
 
-from companion.schema import load_yaml_model
+from companion.profile import FLIGHT_MAX_S
+from companion.schema import StrictModel, load_yaml_model
+from sitl.scenario import GUST_SIGMA_MAX_M_S
 
 __all__ = [
     "CampaignFile",
@@ -44,10 +46,8 @@ MAX_FLIGHTS = 10_000_000
 profiles): a typo of three extra zeros is refused, not flown."""
 
 
-class SeedRange(BaseModel):
+class SeedRange(StrictModel):
     """``count`` consecutive seeds from ``first``."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     first: Annotated[int, Field(ge=0, lt=2**32, description="the first seed")]
     count: Annotated[int, Field(ge=1, le=MAX_FLIGHTS, description="how many seeds")]
@@ -56,14 +56,15 @@ class SeedRange(BaseModel):
         return range(self.first, self.first + self.count)
 
 
-class CampaignFile(BaseModel):
+_GustSigmaMS = Annotated[float, Field(ge=0.0, le=GUST_SIGMA_MAX_M_S)]
+
+
+class CampaignFile(StrictModel):
     """The grid a campaign flies: profiles x damage x gust sigmas x seeds x controllers, on
     one scenario."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
     scenario: str = Field("train-acro", description="scenario name, or file beside this one")
-    duration_s: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = Field(
+    duration_s: Annotated[float, Field(gt=0.0, le=FLIGHT_MAX_S)] | None = Field(
         20.0, description="fly only the first seconds, s; null: the whole scenario"
     )
     profiles: Annotated[list[str], Field(min_length=1, max_length=MAX_AXIS_VALUES)] | None = Field(
@@ -79,9 +80,9 @@ class CampaignFile(BaseModel):
     damage: Annotated[list[float], Field(min_length=1, max_length=MAX_AXIS_VALUES)] = Field(
         [1.0, 0.8, 0.6], description="motor 1 thrust and torque efficiency factors, each in (0, 1]"
     )
-    gust_sigma_m_s: Annotated[list[float], Field(min_length=1, max_length=MAX_AXIS_VALUES)] = Field(
-        [0.0, 2.0], description="wind gust sigmas replacing the scenario's, m/s"
-    )
+    gust_sigma_m_s: Annotated[
+        list[_GustSigmaMS], Field(min_length=1, max_length=MAX_AXIS_VALUES)
+    ] = Field([0.0, 2.0], description="wind gust sigmas replacing the scenario's, m/s")
     seeds: Annotated[
         Annotated[SeedRange, Tag("range")]
         | Annotated[
@@ -107,14 +108,6 @@ class CampaignFile(BaseModel):
         bad = [x for x in v if not (math.isfinite(x) and 0.0 < x <= 1.0)]
         if bad:
             raise ValueError("expected efficiencies in (0, 1]")
-        return v
-
-    @field_validator("gust_sigma_m_s")
-    @classmethod
-    def _sigmas(cls, v: list[float]) -> list[float]:
-        bad = [x for x in v if not (math.isfinite(x) and x >= 0.0)]
-        if bad:
-            raise ValueError("expected finite sigmas >= 0 m/s")
         return v
 
     @field_validator("link")

@@ -29,71 +29,72 @@ f0_hz, f1_hz, taper_s}``; optional ``ramp_s`` (s, default 0.1), ``step``
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
 from companion.control import AXES
 from companion.errors import ConfigError
-from companion.schema import StrictModel, read_yaml
+from companion.profile import (
+    FLIGHT_MAX_S,
+    RATE_LIMIT_MAX_DEG_S,
+    RateLimitDegS,
+    rate_limit_validator,
+)
+from companion.schema import StrictModel, format_validation_error, read_yaml
 from sitl.pilot.rc import DEFAULT_RATE_FULL_SCALE_DEG_S, RC_MAX_US, RC_MIN_US
 from sitl.pilot.scripted import Chirp, ScriptedPilot, Segment
 from sitl.pilot.virtual import PilotParams
 
 __all__ = ["load_stick_script"]
 
+_RateDegS = Annotated[float, Field(ge=-RATE_LIMIT_MAX_DEG_S, le=RATE_LIMIT_MAX_DEG_S)]
+_AuxUs = Annotated[int, Field(ge=RC_MIN_US, le=RC_MAX_US)]
+
 
 class _ChirpModel(StrictModel):
     axis: Literal["roll", "pitch", "yaw"]
-    amplitude_deg_s: float = Field(gt=0.0, le=2000.0)
+    amplitude_deg_s: float = Field(gt=0.0, le=RATE_LIMIT_MAX_DEG_S)
     f0_hz: float = Field(gt=0.0, le=100.0)
     f1_hz: float = Field(gt=0.0, le=100.0)
     taper_s: float = Field(default=0.5, ge=0.0, le=10.0)
 
 
 class _SegmentModel(StrictModel):
-    t_s: float = Field(ge=0.0)
+    t_s: float = Field(ge=0.0, le=FLIGHT_MAX_S)
     level: bool = False
-    rate_deg_s: tuple[float | None, float | None, float | None] | None = None
+    rate_deg_s: tuple[_RateDegS | None, _RateDegS | None, _RateDegS | None] | None = None
     chirp: _ChirpModel | None = None
     ramp_s: float = Field(default=0.1, ge=0.0, le=10.0)
     step: bool = False
     throttle: Literal["hold", "climb", "coast"] = "hold"
     climb_m_s: float = Field(default=5.0, ge=-10.0, le=10.0)
     altitude_m: float | None = Field(default=None, gt=0.0, le=500.0)
-    aux_us: tuple[int, ...] | None = None
+    aux_us: tuple[_AuxUs, ...] | None = None
 
     @model_validator(mode="after")
     def _one_kind(self) -> _SegmentModel:
         kinds = int(self.level) + int(self.rate_deg_s is not None) + int(self.chirp is not None)
         if kinds != 1:
             raise ValueError("exactly one of level: true, rate_deg_s or chirp is required")
-        if self.rate_deg_s is not None:
-            for r in self.rate_deg_s:
-                if r is not None and not abs(r) <= 2000.0:
-                    raise ValueError(f"rates must be within +-2000 deg/s, got {r}")
-        if self.aux_us is not None:
-            for a in self.aux_us:
-                if not RC_MIN_US <= a <= RC_MAX_US:
-                    raise ValueError(f"aux_us values must be in 1000..2000, got {a}")
         return self
 
 
 class _ScriptModel(StrictModel):
-    duration_s: float = Field(gt=0.0, le=36000.0)
-    rate_full_scale_deg_s: tuple[float, float, float] = DEFAULT_RATE_FULL_SCALE_DEG_S
+    duration_s: float = Field(gt=0.0, le=FLIGHT_MAX_S)
+    rate_full_scale_deg_s: tuple[RateLimitDegS, RateLimitDegS, RateLimitDegS] = (
+        DEFAULT_RATE_FULL_SCALE_DEG_S
+    )
     altitude_m: float = Field(default=10.0, gt=0.0, le=500.0)
-    aux_us: tuple[int, ...] = ()
+    aux_us: tuple[_AuxUs, ...] = ()
     segments: list[_SegmentModel] = Field(min_length=1)
+
+    _full_scale = rate_limit_validator(
+        "rate_full_scale_deg_s", "three rates at full stick (roll, pitch, yaw) in %s deg/s"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> _ScriptModel:
-        for v in self.rate_full_scale_deg_s:
-            if not 0.0 < v <= 2000.0:
-                raise ValueError(f"rate_full_scale_deg_s must be in (0, 2000], got {v}")
-        for a in self.aux_us:
-            if not RC_MIN_US <= a <= RC_MAX_US:
-                raise ValueError(f"aux_us values must be in 1000..2000, got {a}")
         if self.segments[0].t_s != 0.0:
             raise ValueError("segments.0.t_s must be 0")
         for k in range(1, len(self.segments)):
@@ -155,11 +156,7 @@ def load_stick_script(
     try:
         model = _ScriptModel.model_validate(raw)
     except ValidationError as exc:
-        problems = []
-        for e in exc.errors():
-            loc = ".".join(str(x) for x in e["loc"]) or "top level"
-            problems.append(f"{loc}: {e['msg']}")
-        raise ConfigError(str(p), problems) from exc
+        raise ConfigError(str(p), format_validation_error(exc)) from exc
     base = params if params is not None else PilotParams()
     prm = PilotParams(
         **{

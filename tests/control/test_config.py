@@ -9,7 +9,9 @@ from typing import Any
 
 import pytest
 import yaml
+from click.testing import CliRunner
 
+from companion.cli import cli as companion_cli
 from companion.config import (
     DEFAULT_CONTROLLER,
     PID_DEFAULT_CONTROLLER,
@@ -26,6 +28,8 @@ from companion.errors import ConfigError
 from tests.control.plants import f450_mixer, f450_profile
 
 TABLE1 = DEFAULT_CONTROLLER.parent / "mfc_table1.yaml"
+CONTROLLER_FILES = sorted(DEFAULT_CONTROLLER.parent.glob("*.yaml"))
+EXIT_BAD_INPUT = 2
 
 
 def test_table_1_file_holds_the_papers_values() -> None:
@@ -149,7 +153,7 @@ def _delete(path: str) -> Callable[[dict[str, Any]], None]:
         pytest.param(_set("axes.roll.kd", True), "axes.roll.kd: expected a number", id="bool-kd"),
         pytest.param(
             _set("axes.yaw.alpha_adapt.tau_candidates_s", [0.01, True]),
-            "axes.yaw.alpha_adapt.tau_candidates_s: expected a number",
+            "axes.yaw.alpha_adapt.tau_candidates_s.1: expected a number",
             id="bool-in-a-list",
         ),
         pytest.param(
@@ -183,6 +187,109 @@ def test_bad_controller_file_names_file_and_key(
     assert str(path) in msg
     assert key_path in msg, f"{key_path!r} not named in:\n{msg}"
     assert isinstance(info.value, ValueError)
+
+
+# ---------------------------------------------------------------------------
+# Units: a number of the wrong unit or a quoted number is refused, naming the key.
+
+
+def _write(tmp_path: Path, raw: dict[str, Any], name: str = "controller.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def _problem(path: Path, key_path: str) -> str:
+    """The problem line ``load_controller(path)`` refuses ``key_path`` with."""
+    with pytest.raises(ConfigError) as info:
+        load_controller(path)
+    assert info.value.path == str(path)
+    lines = [p for p in info.value.problems if p.startswith(f"{key_path}:")]
+    assert lines, info.value.problems
+    return lines[0]
+
+
+@pytest.mark.parametrize("path", CONTROLLER_FILES, ids=lambda p: p.name)
+@pytest.mark.parametrize("axis", ["roll", "pitch", "yaw"])
+def test_a_stick_rate_in_rad_s_is_refused_naming_the_unit(
+    tmp_path: Path, path: Path, axis: str
+) -> None:
+    # 12.6 rad/s is the 722 deg/s meant; as deg/s, far below any flyable acro rate.
+    raw = yaml.safe_load(path.read_text(encoding="utf-8"))
+    raw.setdefault("sticks", {}).setdefault(axis, {})["max_deg_s"] = 12.6
+    line = _problem(_write(tmp_path, raw), f"sticks.{axis}.max_deg_s")
+    assert "12.6 looks like rad/s (721.9 deg/s)" in line
+    assert "expected a rate at full stick in [35, 2000] deg/s" in line
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        (34.0, ("34 looks like rad/s",)),
+        (0.0, ("expected a rate at full stick in [35, 2000] deg/s",)),
+        (2001.0, ("expected a rate at full stick in [35, 2000] deg/s",)),
+        ("720", ("expected a number, not text",)),
+    ],
+)
+def test_a_stick_rate_outside_the_acro_range_is_refused(
+    tmp_path: Path, value: Any, words: tuple[str, ...]
+) -> None:
+    raw = _default_raw()
+    raw["sticks"]["pitch"]["max_deg_s"] = value
+    line = _problem(_write(tmp_path, raw), "sticks.pitch.max_deg_s")
+    for w in words:
+        assert w in line, line
+
+
+def test_the_acro_range_ends_load(tmp_path: Path) -> None:
+    raw = _default_raw()
+    raw["sticks"]["roll"]["max_deg_s"] = 35
+    raw["sticks"]["yaw"]["max_deg_s"] = 2000.0
+    sticks = load_controller(_write(tmp_path, raw)).sticks
+    assert (sticks.roll.max_deg_s, sticks.yaw.max_deg_s) == (35.0, 2000.0)
+
+
+@pytest.mark.parametrize(
+    ("mutate", "key_path"),
+    [
+        pytest.param(_set("axes.roll.kp", "6.0"), "axes.roll.kp", id="gain"),
+        pytest.param(_set("prefilter_hz", "30"), "prefilter_hz", id="optional"),
+        pytest.param(
+            _set("axes.roll.alpha_adapt.tau_candidates_s", [0.01, "0.02"]),
+            "axes.roll.alpha_adapt.tau_candidates_s.1",
+            id="list-element",
+        ),
+        pytest.param(_set("sticks.channels", [1, 2, "3", 4]), "sticks.channels.2", id="int"),
+    ],
+)
+def test_a_quoted_number_in_a_controller_is_refused(
+    tmp_path: Path, mutate: Callable[[dict[str, Any]], None], key_path: str
+) -> None:
+    raw = copy.deepcopy(_default_raw())
+    mutate(raw)
+    assert "expected a number, not text" in _problem(_write(tmp_path, raw), key_path)
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        (12.6, ("sticks.roll.max_deg_s: 12.6 looks like rad/s (721.9 deg/s)",)),
+        ("720", ("sticks.roll.max_deg_s: expected a number, not text", "got '720'")),
+    ],
+    ids=["rad-s", "quoted"],
+)
+def test_check_config_refuses_a_bad_stick_rate(
+    tmp_path: Path, value: Any, words: tuple[str, ...]
+) -> None:
+    raw = _default_raw()
+    raw["sticks"]["roll"]["max_deg_s"] = value
+    path = _write(tmp_path, raw, "sticks_in_rad_s.yaml")
+    res = CliRunner().invoke(companion_cli, ["check-config", "--controller", str(path)])
+    assert res.exit_code == EXIT_BAD_INPUT, (res.exit_code, res.output, res.exception)
+    assert "Traceback" not in res.output
+    assert str(path) in res.output
+    for w in words:
+        assert w in res.output, res.output
 
 
 def _then(*steps: Callable[[dict[str, Any]], None]) -> Callable[[dict[str, Any]], None]:

@@ -309,11 +309,11 @@ def _shipped_with(path: str, value: Any) -> list[str]:
     [
         (
             "axes.roll.alpha_adapt.delay_candidates_s", [0.0, 0.25],
-            "axes.roll.alpha_adapt.delay_candidates_s", "delays in [0, 0.2] s",
+            "axes.roll.alpha_adapt.delay_candidates_s.1", "less than or equal to 0.2",
         ),
         (
             "axes.roll.alpha_adapt.delay_candidates_s", [-0.004],
-            "axes.roll.alpha_adapt.delay_candidates_s", "delays in [0, 0.2] s",
+            "axes.roll.alpha_adapt.delay_candidates_s.0", "greater than or equal to 0",
         ),
         (
             "axes.roll.alpha_adapt.delay_candidates_s", [],
