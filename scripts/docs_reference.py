@@ -58,10 +58,8 @@ NOTES: dict[str, str] = {
     "PidConfig.dt_max_s": "as for an MFC file",
     "PidConfig.sticks": "how the pilot's sticks become rates",
     "SticksConfig.channels": "RC channels of roll, pitch, throttle, yaw (AETR: 1, 2, 3, 4)",
-    "SticksConfig.deadband_us": "stick dead band around centre, us",
     "AxisRatesConfig.curve": "`linear`: full stick is max_deg_s; `betaflight`: Betaflight's "
     "rc_rate / super_rate / expo curve",
-    "AxisRatesConfig.max_deg_s": "rate at full stick (linear curve), deg/s",
     "MfcAxisConfig.order": "order m of the ultra-local model on the axis angle (2: the "
     "gyro rate is y')",
     "MfcAxisConfig.window_s": "window of the F estimate's sliding average, s",
@@ -81,9 +79,6 @@ NOTES: dict[str, str] = {
     "AlphaAdaptConfig.highpass_s": "time constant of the high-pass giving the fit its fast "
     "parts, s",
     "AlphaAdaptConfig.min_excitation_us": "smallest command motion the identifier learns from, us",
-    "AlphaAdaptConfig.min_samples_weight_us2": "excitation needed before a slope is used, us^2",
-    "AlphaAdaptConfig.tau_candidates_s": "actuator lags the identifier chooses from, s "
-    "(empty: actuator_tau_s only)",
     "PidAxisConfig.kp": "proportional gain, normalised torque per rad/s",
     "PidAxisConfig.ki": "integral gain",
     "PidAxisConfig.kd": "derivative gain",
@@ -96,33 +91,17 @@ NOTES: dict[str, str] = {
     "VehicleProfile.physics": "what only the simulator reads; the companion never uses it",
     "Frame.layout": "`quad_x`, `quad_plus` (checked against the motors) or `custom`",
     "Frame.motors": "in output (motor index) order",
-    "MotorSpec.position_frd_m": "x forward, y right, z down from the geometric centre, m",
     "MotorSpec.spin": "seen from above",
-    "Limits.rate_max_deg_s": "roll, pitch, yaw rate limits, deg/s: the envelope failsafe's",
     "Limits.motor_idle": "lowest command a running motor gets (0..1)",
-    "Physics.mass_kg": "take-off mass, kg",
-    "Physics.inertia_kg_m2": "3x3 inertia about the centre of mass, FRD, kg m^2",
-    "Physics.motor_w_max_rad_s": "rotor speed at full command, rad/s",
-    "Physics.motor_w_idle_rad_s": "rotor speed at idle, rad/s",
     "Physics.motor_tau_up_s": "motor time constant spinning up, s",
     "Physics.motor_tau_down_s": "motor time constant spinning down, s",
-    "Physics.rotor_inertia_kg_m2": "one rotor's inertia (spin-up reaction torque), kg m^2",
-    "Physics.drag_linear_n_per_m_s": "linear drag per body axis",
-    "Physics.drag_quadratic_n_per_m2_s2": "quadratic drag per body axis",
-    "Physics.angular_drag_n_m_per_rad_s": "angular damping per body axis",
     "Physics.damage": "asymmetries of a damaged vehicle",
     "Physics.imu": "the simulated gyro",
     "Damage.motors": "per-motor damage",
-    "Damage.cg_offset_frd_m": "centre of mass offset from the geometric centre, m",
-    "Damage.inertia_delta_kg_m2": "added to physics.inertia_kg_m2",
     "MotorDamage.motor": "index into frame.motors",
     "MotorDamage.thrust_efficiency": "thrust factor",
     "MotorDamage.torque_efficiency": "reaction-torque factor",
     "MotorDamage.efficiency_after_fail": "both factors after fail_at_s",
-    "ImuModel.rate_hz": "sample rate, Hz",
-    "ImuModel.gyro_bias_random_walk_rad_s2_sqrt_hz": "bias random walk",
-    "ImuModel.gyro_range_deg_s": "full scale, deg/s",
-    "ImuModel.latency_s": "delay of each sample, s",
     "Scenario.name": "shown in reports",
     "Scenario.description": "shown in reports",
     "Scenario.seed": "seed of everything random in the flight",
@@ -131,14 +110,8 @@ NOTES: dict[str, str] = {
     "Scenario.imu": "fields replacing the profile's IMU model",
     "Scenario.physics_dt_s": "physics step, s",
     "Scenario.rc_rate_hz": "RC_CHANNELS rate, Hz",
-    "WindSpec.steady_ned_m_s": "steady wind, NED, m/s",
     "WindSpec.gust_sigma_m_s": "turbulence intensity (per-axis sigma), m/s",
     "WindSpec.gust_length_m": "turbulence length scale, m",
-    "ImuOverride.rate_hz": "as the profile's imu.rate_hz",
-    "ImuOverride.gyro_noise_density_rad_s_sqrt_hz": "as the profile's",
-    "ImuOverride.gyro_bias_random_walk_rad_s2_sqrt_hz": "as the profile's",
-    "ImuOverride.latency_s": "as the profile's",
-    "ImuOverride.first_stage_filter_weight": "as the profile's",
     "LinkSpec.name": "shown in reports",
     "LinkSpec.up_delay_s": "autopilot to companion delay, s",
     "LinkSpec.up_jitter_s": "uniform jitter around it, s",
@@ -303,13 +276,23 @@ def _checked_fields(cls: type[BaseModel]) -> set[str]:
     return {f for d in decorators for f in d.info.fields if f != "*"}
 
 
-def _constraints(info: FieldInfo, checked: bool = False) -> str:
-    """The field's bounds and lengths, from its metadata and its element types';
-    ``checked``: a validator of its model checks it further."""
-    parts: list[str] = []
-    metadata = list(info.metadata)
-    tp, meta = _unwrap(info.annotation)
-    metadata += meta
+def _metadata(tp: Any) -> tuple[Any, list[Any]]:
+    """The type under ``Annotated`` and ``X | None``, and the constraints found on the
+    way (a ``Field(...)`` inside ``Annotated`` opened up)."""
+    tp, meta = _unwrap(tp)
+    inner, optional = _optional(tp)
+    if optional:
+        inner, more = _unwrap(inner)
+        tp, meta = inner, [*meta, *more]
+    out: list[Any] = []
+    for m in meta:
+        out.extend(m.metadata if isinstance(m, FieldInfo) else [m])
+    return tp, out
+
+
+def _bounds(metadata: Iterable[Any]) -> list[str]:
+    """The numeric bounds among ``metadata``."""
+    parts = []
     for m in metadata:
         if isinstance(m, annotated_types.Gt):
             parts.append(f"> {_value(m.gt)}")
@@ -319,7 +302,31 @@ def _constraints(info: FieldInfo, checked: bool = False) -> str:
             parts.append(f"< {_value(m.lt)}")
         elif isinstance(m, annotated_types.Le):
             parts.append(f"<= {_value(m.le)}")
-        elif isinstance(m, annotated_types.MinLen):
+    return parts
+
+
+def _element_bounds(tp: Any) -> str:
+    """The bounds every element of a tuple or list shares (of its elements' elements,
+    for a matrix), or ''."""
+    if get_origin(tp) not in (tuple, list):
+        return ""
+    texts = set()
+    for arg in get_args(tp):
+        if arg is ...:
+            continue
+        inner, meta = _metadata(arg)
+        texts.add(", ".join(_bounds(meta)) or _element_bounds(inner))
+    return texts.pop() if len(texts) == 1 else ""
+
+
+def _constraints(info: FieldInfo, checked: bool = False) -> str:
+    """The field's bounds and lengths, from its metadata and its element types';
+    ``checked``: a validator of its model checks it further."""
+    tp, meta = _metadata(info.annotation)
+    metadata = [*info.metadata, *meta]
+    parts = _bounds(metadata)
+    for m in metadata:
+        if isinstance(m, annotated_types.MinLen):
             text = tp is str
             if text and m.min_length == 1:
                 parts.append("not empty")
@@ -327,6 +334,8 @@ def _constraints(info: FieldInfo, checked: bool = False) -> str:
                 parts.append(f"at least {m.min_length} {'characters' if text else 'items'}")
         elif isinstance(m, annotated_types.MaxLen):
             parts.append(f"at most {m.max_length} {'characters' if tp is str else 'items'}")
+    if each := _element_bounds(tp):
+        parts.append(f"each {each}")
     if checked:
         parts.append("checked further in the code")
     return ", ".join(parts)
@@ -468,8 +477,9 @@ def config_reference() -> str:
         "",
         "Every file the companion and the simulator read is YAML validated against the "
         "models below, once, before anything starts. Unknown keys, missing required keys, "
-        "non-finite numbers (`.nan`, `.inf`) and booleans where a number belongs are "
-        "refused; so is a key given twice. An error names the file, the key path and what "
+        'non-finite numbers (`.nan`, `.inf`), booleans and quoted numbers (`"1.5"`) where '
+        "a number belongs are refused; so is a key given twice, and a number with a unit "
+        "outside the range its row gives. An error names the file, the key path and what "
         "was expected (exit code 2, nothing started). `companion check-config` validates a "
         "profile and a controller file and prints the effective values.",
         "",
