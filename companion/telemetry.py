@@ -4,9 +4,12 @@ The control loop calls :meth:`MqttTelemetry.publish_sample` (and
 ``publish_status`` / ``publish_event``) synchronously; each call is a
 decimation test and at most one ``put_nowait`` on a bounded
 :class:`asyncio.Queue`. A background task, :meth:`MqttTelemetry.run`,
-takes from the queue, formats JSON and publishes with aiomqtt. The control
-loop never waits for the broker: when the queue is full a sample is dropped
-and counted, and a warning is logged at most every ``warn_interval_s``.
+takes from the queue, formats JSON and publishes with aiomqtt at QoS 1,
+keeping at most ``window`` items unacknowledged. The control loop never waits
+for the broker: when the queue is full a sample is dropped and counted, and a
+warning is logged at most every ``warn_interval_s``. What the broker never
+acknowledged when its connection ended is counted lost too: a broker that
+stops answering takes what was in flight with it, not more.
 
 All ``publish_*`` methods must be called from the event loop's thread.
 Topics and payloads are documented in ``docs/telemetry.md``.
@@ -123,19 +126,30 @@ class MqttTelemetry:
         MQTT keepalive; the broker publishes the will (status ``offline``)
         after 1.5 times this without hearing from us.
     timeout_s
-        How long a QoS 1 publish (status, event) may wait for its PUBACK.
+        How long connecting may take; and how long the broker may acknowledge
+        nothing while items wait before ``telemetry_lost`` is said (the
+        connection is kept: a broker that comes back loses nothing).
+    window
+        Items (a sample: its three messages) sent and not yet acknowledged, at
+        most. A broker that stops answering takes at most these with it; the
+        rest wait in the queue. 10 is a second of samples at 10 Hz, and keeps
+        up with a round trip of up to 1 s.
 
     Attributes
     ----------
     counters
         ``samples`` (calls to publish_sample), ``queued``, ``published``
-        (items sent: one sample is three MQTT messages), ``dropped_full``
-        (samples refused or evicted because the queue was full),
-        ``dropped_events`` (events evicted by a full queue),
-        ``lost_disconnected`` (samples taken from the queue but not sent
-        because the broker went away), ``reconnects`` (successful connections
-        after the first), ``connect_failures``, ``disconnects``, ``errors``
-        (unexpected exceptions in the publisher, logged; it restarts).
+        (items the broker acknowledged: one sample is three MQTT messages),
+        ``dropped_full`` (samples and link figures refused or evicted because
+        the queue was full), ``dropped_events`` (events evicted by a full
+        queue), ``lost_unacked`` (samples and link figures sent that the broker
+        had not acknowledged when the connection ended: lost with it),
+        ``samples_lost`` (samples lost either way: what ``telemetry_restored``
+        reports), ``stalls`` (times the broker acknowledged nothing for
+        ``timeout_s`` while items waited), ``reconnects`` (successful
+        connections after the first), ``connect_failures``, ``disconnects``,
+        ``errors`` (unexpected exceptions in the publisher, logged; it
+        restarts).
     topics
         ``roll``/``pitch``/``yaw``/``status``/``event``/``link`` -> topic name.
     connected
@@ -154,6 +168,7 @@ class MqttTelemetry:
         warn_interval_s: float = 5.0,
         keepalive_s: int = 10,
         timeout_s: float = 2.0,
+        window: int = 10,
     ) -> None:
         self.host, self.port, self.prefix = parse_mqtt_url(url)
         self.url = url
@@ -163,6 +178,8 @@ class MqttTelemetry:
             raise ValueError(f"decimate_hz must be > 0, got {decimate_hz!r}")
         if not (0.0 < backoff_min_s <= backoff_max_s):
             raise ValueError("need 0 < backoff_min_s <= backoff_max_s")
+        if not (isinstance(window, int) and window >= 1):
+            raise ValueError(f"window must be an integer >= 1, got {window!r}")
         self.client_id = client_id
         self.topics: dict[str, str] = {a: f"{self.prefix}/axis/{a}" for a in _AXES}
         self.topics["status"] = f"{self.prefix}/status"
@@ -171,7 +188,6 @@ class MqttTelemetry:
         self._axis_topics = tuple(self.topics[a] for a in _AXES)
         self._queue: asyncio.Queue[tuple[Any, ...]] = asyncio.Queue(maxsize=queue_size)
         self._put = self._queue.put_nowait
-        self._sending = False
         self._period = 1.0 / decimate_hz
         # Tolerance on the decimation grid: sample times are microseconds on
         # the wire, so 1 us is below any real sample spacing.
@@ -185,21 +201,29 @@ class MqttTelemetry:
         self._keepalive = keepalive_s
         self._timeout = timeout_s
         self._status: dict[str, Any] | None = None
-        self._retry: tuple[Any, ...] | None = None
+        self._window = window
+        self._inflight: dict[asyncio.Task[None], tuple[Any, ...]] = {}
+        """Items handed to the client, until the broker acknowledges them."""
+        self._taken: tuple[Any, ...] | None = None  # from the queue, waiting for room
+        self._resend: list[tuple[Any, ...]] = []  # events (and an item never sent)
+        self._stalled = False
         self.connected = False
         self.on_outage: Callable[[str, str], None] | None = None
         """Told ``("telemetry_lost", detail)`` once per outage (the broker went
-        away, or could not be reached) and ``("telemetry_restored", detail)`` when
-        it is back, with the samples dropped meanwhile: the app records both."""
-        self._outage_dropped: int | None = None  # samples lost before this outage
-        self._lost_when_up = 0  # samples lost when the broker was last reached
+        away, could not be reached, or acknowledged nothing for ``timeout_s``)
+        and ``("telemetry_restored", detail)`` when it is back, with the samples
+        lost meanwhile: the app records both."""
+        self._outage_lost: int | None = None  # samples_lost when this outage began
+        self._lost_when_up = 0  # samples_lost at the broker's last acknowledgement
         self.counters: dict[str, int] = {
             "samples": 0,
             "queued": 0,
             "published": 0,
             "dropped_full": 0,
             "dropped_events": 0,
-            "lost_disconnected": 0,
+            "lost_unacked": 0,
+            "samples_lost": 0,
+            "stalls": 0,
             "reconnects": 0,
             "connect_failures": 0,
             "disconnects": 0,
@@ -231,6 +255,7 @@ class MqttTelemetry:
             self._put((_SAMPLE, t_s, err_rad_s, f_hat, u))
         except asyncio.QueueFull:
             c["dropped_full"] += 1
+            c["samples_lost"] += 1
             self._warn_full()
             return
         c["queued"] += 1
@@ -266,6 +291,7 @@ class MqttTelemetry:
             evicted = q.get_nowait()
             if evicted[0] in (_SAMPLE, _LINK):
                 self.counters["dropped_full"] += 1
+                self.counters["samples_lost"] += evicted[0] == _SAMPLE
             elif evicted[0] == _EVENT:
                 self.counters["dropped_events"] += 1
                 log.warning("telemetry queue full: dropped event %r", evicted[1])
@@ -288,13 +314,13 @@ class MqttTelemetry:
     # -- background side ------------------------------------------------------
 
     async def drain(self, timeout_s: float = 1.0) -> bool:
-        """Wait (bounded) until everything queued has been published.
+        """Wait (bounded) until everything queued has been published and acknowledged.
 
         Returns True when the queue emptied in time; used at shutdown so the
         last events (the hand-back and its reason) reach the broker.
         """
         deadline = asyncio.get_running_loop().time() + timeout_s
-        while not self._queue.empty() or self._sending:
+        while not self._queue.empty() or self._taken is not None or self._inflight:
             if not self.connected or asyncio.get_running_loop().time() >= deadline:
                 return False
             await asyncio.sleep(0.01)
@@ -320,12 +346,17 @@ class MqttTelemetry:
                     keepalive=self._keepalive,
                     will=will,
                     timeout=self._timeout,
+                    # Everything handed over goes on the wire at once: the window,
+                    # plus the restated status, bounds it.
+                    max_inflight_messages=3 * self._window + 3,
                 ) as client:
+                    client.pending_calls_threshold = 3 * self._window + 3
                     self.connected = True
+                    self._stalled = False
                     if not first:
                         self.counters["reconnects"] += 1
                     self._outage_ended()
-                    self._lost_when_up = self._lost()
+                    self._lost_when_up = self.counters["samples_lost"]
                     first = False
                     failing = False
                     backoff = self._backoff_min
@@ -367,35 +398,32 @@ class MqttTelemetry:
             await asyncio.sleep(backoff)
             backoff = min(2.0 * backoff, self._backoff_max)
 
-    def _lost(self) -> int:
-        c = self.counters
-        return c["dropped_full"] + c["lost_disconnected"]
-
     def _outage_began(self, detail: str) -> None:
-        if self._outage_dropped is not None:
+        if self._outage_lost is not None:
             return  # one outage, however many attempts
-        # From the last time the broker was reached: a sample in flight when it went
-        # away is this outage's too.
-        self._outage_dropped = self._lost_when_up
+        # From the broker's last acknowledgement: what was in flight then is this
+        # outage's too.
+        self._outage_lost = self._lost_when_up
         if self.on_outage is not None:
             self.on_outage("telemetry_lost", detail)
 
     def _outage_ended(self) -> None:
-        if self._outage_dropped is None:
+        if self._outage_lost is None:
             return
-        lost = self._lost() - self._outage_dropped
-        self._outage_dropped = None
+        lost = self.counters["samples_lost"] - self._outage_lost
+        self._outage_lost = None
         if self.on_outage is not None:
             self.on_outage(
                 "telemetry_restored",
-                f"the broker {self.host}:{self.port} is back; {lost} samples dropped meanwhile",
+                f"the broker {self.host}:{self.port} is back; {lost} samples lost meanwhile "
+                f"({lost * self._period:.1f} s of telemetry)",
             )
 
     async def _serve(self, client: aiomqtt.Client) -> None:
         """Publish until the connection drops (MqttError) or we are cancelled."""
         publisher = asyncio.create_task(self._publish_loop(client), name="telemetry-publish")
-        # A QoS 0 publish does not fail when the broker has gone: paho queues it.
-        # The message iterator is what raises on disconnection, so watch it.
+        # A publish does not fail when the broker has gone (paho queues it); the
+        # message iterator is what raises on disconnection, so watch it.
         watcher = asyncio.create_task(self._watch(client), name="telemetry-watch")
         try:
             done, _ = await asyncio.wait((publisher, watcher), return_when=asyncio.FIRST_COMPLETED)
@@ -408,8 +436,35 @@ class MqttTelemetry:
             for task in (publisher, watcher):
                 if task.done() and not task.cancelled():
                     task.exception()  # retrieved: the one that matters is re-raised below
+            await self._connection_ended()
         for task in done:
             task.result()  # re-raises the MqttError that ended it
+
+    async def _connection_ended(self) -> None:
+        """What the broker did not acknowledge went with the connection: samples
+        and link figures are counted lost (re-sent, one the broker did take and
+        only its acknowledgement was lost would arrive twice); events are re-sent
+        first on the next connection; the status is restated anyway."""
+        inflight = self._inflight
+        for task in inflight:
+            task.cancel()
+        if inflight:
+            await asyncio.wait(tuple(inflight), timeout=_STOP_S)
+        resend = []
+        c = self.counters
+        for task, item in inflight.items():
+            if task.done() and not task.cancelled():
+                task.exception()  # retrieved (a refused publish): counted below
+            if item[0] in (_SAMPLE, _LINK):
+                c["lost_unacked"] += 1
+                c["samples_lost"] += item[0] == _SAMPLE
+            elif item[0] == _EVENT:
+                resend.append(item)
+        inflight.clear()
+        if self._taken is not None:  # never sent: sent next time
+            resend.append(self._taken)
+            self._taken = None
+        self._resend[:0] = resend
 
     @staticmethod
     async def _watch(client: aiomqtt.Client) -> None:
@@ -419,52 +474,103 @@ class MqttTelemetry:
     async def _publish_loop(self, client: aiomqtt.Client) -> None:
         if self._status is not None:
             # Retained state is gone if the broker restarted: restate it.
-            await client.publish(
-                self.topics["status"], json.dumps(self._status, default=str), qos=1, retain=True
-            )
-        if self._retry is not None:
-            item, self._retry = self._retry, None
-            await self._send(client, item)
+            self._launch(client, (_STATUS, self._status))
+        resend = self._resend
         get = self._queue.get
         while True:
             if _cancel_requested():
                 raise asyncio.CancelledError
-            item = await get()
-            self._sending = True
-            try:
-                await self._send(client, item)
-            finally:
-                self._sending = False
+            item = resend.pop(0) if resend else await get()
+            self._taken = item
+            await self._room()
+            self._taken = None
+            self._launch(client, item)
 
-    async def _send(self, client: aiomqtt.Client, item: tuple[Any, ...]) -> None:
-        kind = item[0]
+    async def _room(self) -> None:
+        """Until fewer than ``window`` items await the broker's acknowledgement.
+
+        A broker that acknowledges nothing for ``timeout_s`` is an outage (said
+        once); the connection is kept, for it may answer again (a frozen broker
+        that wakes before its keepalive expires delivers all it was sent), and
+        the client's keepalive ends it otherwise."""
+        inflight = self._inflight
+        while len(inflight) >= self._window:
+            done, _ = await asyncio.wait(
+                tuple(inflight), timeout=self._timeout, return_when=asyncio.FIRST_COMPLETED
+            )
+            for task in done:
+                if task in inflight:  # it raised instead of being acknowledged
+                    task.result()
+            if done and self._stalled:
+                self._stalled = False
+                log.info("telemetry: the broker %s:%d answers again", self.host, self.port)
+                self._outage_ended()
+            elif not done and not self._stalled:
+                self._stalled = True
+                self.counters["stalls"] += 1
+                log.warning(
+                    "telemetry: the broker %s:%d acknowledged nothing for %g s",
+                    self.host,
+                    self.port,
+                    self._timeout,
+                )
+                self._outage_began(
+                    f"the broker {self.host}:{self.port} acknowledged nothing for "
+                    f"{self._timeout:g} s"
+                )
+
+    def _launch(self, client: aiomqtt.Client, item: tuple[Any, ...]) -> None:
+        task = asyncio.create_task(self._publish(client, item), name="telemetry-item")
+        self._inflight[task] = item
+
+    async def _publish(self, client: aiomqtt.Client, item: tuple[Any, ...]) -> None:
+        """Publish one item at QoS 1 and wait for the broker's acknowledgement of
+        each of its messages, as long as the connection lives."""
+        parts = [
+            asyncio.ensure_future(
+                client.publish(topic, payload, qos=1, retain=retain, timeout=math.inf)
+            )
+            for topic, payload, retain in self._messages(item)
+        ]
         try:
-            if kind == _SAMPLE:
-                _, t_s, err, f_hat, u = item
-                for i, topic in enumerate(self._axis_topics):
-                    payload = json.dumps(
+            for part in parts:
+                await part
+        finally:
+            for part in parts:
+                if not part.done():
+                    part.cancel()
+                elif not part.cancelled():
+                    part.exception()  # retrieved: the first one raised above
+        task = asyncio.current_task()
+        if task is not None:
+            self._inflight.pop(task, None)
+        self.counters["published"] += 1
+        self._lost_when_up = self.counters["samples_lost"]
+
+    def _messages(self, item: tuple[Any, ...]) -> list[tuple[str, str, bool]]:
+        """The item's MQTT messages: ``(topic, payload, retain)``."""
+        kind = item[0]
+        if kind == _SAMPLE:
+            _, t_s, err, f_hat, u = item
+            return [
+                (
+                    topic,
+                    json.dumps(
                         {
                             "t_s": _num(t_s),
                             "err_deg_s": _num(err[i] * _DEG),
                             "f_hat": _num(f_hat[i]),
                             "u": _num(u[i]),
                         }
-                    )
-                    await client.publish(topic, payload, qos=0)
-            elif kind == _LINK:
-                await client.publish(self.topics["link"], json.dumps(item[1]), qos=0)
-            elif kind == _STATUS:
-                payload = json.dumps(item[1], default=str)
-                await client.publish(self.topics["status"], payload, qos=1, retain=True)
-            else:
-                _, ev_kind, detail, t_s = item
-                payload = json.dumps({"kind": ev_kind, "detail": detail, "t_s": _num(t_s)})
-                await client.publish(self.topics["event"], payload, qos=1)
-        except (aiomqtt.MqttError, asyncio.CancelledError):
-            if kind in (_SAMPLE, _LINK):
-                self.counters["lost_disconnected"] += 1
-            elif kind == _EVENT:
-                self._retry = item  # sent first after reconnecting
-            # A status is restated from self._status on reconnection.
-            raise
-        self.counters["published"] += 1
+                    ),
+                    False,
+                )
+                for i, topic in enumerate(self._axis_topics)
+            ]
+        if kind == _LINK:
+            return [(self.topics["link"], json.dumps(item[1]), False)]
+        if kind == _STATUS:
+            return [(self.topics["status"], json.dumps(item[1], default=str), True)]
+        _, ev_kind, detail, t_s = item
+        payload = json.dumps({"kind": ev_kind, "detail": detail, "t_s": _num(t_s)})
+        return [(self.topics["event"], payload, False)]
