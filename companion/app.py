@@ -138,6 +138,10 @@ _MODE_TEXT = {
 }
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
+_JOYSTICK_FIELDS = ("x", "y", "z", "r", "enabled_extensions", *(f"aux{i}" for i in range(1, 7)))
+_MSG_MANUAL_CONTROL = 69
+_MSG_SYS_STATUS = 1
+_SYS_STATUS_RATE_HZ = 5.0
 
 
 @dataclass(frozen=True)
@@ -275,6 +279,7 @@ class Companion(SamplePath):
             "commands_gated": self.n_commands_gated,
             "sample_errors": self.n_sample_errors,
             "rc_invalid": self.n_rc_invalid,
+            "rc_unhealthy": self.n_rc_unhealthy,
             "estimate_invalid": self.n_estimate_invalid,
             "position_invalid": self.n_position_invalid,
             "events": self._events_file.count,
@@ -647,6 +652,7 @@ class Companion(SamplePath):
             )
         # RC_CHANNELS often shares the IMU sample's datagram: keep it short too.
         self.link.add_fast_handler(_MSG_RC_CHANNELS, _RC_FIELDS, self._on_rc)
+        self.link.add_fast_handler(_MSG_MANUAL_CONTROL, _JOYSTICK_FIELDS, self._on_manual_control)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
@@ -816,6 +822,16 @@ class Companion(SamplePath):
             raise EngageError(
                 f"the autopilot refused RC_CHANNELS at {self.opts.rc_rate_hz} Hz (MAV_RESULT {res})"
             )
+        # The pilot's joystick where there is no radio (PX4 streams its MANUAL_CONTROL),
+        # and the RC receiver's health (ArduPilot's RC_CHANNELS freeze when it is lost).
+        await self._request_best_effort(
+            "joystick_refused", "MANUAL_CONTROL", _MSG_MANUAL_CONTROL, self.opts.rc_rate_hz,
+            "the pilot's input is RC_CHANNELS alone",
+        )  # fmt: skip
+        await self._request_best_effort(
+            "sys_status_refused", "SYS_STATUS", _MSG_SYS_STATUS, _SYS_STATUS_RATE_HZ,
+            "an RC receiver the autopilot calls lost is seen only when its frames stop",
+        )  # fmt: skip
         if self.needs_attitude:
             # The outer loops fly on the autopilot's attitude estimate, as often as the IMU.
             assert self.imu_rate_hz is not None

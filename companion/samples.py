@@ -53,12 +53,50 @@ _MSG_LOCAL_POSITION_NED = 32
 _MSG_TIMESYNC = 111
 _MSG_EXTENDED_SYS_STATE = 245
 _MSG_STATUSTEXT = 253
+_MSG_SYS_STATUS = 1
+_SENSOR_RC_RECEIVER = 1 << 16  # MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+_STATE_NAMES = {5: "CRITICAL", 6: "EMERGENCY"}
+_FAILSAFE_STATES = frozenset(_STATE_NAMES)
+"""HEARTBEAT ``system_status`` values with which PX4 and ArduPilot say they are
+failing safe (MAV_STATE_CRITICAL, MAV_STATE_EMERGENCY), whatever mode they show."""
 _BASE_MODE_ARMED = 128
 _LANDED_STATE_UNDEFINED = 0  # MAV_LANDED_STATE_UNDEFINED
 _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 
 AGES_KEPT = 1024
 """The last samples' ages kept for the link's figures (about 1 s at 1 kHz)."""
+
+
+def joystick_channels(
+    v: Sequence[int], stick_channels: tuple[int, int, int, int]
+) -> tuple[int, ...]:
+    """MANUAL_CONTROL ``(x, y, z, r, enabled_extensions, aux1..aux6)`` as RC channels.
+
+    The sticks go where the stick map reads them (``stick_channels``: roll,
+    pitch, throttle, yaw), so a joystick flies like the radio it stands for:
+    ``y`` (roll right +) and ``r`` (yaw right +) to ``1500 + v/2`` us; ``x``
+    (pitch, stick forward +, nose down) to ``1500 - x/2`` (a high pitch
+    channel is nose up here); ``z`` (thrust, 0..1000) to ``1000 + z``. The
+    switches ``aux1..aux6`` (each -1000..1000, present when
+    ``enabled_extensions`` bits 2..7 say so) become channels 5..10, so
+    ``--engage-channel 5`` is ``aux1``; an absent one is centred (neither high
+    nor low). A value beyond its range maps out of the valid pulse range, so
+    the stick map calls the frame invalid."""
+    x, y, z, r, ext = v[0], v[1], v[2], v[3], v[4]
+    chans = [1500] * 18
+    for i in range(6):
+        if ext & (4 << i):
+            chans[4 + i] = 1500 + v[5 + i] // 2
+    roll_ch, pitch_ch, thr_ch, yaw_ch = stick_channels
+    for ch, us in (
+        (roll_ch, 1500 + y // 2),
+        (pitch_ch, 1500 - x // 2),
+        (thr_ch, 1000 + z),
+        (yaw_ch, 1500 + r // 2),
+    ):
+        if 0 < ch <= 18:
+            chans[ch - 1] = us
+    return tuple(chans)
 
 
 class SamplePath(ModePath):
@@ -95,6 +133,14 @@ class SamplePath(ModePath):
         self.n_commands_gated = 0
         self.n_sample_errors = 0
         self.n_rc_invalid = 0
+        self.n_rc_unhealthy = 0
+        self._rc_receiver_healthy = True
+        self._rc_receiver_seen = False
+        self._ap_status: int | None = None
+        """The autopilot's last HEARTBEAT ``system_status`` (MAV_STATE)."""
+        """The autopilot's SYS_STATUS says its RC receiver is healthy (or says nothing)."""
+        self._rc_radio_wall: float | None = None
+        """When the last valid RC_CHANNELS frame came (a radio, not a joystick)."""
         self.n_estimate_invalid = 0
         self._errors_in_row = 0
         self._clock_candidate: tuple[float, int] | None = None
@@ -156,6 +202,37 @@ class SamplePath(ModePath):
         elif mid == _MSG_TIMESYNC and msg.tc1 != 0:
             # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
             self.link_clock.reply(msg.tc1, msg.ts1, self.link.rx_perf_s)
+        elif mid == _MSG_SYS_STATUS:
+            self._on_sys_status(msg)
+
+    def _on_sys_status(self, msg: Any) -> None:
+        """SYS_STATUS: whether the autopilot's RC receiver is healthy.
+
+        ArduPilot keeps sending RC_CHANNELS with the last pulses it had after its
+        radio is lost; what says it is lost is the RC receiver's health bit
+        (cleared when its own radio failsafe triggers). While it is clear, the
+        RC_CHANNELS frames are not the pilot's: they do not count as valid RC."""
+        bit = _SENSOR_RC_RECEIVER
+        if int(msg.onboard_control_sensors_present) & bit:
+            self._rc_receiver_seen = True
+            healthy = bool(int(msg.onboard_control_sensors_health) & bit) or not (
+                int(msg.onboard_control_sensors_enabled) & bit
+            )
+        elif self._rc_receiver_seen:
+            healthy = False  # it was there and is gone (PX4 on a radio or joystick loss)
+        else:
+            return  # no receiver reported at all: nothing to judge by
+        if healthy == self._rc_receiver_healthy:
+            return
+        self._rc_receiver_healthy = healthy
+        if healthy:
+            self._event("rc_receiver", "the autopilot reports its RC receiver healthy again")
+        else:
+            self._event(
+                "rc_receiver_lost",
+                "the autopilot reports its RC receiver unhealthy (SYS_STATUS): its RC_CHANNELS "
+                "are the last pulses it had, not the pilot's",
+            )
 
     def _on_landed_state(self, state: int) -> None:
         """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
@@ -407,19 +484,43 @@ class SamplePath(ModePath):
             self._event("command_gated", f"{n} non-finite field(s) replaced by safe values")
 
     def _on_rc(self, v: tuple[int, ...]) -> None:
-        """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``."""
+        """RC_CHANNELS ``(chan1_raw, ..., chan18_raw, chancount)``: the pilot's radio,
+        while the autopilot reports its receiver healthy."""
+        if not self._rc_receiver_healthy:
+            self.n_rc_unhealthy += 1
+            return
         count = v[18]
         chans = v[: min(count, 18)] if count else v[:18]
+        if self._on_pilot(chans):
+            self._rc_radio_wall = self._rc_wall
+
+    def _on_manual_control(self, v: tuple[int, ...]) -> None:
+        """MANUAL_CONTROL ``(x, y, z, r, enabled_extensions, aux1, ..., aux6)``: the
+        pilot's joystick as the autopilot streams it (PX4 without a radio: a ground
+        station's joystick). Used only while no valid RC_CHANNELS frame came within
+        the RC timeout: a radio, where there is one, is the pilot's input."""
+        radio = self._rc_radio_wall
+        if radio is not None and time.perf_counter() - radio <= self.opts.failsafe.rc_timeout_s:
+            return
+        self._on_pilot(joystick_channels(v, self.sticks.channels))
+
+    def _on_pilot(self, chans: Sequence[int]) -> bool:
+        """The pilot's channels (us, index 0 = ch1), from either input; whether valid."""
         cmd = self.sticks.map(chans)
         if not cmd.valid:
             # A glitch (a channel missing or out of range) changes nothing: the last
             # valid sticks and switch hold, as PX4 and ArduPilot hold theirs, until
             # the RC-lost failsafe (which watches _rc_wall) says otherwise.
             self.n_rc_invalid += 1
-            return
-        self._rc = chans
+            return False
+        self._rc = tuple(chans)
         self._ref, self._thrust, self._deflection = cmd.rate_rad_s, cmd.thrust, cmd.deflection
         self._rc_wall = time.perf_counter()
+        self._switch(chans)
+        return True
+
+    def _switch(self, chans: Sequence[int]) -> None:
+        """The engage switch, on each valid frame of the pilot's input."""
         if self.opts.engage != "rc-switch" or not self.started_up:
             return
         ch = self.opts.engage_channel
@@ -455,6 +556,13 @@ class SamplePath(ModePath):
     def _on_heartbeat(self, msg: Any) -> None:
         mode = int(msg.custom_mode)
         armed = bool(msg.base_mode & _BASE_MODE_ARMED)
+        status = int(msg.system_status)
+        if status != self._ap_status and self._ap_status is not None:
+            if status in _FAILSAFE_STATES:
+                self._event("autopilot_failsafe", f"system status {_STATE_NAMES[status]}")
+            elif self._ap_status in _FAILSAFE_STATES:
+                self._event("autopilot_failsafe_cleared", f"system status {status}")
+        self._ap_status = status
         if self.stack is None:
             # Not yet recognised (start-up): only what it flies, for an engagement
             # that follows at once (the mode it began from).
@@ -472,10 +580,12 @@ class SamplePath(ModePath):
             self.watch.reset()
             self.engaged = True
             self._t_engaged = None  # set by the first sample flown
-            self._event("engaged", f"OFFBOARD and armed at t={self._t_prev}")
+            label = self.stack.mode_label(mode)
+            self._event("engaged", f"{label} and armed at t={self._t_prev}")
         elif was and not now and not self._handing_back:
             self.engaged = False
             self._failsafe(
                 "failsafe_autopilot_took_over",
-                f"autopilot left OFFBOARD (mode {mode:#x}, armed={armed})",
+                f"autopilot left {self.stack.engage_label} for {self.stack.mode_label(mode)}"
+                f" (mode {mode:#x}, armed={armed})",
             )

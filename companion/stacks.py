@@ -76,6 +76,11 @@ class FlightStack:
     max_imu_rate_hz: float = 1000.0
     """The fastest IMU stream worth asking for; the stack may still deny it."""
 
+    @property
+    def engage_label(self) -> str:
+        """The engage mode's name as the stack calls it."""
+        return "OFFBOARD" if self.name == "px4" else "GUIDED_NOGPS"
+
     def is_engage_mode(self, custom_mode: int) -> bool:
         if self.name == "px4":
             return ((custom_mode >> 16) & 0xFF) == int(self.engage_mode[0])
@@ -104,7 +109,7 @@ class FlightStack:
         if shown is not None:
             return shown.name.upper()
         if self.is_engage_mode(custom_mode):
-            return "OFFBOARD" if self.name == "px4" else "GUIDED_NOGPS"
+            return self.engage_label
         if self.name == "px4":
             main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
             return f"main {main} sub {sub}" if sub else f"main {main}"

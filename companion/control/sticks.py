@@ -23,6 +23,7 @@ says so).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -97,7 +98,7 @@ class StickMap:
         x = d / (500.0 - db)
         return 1.0 if x > 1.0 else (-1.0 if x < -1.0 else x)
 
-    def map(self, channels_us: tuple[float, ...] | list[float]) -> PilotCommand:
+    def map(self, channels_us: Sequence[float]) -> PilotCommand:
         """Map raw channels (index 0 = ch1) to a rate reference and thrust."""
         lo, hi = self.valid_range_us
         vals = []

@@ -114,6 +114,9 @@ class FakeAutopilot:
         self.timesync_delay_s = 0.0
         """Each way: a request is stamped this late, and its answer arrives this late after."""
         self._timers: set[asyncio.TimerHandle] = set()
+        self.system_status: int | None = None
+        """HEARTBEAT ``system_status`` to show; None: STANDBY, ACTIVE when armed.
+        CRITICAL is how PX4 and ArduPilot say they are failing safe."""
 
     # ----------------------------------------------------------------- plumbing
     def write(self, buf: bytes) -> None:  # pymavlink's output "file"
@@ -244,12 +247,13 @@ class FakeAutopilot:
         base_mode = mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         if self.armed:
             base_mode |= mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        state = mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY
         self.mav.heartbeat_send(
             mavlink2.MAV_TYPE_QUADROTOR,
             self.autopilot,
             base_mode,
             self.custom_mode,
-            mavlink2.MAV_STATE_ACTIVE if self.armed else mavlink2.MAV_STATE_STANDBY,
+            state if self.system_status is None else self.system_status,
         )
 
     def local_position(
@@ -290,6 +294,27 @@ class FakeAutopilot:
         """RC_CHANNELS with AETR sticks and ch5 (the engage switch); 8 channels."""
         chans = [*sticks, ch5_us, 1500, 1500, 1500] + [0] * 10
         self.mav.rc_channels_send(0, 8, *chans, 255)
+
+    def manual_control(
+        self,
+        aux1: int = -1000,
+        *,
+        sticks: tuple[int, int, int, int] = (0, 0, 500, 0),
+        aux_present: bool = True,
+    ) -> None:
+        """MANUAL_CONTROL as PX4 streams a ground station's joystick: ``sticks`` are
+        (x pitch, y roll, z thrust, r yaw), ``aux1`` the engage switch (-1000 low,
+        1000 high), aux2..6 centred."""
+        x, y, z, r = sticks
+        ext = 0b11111100 if aux_present else 0
+        self.mav.manual_control_send(1, x, y, z, r, 0, 0, ext, 0, 0, aux1, 0, 0, 0, 0, 0)
+
+    def sys_status(self, *, rc_present: bool = True, rc_healthy: bool = True) -> None:
+        """SYS_STATUS with the RC receiver's bits (present, enabled, healthy)."""
+        rc = mavlink2.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+        present = rc if rc_present else 0
+        health = rc if rc_present and rc_healthy else 0
+        self.mav.sys_status_send(present, present, health, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
     # --------------------------------------------------------------- inspecting
     def of_type(self, *mtypes: str) -> list[Any]:

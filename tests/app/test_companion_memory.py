@@ -654,7 +654,9 @@ async def test_a_heartbeat_between_the_signal_and_the_hand_back_does_not_engage(
     f.companion._on_signal(signal.SIGTERM)
     # The heartbeat handled before the run's task wakes from its stop event.
     f.companion._on_heartbeat(
-        SimpleNamespace(custom_mode=PX4_OFFBOARD, base_mode=mavlink2.MAV_MODE_FLAG_SAFETY_ARMED)
+        SimpleNamespace(
+            custom_mode=PX4_OFFBOARD, base_mode=mavlink2.MAV_MODE_FLAG_SAFETY_ARMED, system_status=4
+        )
     )
     assert not f.companion.engaged
     rc = await f.finish(timeout_s=3.0)

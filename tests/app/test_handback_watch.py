@@ -364,7 +364,7 @@ async def test_the_autopilot_leaving_offboard_for_land_is_kept(start: Start) -> 
     assert "failsafe_autopilot_took_over" in f.kinds()
     assert asked(f) == [OFFBOARD]  # nothing asked after OFFBOARD
     assert f.details("handed_back") == [
-        f"autopilot left OFFBOARD (mode {PX4_LAND:#x}, armed=True); valid RC, a position "
+        f"autopilot left OFFBOARD for LAND (mode {PX4_LAND:#x}, armed=True); valid RC, a position "
         "estimate -> LAND kept (the autopilot's mode)"
     ]
     assert not {"safe_mode_held", "safe_mode_lost"} & set(f.kinds())  # adopted, not watched
@@ -379,14 +379,17 @@ async def test_the_autopilot_leaving_offboard_for_manual_without_rc_is_not_kept(
     # between, the supervisor would call the missing RC an RC-lost failsafe.
     f.fake.custom_mode = PX4_MANUAL  # its later heartbeats say the same
     f.companion._rc_wall = None
-    f.companion._on_heartbeat(SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED))
+    f.companion._on_heartbeat(
+        SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED, system_status=4)
+    )
     assert await f.finish() == 3
     assert "failsafe_autopilot_took_over" in f.kinds()
     assert "failsafe_rc_lost" not in f.kinds()
     assert asked(f) == [OFFBOARD, HOLD]
     assert f.details("handed_back") == [
-        f"autopilot left OFFBOARD (mode {PX4_MANUAL:#x}, armed=True); no valid RC, a position "
-        "estimate (posctl needs RC (none valid); altctl needs RC (none valid)) -> HOLD accepted"
+        f"autopilot left OFFBOARD for MANUAL (mode {PX4_MANUAL:#x}, armed=True); no valid RC, "
+        "a position estimate (posctl needs RC (none valid); altctl needs RC (none valid)) "
+        "-> HOLD accepted"
     ]
     assert f.details("safe_mode_held") == ["HOLD for 0.5 s"]
 
@@ -421,7 +424,9 @@ async def test_a_heartbeat_from_before_the_switch_is_not_the_autopilot_leaving_i
     await engage_px4_auto(f)
     f.fake.custom_mode = PX4_MANUAL  # the fake's background heartbeats show it from now on
     f.companion._rc_wall = None
-    f.companion._on_heartbeat(SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED))
+    f.companion._on_heartbeat(
+        SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED, system_status=4)
+    )
     assert await f.finish(timeout_s=3.0) == 3
     assert asked(f) == [OFFBOARD, HOLD]
     assert "safe_mode_lost" not in f.kinds()
