@@ -1,0 +1,298 @@
+"""Flights against the real stacks: the vehicle in the air, a pilot, the companion.
+
+A :class:`Session` is one running stack with its ground station: it gets the
+vehicle into the air the stack's own way (PX4: arm and ``MAV_CMD_NAV_TAKEOFF``,
+then AUTO.LOITER; ArduCopter: ALT_HOLD, arm, throttle up, then mid-stick, since
+taking off in GUIDED_NOGPS with ``GUID_OPTIONS = 8`` trips an internal error in
+4.5), starts ``companion run`` as a process and flies a pilot: a scripted
+timeline from :mod:`sitl.pilot` seeing the vehicle through the ground station's
+telemetry, with the engage switch (RC channel 5, or ``aux1`` of PX4's joystick).
+
+The pilot's clock starts when the switch goes high; the vehicle's own estimate
+(ATTITUDE, LOCAL_POSITION_NED, as the ground station receives them) is what the
+virtual pilot levels and holds altitude on, as a human watching it would.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.records import read_columnar
+from sitl.lab import children
+from sitl.lab.realstack.gcs import GroundStation, Telemetry
+from sitl.lab.realstack.launch import RunningStack, start_arducopter, start_px4
+from sitl.pilot.rc import RC_MID_US, RC_MIN_US
+from sitl.pilot.scripted import Pilot
+from sitl.pilot.virtual import PilotView
+
+__all__ = [
+    "ARDUCOPTER_PARAMS",
+    "CompanionRun",
+    "Session",
+    "SwitchPilot",
+    "rate_errors",
+]
+
+ARDUCOPTER_PARAMS = {
+    "GUID_OPTIONS": 8,  # SET_ATTITUDE_TARGET thrust is a normalised thrust
+    "FLTMODE_CH": 6,  # channel 5 stays free for the engage switch
+    "FLTMODE1": 2,  # channel 6 low (as the pilot sends it): ALT_HOLD
+}
+"""What the tests' ArduCopter starts with beyond its defaults (the stacks' README)."""
+
+PX4_LOITER = (4 << 16) | (3 << 24)  # AUTO.LOITER
+SWITCH_LOW_US = 1000
+SWITCH_HIGH_US = 2000
+_ROOT = Path(__file__).resolve().parents[3]
+
+
+@dataclass
+class SwitchPilot:
+    """The pilot's hands: centred sticks and the switch low until :meth:`engage`;
+    then ``pilot`` (a scripted timeline, its clock from the switch) with the
+    switch high, until :meth:`release`. ``radio_on`` False sends nothing."""
+
+    hover_throttle: float
+    pilot: Pilot | None = None
+    mid_throttle_us: int = RC_MID_US
+    """The throttle before engaging: mid-stick holds altitude in PX4's and
+    ArduCopter's altitude modes."""
+    extra_us: tuple[int, ...] = (SWITCH_LOW_US,)
+    """Channels after ch5 (ArduCopter's ch6 mode switch: low = FLTMODE1)."""
+    radio_on: bool = True
+    switch_high: bool = False
+    t_engage_s: float | None = None
+    sticks_us: tuple[int, int, int, int] | None = None
+    """Sticks held as they are (ch1..ch4) instead of the timeline's."""
+
+    def engage(self, t_s: float) -> None:
+        self.switch_high, self.t_engage_s = True, t_s
+
+    def release(self) -> None:
+        self.switch_high = False
+
+    def __call__(self, now: Telemetry) -> tuple[int, ...] | None:
+        if not self.radio_on:
+            return None
+        switch = SWITCH_HIGH_US if self.switch_high else SWITCH_LOW_US
+        tail = (switch, *self.extra_us)
+        if self.sticks_us is not None:
+            return (*self.sticks_us, *tail)
+        if self.pilot is None or self.t_engage_s is None or not self.switch_high:
+            return (RC_MID_US, RC_MID_US, self.mid_throttle_us, RC_MID_US, *tail)
+        pos = now.position_ned_m or (0.0, 0.0, 0.0)
+        vel = now.velocity_ned_m_s or (0.0, 0.0, 0.0)
+        view = PilotView(
+            t_s=max(0.0, now.t_s - self.t_engage_s),
+            roll_rad=now.roll_rad,
+            pitch_rad=now.pitch_rad,
+            yaw_rad=now.yaw_rad,
+            rate_frd_rad_s=now.rates_rad_s,
+            altitude_m=-pos[2],
+            climb_rate_m_s=-vel[2],
+            hover_throttle=self.hover_throttle,
+        )
+        s = self.pilot.sticks(view)
+        return (s.roll_us, s.pitch_us, s.throttle_us, s.yaw_us, *tail)
+
+
+@dataclass
+class CompanionRun:
+    """``companion run`` as a process, its records in ``log_dir``."""
+
+    proc: subprocess.Popen[bytes]
+    log_dir: Path
+    stderr_path: Path
+
+    def wait(self, timeout_s: float) -> int:
+        try:
+            return int(self.proc.wait(timeout=timeout_s))
+        except subprocess.TimeoutExpired:
+            self.stop()
+            raise
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 10.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+            try:
+                self.proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=timeout_s)
+        return int(self.proc.returncode)
+
+    def events(self) -> list[dict[str, Any]]:
+        path = self.log_dir / "events.jsonl"
+        if not path.exists():
+            return []
+        out = []
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                out.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+        return out
+
+    def kinds(self) -> list[str]:
+        return [e["kind"] for e in self.events()]
+
+    def details(self, kind: str) -> list[str]:
+        return [e["detail"] for e in self.events() if e["kind"] == kind]
+
+    def stderr(self) -> str:
+        return self.stderr_path.read_text(encoding="utf-8", errors="replace")
+
+    def control(self) -> dict[str, np.ndarray]:
+        cols, _ = read_columnar(self.log_dir / "control.bin")
+        return cols
+
+
+def rate_errors(cols: dict[str, np.ndarray], *, skip_s: float = 0.5) -> dict[str, float]:
+    """MAE of the rate tracking (deg/s) per axis over the engaged, airborne samples,
+    the first ``skip_s`` after engaging left out (the hand-over)."""
+    engaged = cols["engaged"] > 0.5
+    air = cols["on_ground"] < 0.5
+    t = cols["t_s"]
+    if not engaged.any():
+        return {"roll": math.nan, "pitch": math.nan, "yaw": math.nan, "n": 0}
+    t0 = t[engaged][0]
+    keep = engaged & air & (t >= t0 + skip_s)
+    out: dict[str, float] = {"n": int(keep.sum())}
+    for a in ("roll", "pitch", "yaw"):
+        e = np.degrees(cols[f"meas_{a}_rad_s"][keep] - cols[f"ref_{a}_rad_s"][keep])
+        e = e[np.isfinite(e)]
+        out[a] = round(float(np.mean(np.abs(e))), 2) if e.size else math.nan
+    return out
+
+
+class Session:
+    """One real stack, running, with a ground station and a pilot on it."""
+
+    def __init__(self, stack: str, workdir: Path, *, params: dict[str, float] | None = None):
+        self.name = stack
+        self.workdir = Path(workdir)
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        self.companion_port: int | None = None
+        self.stack: RunningStack
+        if stack == "px4":
+            self.stack = start_px4(self.workdir)
+        else:
+            from sitl.lab.fly import free_udp_port
+
+            self.companion_port = free_udp_port()
+            merged = {**ARDUCOPTER_PARAMS, **(params or {})}
+            self.stack = start_arducopter(
+                self.workdir, params=merged, companion_port=self.companion_port
+            )
+        self.gcs: GroundStation | None = None
+        self.hover_throttle = 0.5
+        self.pilot = SwitchPilot(hover_throttle=self.hover_throttle)
+        self._runs = 0
+
+    # ---------------------------------------------------------------- start-up
+    def connect(self, timeout_s: float = 60.0) -> GroundStation:
+        st = self.stack
+        if self.name == "px4" and not st.wait_log("Ready for takeoff", timeout_s):
+            raise RuntimeError(f"PX4 did not get ready in {timeout_s:g} s:\n{st.log()[-2000:]}")
+        self.gcs = GroundStation(st.gcs_url, stack=self.name, rc_port=st.rc_port)
+        self.gcs.wait_heartbeat(timeout_s)
+        self.gcs.set_pilot(self.pilot)
+        return self.gcs
+
+    def take_off(self, altitude_m: float = 15.0, timeout_s: float = 90.0) -> None:
+        """Into the air and holding, the stack's own way; learns the hover throttle."""
+        g = self.gcs
+        assert g is not None
+        deadline = time.monotonic() + timeout_s
+        if self.name == "px4":
+            g.param_set("MIS_TAKEOFF_ALT", altitude_m)
+            self._retry_until(lambda: g.arm() == 0, deadline, "arm")
+            self._retry_until(
+                lambda: g.command(22, 0, 0, 0, math.nan, math.nan, math.nan, math.nan) == 0,
+                deadline,
+                "take off",
+            )
+            self._wait_altitude(altitude_m - 0.5, deadline)
+            g.wait(lambda t: t.mode == PX4_LOITER, 10.0)
+            time.sleep(2.0)
+            self.hover_throttle = self._mean_thrust(2.0)
+        else:
+            self._retry_until(lambda: g.set_mode(2) == 0, deadline, "ALT_HOLD")
+            self.pilot.mid_throttle_us = RC_MIN_US
+            self._retry_until(lambda: g.arm() == 0, deadline, "arm")
+            self.pilot.mid_throttle_us = 1800
+            self._wait_altitude(altitude_m - 1.0, deadline)
+            self.pilot.mid_throttle_us = RC_MID_US
+            time.sleep(3.0)
+            got = g.param_get("MOT_THST_HOVER")
+            self.hover_throttle = got[0] if got else 0.39
+        self.pilot.hover_throttle = self.hover_throttle
+
+    def _retry_until(self, attempt: Any, deadline: float, what: str) -> None:
+        while not attempt():
+            if time.monotonic() > deadline:
+                g = self.gcs
+                said = g.texts[-5:] if g else []
+                raise RuntimeError(f"{self.name}: {what} failed; it said {said}")
+            time.sleep(1.0)
+
+    def _wait_altitude(self, up_m: float, deadline: float) -> None:
+        g = self.gcs
+        assert g is not None
+        while time.monotonic() < deadline:
+            pos = g.now.position_ned_m
+            if pos is not None and -pos[2] >= up_m:
+                return
+            time.sleep(0.1)
+        raise RuntimeError(f"{self.name}: did not reach {up_m:g} m; it said {g.texts[-5:]}")
+
+    def _mean_thrust(self, over_s: float) -> float:
+        g = self.gcs
+        assert g is not None
+        vals = []
+        end = time.monotonic() + over_s
+        while time.monotonic() < end:
+            if g.now.thrust_setpoint is not None:
+                vals.append(g.now.thrust_setpoint)
+            time.sleep(0.05)
+        return float(np.mean(vals)) if vals else 0.5
+
+    # ---------------------------------------------------------------- companion
+    def start_companion(self, *args: str, name: str | None = None) -> CompanionRun:
+        """``companion run --connect <the stack> --log-dir <a new folder> *args``."""
+        self._runs += 1
+        log_dir = self.workdir / (name or f"companion-{self._runs}")
+        log_dir.mkdir(parents=True, exist_ok=True)
+        stderr_path = log_dir.with_suffix(".stderr")
+        cmd = [sys.executable, "-m", "companion", "-v", "run", "--connect",
+               self.stack.companion_url, "--log-dir", str(log_dir), *args]  # fmt: skip
+        env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
+        with stderr_path.open("wb") as err:
+            proc = children.start(cmd, cwd=_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
+        return CompanionRun(proc, log_dir, stderr_path)
+
+    def wait_engaged(self, run: CompanionRun, timeout_s: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if "engaged" in run.kinds():
+                return True
+            if run.proc.poll() is not None:
+                return False
+            time.sleep(0.1)
+        return False
+
+    def close(self) -> None:
+        if self.gcs is not None:
+            self.gcs.close()
+        self.stack.stop()
