@@ -5,7 +5,8 @@ A part of :class:`companion.app.Companion` (it is mixed in): engaging streams
 setpoints, switches to the stack's engage mode and arms; releasing stops the
 commands at once, in the caller's callback; a failsafe releases and then hands
 back, trying the safe modes in the order :mod:`companion.handback` gives and
-watching that the autopilot keeps the one it accepted.
+watching that the autopilot keeps the one it accepted and does not fail safe
+in it.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from companion.errors import EXIT_ERROR, EXIT_FAILSAFE, EngageError, LinkError
-from companion.handback import Conditions, adoptable, judge, next_kind, pick
+from companion.handback import Conditions, adoptable, failsafe_state, judge, next_kind, pick
 from companion.stacks import FlightStack, SafeMode
 
 if TYPE_CHECKING:
@@ -62,6 +63,7 @@ class Engagement:
     _safe_modes: tuple[SafeMode, ...]
     _ap_mode: int | None
     _ap_armed: bool
+    _ap_status: int | None
     _ap_heartbeats: int
     _rc_wall: float | None
     _pos_wall: float | None
@@ -215,6 +217,7 @@ class Engagement:
             rc_valid=rc is not None and now - rc <= self.opts.failsafe.rc_timeout_s,
             position_valid=position,
             rc_failsafe=rc_failsafe,
+            autopilot_failsafe=failsafe_state(self._ap_status),
         )
 
     async def _switch_to_safe_mode(self, reason: str, *, rc_failsafe: bool, adopt: bool) -> None:
@@ -251,6 +254,7 @@ class Engagement:
                 return
             name = mode.name.upper()
             why = f"{reason}; {cond.describe()}{skipped} -> {name}"
+            before = self._ap_mode  # as shown before the switch (a heartbeat may follow the ACK)
             try:
                 res = await self.link.command_long(
                     _CMD_DO_SET_MODE,
@@ -273,7 +277,7 @@ class Engagement:
             self._hand_back_accepted = True
             self._hand_back_owed = False
             self._event("handed_back", f"{why} accepted")
-            failed = await self._watch_safe_mode(modes, choice.index)
+            failed = await self._watch_safe_mode(modes, choice.index, before)
             if failed is None:
                 return
             self._hand_back_accepted = False
@@ -281,15 +285,28 @@ class Engagement:
             reason, start = failed, next_kind(modes, choice.index)
             cond = self._conditions(rc_failsafe=rc_failsafe)
 
-    async def _watch_safe_mode(self, modes: tuple[SafeMode, ...], index: int) -> str | None:
+    async def _watch_safe_mode(
+        self, modes: tuple[SafeMode, ...], index: int, before: int | None
+    ) -> str | None:
         """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
-        ``modes[index]``: None if the vehicle stays in a mode it can fly, else why not.
+        ``modes[index]`` from ``before`` (the mode shown when the switch was sent):
+        None if the vehicle stays in a mode it can fly, else why not.
 
-        Until the new mode shows, a heartbeat still showing the mode from before
-        the switch (or the engage mode) may have been sent before it: only
-        another mode is judged at once. A new engagement (the pilot's switch) or
-        a disarm ends the watch. With no heartbeat at all meanwhile (a lost
-        link) there is nothing to judge by: the mode stays."""
+        Each heartbeat's mode and failsafe state (its ``system_status``) are judged
+        together (:func:`companion.handback.judge`): leaving the mode, or failing
+        safe in a mode flown from the sticks, loses it. Until the new mode shows,
+        a heartbeat still showing the mode from before the switch (or the engage
+        mode) may have been sent before it: only another mode is judged at once.
+        So the failsafe state judged is the one sent with the new mode or after:
+        a state from before the switch is never held against it, but one that
+        was failing safe before and still is when the new mode shows is failing
+        safe in it. A pilot-free mode kept (the autopilot's own landing) ends the
+        watch; a mode flown from the sticks, ours or one the pilot took, is
+        watched to the end (the autopilot may raise its failsafe in it a moment
+        after it shows it), and once the pilot has taken one, a pilot-free mode
+        they go on to ends the watch as theirs. A new engagement (the pilot's
+        switch) or a disarm ends the watch. With no heartbeat at all meanwhile
+        (a lost link) there is nothing to judge by: the mode stays."""
         assert self.stack is not None
         stack = self.stack
         target = stack.custom_mode(modes[index])
@@ -298,8 +315,8 @@ class Engagement:
             return None  # not watched: the ACK is all there is
         t0 = time.perf_counter()
         heartbeats0 = self._ap_heartbeats
-        before = self._ap_mode
         seen = False
+        pilots = False  # the pilot (or the autopilot) put it in another mode flown from the sticks
         while True:
             elapsed = time.perf_counter() - t0
             if self.commanding:
@@ -310,14 +327,21 @@ class Engagement:
                 return None
             if mode == target:
                 seen = True
-            elif mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
+            if mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
+                label = stack.mode_label(mode)
+                sticks = stack.needs_rc(mode)
+                if pilots and not sticks and not stack.is_engage_mode(mode):
+                    self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
+                    return None  # from a mode of their own, the pilot's next one is theirs too
                 # Judged on RC as it is now: a pilot with the radio back may take it.
                 failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=False))
                 if failed is not None:
                     return f"{failed} after {elapsed:.1f} s"
-                label = stack.mode_label(mode)
-                self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
-                return None
+                if mode != target:
+                    if not sticks:
+                        self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
+                        return None
+                    pilots = True
             if elapsed >= watch_s:
                 if self._ap_heartbeats == heartbeats0:
                     self._event(
@@ -326,12 +350,16 @@ class Engagement:
                         f"{modes[index].name.upper()}: left as it is",
                     )
                     return None
-                if not seen:
+                if not seen and not pilots:
                     return (
                         f"the autopilot accepted {modes[index].name.upper()} but did not show it "
                         f"within {watch_s:g} s"
                     )
-                self._event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
+                if mode == target:
+                    self._event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
+                else:
+                    label = "its mode" if mode is None else stack.mode_label(mode)
+                    self._event("safe_mode_held", f"{label} kept for {watch_s:g} s")
                 return None
             await asyncio.sleep(_WATCH_POLL_S)
 

@@ -9,10 +9,19 @@ Their hold modes need a position estimate. Land needs neither.
 stack's list (a manual mode, a hold, land); with a named mode, that mode and
 then the pilot-free modes after it. :func:`pick` takes the first whose needs
 the vehicle meets now, saying why the ones before it were passed over. After a
-switch the app watches the autopilot's mode (:func:`judge`): a mode refused
-is followed by the next candidate; one the autopilot leaves or never shows, by
-the next of a more conservative kind (:func:`next_kind`). No I/O and no clock
-here: the app feeds in what it saw.
+switch the app watches the autopilot's mode and its failsafe state
+(:func:`judge`): a mode refused is followed by the next candidate; one the
+autopilot leaves, never shows, or fails safe in while it is flown from the
+sticks, by the next of a more conservative kind (:func:`next_kind`). No I/O and
+no clock here: the app feeds in what it saw.
+
+The autopilot's own failsafe shows in its HEARTBEAT ``system_status``
+(:func:`failsafe_state`). PX4 in a manual mode without its own stick input
+keeps showing the mode (POSCTL, also for ALTCTL, STABILIZED and MANUAL) while
+it fails safe and descends, with MAV_STATE_CRITICAL; ArduCopter shows CRITICAL
+while its radio failsafe is active. A mode flown from the sticks is then lost,
+and none is chosen; a hold or a land mode is what such a failsafe does anyway,
+and is kept.
 """
 
 from __future__ import annotations
@@ -21,9 +30,34 @@ from dataclasses import dataclass
 
 from companion.stacks import FlightStack, SafeMode
 
-__all__ = ["Conditions", "Pick", "adoptable", "candidates", "judge", "next_kind", "pick", "unmet"]
+__all__ = [
+    "FAILSAFE_STATES",
+    "Conditions",
+    "Pick",
+    "adoptable",
+    "candidates",
+    "failsafe_state",
+    "judge",
+    "next_kind",
+    "pick",
+    "unmet",
+]
 
 _TIER = {"rc": 0, "position": 1, "nothing": 2}
+
+FAILSAFE_STATES = {5: "CRITICAL", 6: "EMERGENCY"}
+"""HEARTBEAT ``system_status`` (MAV_STATE) values with which PX4 and ArduPilot
+say they are failing safe, whatever mode they show: MAV_STATE_CRITICAL (PX4
+while a failsafe is active, ArduPilot while its radio or another failsafe is),
+MAV_STATE_EMERGENCY."""
+
+
+def failsafe_state(system_status: int | None) -> str | None:
+    """The name of the failsafe state a HEARTBEAT ``system_status`` shows
+    (``"CRITICAL"``, ``"EMERGENCY"``), or None: not failing safe, or not seen."""
+    if system_status is None:
+        return None
+    return FAILSAFE_STATES.get(system_status)
 
 
 @dataclass(frozen=True)
@@ -38,11 +72,18 @@ class Conditions:
     rc_failsafe: bool = False
     """The hand-back follows an RC-loss failsafe: no manual mode, even if RC
     frames come back meanwhile."""
+    autopilot_failsafe: str | None = None
+    """The autopilot says it is failing safe (:func:`failsafe_state` of its last
+    HEARTBEAT, e.g. ``"CRITICAL"``): no manual mode, whatever RC is seen (PX4
+    and ArduPilot fail safe out of them when their own stick input is gone)."""
 
     def describe(self) -> str:
         rc = "RC lost" if self.rc_failsafe else "valid RC" if self.rc_valid else "no valid RC"
         pos = "a position estimate" if self.position_valid else "no position estimate"
-        return f"{rc}, {pos}"
+        failing = self.autopilot_failsafe
+        if failing is None:
+            return f"{rc}, {pos}"
+        return f"{rc}, {pos}, the autopilot failing safe ({failing})"
 
 
 @dataclass(frozen=True)
@@ -65,6 +106,9 @@ def unmet(mode: SafeMode, cond: Conditions) -> str | None:
             return f"{mode.name} needs RC (the failsafe is RC loss)"
         if not cond.rc_valid:
             return f"{mode.name} needs RC (none valid)"
+        failing = cond.autopilot_failsafe
+        if failing is not None:
+            return f"{mode.name} needs RC (the autopilot is failing safe: {failing})"
     if (mode.needs == "position" or mode.position_too) and not cond.position_valid:
         return f"{mode.name} needs a position estimate (none)"
     return None
@@ -122,14 +166,23 @@ def judge(
     """The autopilot shows ``custom_mode`` after we switched it to ``modes[index]``:
     None if the vehicle can stay in that mode, else why not.
 
-    Kept: our mode; a later candidate (the autopilot's failsafe chose what we
-    would have tried next, e.g. land); a mode flown from the sticks while valid
-    RC is seen, even after an RC-loss failsafe (the pilot, with the radio back,
-    took the vehicle; or the autopilot fell back between its manual modes).
-    Anything else is the autopilot's own failsafe or a mode the vehicle cannot
-    hold: the caller goes on with :func:`next_kind`.
+    A mode flown from the sticks (ours or another) while the autopilot says it
+    is failing safe (``cond.autopilot_failsafe``) is lost: the autopilot is
+    not flying the pilot's sticks but its own failsafe, and PX4 shows the
+    manual mode all the while (POSCTL also for ALTCTL, STABILIZED, MANUAL).
+    Otherwise kept: our mode; a later candidate (the autopilot's failsafe chose
+    what we would have tried next, e.g. land); a mode flown from the sticks
+    while valid RC is seen, even after an RC-loss failsafe (the pilot, with the
+    radio back, took the vehicle; or the autopilot fell back between its manual
+    modes). A hold or land mode is kept whatever the autopilot's failsafe state
+    (holding or landing is what its failsafe does). Anything else is the
+    autopilot's own failsafe or a mode the vehicle cannot hold: the caller goes
+    on with :func:`next_kind`.
     """
     ours = modes[index]
+    failing = cond.autopilot_failsafe
+    if failing is not None and stack.needs_rc(custom_mode):
+        return f"the autopilot is failing safe ({failing}) in {stack.mode_label(custom_mode)}"
     if custom_mode == stack.custom_mode(ours):
         return None
     shown = stack.safe_mode_shown(custom_mode)
@@ -144,8 +197,12 @@ def adoptable(stack: FlightStack, custom_mode: int, cond: Conditions) -> bool:
     """After the autopilot took the vehicle out of the engage mode by itself (its
     failsafe, or the pilot's mode switch): whether to leave it where it is.
 
-    Yes, unless it is a mode flown from the sticks with no valid RC seen: the
-    companion does not override what the autopilot or the pilot chose."""
+    Yes, unless it is a mode flown from the sticks with no valid RC seen, or
+    while the autopilot says it is failing safe (then it is the autopilot's
+    failsafe, not the pilot, flying it): the companion does not override what
+    the autopilot or the pilot chose."""
     if stack.is_engage_mode(custom_mode):
         return False
-    return not stack.needs_rc(custom_mode) or (cond.rc_valid and not cond.rc_failsafe)
+    if not stack.needs_rc(custom_mode):
+        return True
+    return cond.rc_valid and not cond.rc_failsafe and cond.autopilot_failsafe is None

@@ -10,7 +10,17 @@ from __future__ import annotations
 
 import pytest
 
-from companion.handback import Conditions, Pick, adoptable, candidates, judge, pick, unmet
+from companion.handback import (
+    Conditions,
+    Pick,
+    adoptable,
+    candidates,
+    failsafe_state,
+    judge,
+    next_kind,
+    pick,
+    unmet,
+)
 from companion.stacks import ARDUPILOT, PX4, FlightStack, SafeMode
 
 # HEARTBEAT custom_mode values, worked out from the MAVLink / PX4 / ArduCopter
@@ -34,6 +44,10 @@ RC_ONLY = Conditions(rc_valid=True, position_valid=False)
 POSITION_ONLY = Conditions(rc_valid=False, position_valid=True)
 NOTHING = Conditions(rc_valid=False, position_valid=False)
 RC_BACK_AFTER_RC_LOSS = Conditions(rc_valid=True, position_valid=True, rc_failsafe=True)
+# The autopilot failing safe by its own HEARTBEAT (system_status CRITICAL), RC seen all the
+# while: PX4 without its own stick input in POSCTL, ArduCopter in its radio failsafe.
+FAILING_SAFE = Conditions(rc_valid=True, position_valid=True, autopilot_failsafe="CRITICAL")
+FAILING_SAFE_NO_POSITION = Conditions(True, False, autopilot_failsafe="CRITICAL")
 
 
 def names(modes: tuple[SafeMode, ...]) -> list[str]:
@@ -166,6 +180,11 @@ def test_each_safe_modes_needs_agree_with_needs_rc() -> None:
         (NOTHING, "no valid RC, no position estimate"),
         (RC_BACK_AFTER_RC_LOSS, "RC lost, a position estimate"),
         (Conditions(False, False, rc_failsafe=True), "RC lost, no position estimate"),
+        (FAILING_SAFE, "valid RC, a position estimate, the autopilot failing safe (CRITICAL)"),
+        (
+            Conditions(False, False, autopilot_failsafe="EMERGENCY"),
+            "no valid RC, no position estimate, the autopilot failing safe (EMERGENCY)",
+        ),
     ],
 )
 def test_conditions_describe_themselves(cond: Conditions, text: str) -> None:
@@ -182,9 +201,36 @@ def test_unmet_says_why_a_mode_cannot_be_flown() -> None:
     assert unmet(PX4.mode("altctl"), RC_ONLY) is None  # no position needed
     assert unmet(hold, POSITION_ONLY) is None
     assert unmet(hold, RC_ONLY) == "hold needs a position estimate (none)"
-    for cond in (EVERYTHING, RC_ONLY, POSITION_ONLY, NOTHING, RC_BACK_AFTER_RC_LOSS):
+    for cond in (EVERYTHING, RC_ONLY, POSITION_ONLY, NOTHING, RC_BACK_AFTER_RC_LOSS, FAILING_SAFE):
         assert unmet(land, cond) is None
         assert unmet(ARDUPILOT.mode("land"), cond) is None
+
+
+def test_failsafe_state_names_the_heartbeats_failing_safe_states_only() -> None:
+    # MAV_STATE: UNINIT 0, BOOT 1, CALIBRATING 2, STANDBY 3, ACTIVE 4, CRITICAL 5,
+    # EMERGENCY 6, POWEROFF 7, FLIGHT_TERMINATION 8 (common.xml).
+    assert failsafe_state(5) == "CRITICAL"
+    assert failsafe_state(6) == "EMERGENCY"
+    for status in (None, 0, 1, 2, 3, 4, 7, 8):
+        assert failsafe_state(status) is None
+
+
+def test_no_mode_flown_from_the_sticks_while_the_autopilot_fails_safe() -> None:
+    failing = "needs RC (the autopilot is failing safe: CRITICAL)"
+    assert unmet(PX4.mode("posctl"), FAILING_SAFE) == f"posctl {failing}"
+    assert unmet(PX4.mode("manual"), FAILING_SAFE) == f"manual {failing}"
+    assert unmet(ARDUPILOT.mode("alt_hold"), FAILING_SAFE) == f"alt_hold {failing}"
+    # The more basic reasons first: the failsafe is RC loss, or no RC at all.
+    assert unmet(PX4.mode("altctl"), Conditions(True, True, True, "CRITICAL")) == (
+        "altctl needs RC (the failsafe is RC loss)"
+    )
+    assert unmet(PX4.mode("altctl"), Conditions(False, True, autopilot_failsafe="CRITICAL")) == (
+        "altctl needs RC (none valid)"
+    )
+    # Holding and landing is what the autopilot's own failsafe does: still chosen.
+    assert unmet(PX4.mode("hold"), FAILING_SAFE) is None
+    assert unmet(ARDUPILOT.mode("loiter"), FAILING_SAFE) is None
+    assert unmet(ARDUPILOT.mode("brake"), FAILING_SAFE) is None
 
 
 # ------------------------------------------------------------------ candidates
@@ -267,6 +313,10 @@ def test_an_unknown_mode_name_is_a_value_error_naming_the_stack_and_its_modes(
         (ARDUPILOT, POSITION_ONLY, "loiter", 1),
         (ARDUPILOT, NOTHING, "land", 2),
         (ARDUPILOT, RC_BACK_AFTER_RC_LOSS, "loiter", 1),
+        (PX4, FAILING_SAFE, "hold", 2),  # no manual mode while the autopilot fails safe
+        (PX4, FAILING_SAFE_NO_POSITION, "land", 3),
+        (ARDUPILOT, FAILING_SAFE, "loiter", 1),
+        (ARDUPILOT, FAILING_SAFE_NO_POSITION, "land", 2),
     ],
 )
 def test_auto_picks_by_what_the_vehicle_has(
@@ -346,10 +396,11 @@ def test_auto_always_finds_a_mode_land_last() -> None:
         for rc in (False, True):
             for pos in (False, True):
                 for rc_failsafe in (False, True):
-                    choice = pick(modes, 0, Conditions(rc, pos, rc_failsafe))
-                    assert choice.mode is not None
-                    if not rc or rc_failsafe:
-                        assert choice.mode.needs != "rc"
+                    for failing in (None, "CRITICAL", "EMERGENCY"):
+                        choice = pick(modes, 0, Conditions(rc, pos, rc_failsafe, failing))
+                        assert choice.mode is not None
+                        if not rc or rc_failsafe or failing:
+                            assert choice.mode.needs != "rc"
 
 
 # ----------------------------------------------------------------------- judge
@@ -408,6 +459,44 @@ def test_judge_keeps_a_mode_flown_from_the_sticks_only_with_valid_rc() -> None:
     )
 
 
+def test_judge_loses_a_mode_flown_from_the_sticks_the_autopilot_fails_safe_in() -> None:
+    """PX4 without its own stick input keeps showing POSCTL (asked for POSCTL, or
+    for ALTCTL, STABILIZED or MANUAL) while it fails safe and descends: lost, valid
+    RC seen or not; ArduCopter in its radio failsafe likewise."""
+    for i in (0, 1):  # posctl asked, altctl asked: PX4 shows POSCTL
+        assert judge(PX4, AUTO, i, PX4_POSCTL, FAILING_SAFE) == (
+            "the autopilot is failing safe (CRITICAL) in POSCTL"
+        )
+    manual = candidates(PX4, "manual")
+    assert judge(PX4, manual, 0, PX4_MANUAL, FAILING_SAFE) == (
+        "the autopilot is failing safe (CRITICAL) in MANUAL"
+    )
+    assert judge(PX4, manual, 0, PX4_POSCTL, FAILING_SAFE) == (
+        "the autopilot is failing safe (CRITICAL) in POSCTL"
+    )
+    emergency = Conditions(False, True, autopilot_failsafe="EMERGENCY")
+    assert judge(PX4, AUTO, 2, PX4_ACRO, emergency) == (
+        "the autopilot is failing safe (EMERGENCY) in main 5"
+    )
+    apm = candidates(ARDUPILOT, "auto")
+    assert judge(ARDUPILOT, apm, 0, APM_ALT_HOLD, FAILING_SAFE) == (
+        "the autopilot is failing safe (CRITICAL) in ALT_HOLD"
+    )
+    # Lost: what follows is a more conservative kind (hold), not another manual mode.
+    assert next_kind(AUTO, 0) == 2
+
+
+def test_judge_keeps_a_hold_or_land_the_autopilot_fails_safe_in() -> None:
+    assert judge(PX4, AUTO, 2, PX4_HOLD, FAILING_SAFE) is None
+    assert judge(PX4, AUTO, 3, PX4_LAND, FAILING_SAFE) is None
+    assert judge(PX4, AUTO, 0, PX4_LAND, FAILING_SAFE) is None  # its failsafe landing: later
+    apm = candidates(ARDUPILOT, "auto")
+    assert judge(ARDUPILOT, apm, 1, APM_LOITER, FAILING_SAFE) is None
+    assert judge(ARDUPILOT, apm, 2, APM_LAND, FAILING_SAFE) is None
+    # A mode that is no candidate stays the autopilot leaving ours, as without a failsafe.
+    assert judge(PX4, AUTO, 2, PX4_RTL, FAILING_SAFE) == "the autopilot left HOLD for main 4 sub 5"
+
+
 # ------------------------------------------------------------------- adoptable
 
 
@@ -428,8 +517,15 @@ def test_a_manual_mode_is_adopted_only_with_valid_rc_and_no_rc_loss() -> None:
     assert not adoptable(ARDUPILOT, APM_STABILIZE, POSITION_ONLY)
 
 
+def test_a_mode_flown_from_the_sticks_is_not_adopted_while_the_autopilot_fails_safe() -> None:
+    """PX4 showing POSCTL while CRITICAL is its failsafe flying, not the pilot."""
+    assert not adoptable(PX4, PX4_POSCTL, FAILING_SAFE)
+    assert not adoptable(PX4, PX4_MANUAL, FAILING_SAFE)
+    assert not adoptable(ARDUPILOT, APM_ALT_HOLD, FAILING_SAFE)
+
+
 def test_a_pilot_free_mode_the_autopilot_chose_is_adopted_whatever_is_seen() -> None:
-    for cond in (EVERYTHING, NOTHING, RC_BACK_AFTER_RC_LOSS):
+    for cond in (EVERYTHING, NOTHING, RC_BACK_AFTER_RC_LOSS, FAILING_SAFE):
         assert adoptable(PX4, PX4_LAND, cond)
         assert adoptable(PX4, PX4_HOLD, cond)
         assert adoptable(PX4, PX4_RTL, cond)

@@ -19,11 +19,14 @@ from typing import Any
 import pytest
 
 from tests.app.fakes import (
+    APM_ALT_HOLD,
+    APM_GUIDED_NOGPS,
     APM_STABILIZE,
     CMD_ARM,
     CMD_DO_SET_MODE,
     PX4_MANUAL,
     PX4_OFFBOARD,
+    PX4_POSCTL,
     mavlink2,
 )
 from tests.app.flight import (
@@ -54,6 +57,8 @@ MANUAL_MAIN_MODES = {1.0, 2.0, 3.0, 5.0, 7.0}  # PX4 MANUAL, ALTCTL, POSCTL, ACR
 PX4_RTL = 4 << 16 | 5 << 24
 PX4_LAND = 4 << 16 | 6 << 24
 ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+CRITICAL = mavlink2.MAV_STATE_CRITICAL
+FAILING_SAFE = "valid RC, a position estimate, the autopilot failing safe (CRITICAL)"
 
 MARGIN_S = 0.5  # for anything timed on a shared 2-core machine
 # A watch that sees at least two of the fake's 0.2 s background heartbeats.
@@ -469,3 +474,190 @@ async def test_a_watch_of_zero_takes_the_ack_alone(start: Start) -> None:
     assert await f.finish() == 0
     assert asked(f) == [OFFBOARD, POSCTL]
     assert "safe_mode_lost" not in f.kinds() and "hand_back_failed" not in f.kinds()
+
+
+# ------------------------------------------------ the autopilot's own failsafe
+
+
+async def test_px4_failing_safe_in_posctl_loses_it_and_hold_follows(start: Start) -> None:
+    """PX4 without its own stick input keeps showing POSCTL but fails safe in it
+    (HEARTBEAT system_status CRITICAL, "Failsafe activated", a descent): POSCTL is
+    lost, and the next mode is HOLD (another manual mode would fail the same way).
+    HOLD is kept though PX4 still says CRITICAL: holding is what its failsafe does."""
+    fs = replace(LOOSE, hand_back_watch_s=1.5)
+    modes = Modes()
+    f = await start(engage="auto", output="actuator", failsafe=fs,
+                    results={CMD_DO_SET_MODE: modes})  # fmt: skip
+    await engage_px4_auto(f)  # RC sent, LOOSE's 5 s RC timeout: valid all along
+    f.companion._stop.set()
+    await event(f, "handed_back")
+    assert (
+        f.details("handed_back")[0] == "run ended; valid RC, a position estimate -> POSCTL accepted"
+    )
+    await asyncio.sleep(0.3)  # POSCTL shows, PX4 not failing safe yet
+    t_failsafe = time.perf_counter()
+    f.fake.system_status = CRITICAL  # its heartbeats say so from now on, POSCTL still shown
+    f.fake.statustext(b"Failsafe activated", mavlink2.MAV_SEVERITY_CRITICAL)
+    f.fake.heartbeat()
+    lost = await event(f, "safe_mode_lost")
+    assert lost.startswith("the autopilot is failing safe (CRITICAL) in POSCTL after ")
+    assert await f.finish(timeout_s=4.0) == 0
+    assert asked(f) == [OFFBOARD, POSCTL, HOLD]
+    assert 0.0 < modes.at(HOLD) - t_failsafe < MARGIN_S  # on the next poll, not the watch's end
+    assert f.details("handed_back")[1] == f"{lost}; {FAILING_SAFE} -> HOLD accepted"
+    assert f.details("safe_mode_held") == ["HOLD for 1.5 s"]
+    assert f.details("autopilot_failsafe") == ["system status CRITICAL"]
+
+
+def px4_without_sticks(f_ref: list[Flight], failsafe_after_s: float) -> Any:
+    """DO_SET_MODE answered as PX4 v1.16 without its own stick input: any manual
+    mode is accepted and shown as POSCTL, and ``failsafe_after_s`` later its
+    heartbeat says CRITICAL (in the same heartbeat with 0); hold and land show as
+    asked. OFFBOARD is left to the test (``follow_modes=False``)."""
+
+    def answer(m: Any) -> int:
+        fake = f_ref[0].fake
+        asked_mode = (m.param2, m.param3)
+        if asked_mode == OFFBOARD:
+            return int(ACCEPTED)
+        if m.param2 in MANUAL_MAIN_MODES:
+
+            def failing() -> None:
+                fake.system_status = CRITICAL
+                fake.heartbeat()
+
+            fake.custom_mode = PX4_POSCTL
+            if failsafe_after_s <= 0.0:
+                fake.system_status = CRITICAL
+            else:
+                asyncio.get_running_loop().call_later(failsafe_after_s, failing)
+        else:
+            fake.custom_mode = (int(m.param2) << 16) | (int(m.param3) << 24)
+        asyncio.get_running_loop().call_soon(fake.heartbeat)  # after the ACK, as PX4 does
+        return int(ACCEPTED)
+
+    return answer
+
+
+@pytest.mark.parametrize("failsafe_after_s", [0.0, 0.4], ids=["at-once", "a-moment-later"])
+async def test_a_named_altctl_px4_shows_as_posctl_while_failing_safe_is_lost(
+    start: Start, failsafe_after_s: float
+) -> None:
+    """``--safe-mode altctl`` on a PX4 without its own stick input: it shows POSCTL
+    and fails safe. Not the pilot's choice of POSCTL (valid RC is seen): the
+    autopilot's failsafe, whether it says so with the mode or a moment after."""
+    ref: list[Flight] = []
+    fs = replace(LOOSE, safe_mode="altctl", hand_back_watch_s=1.0)
+    answer = px4_without_sticks(ref, failsafe_after_s)
+    f = await start(engage="auto", output="actuator", follow_modes=False, failsafe=fs,
+                    results={CMD_DO_SET_MODE: answer})  # fmt: skip
+    ref.append(f)
+    await engage_px4_auto(f)
+    f.companion._stop.set()
+    assert await f.finish(timeout_s=4.0) == 0
+    assert asked(f) == [OFFBOARD, ALTCTL, HOLD]
+    [lost] = f.details("safe_mode_lost")
+    assert lost.startswith("the autopilot is failing safe (CRITICAL) in POSCTL after ")
+    assert f.details("handed_back") == [
+        "run ended; valid RC, a position estimate -> ALTCTL accepted",
+        f"{lost}; {FAILING_SAFE} -> HOLD accepted",
+    ]
+    assert f.details("safe_mode_held") == ["HOLD for 1 s"]
+
+
+async def test_no_manual_mode_is_chosen_while_the_autopilot_already_fails_safe(
+    start: Start,
+) -> None:
+    f = await start(engage="auto", output="actuator", failsafe=WATCHED)
+    await engage_px4_auto(f)
+    f.fake.system_status = CRITICAL
+    f.fake.heartbeat()
+    await f.fake.wait_until(lambda: "autopilot_failsafe" in f.kinds(), 1.0)
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    assert asked(f) == [OFFBOARD, HOLD]
+    failing = "needs RC (the autopilot is failing safe: CRITICAL)"
+    assert f.details("handed_back") == [
+        f"run ended; {FAILING_SAFE} (posctl {failing}; altctl {failing}) -> HOLD accepted"
+    ]
+    assert f.details("safe_mode_held") == ["HOLD for 0.5 s"]
+
+
+async def test_a_failsafe_state_from_before_the_switch_is_not_held_against_the_new_mode(
+    start: Start,
+) -> None:
+    """A heartbeat sent just before the switch (OFFBOARD, CRITICAL) arrives after
+    the ACK; the one that shows POSCTL says ACTIVE: the state judged is the one
+    the new mode shows with, so POSCTL is held. (Had that heartbeat said CRITICAL
+    too, POSCTL would be lost: a failsafe from before the switch that goes on in
+    the new mode is failing safe in it.)"""
+    ref: list[Flight] = []
+
+    def answer(m: Any) -> int:
+        fake = ref[0].fake
+        if (m.param2, m.param3) != OFFBOARD:
+            fake.system_status = CRITICAL
+            fake.heartbeat()  # the old mode, the old state: sent before the switch
+
+            def switched() -> None:
+                fake.system_status = None  # ACTIVE (armed)
+                fake.set_state((int(m.param2) << 16) | (int(m.param3) << 24))
+
+            asyncio.get_running_loop().call_later(0.2, switched)
+        return int(ACCEPTED)
+
+    f = await start(engage="auto", output="actuator", follow_modes=False, failsafe=WATCHED,
+                    results={CMD_DO_SET_MODE: answer})  # fmt: skip
+    ref.append(f)
+    await engage_px4_auto(f)
+    f.companion._stop.set()
+    assert await f.finish(timeout_s=3.0) == 0
+    assert asked(f) == [OFFBOARD, POSCTL]
+    assert "safe_mode_lost" not in f.kinds()
+    assert f.details("safe_mode_held") == ["POSCTL for 0.5 s"]
+
+
+async def test_ardupilot_failing_safe_in_alt_hold_loses_it_and_loiter_follows(
+    start: Start,
+) -> None:
+    """ArduCopter shows CRITICAL while its radio failsafe is active."""
+    f = await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="auto",
+                    output="rates", params={"GUID_OPTIONS": 8.0},
+                    failsafe=replace(LOOSE, hand_back_watch_s=1.0))  # fmt: skip
+    await streams_requested(f, MSG_ATTITUDE)
+    f.fake.rc(1000)
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=f.att, what="ARM")
+    f.fake.set_state(APM_GUIDED_NOGPS, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=f.att, what="engaged")
+    f.companion._stop.set()
+    await event(f, "handed_back")
+    assert f.details("handed_back")[0].endswith("-> ALT_HOLD accepted")
+    await asyncio.sleep(0.2)
+    f.fake.system_status = CRITICAL
+    f.fake.statustext(b"Radio Failsafe", mavlink2.MAV_SEVERITY_WARNING)
+    f.fake.heartbeat()  # ALT_HOLD still shown
+    lost = await event(f, "safe_mode_lost")
+    assert lost.startswith("the autopilot is failing safe (CRITICAL) in ALT_HOLD after ")
+    assert await f.finish(timeout_s=4.0) == 0
+    assert asked(f) == [GUIDED_NOGPS, (float(APM_ALT_HOLD), 0.0), APM_LOITER]
+    assert f.details("safe_mode_held") == ["LOITER for 1 s"]
+
+
+async def test_the_autopilot_leaving_offboard_for_posctl_while_failing_safe_is_not_kept(
+    start: Start,
+) -> None:
+    """With valid RC, the autopilot's POSCTL would be the pilot's choice and kept;
+    shown while it says CRITICAL, it is the autopilot's failsafe: HOLD is asked."""
+    f = await start(engage="auto", output="actuator", failsafe=WATCHED)
+    await engage_px4_auto(f)
+    f.fake.system_status = CRITICAL
+    f.fake.set_state(PX4_POSCTL, armed=True)  # one heartbeat: the mode and the state
+    assert await f.finish() == 3
+    assert "failsafe_autopilot_took_over" in f.kinds()
+    assert asked(f) == [OFFBOARD, HOLD]
+    failing = "needs RC (the autopilot is failing safe: CRITICAL)"
+    assert f.details("handed_back") == [
+        f"autopilot left OFFBOARD for POSCTL (mode {PX4_POSCTL:#x}, armed=True); "
+        f"{FAILING_SAFE} (posctl {failing}; altctl {failing}) -> HOLD accepted"
+    ]
+    assert f.details("safe_mode_held") == ["HOLD for 0.5 s"]
