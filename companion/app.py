@@ -13,7 +13,9 @@ Start-up
     (ACK-checked) and EXTENDED_SYS_STATE (best effort: its landed state stops
     identification on the ground); then engage per ``engage``:
 
-    ``auto``       stream setpoints, switch to OFFBOARD, arm (ACK-checked, retried);
+    ``auto``       stream setpoints, switch to OFFBOARD, arm once the stack's
+                   pre-arm checks pass (ACK-checked, tried again while refused,
+                   within ``arm_timeout_s``);
     ``rc-switch``  take over while an RC channel is high, hand back when low;
     ``none``       shadow mode: compute and log; send no setpoint, mode or arm
                    command (only our heartbeat, the stream-rate requests and
@@ -189,6 +191,11 @@ class RunOptions:
     reference: ReferenceScript | None = None
     """Scripted rates (and maybe thrust) from engagement on, instead of the sticks."""
     heartbeat_timeout_s: float = 10.0
+    arm_timeout_s: float = 60.0
+    """With ``engage="auto"``: how long to keep trying the engage mode and the
+    arming while the stack refuses them or its pre-arm checks fail (ArduCopter
+    needs a few seconds after boot for an altitude estimate, 40-50 s for a
+    position); 0: one try each."""
     fly_check_event: tuple[str, str] | None = None
     """The controller file's fly check (:mod:`companion.fly_check`) as an event
     ``(kind, detail)`` recorded at the start: ``fly_check_passed``, or

@@ -57,6 +57,10 @@ _THRESHOLD_HARD_MAX_S = 3600.0
 """The most any failsafe's time may be, even with ``--beyond-bounds``: an hour is
 past any use (:data:`THRESHOLD_MAX` holds the bounds within which they protect)."""
 
+_ARM_TIMEOUT_MAX_S = 600.0
+"""``--arm-timeout-s``: ten minutes. ArduCopter's SITL has a position estimate
+40-50 s after boot; a real GPS from a cold start takes a few minutes."""
+
 _ERROR_HARD_MAX_DEG_S = 4000.0
 """``--envelope-error-deg-s``, even with ``--beyond-bounds``: the widest gyro range
 made (+-4000 deg/s); no error beyond it is measured."""
@@ -579,6 +583,16 @@ def preflight(
     help="How long to wait for the autopilot's first heartbeat (exit 1 after; at most "
     "an hour, for an autopilot powered long after the companion).",
 )
+@click.option(
+    "--arm-timeout-s",
+    type=Finite(min=0.0, max=_ARM_TIMEOUT_MAX_S),
+    default=60.0,
+    show_default=True,
+    help="With --engage auto: keep trying the engage mode and arming this long while the "
+    "autopilot refuses them or its pre-arm checks fail (SYS_STATUS), every ~1 s, each "
+    "refusal an event with the autopilot's reason; then exit 1 naming the last one. "
+    "0: one try each.",
+)
 @_failsafe_opt(
     "--envelope-error-deg-s",
     "tracking_error_max_deg_s",
@@ -629,6 +643,7 @@ def run(
     autopilot_compid: int | None,
     reference_path: Path | None,
     heartbeat_timeout_s: float,
+    arm_timeout_s: float,
     envelope_error_deg_s: float,
     skip_fly_check: bool,
     beyond_bounds: tuple[str, ...],
@@ -730,6 +745,7 @@ def run(
         signing_key=signing_key,
         duration_s=duration,
         heartbeat_timeout_s=heartbeat_timeout_s,
+        arm_timeout_s=arm_timeout_s,
         fly_check_event=fly_check_event,
         reference=reference,
         autopilot_sysid=autopilot_sysid,

@@ -2,30 +2,29 @@
 can fly on its own.
 
 A part of :class:`companion.app.Companion` (it is mixed in): engaging streams
-setpoints, switches to the stack's engage mode and arms; releasing stops the
-commands at once, in the caller's callback; a failsafe releases and then hands
-back, trying the safe modes in the order :mod:`companion.handback` gives and
-watching that the autopilot keeps the one it accepted and does not fail safe
-in it.
+setpoints, switches to the stack's engage mode and arms (with ``--engage
+auto``, once the stack is ready, tried again while it refuses, within
+``arm_timeout_s``); releasing stops the commands at once, in the caller's
+callback; a failsafe releases and then hands back, trying the safe modes in the
+order :mod:`companion.handback` gives and watching that the autopilot keeps the
+one it accepted and does not fail safe in it.
 """
 
 from __future__ import annotations
 
 import asyncio
-import logging
 import time
 from typing import TYPE_CHECKING, Any
 
 from companion.errors import EXIT_ERROR, EXIT_FAILSAFE, EngageError, LinkError
 from companion.handback import Conditions, adoptable, failsafe_state, judge, next_kind, pick
-from companion.stacks import FlightStack, SafeMode
+from companion.stacks import FlightStack, SafeMode, said_why
 
 if TYPE_CHECKING:
     from companion.app import RunOptions
+    from companion.records import EventLog
 
 __all__ = ["Engagement"]
-
-_log = logging.getLogger("companion.app")
 
 # MAVLink numbers used here (common.xml).
 _CMD_DO_SET_MODE = 176
@@ -38,6 +37,15 @@ ArduPilot only while their estimate is valid) is younger than this."""
 _WATCH_POLL_S = 0.05
 _ESTIMATES_WAIT_S = 1.0
 """How long an engagement waits for the estimates its flight mode needs."""
+_RETRY_S = 1.0
+"""``--engage auto``: the pause after a refused engage mode or arm before the
+next try (each try also waits up to 0.5 s for its ACK and ``_REASON_WAIT_S``)."""
+_REASON_WAIT_S = 0.2
+"""After a refusal: how long the STATUSTEXT saying why may follow the ACK."""
+_PILOT_TRIES = 10
+"""``--engage rc-switch``: the engage mode is tried this often, ``_REASON_WAIT_S``
+apart (the pilot is waiting), before the engagement is given up."""
+_READY_POLL_S = 0.05
 
 
 class Engagement:
@@ -52,7 +60,7 @@ class Engagement:
     commanding: bool
     _stop: asyncio.Event
     _exit_code: int
-    _last_statustext: str
+    _events_file: EventLog
     _engage_task: asyncio.Task[None] | None
     _tasks: set[asyncio.Task[Any]]
     _handing_back: bool
@@ -64,6 +72,7 @@ class Engagement:
     _ap_mode: int | None
     _ap_armed: bool
     _ap_status: int | None
+    _prearm_ready: bool | None
     _ap_heartbeats: int
     _rc_wall: float | None
     _pos_wall: float | None
@@ -88,16 +97,23 @@ class Engagement:
 
         PX4 refuses OFFBOARD unless setpoints already stream, so they start
         first; ArduPilot ignores them until GUIDED_NOGPS. Each step is
-        ACK-checked and retried; a refusal carries the autopilot's own words
-        (its last STATUSTEXT, e.g. "PreArm: ...").
+        ACK-checked and tried again while refused, each refusal an event quoting
+        the stack's own words (:meth:`_until_accepted`). With ``--engage auto``
+        the stack may not be ready yet (ArduCopter has no altitude estimate for
+        the first seconds after boot, no position for 40-50 s): the engage mode
+        and the arming are tried every ``_RETRY_S`` until ``arm_timeout_s``
+        after the engagement began, and arming waits first for the stack's
+        pre-arm checks to pass, where its SYS_STATUS reports them. With
+        ``rc-switch`` (the pilot waits) the engage mode is tried
+        ``_PILOT_TRIES`` times.
         """
         assert self.stack is not None
         stack = self.stack
         # The estimates a flight mode needs may still be on their way (asked for
         # at start-up, an --engage auto run engages at once): wait for them a while.
         why = self._not_ready_to_engage()
-        deadline = time.monotonic() + _ESTIMATES_WAIT_S
-        while why is not None and time.monotonic() < deadline and not self._stop.is_set():
+        estimates_by = time.monotonic() + _ESTIMATES_WAIT_S
+        while why is not None and time.monotonic() < estimates_by and not self._stop.is_set():
             # (The pilot's switch going low meanwhile cancels this task: _on_rc.)
             await asyncio.sleep(0.02)
             why = self._not_ready_to_engage()
@@ -110,36 +126,123 @@ class Engagement:
         self.mode_before_engaging = self._ap_mode
         self.commanding = True
         self._reset_laws()
+        auto = self.opts.engage == "auto"
+        deadline = time.monotonic() + self.opts.arm_timeout_s if auto else None
         await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
         try:
             p2, p3 = stack.engage_mode
-            for attempt in range(10):
-                if not self.commanding:
-                    return  # released meanwhile (switch back low, failsafe): stop here
-                res = await self.link.command_long(
-                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, p2, p3, timeout_s=0.5
-                )
-                if res == _RESULT_ACCEPTED:
-                    break
-                _log.info("engage mode refused (result %d), attempt %d", res, attempt + 1)
-                await asyncio.sleep(0.2)
-            else:
-                raise EngageError(f"{stack.name} refused its engage mode ten times")
-            if arm:
-                if not self.commanding:
-                    return
-                self._last_statustext = ""
-                res = await self.link.command_long(_CMD_ARM_DISARM, 1, timeout_s=0.5)
-                if res != _RESULT_ACCEPTED:
-                    await asyncio.sleep(0.2)  # a STATUSTEXT with the reason may follow the ACK
-                    said = f": {self._last_statustext}" if self._last_statustext else ""
-                    raise EngageError(f"{stack.name} refused to arm (MAV_RESULT {res}){said}")
+            if not await self._until_accepted(
+                "engage_mode_refused",
+                f"its engage mode ({stack.engage_label})",
+                stack.mode_refusals,
+                _CMD_DO_SET_MODE,
+                (_MODE_FLAG_CUSTOM, p2, p3),
+                deadline=deadline,
+            ):
+                return  # released meanwhile (switch back low, failsafe): stop here
+            if arm and not await self._until_accepted(
+                "arm_refused",
+                "to arm",
+                stack.arm_refusals,
+                _CMD_ARM_DISARM,
+                (1,),
+                deadline=deadline,
+                when_ready=True,
+            ):
+                return
         except (EngageError, LinkError) as exc:
             self.commanding = False
             self._event("engage_failed", str(exc))
             if self.opts.engage == "auto":
                 self._exit_code = EXIT_ERROR
                 self._stop.set()
+
+    async def _until_accepted(
+        self,
+        kind: str,
+        what: str,
+        refusals: tuple[str, ...],
+        command: int,
+        params: tuple[float, ...],
+        *,
+        deadline: float | None,
+        when_ready: bool = False,
+    ) -> bool:
+        """Send ``command`` (COMMAND_LONG, with ``params``) until the autopilot
+        accepts it: True; False if the companion was released meanwhile.
+
+        Each refusal is an event ``kind`` with the try's number and the
+        autopilot's reason: what it said since that try began in a STATUSTEXT
+        beginning as one of ``refusals`` (:func:`companion.stacks.said_why`),
+        never an unrelated text. Tried again ``_RETRY_S`` later while that is
+        before ``deadline`` (monotonic), or, with no deadline, up to
+        ``_PILOT_TRIES`` times; ``when_ready``: each try waits first, until the
+        deadline, for the stack's pre-arm checks to pass where it reports them.
+
+        Raises
+        ------
+        EngageError
+            When the tries run out, naming the last reason.
+        """
+        assert self.stack is not None
+        name = self.stack.name
+        t0 = time.monotonic()
+        attempt = 0
+        while True:
+            if when_ready and deadline is not None:
+                await self._wait_ready_to_arm(deadline)
+            if not self.commanding:
+                return False
+            attempt += 1
+            mark = self._events_file.count
+            res = await self.link.command_long(command, *params, timeout_s=0.5)
+            if res == _RESULT_ACCEPTED:
+                return True
+            await asyncio.sleep(_REASON_WAIT_S)  # a STATUSTEXT with the reason may follow the ACK
+            reason = said_why(self._said_since(mark), refusals) or "it said no reason"
+            self._event(kind, f"try {attempt}: MAV_RESULT {res}: {reason}")
+            if deadline is None:
+                more = attempt < _PILOT_TRIES
+            else:
+                more = time.monotonic() + _RETRY_S < deadline
+            if not more:
+                tries = "1 try" if attempt == 1 else f"{attempt} tries"
+                raise EngageError(
+                    f"{name} refused {what} (MAV_RESULT {res}), {tries} in "
+                    f"{time.monotonic() - t0:.1f} s: {reason}"
+                )
+            if not self.commanding:
+                return False
+            if deadline is not None:
+                await asyncio.sleep(_RETRY_S)
+
+    async def _wait_ready_to_arm(self, deadline: float) -> None:
+        """Until ``deadline`` (monotonic): wait while the autopilot's SYS_STATUS says
+        its pre-arm checks fail (``_prearm_ready`` False; None, not reported: at
+        once). At the deadline the arming is tried all the same: its refusal
+        says why in the stack's own words."""
+        if self._prearm_ready is not False or not self.commanding:
+            return
+        t0 = time.monotonic()
+        self._event(
+            "arm_waiting",
+            f"the autopilot's pre-arm checks do not pass yet (SYS_STATUS): waiting up to "
+            f"{max(0.0, deadline - t0):.0f} s",
+        )
+        while self._prearm_ready is False and self.commanding and time.monotonic() < deadline:
+            await asyncio.sleep(_READY_POLL_S)
+        if self._prearm_ready:
+            self._event("arm_ready", f"pre-arm checks pass after {time.monotonic() - t0:.1f} s")
+
+    def _said_since(self, mark: int) -> list[str]:
+        """What the autopilot said (its STATUSTEXTs, each recorded as an
+        ``autopilot_says`` event) since the run had recorded ``mark`` events."""
+        log = self._events_file
+        new = min(log.count - mark, len(log.recent))
+        if new <= 0:
+            return []
+        recent = list(log.recent)[-new:]
+        return [str(e["detail"]) for e in recent if e["kind"] == "autopilot_says"]
 
     def _release(self) -> bool:
         """Stop commanding now, in the caller's callback; return whether we were.

@@ -55,6 +55,7 @@ _MSG_EXTENDED_SYS_STATE = 245
 _MSG_STATUSTEXT = 253
 _MSG_SYS_STATUS = 1
 _SENSOR_RC_RECEIVER = 1 << 16  # MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+_SENSOR_PREARM_CHECK = 1 << 28  # MAV_SYS_STATUS_PREARM_CHECK
 _STATE_NAMES = {5: "CRITICAL", 6: "EMERGENCY"}
 _FAILSAFE_STATES = frozenset(_STATE_NAMES)
 """HEARTBEAT ``system_status`` values with which PX4 and ArduPilot say they are
@@ -136,6 +137,9 @@ class SamplePath(ModePath):
         self.n_rc_unhealthy = 0
         self._rc_receiver_healthy = True
         self._rc_receiver_seen = False
+        self._prearm_ready: bool | None = None
+        """The autopilot's pre-arm checks pass, as its SYS_STATUS says; None: it
+        says nothing about them (not reported, or no SYS_STATUS yet)."""
         self._ap_status: int | None = None
         """The autopilot's last HEARTBEAT ``system_status`` (MAV_STATE)."""
         """The autopilot's SYS_STATUS says its RC receiver is healthy (or says nothing)."""
@@ -206,14 +210,27 @@ class SamplePath(ModePath):
             self._on_sys_status(msg)
 
     def _on_sys_status(self, msg: Any) -> None:
-        """SYS_STATUS: whether the autopilot's RC receiver is healthy.
+        """SYS_STATUS: whether the autopilot's RC receiver is healthy, and whether
+        its pre-arm checks pass.
 
         ArduPilot keeps sending RC_CHANNELS with the last pulses it had after its
         radio is lost; what says it is lost is the RC receiver's health bit
         (cleared when its own radio failsafe triggers). While it is clear, the
-        RC_CHANNELS frames are not the pilot's: they do not count as valid RC."""
+        RC_CHANNELS frames are not the pilot's: they do not count as valid RC.
+
+        PX4 and ArduPilot report their pre-arm checks as a sensor
+        (MAV_SYS_STATUS_PREARM_CHECK), healthy while they pass: ``--engage
+        auto`` waits for it before arming. A stack that does not report it
+        (the bit not present) leaves ``_prearm_ready`` None: it is just tried."""
+        present = int(msg.onboard_control_sensors_present)
+        if present & _SENSOR_PREARM_CHECK:
+            self._prearm_ready = bool(
+                int(msg.onboard_control_sensors_health) & _SENSOR_PREARM_CHECK
+            ) or not (int(msg.onboard_control_sensors_enabled) & _SENSOR_PREARM_CHECK)
+        else:
+            self._prearm_ready = None
         bit = _SENSOR_RC_RECEIVER
-        if int(msg.onboard_control_sensors_present) & bit:
+        if present & bit:
             self._rc_receiver_seen = True
             healthy = bool(int(msg.onboard_control_sensors_health) & bit) or not (
                 int(msg.onboard_control_sensors_enabled) & bit

@@ -22,15 +22,25 @@ IMU message                HIGHRES_IMU (rad/s)          ATTITUDE (rad/s body rat
 actuator setpoints         yes (<= 1.13, bundled SITL)  no: body rates only
 thrust (rates output)      normalised collective        climb rate unless GUID_OPTIONS
                                                         bit 3: checked at start-up
+why it refused to arm      "Arming denied: ...",        "PreArm: ...", "Arm: ..."
+(its STATUSTEXT)           "Preflight Fail: ..."
+why it refused a mode      "Switching to ... is         "Mode change to ... failed: ..."
+                           currently not available"
 =========================  ===========================  ==================================
+
+The refusal texts are those of PX4 v1.16 (``src/modules/commander``:
+``Commander.cpp``, ``HealthAndArmingChecks/``) and ArduCopter 4.5
+(``libraries/AP_Arming/AP_Arming.cpp``, ``ArduCopter/mode.cpp``); :func:`said_why`
+picks them out of what the autopilot said.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Literal
 
-__all__ = ["ARDUPILOT", "PX4", "FlightStack", "SafeMode", "stack_for"]
+__all__ = ["ARDUPILOT", "PX4", "FlightStack", "SafeMode", "said_why", "stack_for"]
 
 Needs = Literal["rc", "position", "nothing"]
 
@@ -75,6 +85,10 @@ class FlightStack:
     supports_actuator_output: bool = False
     max_imu_rate_hz: float = 1000.0
     """The fastest IMU stream worth asking for; the stack may still deny it."""
+    arm_refusals: tuple[str, ...] = ()
+    """How the STATUSTEXTs begin with which the stack says why it refused to arm."""
+    mode_refusals: tuple[str, ...] = ()
+    """How the STATUSTEXTs begin with which it says why it refused a mode switch."""
 
     @property
     def engage_label(self) -> str:
@@ -154,6 +168,10 @@ PX4 = FlightStack(
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
+    # "Arming denied: Resolve system health failures first" follows the
+    # "Preflight Fail: ..." that names the failing check; "Arm auth: Denied".
+    arm_refusals=("Arming denied", "Preflight Fail", "Arm auth"),
+    mode_refusals=("Switching to",),
 )
 
 ARDUPILOT = FlightStack(
@@ -178,9 +196,31 @@ ARDUPILOT = FlightStack(
     supports_actuator_output=False,
     # ArduPilot denies intervals shorter than its loop period / 0.8 (~333 Hz at 400 Hz).
     max_imu_rate_hz=400.0,
+    arm_refusals=("PreArm:", "Arm:"),
+    # "Flight mode change failed": older ArduPilot's words, and the bundled SITL's.
+    mode_refusals=("Mode change to", "Flight mode change failed"),
 )
 
 _BY_ID = {PX4.autopilot_id: PX4, ARDUPILOT.autopilot_id: ARDUPILOT}
+
+_REASONS_QUOTED = 3
+"""At most this many of the autopilot's reasons are quoted (PX4 names each failing
+check in its own text)."""
+
+
+def said_why(texts: Iterable[str], prefixes: tuple[str, ...]) -> str | None:
+    """The texts among ``texts`` (the autopilot's STATUSTEXTs, oldest first) that
+    begin with one of ``prefixes`` (a stack's :attr:`FlightStack.arm_refusals` or
+    :attr:`FlightStack.mode_refusals`, compared without regard to case), each
+    once, stripped (PX4 ends some with a tab), the first three joined by "; ";
+    None if none does. Any other text, however recent, is not the reason."""
+    wanted = tuple(p.casefold() for p in prefixes)
+    found: list[str] = []
+    for raw in texts:
+        text = raw.strip()
+        if text.casefold().startswith(wanted) and text not in found:
+            found.append(text)
+    return "; ".join(found[:_REASONS_QUOTED]) if found else None
 
 
 def stack_for(autopilot_id: int) -> FlightStack | None:

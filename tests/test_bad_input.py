@@ -43,7 +43,7 @@ EXIT_BAD_INPUT = 2
 RUN_FLOATS = (
     "--rate-hz", "--rates-full-scale-deg-s", "--rates-lead-s", "--stale-imu-s",
     "--link-timeout-s", "--invalid-imu-s", "--rc-timeout-s", "--envelope-time-s",
-    "--envelope-error-deg-s", "--duration", "--heartbeat-timeout-s",
+    "--envelope-error-deg-s", "--duration", "--heartbeat-timeout-s", "--arm-timeout-s",
 )  # fmt: skip
 
 

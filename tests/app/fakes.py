@@ -309,11 +309,19 @@ class FakeAutopilot:
         ext = 0b11111100 if aux_present else 0
         self.mav.manual_control_send(1, x, y, z, r, 0, 0, ext, 0, 0, aux1, 0, 0, 0, 0, 0)
 
-    def sys_status(self, *, rc_present: bool = True, rc_healthy: bool = True) -> None:
-        """SYS_STATUS with the RC receiver's bits (present, enabled, healthy)."""
+    def sys_status(
+        self, *, rc_present: bool = True, rc_healthy: bool = True, prearm: bool | None = None
+    ) -> None:
+        """SYS_STATUS with the RC receiver's bits (present, enabled, healthy) and,
+        unless ``prearm`` is None (not reported, the default), the pre-arm check's
+        (present and enabled; healthy while the checks pass, as PX4 and ArduPilot
+        report them)."""
         rc = mavlink2.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
         present = rc if rc_present else 0
         health = rc if rc_present and rc_healthy else 0
+        if prearm is not None:
+            present |= mavlink2.MAV_SYS_STATUS_PREARM_CHECK
+            health |= mavlink2.MAV_SYS_STATUS_PREARM_CHECK if prearm else 0
         self.mav.sys_status_send(present, present, health, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
     # --------------------------------------------------------------- inspecting

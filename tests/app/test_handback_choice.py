@@ -21,7 +21,7 @@ from companion.handback import (
     pick,
     unmet,
 )
-from companion.stacks import ARDUPILOT, PX4, FlightStack, SafeMode
+from companion.stacks import ARDUPILOT, PX4, FlightStack, SafeMode, said_why
 
 # HEARTBEAT custom_mode values, worked out from the MAVLink / PX4 / ArduCopter
 # definitions rather than from companion.stacks. PX4: main mode in bits 16-23,
@@ -531,3 +531,65 @@ def test_a_pilot_free_mode_the_autopilot_chose_is_adopted_whatever_is_seen() -> 
         assert adoptable(PX4, PX4_RTL, cond)
         assert adoptable(ARDUPILOT, APM_LAND, cond)
         assert adoptable(ARDUPILOT, APM_RTL, cond)
+
+
+# ------------------------------------------------------ why the stack refused
+
+
+def test_ardupilot_says_why_it_refused_to_arm_in_a_prearm_or_arm_text() -> None:
+    """The texts since the attempt, oldest first, as ArduCopter 4.5 sent them after
+    boot: the reason, then an unrelated text that came later."""
+    said = ["Arm: Need Alt Estimate", "RC7: SaveWaypoint MIDDLE"]
+    assert said_why(said, ARDUPILOT.arm_refusals) == "Arm: Need Alt Estimate"
+    assert said_why(["PreArm: Need Position Estimate"], ARDUPILOT.arm_refusals) == (
+        "PreArm: Need Position Estimate"
+    )
+    assert (
+        said_why(["RC7: SaveWaypoint MIDDLE", "EKF3 IMU0 is using GPS"], ARDUPILOT.arm_refusals)
+        is None
+    )
+    assert said_why([], ARDUPILOT.arm_refusals) is None
+
+
+def test_px4_says_why_in_its_preflight_fail_and_arming_denied_texts() -> None:
+    """PX4 v1.16 names the failing check ("Preflight Fail: ..."), then says it
+    denied arming; both end in a tab (its events marker), stripped."""
+    said = [
+        "[logger] /fs/microsd/log/sess001/log001.ulg",
+        "Preflight Fail: ekf2 missing data\t",
+        "Arming denied: Resolve system health failures first\t",
+        "Preflight Fail: ekf2 missing data\t",  # said twice: quoted once
+    ]
+    assert said_why(said, PX4.arm_refusals) == (
+        "Preflight Fail: ekf2 missing data; Arming denied: Resolve system health failures first"
+    )
+    assert said_why(["PREFLIGHT FAIL: High Gyro Bias"], PX4.arm_refusals) == (
+        "PREFLIGHT FAIL: High Gyro Bias"
+    )  # case aside
+    # An arming refusal is not the reason for a refused mode, nor the other way round.
+    assert said_why(said, PX4.mode_refusals) is None
+    assert said_why(["Switching to Offboard is currently not available\t"], PX4.mode_refusals) == (
+        "Switching to Offboard is currently not available"
+    )
+
+
+def test_at_most_three_reasons_are_quoted() -> None:
+    said = [f"PreArm: check {i}" for i in range(6)]
+    assert (
+        said_why(said, ARDUPILOT.arm_refusals)
+        == "PreArm: check 0; PreArm: check 1; PreArm: check 2"
+    )
+
+
+def test_ardupilot_says_why_it_refused_a_mode() -> None:
+    assert (
+        said_why(
+            ["Mode change to GUIDED_NOGPS failed: init failed", "Radio Failsafe"],
+            ARDUPILOT.mode_refusals,
+        )
+        == "Mode change to GUIDED_NOGPS failed: init failed"
+    )
+    # The bundled SITL's personality speaks as older ArduPilot did.
+    assert said_why(["Flight mode change failed GUIDED_NOGPS"], ARDUPILOT.mode_refusals) == (
+        "Flight mode change failed GUIDED_NOGPS"
+    )

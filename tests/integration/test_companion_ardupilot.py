@@ -48,11 +48,16 @@ def test_climb_rate_thrust_semantics_are_refused(tmp_path: Path) -> None:
 
 
 def test_prearm_failure_is_reported_with_the_autopilots_words(tmp_path: Path) -> None:
-    flight = fly(tmp_path, sitl=("--prearm-fail", "RC not calibrated"))
+    """Tried again for --arm-timeout-s, each refusal an event, then exit 1."""
+    flight = fly(tmp_path, sitl=("--prearm-fail", "RC not calibrated"),
+                 comp=("--arm-timeout-s", "2"))  # fmt: skip
     assert flight.companion_rc == 1
+    refused = [e["detail"] for e in flight.companion_events if e["kind"] == "arm_refused"]
+    assert len(refused) >= 2
+    assert all(d.endswith(": PreArm: RC not calibrated") for d in refused)
     failed = [e for e in flight.companion_events if e["kind"] == "engage_failed"]
     assert failed and "refused to arm" in failed[0]["detail"]
-    assert "PreArm: RC not calibrated" in failed[0]["detail"]
+    assert failed[0]["detail"].endswith(": PreArm: RC not calibrated")
     assert "engaged" not in kinds(flight)
 
 
