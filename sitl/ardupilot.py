@@ -86,7 +86,10 @@ from companion.profile import VehicleProfile
 from sitl.ardupilot_control import (
     ApAxisGains,
     ApRatePid,
+    AttitudeControl,
+    AttitudeGains,
     GyroLowPass,
+    MotorsMatrix,
     actuator_to_thrust,
     climb_rate_from_thrust,
 )
@@ -191,7 +194,7 @@ class ArduCopter(CopterLaws):
         *,
         initial_mode: CopterMode = CopterMode.STABILIZE,
     ) -> None:
-        super().__init__(profile, initial_mode=initial_mode, motor_idle=0.0)
+        super().__init__(profile, initial_mode=initial_mode)
         self.config = config or ArduCopterConfig()
         self.params = ArduParams()
         for name, value in (*self.config.tune, *self.config.params):
@@ -202,6 +205,9 @@ class ArduCopter(CopterLaws):
         """Main-loop rate fixed at boot (SCHED_LOOP_RATE needs a reboot in ArduPilot)."""
         self.loop_dt_s = 1.0 / self.loop_rate_hz
         self.rate_pid = ApRatePid(self._gains())
+        self.attitude = AttitudeControl(self._attitude_gains())
+        self.motors_matrix = MotorsMatrix.from_profile(profile)
+        self.motors_matrix.yaw_headroom = self.params["MOT_YAW_HEADROOM"]
         self.gyro_lpf = GyroLowPass(self.params["INS_GYRO_FILTER"])
         self.params.on_change(self._param_changed)
         self.failsafe_radio = False
@@ -281,9 +287,26 @@ class ArduCopter(CopterLaws):
 
         return (axis("RLL"), axis("PIT"), axis("YAW"))
 
+    def _attitude_gains(self) -> AttitudeGains:
+        p = self.params
+        cds2 = math.radians(0.01)  # centideg/s^2 -> rad/s^2
+        return AttitudeGains(
+            accel_max_rad_s2=(
+                p["ATC_ACCEL_R_MAX"] * cds2,
+                p["ATC_ACCEL_P_MAX"] * cds2,
+                p["ATC_ACCEL_Y_MAX"] * cds2,
+            ),
+            angle_p=(p["ATC_ANG_RLL_P"], p["ATC_ANG_PIT_P"], p["ATC_ANG_YAW_P"]),
+            rate_ff=int(p["ATC_RATE_FF_ENAB"]) != 0,
+        )
+
     def _param_changed(self, name: str, value: float) -> None:
         if name.startswith("ATC_RAT_"):
             self.rate_pid.gains = self._gains()
+        elif name.startswith(("ATC_ACCEL_", "ATC_ANG_", "ATC_RATE_FF_ENAB")):
+            self.attitude.gains = self._attitude_gains()
+        elif name == "MOT_YAW_HEADROOM":
+            self.motors_matrix.yaw_headroom = value
         elif name == "INS_GYRO_FILTER":
             self.gyro_lpf.cutoff_hz = value
             self.gyro_lpf._fs_hz = 0.0  # redesign on the next sample

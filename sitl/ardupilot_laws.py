@@ -15,9 +15,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from sitl.ardupilot_control import ApRatePid, thrust_to_actuator
+from sitl.ardupilot_control import ApRatePid, AttitudeControl, MotorsMatrix, thrust_to_actuator
 from sitl.ardupilot_modes import CopterMode
 from sitl.ardupilot_params import ArduParams
+from sitl.frames import euler_to_quat
 from sitl.personality import Personality, clip, stick_unit, throttle_unit
 
 if TYPE_CHECKING:
@@ -49,6 +50,8 @@ class CopterLaws(Personality[CopterMode]):
     config: ArduCopterConfig
     params: ArduParams
     rate_pid: ApRatePid
+    attitude: AttitudeControl
+    motors_matrix: MotorsMatrix
     loop_dt_s: float
     hover_throttle: float
     rate_target_rad_s: tuple[float, float, float]
@@ -77,12 +80,22 @@ class CopterLaws(Personality[CopterMode]):
             rs, ps = stick_unit(sticks_us[0]), stick_unit(sticks_us[1])
             thr_stick, ys = throttle_unit(sticks_us[2]), stick_unit(sticks_us[3])
         cos_tilt = math.cos(euler[0]) * math.cos(euler[1])
+        body_q = euler_to_quat(euler[0], euler[1], euler[2])
 
         rates: tuple[float, float, float]
         if mode == CopterMode.ACRO:
             rm = cfg.acro_rate_max_rad_s
-            rates = (rs * rm[0], ps * rm[1], ys * rm[2])
+            # ModeAcro::run: input_rate_bf_roll_pitch_yaw, as GUIDED's body rates.
+            rates = self.attitude.input_rate_bf(
+                (rs * rm[0], ps * rm[1], ys * rm[2]), body_q, gyro, dt
+            )
             return self._output(dt, rates, gyro, self._manual_throttle(thr_stick), cos_tilt, False)
+        # Modes below fly angles here; the body-rate attitude target follows the vehicle
+        # so that GUIDED and ACRO start from where it is.
+        if mode not in (CopterMode.GUIDED, CopterMode.GUIDED_NOGPS) or (
+            self._target is None or self._timed_out
+        ):
+            self.attitude.relax(body_q, gyro)
         if mode == CopterMode.BRAKE:
             rates = self._level_rates(euler, 0.0, 0.0, None)
             if self.landed:
@@ -127,7 +140,10 @@ class CopterLaws(Personality[CopterMode]):
             thrust = clip(tgt.value * inverted * boost, 0.0, 1.0)
         else:
             thrust = self._climb_loop(dt, tgt.value, climb_rate_m_s, cos_tilt)
-        return self._output(dt, tgt.rates_rad_s, gyro, thrust, cos_tilt, not tgt.use_thrust)
+        # ModeGuided::angle_control_run -> input_rate_bf_roll_pitch_yaw: the rates are
+        # shaped, integrated into the attitude target, and its error corrected.
+        rates = self.attitude.input_rate_bf(tgt.rates_rad_s, body_q, gyro, dt)
+        return self._output(dt, rates, gyro, thrust, cos_tilt, not tgt.use_thrust)
 
     def _manual_throttle(self, stick: float) -> float:
         """``Mode::get_pilot_desired_throttle``: mid stick = hover throttle (expo curve)."""
@@ -192,10 +208,20 @@ class CopterLaws(Personality[CopterMode]):
         roll, pitch, yaw = (v if math.isfinite(v) else 0.0 for v in tq)
         thrust = thrust if math.isfinite(thrust) else 0.0
         self.last_torque_thrust = (roll, pitch, yaw, thrust)
-        res = self.mixer.mix(thrust, roll, pitch, yaw)
-        self._limit = list(res.saturated_axes)
         p = self.params
+        # Throttle-to-attitude mix (AC_AttitudeControl_Multi::get_throttle_avg_max):
+        # ATC_THR_MIX_MAX in the air under an altitude controller, ATC_THR_MIX_MAN with
+        # a manual throttle, ATC_THR_MIX_MIN on the ground.
+        if self.landed:
+            mix = p["ATC_THR_MIX_MIN"]
+        elif auto_throttle:
+            mix = p["ATC_THR_MIX_MAX"]
+        else:
+            mix = p["ATC_THR_MIX_MAN"]
+        avg_max = max(thrust, thrust * max(0.0, 1.0 - mix) + self.hover_throttle * mix)
+        res = self.motors_matrix.output_armed_stabilizing(roll, pitch, yaw, thrust, avg_max)
+        self._limit = list(res.limit)
         lo, hi, expo = p["MOT_SPIN_MIN"], p["MOT_SPIN_MAX"], p["MOT_THST_EXPO"]
         span = hi - lo
-        self.motors = tuple(lo + span * thrust_to_actuator(m, expo) for m in res.motors)
+        self.motors = tuple(lo + span * thrust_to_actuator(m, expo) for m in res.thrust)
         return self.motors

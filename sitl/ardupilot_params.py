@@ -67,6 +67,17 @@ def _rate_pid_specs(axis: str, p: float, i: float, d: float, flte: float) -> lis
 
 PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("ARMING_CHECK", 1, PARAM_INT32, doc="0: skip the pre-arm checks"),
+    # AC_AttitudeControl.cpp / AC_AttitudeControl_Multi.cpp (Copter-4.5 defaults).
+    ParamSpec("ATC_ACCEL_P_MAX", 110000.0, PARAM_REAL32, 0, 180000, "pitch accel, cdeg/s^2"),
+    ParamSpec("ATC_ACCEL_R_MAX", 110000.0, PARAM_REAL32, 0, 180000, "roll accel, cdeg/s^2"),
+    ParamSpec("ATC_ACCEL_Y_MAX", 27000.0, PARAM_REAL32, 0, 72000, "yaw accel, cdeg/s^2"),
+    ParamSpec("ATC_ANG_PIT_P", 4.5, PARAM_REAL32, 3.0, 12.0, "pitch angle P"),
+    ParamSpec("ATC_ANG_RLL_P", 4.5, PARAM_REAL32, 3.0, 12.0, "roll angle P"),
+    ParamSpec("ATC_ANG_YAW_P", 4.5, PARAM_REAL32, 3.0, 12.0, "yaw angle P"),
+    ParamSpec("ATC_RATE_FF_ENAB", 1, PARAM_INT8, 0, 1, "1: shape rate input, feed it forward"),
+    ParamSpec("ATC_THR_MIX_MAN", 0.1, PARAM_REAL32, 0.1, 0.9, "throttle mix, manual throttle"),
+    ParamSpec("ATC_THR_MIX_MAX", 0.5, PARAM_REAL32, 0.5, 0.9, "throttle mix, in the air"),
+    ParamSpec("ATC_THR_MIX_MIN", 0.1, PARAM_REAL32, 0.1, 0.25, "throttle mix, landed"),
     ParamSpec("FLTMODE_CH", 5, PARAM_INT8, 0, 16, "flight-mode channel (0 none)"),
     ParamSpec("FS_GCS_ENABLE", 0, PARAM_INT8, 0, 7, "GCS loss: 0 off (stored only)"),
     ParamSpec("FS_GCS_TIMEOUT", 5.0, PARAM_REAL32, 2.0, 120.0, "s without GCS (stored only)"),
@@ -83,6 +94,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MOT_SPIN_MAX", 0.95, PARAM_REAL32, 0.9, 1.0, "top of the output range"),
     ParamSpec("MOT_SPIN_MIN", 0.15, PARAM_REAL32, 0.0, 0.3, "bottom of the output range"),
     ParamSpec("MOT_THST_EXPO", 0.65, PARAM_REAL32, -1.0, 1.0, "thrust curve expo"),
+    ParamSpec("MOT_YAW_HEADROOM", 200, PARAM_INT16, 0, 500, "yaw headroom, PWM us"),
     ParamSpec("RC_FS_TIMEOUT", 1.0, PARAM_REAL32, 0.1, 10.0, "s without RC before failsafe"),
     # AP_RCMapper.cpp; the SITL radio sends AETR whatever they say (stored only).
     ParamSpec("RCMAP_PITCH", 2, PARAM_INT8, 1, 16, "pitch channel"),
@@ -119,16 +131,13 @@ class ArduParams(ParamStore):
         return float(value)
 
 
-SITL_RATE_TUNE: tuple[tuple[str, float], ...] = tuple(
-    (f"ATC_RAT_{axis}_{name}", value)
-    for axis in ("RLL", "PIT")
-    for name, value in (("P", 0.17), ("FLTT", 9.0), ("FLTD", 10.0))
-)
-"""Roll/pitch tune of the SITL airframe (ArduPilot defaults: P 0.135, FLTT 20, FLTD 20 Hz).
+SITL_RATE_TUNE: tuple[tuple[str, float], ...] = ()
+"""The SITL airframe's rate-loop tune over ArduPilot's defaults: none.
 
-Chosen so a +1 rad/s roll-rate step on the F450 profile reaches 0.38 / 0.89 /
-0.99 rad/s after 40 / 80 / 120 ms, as ArduCopter's own loop did (facts.md 10:
-0.38 / 0.90 / 0.98); I, D, IMAX, FF and the yaw axis keep ArduPilot's defaults.
+Until the personality shaped its rate input and flew an attitude target as
+ArduCopter does (:class:`sitl.ardupilot_control.AttitudeControl`), roll and pitch
+ran P 0.17, FLTT 9 Hz, FLTD 10 Hz here to make up for the missing shaping; with the
+shaping in, ArduPilot's own defaults stand (``docs/research/ardupilot.md``).
 """
 
 SITL_AIRFRAME: tuple[tuple[str, float], ...] = (("FLTMODE_CH", 6),)

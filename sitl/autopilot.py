@@ -82,7 +82,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from companion.control.pid import PX4_DEFAULT_GAINS, RatePid
 from companion.profile import VehicleProfile
 from sitl.personality import (
     PILOT_ACRO_RATE_MAX_RAD_S,
@@ -92,6 +91,7 @@ from sitl.personality import (
     stick_unit,
     throttle_unit,
 )
+from sitl.px4_control import ControlAllocator, Px4RateLoop
 from sitl.px4_modes import (
     AUTO_SUB_LAND,
     AUTO_SUB_LOITER,
@@ -130,8 +130,9 @@ class AutopilotConfig:
     test_stand
         The vehicle is on a test stand: the failsafe holds level instead of landing.
     hover_thrust
-        Normalised collective thrust that hovers (``MPC_THR_HOVER``), used by the
-        LAND/LOITER vertical loop and the test-stand failsafe.
+        Normalised collective thrust that hovers (``MPC_THR_HOVER``), in the
+        allocator's units (0 armed idle, 1 full: :func:`sitl.px4_control.thrust_for_command`),
+        used by the LAND/LOITER vertical loop and the test-stand failsafe.
     acro_rate_max_rad_s
         Full-stick body rates in ACRO (roll, pitch, yaw); the same linear map as the
         simulated pilot (``sitl.pilot``: 720, 720, 360 deg/s, ch2 > 1500 µs = nose up).
@@ -215,11 +216,16 @@ class _Setpoint:
 class Autopilot(Personality[FlightMode]):
     """A PX4-like multicopter autopilot: commander + rate loop + allocation.
 
+    The rate loop and the allocation are PX4 v1.16's (:mod:`sitl.px4_control`):
+    ``RateControl`` on the filtered gyro, the yaw-torque low-pass, and the
+    sequential-desaturation allocator with ``MC_AIRMODE`` 0, whose [0, 1] spans
+    the motors' armed idle to full.
+
     Parameters
     ----------
     profile
-        The vehicle; its frame makes the mixer (``physics.mixer`` picks geometry or
-        the paper's '+' mixer) and ``limits`` gives the idle and the rate limits.
+        The vehicle; its frame makes the allocation (``physics.mixer`` picks geometry or
+        the paper's '+' frame) and ``limits`` gives the idle and the rate limits.
     config
         Tunables, see :class:`AutopilotConfig`; the parameters of :data:`PX4_PARAMS`
         start from it.
@@ -232,7 +238,7 @@ class Autopilot(Personality[FlightMode]):
     refusal = MavResult.DENIED
     land_mode = MODE_LAND
     log = logger
-    rate_pid: RatePid
+    rate_pid: Px4RateLoop
     params: Px4Params
 
     def __init__(
@@ -244,11 +250,7 @@ class Autopilot(Personality[FlightMode]):
         params: Px4Params | None = None,
     ) -> None:
         self.motor_idle = profile.limits.motor_idle
-        super().__init__(
-            profile,
-            initial_mode=initial_mode or FlightMode(MainMode.MANUAL),
-            motor_idle=self.motor_idle,
-        )
+        super().__init__(profile, initial_mode=initial_mode or FlightMode(MainMode.MANUAL))
         self.config = config or AutopilotConfig()
         self.params = params if params is not None else Px4Params()
         for name, field_name in PX4_PARAMS.items():
@@ -256,13 +258,12 @@ class Autopilot(Personality[FlightMode]):
         # Only now: the seeds leave the config as given (COM_OF_LOSS_T's is a float32).
         self.params.add_check(self._check_param)
         self.params.on_change(self._param_changed)
-        self.rate_pid = RatePid(PX4_DEFAULT_GAINS)
+        self.allocator = ControlAllocator.from_profile(profile)
+        self.rate_pid = Px4RateLoop(self.allocator)
         self._setpoint: _Setpoint | None = None
         self._rc_lost_at_arming = False
         self._rc_loss_handled = False
         self._last_rate_t_s: float | None = None
-        self._sat_pos = (False, False, False)
-        self._sat_neg = (False, False, False)
 
     # ------------------------------------------------------------------ status
 
@@ -331,6 +332,9 @@ class Autopilot(Personality[FlightMode]):
 
     def _on_armed(self, t_s: float) -> None:
         self._rc_lost_at_arming = self.rc_lost(t_s)
+        # The flight starts here: the gyro filters too, so that it does not depend on
+        # how long the vehicle sat disarmed (PX4's run on; at rest the difference is noise).
+        self.rate_pid.filter.reset()
 
     def set_mode(self, t_s: float, main: int, sub: int = 0) -> MavResult:
         """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub)."""
@@ -453,6 +457,8 @@ class Autopilot(Personality[FlightMode]):
         )
         self._last_rate_t_s = t_s
         dt_s = clip(dt_s, 0.000125, 0.02)
+        # vehicle_angular_velocity runs on every sample, armed or not.
+        self.rate_pid.filter_gyro(gyro_frd_rad_s, dt_s)
 
         if not self.armed:
             return self._disarmed()
@@ -463,13 +469,13 @@ class Autopilot(Personality[FlightMode]):
             if sp.kind == "actuator":
                 torque_thrust = sp.values
             else:
-                torque_thrust = self._rate_loop(dt_s, sp.values[:3], gyro_frd_rad_s, sp.values[3])
+                torque_thrust = self._rate_loop(dt_s, sp.values[:3], sp.values[3])
         elif self.mode in (MODE_LAND, MODE_LOITER):
-            torque_thrust = self._auto_loop(t_s, dt_s, gyro_frd_rad_s, euler_rad, climb_rate_m_s)
+            torque_thrust = self._auto_loop(t_s, dt_s, euler_rad, climb_rate_m_s)
         else:
             # Until RC counts as lost, the last frame holds (as PX4's manual_control_setpoint).
             sticks = None if self.rc_lost(t_s) else self._last_sticks
-            torque_thrust = self._stick_loop(dt_s, gyro_frd_rad_s, euler_rad, sticks)
+            torque_thrust = self._stick_loop(dt_s, euler_rad, sticks)
         return self._allocate(torque_thrust)
 
     def _check_offboard_loss(self, t_s: float) -> None:
@@ -519,18 +525,10 @@ class Autopilot(Personality[FlightMode]):
             self._enter_failsafe(t_s, "position_loss", MODE_LAND, reason="position lost")
 
     def _rate_loop(
-        self,
-        dt_s: float,
-        rate_sp_rad_s: Sequence[float],
-        gyro_frd_rad_s: Sequence[float],
-        thrust: float,
+        self, dt_s: float, rate_sp_rad_s: Sequence[float], thrust: float
     ) -> tuple[float, float, float, float]:
-        sp = (float(rate_sp_rad_s[0]), float(rate_sp_rad_s[1]), float(rate_sp_rad_s[2]))
-        meas = (float(gyro_frd_rad_s[0]), float(gyro_frd_rad_s[1]), float(gyro_frd_rad_s[2]))
-        if self.landed and thrust < 0.2:
-            # PX4 freezes the integrator on the ground; a reset is the simple version.
-            self.rate_pid.reset()
-        tq = self.rate_pid.update(dt_s, sp, meas, self._sat_pos, self._sat_neg)
+        # The land detector's "landed" freezes the integrator (RateControl::update).
+        tq = self.rate_pid.torque(rate_sp_rad_s, dt_s, landed=self.landed)
         return (tq[0], tq[1], tq[2], thrust)
 
     def _level_rates(
@@ -545,7 +543,6 @@ class Autopilot(Personality[FlightMode]):
     def _stick_loop(
         self,
         dt_s: float,
-        gyro_frd_rad_s: Sequence[float],
         euler_rad: Sequence[float],
         sticks_us: Sequence[int] | None,
     ) -> tuple[float, float, float, float]:
@@ -564,13 +561,12 @@ class Autopilot(Personality[FlightMode]):
                 euler_rad, roll_s * cfg.tilt_max_rad, pitch_s * cfg.tilt_max_rad
             )
             rates = (p, q, yaw_s * cfg.yaw_rate_max_rad_s)
-        return self._rate_loop(dt_s, rates, gyro_frd_rad_s, thr)
+        return self._rate_loop(dt_s, rates, thr)
 
     def _auto_loop(
         self,
         t_s: float,
         dt_s: float,
-        gyro_frd_rad_s: Sequence[float],
         euler_rad: Sequence[float],
         climb_rate_m_s: float,
     ) -> tuple[float, float, float, float]:
@@ -590,7 +586,7 @@ class Autopilot(Personality[FlightMode]):
             tilt = max(math.cos(euler_rad[0]) * math.cos(euler_rad[1]), 0.5)
             thrust = (hover + cfg.climb_p * err + cfg.climb_i * self._climb_integral) / tilt
             thrust = clip(thrust, 0.05, 0.95)
-        return self._rate_loop(dt_s, (p, q, 0.0), gyro_frd_rad_s, thrust)
+        return self._rate_loop(dt_s, (p, q, 0.0), thrust)
 
     def _allocate(self, torque_thrust: Sequence[float]) -> tuple[float, ...]:
         roll, pitch, yaw, thrust = (float(x) for x in torque_thrust)
@@ -598,14 +594,10 @@ class Autopilot(Personality[FlightMode]):
             # PX4 zeroes non-finite controller outputs rather than sending them out.
             roll = pitch = yaw = 0.0
             thrust = 0.0 if not math.isfinite(thrust) else thrust
+        thrust = clip(thrust, 0.0, 1.0)
         self.last_torque_thrust = (roll, pitch, yaw, thrust)
-        res = self.mixer.mix(thrust, roll, pitch, yaw)
-        sat = res.saturated_axes
-        req = (roll, pitch, yaw)
-        # Allocator feedback: stop the integrator in the direction the mixer could not give.
-        self._sat_pos = (sat[0] and req[0] > 0, sat[1] and req[1] > 0, sat[2] and req[2] > 0)
-        self._sat_neg = (sat[0] and req[0] < 0, sat[1] and req[1] < 0, sat[2] and req[2] < 0)
-        idle = self.motor_idle
-        # Armed motors spin at least at idle (PX4 behaviour), whatever the thrust.
-        self.motors = tuple(m if m > idle else idle for m in res.motors)
+        # The allocator's saturation reaches the integrator on the next sample.
+        res = self.rate_pid.allocate((roll, pitch, yaw), thrust)
+        # Armed, the allocator's 0 is the motors' idle (PWM_MAIN_MINn).
+        self.motors = self.allocator.motor_commands(res.actuators)
         return self.motors

@@ -66,7 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.control.quaternion import quat_mul
+from sitl.frames import quat_mul
 from sitl.physics import VehicleState
 
 __all__ = [

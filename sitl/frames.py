@@ -19,12 +19,10 @@ from __future__ import annotations
 
 import math
 
-# The product's own (companion may not import sitl; sitl shares these with it).
-from companion.control.quaternion import euler_to_quat, quat_conj, quat_mul
-
 __all__ = [
     "Quat",
     "Vec3",
+    "axis_angle_to_quat",
     "euler_to_quat",
     "frd_to_flu",
     "ned_to_enu",
@@ -35,6 +33,7 @@ __all__ = [
     "quat_mul",
     "quat_rotate",
     "quat_rotate_inv",
+    "quat_to_axis_angle",
     "quat_to_dcm",
     "quat_to_euler_rad",
     "tilt_rad",
@@ -42,6 +41,62 @@ __all__ = [
 
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
+
+
+def quat_mul(a: Quat, b: Quat) -> Quat:
+    """Hamilton product ``a ⊗ b`` (``b`` applied first, then ``a``).
+
+    With ``a`` = world<-body and ``b`` = body<-other the product is world<-other.
+    """
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    w = w1 * w2 - (x1 * x2 + y1 * y2 + z1 * z2)
+    x = w1 * x2 + w2 * x1 + (y1 * z2 - z1 * y2)
+    y = w1 * y2 + w2 * y1 + (z1 * x2 - x1 * z2)
+    z = w1 * z2 + w2 * z1 + (x1 * y2 - y1 * x2)
+    return (w, x, y, z)
+
+
+def quat_conj(q: Quat) -> Quat:
+    """The inverse rotation of a unit quaternion: its vector part negated."""
+    w, x, y, z = q
+    return (w, -x, -y, -z)
+
+
+def euler_to_quat(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Quat:
+    """ZYX Euler angles to a unit quaternion: yaw about z, then pitch, then roll.
+
+    Built as the product of the three elementary rotations,
+    ``q = q_z(yaw) ⊗ q_y(pitch) ⊗ q_x(roll)``.
+    """
+    h = 0.5
+    qz = (math.cos(h * yaw_rad), 0.0, 0.0, math.sin(h * yaw_rad))
+    qy = (math.cos(h * pitch_rad), 0.0, math.sin(h * pitch_rad), 0.0)
+    qx = (math.cos(h * roll_rad), math.sin(h * roll_rad), 0.0, 0.0)
+    return quat_mul(quat_mul(qz, qy), qx)
+
+
+def axis_angle_to_quat(rotation_vector: Vec3) -> Quat:
+    """Quaternion of a rotation vector (axis times angle, rad); identity for zero."""
+    rx, ry, rz = rotation_vector
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if angle < 1e-12:
+        return (1.0, 0.0, 0.0, 0.0)
+    s = math.sin(0.5 * angle) / angle
+    return (math.cos(0.5 * angle), rx * s, ry * s, rz * s)
+
+
+def quat_to_axis_angle(q: Quat) -> Vec3:
+    """Rotation vector (axis times angle, rad, angle in [0, pi]) of a unit quaternion."""
+    w, x, y, z = q
+    if w < 0.0:  # the same rotation the short way round
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    if s < 1e-12:
+        return (0.0, 0.0, 0.0)
+    angle = 2.0 * math.atan2(s, w)
+    k = angle / s
+    return (x * k, y * k, z * k)
 
 
 def normalise(q: Quat) -> Quat:

@@ -21,6 +21,10 @@ Shared rules
   (:attr:`Personality.rc_timeout_s`); the last frame's sticks are kept.
 * A mode change resets the climb-rate integrator. Mode changes, arming,
   disarming, refusals and failsafes are recorded as :class:`Event` s.
+* The rate loop and the mixer are each stack's own (PX4's ``RateControl`` and
+  control allocation in ``sitl.px4_control``, ArduCopter's attitude controller,
+  ``AC_PID`` and ``AP_MotorsMatrix`` in ``sitl.ardupilot_control``), written from
+  the stacks' sources and independent of the companion's laws.
 
 Also shared: the firmware version a stack reports (:class:`FirmwareVersion`,
 ``AUTOPILOT_VERSION.flight_sw_version``) and the parameter table
@@ -41,7 +45,6 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
-from companion.control.mixer import Mixer
 from companion.profile import VehicleProfile
 
 __all__ = [
@@ -55,7 +58,6 @@ __all__ = [
     "ParamStore",
     "Personality",
     "clip",
-    "make_mixer",
     "stick_unit",
     "throttle_unit",
 ]
@@ -245,17 +247,6 @@ def throttle_unit(us: float) -> float:
     return clip((us - 1000.0) / 1000.0, 0.0, 1.0)
 
 
-def make_mixer(profile: VehicleProfile, idle: float) -> Mixer:
-    """The vehicle's mixer: the paper's '+' mixer or one from the frame's geometry."""
-    if profile.physics.mixer == "paper":
-        return Mixer.paper(idle=idle)
-    return Mixer.from_geometry(
-        [m.position_frd_m for m in profile.frame.motors],
-        [m.spin for m in profile.frame.motors],
-        idle=idle,
-    )
-
-
 class Mode(Protocol):
     """A stack's flight mode: a name and the HEARTBEAT ``custom_mode``."""
 
@@ -279,16 +270,16 @@ class Personality(ABC, Generic[ModeT]):
     Parameters
     ----------
     profile
-        The vehicle: its frame makes the mixer, ``limits`` the rate limits.
+        The vehicle: ``limits`` gives the rate limits; each stack builds its own
+        mixer from the frame (``sitl.px4_control``, ``sitl.ardupilot_control``).
     initial_mode
         Mode at boot.
-    motor_idle
-        The mixer's idle output.
 
     Subclasses set :attr:`refusal`, :attr:`land_mode`, :attr:`log`,
-    ``rate_pid`` and :attr:`params`, implement :attr:`base_mode`, :attr:`system_status`,
-    :attr:`external_control`, :attr:`rc_timeout_s`, :meth:`_arming_checks` and
-    :meth:`_step`, and reset their own state in the ``_on_*`` hooks.
+    ``rate_pid`` (the stack's rate loop) and :attr:`params`, implement
+    :attr:`base_mode`, :attr:`system_status`, :attr:`external_control`,
+    :attr:`rc_timeout_s`, :meth:`_arming_checks` and :meth:`_step`, and reset their
+    own state in the ``_on_*`` hooks.
     """
 
     refusal: ClassVar[MavResult]
@@ -301,10 +292,9 @@ class Personality(ABC, Generic[ModeT]):
     params: ParamStore
     """The stack's parameters, which its face serves over MAVLink."""
 
-    def __init__(self, profile: VehicleProfile, *, initial_mode: ModeT, motor_idle: float) -> None:
+    def __init__(self, profile: VehicleProfile, *, initial_mode: ModeT) -> None:
         self.profile = profile
         self.n_motors = profile.n_motors
-        self.mixer = make_mixer(profile, motor_idle)
         self.rate_max_rad_s = tuple(math.radians(x) for x in profile.limits.rate_max_deg_s)
         self.mode: ModeT = initial_mode
         self.armed = False

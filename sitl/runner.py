@@ -117,6 +117,7 @@ from sitl.mavlink_link import Endpoint, enable_signing
 from sitl.personality import Event, FirmwareVersion, ParamStore, Personality
 from sitl.physics import Quadrotor
 from sitl.pilot import Pilot, PilotView, make_pilot
+from sitl.px4_control import thrust_for_command
 from sitl.px4_face import Px4Face, px4_streams
 from sitl.px4_modes import FlightMode, MainMode
 from sitl.px4_params import PX4_DEFAULT_FIRMWARE, Px4Params, px4_sitl_airframe
@@ -330,7 +331,11 @@ class Runner:
             hover = hover_motor_command(profile)
         except ValueError:
             hover = 0.5
-        self.hover_thrust = hover
+        if config.autopilot == "px4":
+            # PX4's collective runs from the motors' armed idle (0) to full (1).
+            self.hover_thrust = thrust_for_command(hover, profile.limits.motor_idle)
+        else:
+            self.hover_thrust = hover
         self.quad = Quadrotor(profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand)
         self.imu: Imu
         self.pilot: Pilot | None = None
@@ -341,7 +346,7 @@ class Runner:
         if config.autopilot == "ardupilot":
             self._make_ardupilot(hover)
         else:
-            self._make_px4(hover)
+            self._make_px4(self.hover_thrust)
         self.autopilot.position_valid = config.position
         self.face.rc_lost = not config.rc
         if config.signing_key is not None:

@@ -94,6 +94,7 @@ from sitl.imu import Imu
 from sitl.lab.cascade_pid import PX4_DEFAULT_CASCADE, CascadeGains, CascadePid
 from sitl.lab.simulate import scenario_streams
 from sitl.physics import Quadrotor
+from sitl.px4_control import ControlAllocator
 from sitl.rotors import hover_motor_command
 from sitl.scenario import ImuOverride, WindSpec
 from sitl.wind import Wind
@@ -416,6 +417,7 @@ def simulate_outer_flight(
     )
     controller = build_controller(rate_controller_cfg, plant)
     step = SampleStep(controller, plant, output="actuator")
+    autopilot_mix = ControlAllocator.from_profile(plant).mix
     outer: OuterController | CascadePid = (
         OuterController(gains) if outer_law == "mfc" else CascadePid(cascade_gains)
     )
@@ -506,12 +508,8 @@ def simulate_outer_flight(
             att_sp = o.attitude_setpoint
             tilt_limited = o.tilt_limited
         out = step.sample(sample_dt, gyro, rate_ref, thrust)
-        (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, thrust)
-        sent = (
-            controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
-            if replaced
-            else out.motors
-        )
+        (c_roll, c_pitch, c_yaw, c_thrust), _ = step.actuator_command(out, thrust)
+        sent = autopilot_mix(c_thrust, c_roll, c_pitch, c_yaw)
         applied = out.thrust
         rate_saturated = out.saturated_axes
         step.learn()

@@ -45,6 +45,7 @@ from sitl.link_model import (
 )
 from sitl.physics import Quadrotor
 from sitl.pilot import PilotView, make_pilot
+from sitl.px4_control import ControlAllocator, thrust_for_command
 from sitl.rotors import hover_motor_command
 from sitl.scenario import Scenario
 from sitl.wind import Wind
@@ -130,7 +131,9 @@ def simulate_flight(
     see_plant = getattr(controller, "see_plant", None)
     step = SampleStep(controller, controller_profile or plant, output="actuator")
     sticks_map = build_stick_map(controller_cfg)
-    hover = hover_motor_command(plant)
+    autopilot_mix = ControlAllocator.from_profile(plant).mix
+    # The pilot's hover collective in PX4's units (0 the motors' armed idle, 1 full).
+    hover = thrust_for_command(hover_motor_command(plant), plant.limits.motor_idle)
     n_motors = plant.n_motors
 
     n_steps = round(duration / dt)
@@ -173,14 +176,10 @@ def simulate_flight(
         if see_plant is not None:
             see_plant(quad)
         out = step.sample(sample_dt, gyro, cmd.rate_rad_s, cmd.thrust)
-        (c_roll, c_pitch, c_yaw, c_thrust), replaced = step.actuator_command(out, cmd.thrust)
-        # The autopilot mixes the controls it is sent; ungated, they are the law's
-        # own mix.
-        sent = (
-            controller.mixer.mix(c_thrust, c_roll, c_pitch, c_yaw).motors
-            if replaced
-            else out.motors
-        )
+        (c_roll, c_pitch, c_yaw, c_thrust), _ = step.actuator_command(out, cmd.thrust)
+        # The autopilot allocates the controls it is sent (PX4's allocation, as the
+        # SITL's PX4 personality does), whatever the law's own mix was.
+        sent = autopilot_mix(c_thrust, c_roll, c_pitch, c_yaw)
         step.learn()
         st = quad.state
         cols["t_s"].append(sample_t)

@@ -33,7 +33,6 @@ from typing import Annotated, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from companion.control import AXES
 from companion.errors import ConfigError
 from companion.profile import (
     FLIGHT_MAX_S,
@@ -45,6 +44,9 @@ from companion.schema import StrictModel, format_validation_error, read_yaml
 from sitl.pilot.rc import DEFAULT_RATE_FULL_SCALE_DEG_S, RC_MAX_US, RC_MIN_US
 from sitl.pilot.scripted import Chirp, ScriptedPilot, Segment
 from sitl.pilot.virtual import PilotParams
+
+_AXES = ("roll", "pitch", "yaw")
+"""A chirp's axis names, in the order of the pilot's rate channels."""
 
 __all__ = ["load_stick_script"]
 
@@ -110,7 +112,7 @@ def _to_segment(m: _SegmentModel) -> Segment:
     chirp = None
     if m.chirp is not None:
         c = m.chirp
-        chirp = Chirp(AXES.index(c.axis), c.amplitude_deg_s, c.f0_hz, c.f1_hz, c.taper_s)
+        chirp = Chirp(_AXES.index(c.axis), c.amplitude_deg_s, c.f0_hz, c.f1_hz, c.taper_s)
     return Segment(
         t_s=m.t_s,
         rate_deg_s=rates,

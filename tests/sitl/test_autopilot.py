@@ -227,9 +227,11 @@ def test_paper_mixer_selected(profile: VehicleProfile) -> None:
     offboard_armed(ap)
     ap.on_actuator_target(0.5, (0.2, 0.0, 0.0, 0.5))
     motors = ap.update(0.5, LEVEL, LEVEL, landed=False)
-    # Paper '+' frame: motor 4 (left) up, motor 2 (right) down, 1 and 3 unchanged.
-    assert motors[3] > 0.5 > motors[1]
-    assert motors[0] == pytest.approx(0.5) == motors[2]
+    # Paper '+' frame: motor 4 (left) up, motor 2 (right) down, 1 and 3 unchanged
+    # (PX4's collective 0.5 is half way from the armed idle to full).
+    mid = paper.limits.motor_idle + (1.0 - paper.limits.motor_idle) * 0.5
+    assert motors[3] > mid > motors[1]
+    assert motors[0] == pytest.approx(mid) == motors[2]
 
 
 def test_nan_setpoints_ignored_and_counted(profile: VehicleProfile) -> None:
@@ -270,7 +272,9 @@ def test_stabilized_sticks_level(profile: VehicleProfile) -> None:
     ap.arm(0.0)
     sticks = (1500, 1500, 1500, 1500)
     motors = ap.update(0.0, LEVEL, LEVEL, landed=True, sticks_us=sticks)
-    assert motors == pytest.approx((0.5,) * 4)
+    # Half throttle: half way from the armed idle (PWM_MAIN_MINn) to full.
+    mid = profile.limits.motor_idle + (1.0 - profile.limits.motor_idle) * 0.5
+    assert motors == pytest.approx((mid,) * 4)
     # Rolled right by 0.2 rad with centred sticks: the loop rolls back left.
     ap.update(0.001, LEVEL, (0.2, 0.0, 0.0), landed=False, sticks_us=sticks)
     assert ap.last_torque_thrust[0] < 0.0
