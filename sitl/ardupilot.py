@@ -96,15 +96,17 @@ from sitl.ardupilot_control import (
 from sitl.ardupilot_laws import AngleTarget, CopterLaws
 from sitl.ardupilot_modes import FLYABLE, GUIDED, MANUAL_THROTTLE, NEEDS_POSITION, CopterMode
 from sitl.ardupilot_params import SITL_RATE_TUNE, ArduParams
-from sitl.personality import PILOT_ACRO_RATE_MAX_RAD_S, MavResult, clip
+from sitl.personality import (
+    MAV_SEVERITY_CRITICAL,
+    MAV_SEVERITY_WARNING,
+    PILOT_ACRO_RATE_MAX_RAD_S,
+    MavResult,
+    clip,
+)
 
 __all__ = ["ArduCopter", "ArduCopterConfig"]
 
 logger = logging.getLogger(__name__)
-
-MAV_SEVERITY_CRITICAL = 2
-MAV_SEVERITY_WARNING = 4
-MAV_SEVERITY_INFO = 6
 
 GUID_OPTION_THRUST_AS_THRUST = 8
 """``GUID_OPTIONS`` bit 3: SET_ATTITUDE_TARGET's thrust is thrust, not a climb rate."""
@@ -148,6 +150,11 @@ class ArduCopterConfig:
     climb_p, climb_i
         Vertical-speed PI, thrust per m/s (and per m); stands in for
         ``PSC_VELZ_*`` / ``PSC_ACCZ_*``.
+    ekf_alt_ready_s, ekf_position_ready_s
+        Seconds after boot at which the EKF has an altitude and a position
+        estimate; before, arming is refused with ArduCopter's texts ("Arm: Need Alt
+        Estimate"; "PreArm: Need Position Estimate" in a mode that needs one). The
+        real 4.5.6 SITL: a few seconds and 40-50 s. 0: ready at boot.
     """
 
     test_stand: bool = False
@@ -162,6 +169,8 @@ class ArduCopterConfig:
     pilot_speed_m_s: float = 2.5
     climb_p: float = 0.15
     climb_i: float = 0.08
+    ekf_alt_ready_s: float = 0.0
+    ekf_position_ready_s: float = 0.0
 
 
 class ArduCopter(CopterLaws):
@@ -213,7 +222,6 @@ class ArduCopter(CopterLaws):
         self.failsafe_radio = False
         """The radio failsafe is on (RC lost); cleared when RC comes back."""
         self.ignored_setpoints = 0
-        self.statustexts: list[tuple[int, str]] = []
         self.gyro_filtered_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self.rate_target_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
         """Body-rate target of the last rate-loop run (rad/s)."""
@@ -239,10 +247,22 @@ class ArduCopter(CopterLaws):
 
     @property
     def system_status(self) -> int:
-        """``MAV_STATE``: CRITICAL (5) in failsafe, STANDBY (3) landed, else ACTIVE (4)."""
-        if self.failsafe is not None and self.armed:
+        """``MAV_STATE``: CRITICAL (5) while any failsafe is on (armed or not, as
+        ``GCS_MAVLINK_Copter::vehicle_system_status``), STANDBY (3) landed, else ACTIVE (4)."""
+        if self.failsafe is not None or self.failsafe_radio:
             return 5
         return 3 if (self.landed or not self.armed) else 4
+
+    def rc_receiver(self, t_s: float) -> tuple[bool, bool, bool]:
+        """SYS_STATUS's RC bit: once a radio was seen it stays present and enabled;
+        healthy until ``RC_FS_TIMEOUT`` passes without a frame."""
+        if self._rc_t_s is None:
+            return (False, False, False)
+        return (True, True, not self.rc_lost(t_s))
+
+    def prearm_ok(self, t_s: float) -> bool:
+        """The pre-arm checks pass (``SYS_STATUS`` pre-arm bit healthy)."""
+        return not self.crashed and not self._arming_problem(t_s, force=False)
 
     @property
     def external_control(self) -> bool:
@@ -257,13 +277,6 @@ class ArduCopter(CopterLaws):
     @property
     def guided_thrust_is_thrust(self) -> bool:
         return bool(int(self.params["GUID_OPTIONS"]) & GUID_OPTION_THRUST_AS_THRUST)
-
-    def drain_statustexts(self) -> list[tuple[int, str]]:
-        out, self.statustexts = self.statustexts, []
-        return out
-
-    def _text(self, severity: int, text: str) -> None:
-        self.statustexts.append((severity, text[:50]))
 
     def setpoint_age_s(self, t_s: float) -> float:
         return math.inf if self._target is None else t_s - self._target.t_s
@@ -328,26 +341,47 @@ class ArduCopter(CopterLaws):
             fails.append(self.config.prearm_fail)
         return fails
 
+    def _arming_problem(self, t_s: float, *, force: bool) -> str | None:
+        """The text of the first failing check (``"Arm: ..."`` or ``"PreArm: ..."``), or None."""
+        if self.crashed:
+            return "Arm: Crashed"
+        if self.mode == CopterMode.LAND:
+            # Mode::allows_arming is a mandatory check: ARMING_CHECK=0 does not skip it.
+            return "Arm: Mode not armable"
+        if force or int(self.params["ARMING_CHECK"]) == 0:
+            return None
+        fails = self.prearm_failures()
+        if fails:
+            return f"PreArm: {fails[0]}"
+        cfg = self.config
+        if self.mode in NEEDS_POSITION | {CopterMode.GUIDED} and (
+            t_s < cfg.ekf_position_ready_s or not self.position_valid
+        ):
+            return "PreArm: Need Position Estimate"
+        if t_s < cfg.ekf_alt_ready_s:
+            # AP_Arming_Copter::mandatory_checks (ekf alt), after the pre-arm checks.
+            return "Arm: Need Alt Estimate"
+        return None
+
     def _arming_checks(self, t_s: float, *, force: bool) -> MavResult | None:
         """ArduCopter's checks; ``force`` (param2 2989) skips the pre-arm ones.
 
         A refusal answers FAILED (``GCS_MAVLINK::handle_command_component_arm_disarm``)
-        and is reported as ``STATUSTEXT "Arm: ..."`` / ``"PreArm: ..."`` (severity CRITICAL).
+        and is reported as ``STATUSTEXT "Arm: ..."`` / ``"PreArm: ..."`` (severity
+        CRITICAL): a crash, LAND, a failing ``--prearm-fail`` check, no position
+        estimate yet in a mode that needs one (``ekf_position_ready_s`` after boot,
+        or none), no altitude estimate yet (``ekf_alt_ready_s``).
         """
-        if self.crashed:
-            self._text(MAV_SEVERITY_CRITICAL, "Arm: Crashed")
-            return self._arm_denied(t_s, "crashed")
-        if self.mode == CopterMode.LAND:
-            # Mode::allows_arming is a mandatory check: ARMING_CHECK=0 does not skip it.
-            self._text(MAV_SEVERITY_CRITICAL, "Arm: Mode not armable")
-            return self._arm_denied(t_s, "mode not armable")
-        if not force and int(self.params["ARMING_CHECK"]) != 0:
-            fails = self.prearm_failures()
-            if fails:
-                for f in fails:
-                    self._text(MAV_SEVERITY_CRITICAL, f"PreArm: {f}")
-                return self._arm_denied(t_s, fails[0])
-        return None
+        problem = self._arming_problem(t_s, force=force)
+        if problem is None:
+            return None
+        if problem.startswith("PreArm: ") and problem[8:] in self.prearm_failures():
+            for f in self.prearm_failures():
+                self._text(MAV_SEVERITY_CRITICAL, f"PreArm: {f}")
+        else:
+            self._text(MAV_SEVERITY_CRITICAL, problem)
+        reason = problem.split(": ", 1)[1]
+        return self._arm_denied(t_s, reason.lower() if problem.startswith("Arm: ") else reason)
 
     def _on_armed(self, t_s: float) -> None:
         # The flight starts here: the filters, the rate loop and its schedule too,
@@ -493,8 +527,8 @@ class ArduCopter(CopterLaws):
         if self.failsafe_radio or action == 0 or (self._rc_t_s is None and not self.armed):
             return
         self.failsafe_radio = True
-        self._text(MAV_SEVERITY_WARNING, "Radio Failsafe")
         if not self.armed:
+            self._text(MAV_SEVERITY_WARNING, "Radio Failsafe")
             return
         fs_options = int(self.params["FS_OPTIONS"])
         if self.mode in GUIDED and fs_options & _FS_OPTION_CONTINUE_GUIDED:
@@ -502,10 +536,18 @@ class ArduCopter(CopterLaws):
             self._event(t_s, "failsafe", cause="radio", action="continue")
             return
         if self.landed:
+            # events.cpp: on the ground the failsafe disarms.
+            self._text(MAV_SEVERITY_WARNING, "Radio Failsafe - Disarming")
             self._event(t_s, "failsafe", cause="radio", action="disarm")
             self.disarm(t_s, reason="radio failsafe")
             return
-        new = CopterMode.BRAKE if action == 7 and self.position_valid else CopterMode.LAND
+        self._text(MAV_SEVERITY_WARNING, "Radio Failsafe")
+        if action == 7 and self.position_valid:
+            new = CopterMode.BRAKE
+        elif action == 1 and self.position_valid:
+            new = CopterMode.RTL  # shown as RTL; flown as LAND (no navigation here)
+        else:
+            new = CopterMode.LAND
         self._enter_failsafe(t_s, "radio", new, reason="radio failsafe")
 
     def _check_position(self, t_s: float) -> None:

@@ -253,10 +253,6 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
 
     # -------------------------------------------------------------- streams
 
-    def _send_status_texts(self) -> None:
-        for severity, text in self.autopilot.drain_statustexts():
-            self.mav.statustext_send(severity, text.encode(), 0, 0)
-
     def _body_rates(self) -> tuple[float, float, float]:
         return self.autopilot.gyro_filtered_rad_s
 

@@ -113,7 +113,8 @@ class CopterLaws(Personality[CopterMode]):
                 return self._ground_idle()
             thrust = self._climb_loop(dt, climb_sp, climb_rate_m_s, cos_tilt)
             return self._output(dt, rates, gyro, thrust, cos_tilt, True)
-        if mode == CopterMode.LAND:
+        if mode in (CopterMode.LAND, CopterMode.RTL):
+            # RTL (the radio failsafe's action) flies as LAND: no navigation here.
             if self.landed and not cfg.test_stand:
                 self.disarm(t_s, reason="landed")
                 return self.motors

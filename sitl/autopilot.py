@@ -41,10 +41,16 @@ Offboard rules (as PX4)
 
 RC and position (as PX4 >= 1.15, ``commander/failsafe``)
 -------------------------------------------------------
-* RC is the pilot's sticks reaching the autopilot; lost after ``COM_RC_LOSS_T``
-  (0.5 s) without a frame. Armed, with RC lost, the manual modes (MANUAL,
-  ALTCTL, POSCTL, ACRO, STABILIZED) are refused (``TEMPORARILY_REJECTED``), and
-  in any mode but LAND and those ``COM_RCL_EXCEPT`` exempts (bit 1 hold, bit 2
+* RC is the pilot's sticks reaching the autopilot, from a radio or from a ground
+  station's joystick (``MANUAL_CONTROL`` from any sysid, taken when
+  ``COM_RC_IN_MODE`` is 1, 2 or 3, :meth:`Autopilot.on_manual_control`; the face
+  streams it back as PX4's own ``MANUAL_CONTROL`` while it is the stick input);
+  lost after ``COM_RC_LOSS_T`` (0.5 s) without a frame. Armed, with RC lost, ACRO
+  is refused (``TEMPORARILY_REJECTED``); MANUAL, STABILIZED, ALTCTL and POSCTL are
+  taken as the real PX4 v1.16 SIH takes them: shown as POSCTL, in a failsafe
+  (CRITICAL, STATUSTEXT "Failsafe activated") that descends at ``MPC_LAND_SPEED``
+  and disarms on touchdown, until stick input comes back. In any mode but LAND and
+  those ``COM_RCL_EXCEPT`` exempts (bit 1 hold, bit 2
   offboard; default none) the RC-loss failsafe acts: ``NAV_RCL_ACT`` 1 Hold
   (Land without a position), 2 Return (PX4's default; flown as Land: this SITL
   does not fly home), 3 Land, 5 Terminate and 6 Disarm (motors off where it is),
@@ -84,6 +90,7 @@ from typing import Any, Literal
 
 from companion.profile import VehicleProfile
 from sitl.personality import (
+    MAV_SEVERITY_CRITICAL,
     PILOT_ACRO_RATE_MAX_RAD_S,
     MavResult,
     Personality,
@@ -103,7 +110,7 @@ from sitl.px4_modes import (
 )
 from sitl.px4_params import Px4Params
 
-__all__ = ["PX4_PARAMS", "Autopilot", "AutopilotConfig"]
+__all__ = ["PX4_PARAMS", "Autopilot", "AutopilotConfig", "Joystick", "joystick_channels"]
 
 logger = logging.getLogger(__name__)
 
@@ -204,6 +211,38 @@ _RCL_EXCEPT_HOLD = 2
 _RCL_EXCEPT_OFFBOARD = 4
 _RCL_NONE, _RCL_HOLD, _RCL_TERMINATE, _RCL_DISARM = 0, 1, 5, 6
 _RCL_ACTIONS = (_RCL_NONE, _RCL_HOLD, 2, 3, _RCL_TERMINATE, _RCL_DISARM)
+_JOYSTICK_IN_MODES = (1, 2, 3)
+"""``COM_RC_IN_MODE`` values that take a ground station's joystick: 1 joystick only,
+2 RC and joystick with fallback, 3 RC or joystick, the first kept (0 RC only, 4 no
+stick input)."""
+MANUAL_LOSS = "manual_control_loss"
+"""The failsafe of a manual mode entered without stick input."""
+
+
+@dataclass(frozen=True)
+class Joystick:
+    """A ground station's ``MANUAL_CONTROL`` as PX4 takes it: ``x`` pitch (stick
+    forward +), ``y`` roll (right +), ``r`` yaw (right +), each -1000..1000; ``z``
+    thrust 0..1000; ``aux`` aux1..aux6 (-1000..1000), present where
+    ``enabled_extensions`` bits 2..7 say so."""
+
+    x: int
+    y: int
+    z: int
+    r: int
+    enabled_extensions: int = 0
+    aux: tuple[int, int, int, int, int, int] = (0, 0, 0, 0, 0, 0)
+
+
+def joystick_channels(j: Joystick) -> tuple[int, ...]:
+    """The joystick as the SITL's AETR channels in us: roll ``1500 + y/2``, pitch
+    ``1500 - x/2`` (stick forward is nose down, a low channel here), throttle
+    ``1000 + z``, yaw ``1500 + r/2``, then aux1..aux6 as ``1500 + aux/2`` (centred
+    where absent)."""
+    chans = [1500 + j.y // 2, 1500 - j.x // 2, 1000 + j.z, 1500 + j.r // 2]
+    for i in range(6):
+        chans.append(1500 + j.aux[i] // 2 if j.enabled_extensions & (4 << i) else 1500)
+    return tuple(chans)
 
 
 @dataclass
@@ -264,6 +303,8 @@ class Autopilot(Personality[FlightMode]):
         self._rc_lost_at_arming = False
         self._rc_loss_handled = False
         self._last_rate_t_s: float | None = None
+        self._joystick: Joystick | None = None
+        self._joystick_t_s: float | None = None
 
     # ------------------------------------------------------------------ status
 
@@ -288,10 +329,26 @@ class Autopilot(Personality[FlightMode]):
 
     @property
     def system_status(self) -> int:
-        """``MAV_STATE``: STANDBY (3) disarmed, ACTIVE (4) armed, CRITICAL (5) in failsafe."""
-        if self.failsafe is not None and self.armed:
+        """``MAV_STATE``: CRITICAL (5) in a failsafe, else STANDBY (3) or ACTIVE (4, armed)."""
+        if self.failsafe is not None:
             return 5
         return 4 if self.armed else 3
+
+    def joystick(self, t_s: float) -> Joystick | None:
+        """The ground station's joystick while it is PX4's stick input (frames within
+        ``COM_RC_LOSS_T``), else None: what PX4 streams back as ``MANUAL_CONTROL``."""
+        jt = self._joystick_t_s
+        if jt is None or t_s - jt > self.rc_timeout_s:
+            return None
+        return self._joystick
+
+    def rc_receiver(self, t_s: float) -> tuple[bool, bool, bool]:
+        """SYS_STATUS's RC bit: a radio's (as the base), or the joystick's: present,
+        enabled and healthy while it streams, not present once it stops."""
+        if self._joystick_t_s is not None:
+            on = self.joystick(t_s) is not None
+            return (on, on, on)
+        return super().rc_receiver(t_s)
 
     @property
     def rc_timeout_s(self) -> float:
@@ -351,8 +408,11 @@ class Autopilot(Personality[FlightMode]):
         if new == self.mode:
             return MavResult.ACCEPTED
         if self.armed and main_mode in _STICK_MODES and self.rc_lost(t_s):
-            self._event(t_s, "mode_denied", mode=new.name, reason="no manual control")
-            return MavResult.TEMPORARILY_REJECTED
+            if main_mode == MainMode.ACRO:
+                self._event(t_s, "mode_denied", mode=new.name, reason="no manual control")
+                return MavResult.TEMPORARILY_REJECTED
+            # PX4 v1.16 takes the manual mode, shows POSCTL, and fails safe at once.
+            return self._manual_mode_without_sticks(t_s)
         if (
             self.armed
             and (main_mode == MainMode.POSCTL or new == MODE_LOITER)
@@ -367,6 +427,22 @@ class Autopilot(Personality[FlightMode]):
             self._event(t_s, "mode_denied", mode=new.name, reason="no offboard setpoints")
             return MavResult.TEMPORARILY_REJECTED
         self._change_mode(t_s, new, reason="command")
+        return MavResult.ACCEPTED
+
+    def _manual_mode_without_sticks(self, t_s: float) -> MavResult:
+        """A manual mode (MANUAL, STABILIZED, ALTCTL, POSCTL) asked for with no valid
+        stick input: as the real PX4 v1.16 SITL did, the command is accepted, the
+        vehicle shows POSCTL (ALTCTL without a position estimate), raises its
+        failsafe (HEARTBEAT CRITICAL, STATUSTEXT "Failsafe activated") and
+        descends (``MPC_LAND_SPEED``; about 0.6 m/s measured) until stick input
+        comes back or it lands and disarms."""
+        shown = FlightMode(MainMode.POSCTL if self.position_valid else MainMode.ALTCTL)
+        if shown != self.mode:
+            self._change_mode(t_s, shown, reason="command")
+        if self.failsafe != MANUAL_LOSS:
+            self.failsafe = MANUAL_LOSS
+            self._text(MAV_SEVERITY_CRITICAL, "Failsafe activated")
+            self._event(t_s, "failsafe", cause=MANUAL_LOSS, action="DESCEND")
         return MavResult.ACCEPTED
 
     def _on_mode_change(self, new: FlightMode) -> None:
@@ -429,9 +505,32 @@ class Autopilot(Personality[FlightMode]):
 
     # -------------------------------------------------------------------- loop
 
+    def on_manual_control(self, t_s: float, joystick: Joystick) -> bool:
+        """A ground station's ``MANUAL_CONTROL`` (from any sysid): PX4's stick input when
+        ``COM_RC_IN_MODE`` takes a joystick (1, 2, 3), as RC frames are.
+
+        Returns
+        -------
+        bool
+            False when ignored (``COM_RC_IN_MODE`` 0 or 4, or a value out of range).
+        """
+        if int(self.params["COM_RC_IN_MODE"]) not in _JOYSTICK_IN_MODES:
+            return False
+        j = joystick
+        if not (all(-1000 <= v <= 1000 for v in (j.x, j.y, j.r, *j.aux)) and 0 <= j.z <= 1000):
+            self.rejected_setpoints += 1
+            return False
+        self._joystick, self._joystick_t_s = j, t_s
+        self._rc_t_s = t_s
+        self._last_sticks = joystick_channels(j)
+        self._on_rc_frame()
+        return True
+
     def _on_rc_frame(self) -> None:
         self._rc_lost_at_arming = False
         self._rc_loss_handled = False
+        if self.failsafe == MANUAL_LOSS:
+            self.failsafe = None  # stick input is back: PX4 leaves the failsafe
 
     def _step(
         self,
@@ -471,7 +570,10 @@ class Autopilot(Personality[FlightMode]):
             else:
                 torque_thrust = self._rate_loop(dt_s, sp.values[:3], sp.values[3])
         elif self.mode in (MODE_LAND, MODE_LOITER):
-            torque_thrust = self._auto_loop(t_s, dt_s, euler_rad, climb_rate_m_s)
+            descend = self.mode == MODE_LAND
+            torque_thrust = self._auto_loop(t_s, dt_s, euler_rad, climb_rate_m_s, descend=descend)
+        elif self.failsafe == MANUAL_LOSS:
+            torque_thrust = self._auto_loop(t_s, dt_s, euler_rad, climb_rate_m_s, descend=True)
         else:
             # Until RC counts as lost, the last frame holds (as PX4's manual_control_setpoint).
             sticks = None if self.rc_lost(t_s) else self._last_sticks
@@ -569,6 +671,8 @@ class Autopilot(Personality[FlightMode]):
         dt_s: float,
         euler_rad: Sequence[float],
         climb_rate_m_s: float,
+        *,
+        descend: bool,
     ) -> tuple[float, float, float, float]:
         cfg = self.config
         p, q = self._level_rates(euler_rad, 0.0, 0.0)
@@ -577,10 +681,10 @@ class Autopilot(Personality[FlightMode]):
             last = self.last_torque_thrust[3]
             thrust = clip(last, cfg.failsafe_thrust_min, hover)
         else:
-            if self.mode == MODE_LAND and self.landed:
+            if descend and self.landed:
                 self.disarm(t_s, reason="landed")
                 return (0.0, 0.0, 0.0, 0.0)
-            climb_sp = -cfg.land_speed_m_s if self.mode == MODE_LAND else 0.0
+            climb_sp = -cfg.land_speed_m_s if descend else 0.0
             err = climb_sp - climb_rate_m_s
             self._climb_integral = clip(self._climb_integral + err * dt_s, -2.0, 2.0)
             tilt = max(math.cos(euler_rad[0]) * math.cos(euler_rad[1]), 0.5)

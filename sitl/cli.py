@@ -228,6 +228,26 @@ def cli(verbose: int) -> None:
     "(RC_CHANNELS without channels), as for a vehicle flown by a script.",
 )
 @click.option(
+    "--pilot-input",
+    type=click.Choice(["rc", "joystick"]),
+    default="rc",
+    show_default=True,
+    help="How the pilot's sticks reach the autopilot: rc, a radio (RC_CHANNELS); "
+    "joystick (PX4 only), a ground station's MANUAL_CONTROL as PX4 SIH is flown: "
+    "no RC_CHANNELS, PX4 streams MANUAL_CONTROL back on request, aux1 is the "
+    "pilot's channel 5 (the engage switch).",
+)
+@click.option(
+    "--ekf-warmup",
+    "ekf_warmup",
+    default=None,
+    metavar="ALT_S,POS_S",
+    help="ArduPilot: the EKF has an altitude estimate ALT_S and a position estimate "
+    "POS_S seconds after boot (the real ArduCopter 4.5.6 SITL: about 3 and 40-50 s); "
+    "before, arming is refused ('Arm: Need Alt Estimate', 'PreArm: Need Position "
+    "Estimate' in modes that need one) [default: ready at boot].",
+)
+@click.option(
     "--no-position",
     is_flag=True,
     help="The vehicle has no position estimate (no GPS or flow): no LOCAL_POSITION_NED, "
@@ -274,6 +294,8 @@ def run(
     ap_params: tuple[str, ...],
     no_position: bool,
     no_rc: bool,
+    pilot_input: str,
+    ekf_warmup: str | None,
     true_state: bool,
     signing_key: Path | None,
     link: LinkSpec | None,
@@ -317,6 +339,17 @@ def run(
         _check_param_names(autopilot, firmware, parsed_params)
         if autopilot != "ardupilot" and prearm_fail is not None:
             raise ValueError("--prearm-fail needs --autopilot ardupilot")
+        warmup = None
+        if ekf_warmup is not None:
+            if autopilot != "ardupilot":
+                raise ValueError("--ekf-warmup needs --autopilot ardupilot")
+            try:
+                alt_s, pos_s = (float(v) for v in ekf_warmup.split(","))
+            except ValueError:
+                raise ValueError(
+                    f"--ekf-warmup {ekf_warmup!r}: expected ALT_S,POS_S (e.g. 3,45)"
+                ) from None
+            warmup = (alt_s, pos_s)
         key = None
         if signing_key is not None:
             from companion.link.signing import load_signing_key
@@ -345,6 +378,8 @@ def run(
             firmware=firmware,
             position=not no_position,
             rc=not no_rc,
+            pilot_input=pilot_input,  # type: ignore[arg-type]
+            ekf_warmup_s=warmup,
             link=LINK_PROFILES["ideal"] if link is None else link,
             estimator=None if true_state else EKF_GPS,
             **extra,

@@ -52,8 +52,10 @@ def parse_fault(text: str) -> Fault:
     ``imu-range``: HIGHRES_IMU ``xgyro`` reads :data:`IMU_RANGE_GYRO_RAD_S`
     (finite, beyond the gyro's range); the other fields and streams are true;
     ``rc-lost``: the autopilot's receiver loses its signal: RC_CHANNELS goes on
-    as such a receiver reports (chancount 0, every channel UINT16_MAX, RSSI 0),
-    and the autopilot gets no sticks (its RC-loss failsafe follows, as
+    as such a receiver reports on PX4 (chancount 0, every channel UINT16_MAX, RSSI
+    0) and on ArduPilot (the last values, RSSI unchanged: only SYS_STATUS's RC
+    health and the radio failsafe say so); with a joystick pilot the joystick
+    stops; the autopilot gets no sticks (its RC-loss failsafe follows, as
     ``sitl.autopilot`` and ``sitl.ardupilot`` describe);
     ``position-lost``: the position estimate is lost: no more LOCAL_POSITION_NED,
     and the autopilot's position modes fail over as the real stacks' do.

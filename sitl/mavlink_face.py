@@ -92,6 +92,12 @@ SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
 )
 
+RC_RECEIVER = mavlink.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+"""SYS_STATUS bit of the RC receiver (present, enabled, healthy: the personality's
+:meth:`~sitl.personality.Personality.rc_receiver`)."""
+PREARM = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+"""SYS_STATUS bit 28: present and enabled; healthy when the pre-arm checks pass."""
+
 ID_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 ID_SYS_STATUS = mavlink.MAVLINK_MSG_ID_SYS_STATUS
 ID_EXTENDED_SYS_STATE = mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE
@@ -229,6 +235,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     """A stream due with nothing to send (LOCAL_POSITION_NED without a valid
     estimate) keeps its slot and goes out as soon as it has something, as PX4's
     ``MavlinkStream::update`` does; False: the slot passes (ArduPilot)."""
+    extra_streams: ClassVar[tuple[int, ...]] = ()
+    """A face's own streams beyond the shared ones, sent after RC_CHANNELS when due."""
     lockstep_setpoints: frozenset[str] = frozenset(
         ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
     )
@@ -257,6 +265,13 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         self.imu_stopped = False
         self.imu_nan = False
         self.rc_lost = False
+        self.rc_fitted = True
+        """The vehicle has an RC receiver: False (PX4 flown by a ground station's
+        joystick, as PX4 SIH) sends no RC_CHANNELS at all."""
+        self.rc_lost_freezes = False
+        """A receiver that lost its signal keeps reporting its last channels (ArduPilot:
+        RC_CHANNELS go on with the last values, RSSI unchanged), rather than none."""
+        self._rc_last_sent: tuple[list[int], int, int] | None = None
         self.messages_received = 0
         self.params_sent = 0
         self._pending: set[int] = set()
@@ -507,8 +522,11 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             self._send_heartbeat(wall_s)
         # RC before IMU: a client that maps sticks when RC arrives then uses this
         # step's sticks for this step's IMU sample, as the in-process loop does.
-        if st.due(ID_RC_CHANNELS, t_s):
+        if self.rc_fitted and st.due(ID_RC_CHANNELS, t_s):
             self._send_one(ID_RC_CHANNELS)
+        for msg_id in self.extra_streams:
+            if st.due(msg_id, t_s):
+                self._send_one(msg_id)
         imu_sent = False
         if imu_sample and not self.imu_stopped:
             # Lockstep follows the fastest body-rate stream: the one the client runs on.
@@ -540,7 +558,9 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         return imu_sent
 
     def _send_status_texts(self) -> None:
-        """Send the STATUSTEXTs the autopilot queued (none here)."""
+        """Send the STATUSTEXTs the autopilot queued."""
+        for severity, text in self.autopilot.drain_statustexts():
+            self.mav.statustext_send(severity, text.encode(), 0, 0)
 
     def _send_heartbeat(self, wall_s: float) -> None:
         ap = self.autopilot
@@ -593,19 +613,33 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                 round(s.imu_t_s * 1e3), q[0], q[1], q[2], q[3], g[0], g[1], g[2]
             )
         elif msg_id == ID_RC_CHANNELS:
-            # No sticks, or a receiver without signal: no channel (chancount 0),
-            # every one UINT16_MAX ("unused"), RSSI 0.
-            chans = [] if self.rc_lost else list(s.sticks_us or ())[:18]
-            n = len(chans)
-            chans += [65535] * (18 - n)
-            mav.rc_channels_send(round(s.t_s * 1e3), n, *chans, 254 if n else 0)
+            if self.rc_lost and self.rc_lost_freezes and self._rc_last_sent is not None:
+                # The receiver's last frame, again (ArduPilot keeps its last values).
+                chans, n, rssi = self._rc_last_sent
+            else:
+                # No sticks, or a receiver without signal: no channel (chancount 0),
+                # every one UINT16_MAX ("unused"), RSSI 0.
+                chans = [] if self.rc_lost else list(s.sticks_us or ())[:18]
+                n = len(chans)
+                chans += [65535] * (18 - n)
+                rssi = 254 if n else 0
+                if n:
+                    self._rc_last_sent = (chans, n, rssi)
+            mav.rc_channels_send(round(s.t_s * 1e3), n, *chans, rssi)
         elif msg_id == ID_LOCAL_POSITION_NED:
             # PX4 and ArduPilot send it only while their position estimate is valid.
             x, v = s.est_pos_ned_m, s.est_vel_ned_m_s
             if ap.position_valid and x is not None and v is not None:
                 mav.local_position_ned_send(round(s.t_s * 1e3), x[0], x[1], x[2], v[0], v[1], v[2])
         elif msg_id == ID_SYS_STATUS:
-            mav.sys_status_send(SENSORS, SENSORS, SENSORS, 0, 16800, -1, 100, 0, 0, 0, 0, 0, 0)
+            present, enabled, health = SENSORS | PREARM, SENSORS | PREARM, SENSORS
+            if ap.prearm_ok(s.t_s):
+                health |= PREARM
+            rc = ap.rc_receiver(s.t_s)
+            present |= RC_RECEIVER if rc[0] else 0
+            enabled |= RC_RECEIVER if rc[1] else 0
+            health |= RC_RECEIVER if rc[2] else 0
+            mav.sys_status_send(present, enabled, health, 0, 16800, -1, 100, 0, 0, 0, 0, 0, 0)
         elif msg_id == ID_EXTENDED_SYS_STATE:
             mav.extended_sys_state_send(mavlink.MAV_VTOL_STATE_UNDEFINED, ap.landed_state)
         elif msg_id == ID_HOME_POSITION:

@@ -49,6 +49,9 @@ from companion.profile import VehicleProfile
 
 __all__ = [
     "FORCE_DISARM_MAGIC",
+    "MAV_SEVERITY_CRITICAL",
+    "MAV_SEVERITY_INFO",
+    "MAV_SEVERITY_WARNING",
     "PILOT_ACRO_RATE_MAX_RAD_S",
     "Event",
     "FirmwareVersion",
@@ -63,6 +66,10 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+MAV_SEVERITY_CRITICAL = 2
+MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_INFO = 6
 
 FORCE_DISARM_MAGIC = 21196
 """``MAV_CMD_COMPONENT_ARM_DISARM`` param2 that forces a disarm in the air (PX4, ArduPilot)."""
@@ -311,6 +318,8 @@ class Personality(ABC, Generic[ModeT]):
         self._rc_t_s: float | None = None
         self._last_sticks: tuple[int, ...] | None = None
         self._climb_integral = 0.0
+        self.statustexts: list[tuple[int, str]] = []
+        """STATUSTEXTs queued for the face, ``(MAV_SEVERITY, text)``."""
 
     # ------------------------------------------------------------------ status
 
@@ -350,6 +359,29 @@ class Personality(ABC, Generic[ModeT]):
     def rc_lost(self, t_s: float) -> bool:
         """No RC frame for :attr:`rc_timeout_s` (or none ever)."""
         return self._rc_t_s is None or t_s - self._rc_t_s > self.rc_timeout_s
+
+    def prearm_ok(self, t_s: float) -> bool:
+        """The stack's pre-arm checks pass now (``SYS_STATUS`` bit
+        ``MAV_SYS_STATUS_PREARM_CHECK`` healthy); each stack says what they are."""
+        return not self.crashed
+
+    def rc_receiver(self, t_s: float) -> tuple[bool, bool, bool]:
+        """``SYS_STATUS``'s RC receiver bit: (present, enabled, healthy).
+
+        The radio's: present and enabled once a frame arrived, healthy while frames
+        keep arriving within :attr:`rc_timeout_s`. A stack may say otherwise.
+        """
+        if self._rc_t_s is None:
+            return (False, False, False)
+        return (True, True, not self.rc_lost(t_s))
+
+    def drain_statustexts(self) -> list[tuple[int, str]]:
+        """Return the STATUSTEXTs since the last call and forget them."""
+        out, self.statustexts = self.statustexts, []
+        return out
+
+    def _text(self, severity: int, text: str) -> None:
+        self.statustexts.append((severity, text[:50]))
 
     def drain_events(self) -> list[Event]:
         """Return the events since the last call and forget them."""

@@ -50,7 +50,7 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from sitl.autopilot import Autopilot
+from sitl.autopilot import Autopilot, Joystick
 from sitl.mavlink_face import (
     ID_ATTITUDE,
     ID_ATTITUDE_QUATERNION,
@@ -107,11 +107,17 @@ CAPABILITIES = px4_capabilities(PX4_DEFAULT_FIRMWARE)
 FLIGHT_SW_VERSION = PX4_DEFAULT_FIRMWARE.flight_sw_version
 
 
+ID_MANUAL_CONTROL = mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL
+JOYSTICK_EXTENSIONS = 252
+"""``MANUAL_CONTROL.enabled_extensions`` PX4 streams: bits 2..7, aux1..aux6."""
+
+
 def px4_streams(imu_rate_hz: float) -> MessageStreams:
     """The streams and default intervals of the PX4 face."""
     return MessageStreams(
         [
             *STATUS_STREAMS,
+            StreamSpec(ID_MANUAL_CONTROL, "MANUAL_CONTROL", 0.0),
             StreamSpec(ID_LOCAL_POSITION_NED, "LOCAL_POSITION_NED", 0.1),
             StreamSpec(ID_HIGHRES_IMU, "HIGHRES_IMU", 0.02, imu_based=True),
             StreamSpec(ID_ATTITUDE, "ATTITUDE", 0.02, imu_based=True),
@@ -143,6 +149,7 @@ class Px4Face(MavlinkFace[Autopilot]):
     capabilities = CAPABILITIES
     flight_sw_version = FLIGHT_SW_VERSION
     imu_streams = (ID_HIGHRES_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION)
+    extra_streams = (ID_MANUAL_CONTROL,)
 
     def __init__(
         self,
@@ -190,6 +197,30 @@ class Px4Face(MavlinkFace[Autopilot]):
             return
         self._setpoint_age(msg.time_usec * 1e-6, t_s)
         self.autopilot.on_actuator_target(t_s, list(msg.controls))
+
+    def _handle_other(self, mtype: str, msg: Any, t_s: float) -> None:
+        """``MANUAL_CONTROL`` from any ground station (any sysid) addressed to us:
+        PX4's stick input when ``COM_RC_IN_MODE`` takes a joystick."""
+        if mtype != "MANUAL_CONTROL" or msg.target not in (0, self.sysid):
+            return
+        ext = int(getattr(msg, "enabled_extensions", 0) or 0)
+        aux = tuple(int(getattr(msg, f"aux{i}", 0) or 0) for i in range(1, 7))
+        self.autopilot.on_manual_control(
+            t_s,
+            Joystick(msg.x, msg.y, msg.z, msg.r, ext, aux),  # type: ignore[arg-type]
+        )
+
+    def _send_one(self, msg_id: int) -> None:
+        if msg_id != ID_MANUAL_CONTROL:
+            super()._send_one(msg_id)
+            return
+        # PX4 streams the manual_control_setpoint it flies on: only while a joystick
+        # is its stick input (nothing once it stops), from its own sysid.
+        j = self.autopilot.joystick(self.snapshot.t_s)
+        if j is not None:
+            self.mav.manual_control_send(
+                self.sysid, j.x, j.y, j.z, j.r, 0, 0, JOYSTICK_EXTENSIONS, 0, 0, *j.aux
+            )
 
     def _handle_attitude_target(self, msg: Any, t_s: float) -> None:
         mask = msg.type_mask

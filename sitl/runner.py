@@ -105,7 +105,7 @@ from typing import Any, Literal
 import numpy as np
 
 from companion.profile import ImuModel, VehicleProfile
-from sitl.autopilot import Autopilot, AutopilotConfig
+from sitl.autopilot import Autopilot, AutopilotConfig, Joystick
 from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
 from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
 from sitl.flight_log import LogWriter
@@ -125,7 +125,7 @@ from sitl.rotors import hover_motor_command
 from sitl.streams import MessageStreams
 from sitl.wind import Wind, WindConfig
 
-__all__ = ["RunConfig", "RunSummary", "Runner"]
+__all__ = ["RunConfig", "RunSummary", "Runner", "joystick_from_channels"]
 
 logger = logging.getLogger(__name__)
 
@@ -200,6 +200,15 @@ class RunConfig:
         The autopilot has a radio: False for a vehicle flown without one (the
         pilot's timeline still runs, but no sticks reach the autopilot and
         RC_CHANNELS carries no channels, as after ``rc-lost``).
+    pilot_input
+        How the pilot's sticks reach the autopilot: ``"rc"`` a radio (RC_CHANNELS);
+        ``"joystick"`` (PX4 only) a ground station's ``MANUAL_CONTROL`` at the RC
+        rate, as PX4 SIH is flown: no RC receiver (no RC_CHANNELS), the pilot's
+        channel 5 as aux1; ``rc-lost`` stops the joystick.
+    ekf_warmup_s
+        ArduPilot: ``(alt_s, pos_s)`` after boot at which its EKF has an altitude
+        and a position estimate (arming refused before, as ArduCopter does); None:
+        both at boot.
     link
         The companion link (:mod:`sitl.link_model`): what it does to every frame
         sent and read; the ideal link by default.
@@ -246,6 +255,8 @@ class RunConfig:
     firmware: FirmwareVersion | None = None
     position: bool = True
     rc: bool = True
+    pilot_input: Literal["rc", "joystick"] = "rc"
+    ekf_warmup_s: tuple[float, float] | None = None
     link: LinkSpec = LINK_PROFILES["ideal"]
     estimator: EstimatorSpec | None = EKF_GPS
 
@@ -279,6 +290,31 @@ class RunSummary:
     link_counts: dict[str, int] = field(default_factory=dict)
     setpoint_age_ms: dict[str, float] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def joystick_from_channels(chans: tuple[int, ...]) -> Joystick:
+    """The pilot's AETR channels (us) as a ground station's ``MANUAL_CONTROL``: ``y`` roll
+    and ``r`` yaw ``2 (ch - 1500)``, ``x`` pitch ``-2 (ch2 - 1500)`` (a high pitch
+    channel is nose up, stick back), ``z`` ``ch3 - 1000``; channels 5..10, where given,
+    as aux1..aux6 (``enabled_extensions`` bits 2..7)."""
+
+    def stick(us: int) -> int:
+        return max(-1000, min(1000, 2 * (us - 1500)))
+
+    aux = [0] * 6
+    ext = 0
+    for i in range(6):
+        if 4 + i < len(chans):
+            aux[i] = stick(chans[4 + i])
+            ext |= 4 << i
+    return Joystick(
+        x=-stick(chans[1]),
+        y=stick(chans[0]),
+        z=max(0, min(1000, chans[2] - 1000)),
+        r=stick(chans[3]),
+        enabled_extensions=ext,
+        aux=(aux[0], aux[1], aux[2], aux[3], aux[4], aux[5]),
+    )
 
 
 def _mavlink_id(params: ParamStore, name: str) -> int:
@@ -349,6 +385,10 @@ class Runner:
             self._make_px4(self.hover_thrust)
         self.autopilot.position_valid = config.position
         self.face.rc_lost = not config.rc
+        if config.pilot_input == "joystick":
+            if config.autopilot != "px4":
+                raise ValueError("a joystick pilot (MANUAL_CONTROL) needs the PX4 personality")
+            self.face.rc_fitted = False  # PX4 SIH: no receiver, no RC_CHANNELS
         if config.signing_key is not None:
             enable_signing(self.face.mav, config.signing_key)
         self._link_counts: dict[str, int] = {}
@@ -427,6 +467,8 @@ class Runner:
                 hover_motor_cmd=min(max(hover_motor_cmd, 0.05), 0.95),
                 prearm_fail=cfg.prearm_fail,
                 params=(*SITL_AIRFRAME, *cfg.ardupilot_params),
+                ekf_alt_ready_s=cfg.ekf_warmup_s[0] if cfg.ekf_warmup_s else 0.0,
+                ekf_position_ready_s=cfg.ekf_warmup_s[1] if cfg.ekf_warmup_s else 0.0,
             ),
             initial_mode=mode,
         )
@@ -442,6 +484,8 @@ class Runner:
             sysid=_mavlink_id(ap.params, "MAV_SYSID"),
             firmware=cfg.firmware or ARDUPILOT_DEFAULT_FIRMWARE,
         )
+        # ArduPilot's RC_CHANNELS go on with the last values after the radio is lost.
+        self.face.rc_lost_freezes = True
 
     def run(self) -> RunSummary:
         """Fly until the duration, a signal, or a crash; write the log.
@@ -596,6 +640,7 @@ class Runner:
         linked = not cfg.link.ideal
         duration = self.duration_s if self.duration_s is not None else math.inf
         hover = self.hover_thrust
+        joystick_pilot = cfg.pilot_input == "joystick"
         sticks: tuple[int, ...] | None = None
         next_rc_s = 0.0
         client_active = True
@@ -667,6 +712,8 @@ class Runner:
                     hover,
                 )
                 sticks = pilot.sticks(view).channels()
+                if joystick_pilot and not face.rc_lost and isinstance(ap, Autopilot):
+                    ap.on_manual_control(t, joystick_from_channels(sticks))
             sample = imu.update(t, st.rate_frd_rad_s, st.specific_force_frd_m_s2)
             snap.t_s = t
             snap.q_wxyz = st.q_wxyz
@@ -740,7 +787,7 @@ class Runner:
                     climb_rate_m_s=-st.vel_ned_m_s[2],
                     landed=st.landed,
                     crashed=st.crashed,
-                    sticks_us=None if face.rc_lost else sticks,
+                    sticks_us=None if face.rc_lost or joystick_pilot else sticks,
                 )
             if ap.events:
                 for ev in ap.drain_events():

@@ -1,7 +1,8 @@
 """Both SITL personalities without RC or a position: what the real stacks do.
 
-PX4 (``sitl.autopilot``): COM_RC_LOSS_T, NAV_RCL_ACT, COM_RCL_EXCEPT, manual
-modes refused without RC, POSCTL / AUTO.LOITER refused without a position.
+PX4 (``sitl.autopilot``): COM_RC_LOSS_T, NAV_RCL_ACT, COM_RCL_EXCEPT, ACRO refused
+without RC and the other manual modes taken as POSCTL in a failsafe, POSCTL /
+AUTO.LOITER refused without a position.
 ArduPilot (``sitl.ardupilot``): the radio failsafe (RC_FS_TIMEOUT, FS_THR_ENABLE,
 FS_OPTIONS), LOITER / BRAKE refused without a position, the EKF failsafe.
 No network: the autopilots are driven directly, as the runner drives them.
@@ -80,18 +81,47 @@ def test_px4_nav_rcl_act_hold_needs_a_position(
     assert ap.mode == expected
 
 
-def test_px4_manual_modes_are_refused_without_rc(profile: VehicleProfile) -> None:
+def test_px4_acro_is_refused_without_rc(profile: VehicleProfile) -> None:
     ap = px4_flying(profile, MODE_LOITER, rc_loss_exceptions=2)  # hold exempt: it stays
     run_px4(ap, 1.004, 1.6, rc=False)
     assert ap.mode == MODE_LOITER
-    for main in (MainMode.MANUAL, MainMode.ALTCTL, MainMode.POSCTL, MainMode.ACRO,
-                 MainMode.STABILIZED):  # fmt: skip
-        assert ap.set_mode(1.6, main) is MavResult.TEMPORARILY_REJECTED
+    assert ap.set_mode(1.6, MainMode.ACRO) is MavResult.TEMPORARILY_REJECTED
     assert ap.mode == MODE_LOITER
     assert ap.set_mode(1.6, MainMode.AUTO, 6) is MavResult.ACCEPTED  # land: always
     # RC back: the manual modes are there again.
     run_px4(ap, 1.6, 1.7, rc=True)
     assert ap.set_mode(1.7, MainMode.POSCTL) is MavResult.ACCEPTED
+    assert ap.failsafe is None
+
+
+@pytest.mark.parametrize(
+    "main", [MainMode.MANUAL, MainMode.STABILIZED, MainMode.ALTCTL, MainMode.POSCTL]
+)
+def test_px4_manual_mode_without_sticks_shows_posctl_and_fails_safe(
+    profile: VehicleProfile, main: MainMode
+) -> None:
+    """The real PX4 v1.16 SIH (no radio, no joystick) handed a manual mode: it keeps
+    showing POSCTL (for ALTCTL, STABILIZED and MANUAL too), raises its failsafe
+    (HEARTBEAT CRITICAL, "Failsafe activated") and descends."""
+    ap = Autopilot(profile, AutopilotConfig(), initial_mode=MODE_LOITER)
+    run_px4(ap, 0.0, 1.0, rc=False)
+    assert ap.arm(1.0, force=True) is MavResult.ACCEPTED  # armed with no stick input at all
+    run_px4(ap, 1.0, 1.6, rc=False)
+    assert ap.mode == MODE_LOITER and ap.failsafe is None
+    assert ap.set_mode(1.6, main) is MavResult.ACCEPTED
+    assert ap.mode == FlightMode(MainMode.POSCTL)
+    assert ap.failsafe == "manual_control_loss"
+    assert ap.system_status == 5  # CRITICAL
+    assert (2, "Failsafe activated") in ap.drain_statustexts()
+    assert ("failsafe", "DESCEND") in [(e.kind, e.detail.get("action")) for e in ap.drain_events()]
+    # It descends: level, the collective below the hover's until it sinks at
+    # MPC_LAND_SPEED (the real stack: about 0.6 m/s).
+    ap.update(1.604, LEVEL, LEVEL, climb_rate_m_s=0.0)
+    assert ap.last_torque_thrust[3] < ap.config.hover_thrust
+    # Sticks back: the failsafe ends, the mode stays.
+    run_px4(ap, 1.608, 1.7, rc=True)
+    assert ap.failsafe is None and ap.mode == FlightMode(MainMode.POSCTL)
+    assert ap.system_status == 4
 
 
 @pytest.mark.parametrize(
@@ -180,9 +210,11 @@ def test_ardupilot_radio_failsafe_lands_after_rc_fs_timeout(profile: VehicleProf
     assert ap.mode is CopterMode.ALT_HOLD and not ap.failsafe_radio
     run_copter(ap, 1.95, 2.1, rc=False)
     assert ap.failsafe_radio
-    assert ap.mode is CopterMode.LAND  # FS_THR_ENABLE 1 (RTL), flown as Land here
+    assert ap.mode is CopterMode.RTL  # FS_THR_ENABLE 1: shown as RTL, flown as Land here
     assert ap.system_status == 5
     assert (4, "Radio Failsafe") in ap.drain_statustexts()
+    # SYS_STATUS: the receiver is still there, no longer healthy.
+    assert ap.rc_receiver(2.1) == (True, True, False)
     # STABILIZE and ACRO are refused during it; ALT_HOLD holds with zero inputs.
     assert ap.set_mode(2.1, CopterMode.STABILIZE) is MavResult.FAILED
     assert ap.set_mode(2.1, CopterMode.ALT_HOLD) is MavResult.ACCEPTED
@@ -202,7 +234,7 @@ def test_ardupilot_fs_thr_enable_7_brakes_with_a_position(
     assert ap.mode is expected
 
 
-@pytest.mark.parametrize(("options", "expected"), [(16, CopterMode.LAND),
+@pytest.mark.parametrize(("options", "expected"), [(16, CopterMode.RTL),
                                                    (16 | 4, CopterMode.GUIDED_NOGPS)])  # fmt: skip
 def test_ardupilot_radio_failsafe_in_guided_continues_only_with_fs_options_bit_2(
     profile: VehicleProfile, options: int, expected: CopterMode
@@ -215,8 +247,11 @@ def test_ardupilot_radio_failsafe_in_guided_continues_only_with_fs_options_bit_2
 
 def test_ardupilot_radio_failsafe_on_the_ground_disarms(profile: VehicleProfile) -> None:
     ap = copter_flying(profile, CopterMode.ALT_HOLD)
+    ap.drain_statustexts()
     run_copter(ap, 1.0025, 2.2, rc=False, landed=True)
     assert not ap.armed
+    assert (4, "Radio Failsafe - Disarming") in ap.drain_statustexts()
+    assert ap.system_status == 5  # CRITICAL while the failsafe is on, disarmed too
 
 
 def test_ardupilot_armed_without_ever_seeing_rc_fails_safe(profile: VehicleProfile) -> None:
@@ -226,7 +261,7 @@ def test_ardupilot_armed_without_ever_seeing_rc_fails_safe(profile: VehicleProfi
     assert not ap.failsafe_radio  # disarmed, never seen: nothing
     assert ap.arm(2.0) is MavResult.ACCEPTED
     run_copter(ap, 2.0, 2.1, rc=False, guided=True)
-    assert ap.failsafe_radio and ap.mode is CopterMode.LAND
+    assert ap.failsafe_radio and ap.mode is CopterMode.RTL
 
 
 def test_ardupilot_position_modes(profile: VehicleProfile) -> None:

@@ -1,0 +1,247 @@
+"""What the real PX4 v1.16 and ArduCopter 4.5.6 SITL showed, reproduced by the personalities.
+
+Flown against the real stacks (``sitl/lab/realstack``, issue 42's notes):
+
+* PX4 SIH has no radio: a ground station's ``MANUAL_CONTROL`` (any sysid) is its
+  stick input; it streams its own ``MANUAL_CONTROL`` back on request (sysid 1,
+  ``enabled_extensions`` 252), sends no ``RC_CHANNELS``; when the joystick stops for
+  ``COM_RC_LOSS_T`` the stream stops, SYS_STATUS's RC bit goes from present and
+  healthy to not present, and RC loss is acted on.
+* ArduCopter keeps streaming ``RC_CHANNELS`` with the last values after the radio is
+  lost, clears the receiver's health in SYS_STATUS after ``RC_FS_TIMEOUT``, shows
+  CRITICAL and says "Radio Failsafe".
+* ArduCopter refuses to arm until its EKF has an altitude estimate ("Arm: Need Alt
+  Estimate") and, in a mode that needs one, a position ("PreArm: Need Position
+  Estimate"); SYS_STATUS's pre-arm bit is healthy only when its checks pass.
+
+Each face runs in this process on a real UDP socket with a ground station
+(``tests/sitl/udp_client.py``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+os.environ["MAVLINK20"] = "1"
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.profile import VehicleProfile, load_profile
+from sitl.ardupilot import ArduCopter, ArduCopterConfig
+from sitl.ardupilot_face import ArduPilotFace, ardupilot_streams
+from sitl.ardupilot_modes import CopterMode
+from sitl.autopilot import Autopilot, AutopilotConfig, Joystick, joystick_channels
+from sitl.mavlink_link import parse_endpoint
+from sitl.personality import MavResult
+from sitl.px4_face import Px4Face, px4_streams
+from sitl.px4_modes import MODE_LAND, FlightMode, MainMode
+from sitl.runner import joystick_from_channels
+from tests.sitl.udp_client import Client
+
+ROOT = Path(__file__).resolve().parents[2]
+LEVEL = (0.0, 0.0, 0.0)
+RC_BIT = mavlink2.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
+PREARM_BIT = mavlink2.MAV_SYS_STATUS_PREARM_CHECK
+MANUAL_CONTROL = mavlink2.MAVLINK_MSG_ID_MANUAL_CONTROL
+
+
+@pytest.fixture(scope="module")
+def profile() -> VehicleProfile:
+    return load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
+
+
+def px4_face(profile: VehicleProfile, client: Client) -> Px4Face:
+    ap = Autopilot(profile, AutopilotConfig(rc_loss_timeout_s=1.0))
+    face = Px4Face(parse_endpoint(f"udpout:127.0.0.1:{client.port}"), ap, px4_streams(250))
+    face.rc_fitted = False  # PX4 SIH: no receiver
+    return face.open()
+
+
+def publish(face: Any, client: Client, t_s: float) -> list[Any]:
+    face.snapshot.t_s = t_s
+    face.publish(t_s, imu_sample=False, wall_s=t_s)
+    return [m for m in client.received(0.02) if m.get_type() != "BAD_DATA"]
+
+
+def sys_status(msgs: list[Any]) -> Any:
+    (st,) = [m for m in msgs if m.get_type() == "SYS_STATUS"]
+    return st
+
+
+# ------------------------------------------------------------------ PX4 joystick
+
+
+def test_the_pilots_channels_as_a_joystick_and_back() -> None:
+    chans = (1600, 1400, 1650, 1300, 2000, 1000)
+    j = joystick_from_channels(chans)
+    # x pitch forward +: a low pitch channel (stick forward, nose down) is +x.
+    assert (j.x, j.y, j.z, j.r) == (200, 200, 650, -400)
+    assert j.enabled_extensions == 4 | 8 and j.aux[:2] == (1000, -1000)
+    assert joystick_channels(j)[:6] == chans
+
+
+def test_px4_takes_a_joystick_streams_it_back_and_sends_no_rc_channels(
+    profile: VehicleProfile, client: Client
+) -> None:
+    face = px4_face(profile, client)
+    ap = face.autopilot
+    try:
+        client.mav.command_long_send(
+            1, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, MANUAL_CONTROL, 20_000, 0, 0, 0, 0, 0
+        )
+        assert [m.result for m in client.exchange(face) if m.get_type() == "COMMAND_ACK"] == [0]
+        # A ground station's joystick, from its own sysid (255): aux1 high.
+        client.mav.manual_control_send(1, 100, -200, 600, 50, 0, 0, 4, 0, 0, 1000)
+        client.send_last(face)
+        face.poll(0.0)
+        assert ap._last_sticks[:5] == (1400, 1450, 1600, 1525, 2000)
+        msgs = publish(face, client, 0.0)
+        (mc,) = [m for m in msgs if m.get_type() == "MANUAL_CONTROL"]
+        assert mc.get_srcSystem() == 1 and mc.get_srcComponent() == 1 and mc.target == 1
+        assert (mc.x, mc.y, mc.z, mc.r, mc.enabled_extensions, mc.aux1) == (
+            100, -200, 600, 50, 252, 1000,
+        )  # fmt: skip
+        assert not [m for m in msgs if m.get_type() == "RC_CHANNELS"]
+        st = sys_status(msgs)
+        assert st.onboard_control_sensors_present & RC_BIT
+        assert st.onboard_control_sensors_health & RC_BIT
+        # The joystick stops: after COM_RC_LOSS_T (1 s) no more MANUAL_CONTROL, the RC
+        # bit not present.
+        msgs = publish(face, client, 1.1)
+        assert not [m for m in msgs if m.get_type() == "MANUAL_CONTROL"]
+        assert not sys_status(msgs).onboard_control_sensors_present & RC_BIT
+    finally:
+        face.close()
+
+
+def test_px4_acts_on_a_lost_joystick(profile: VehicleProfile) -> None:
+    ap = Autopilot(profile, AutopilotConfig(rc_loss_timeout_s=1.0))
+    t = 0.0
+    while t < 1.0:
+        ap.on_manual_control(t, Joystick(0, 0, 500, 0))
+        ap.update(t, LEVEL, LEVEL, landed=False)
+        t += 0.01
+    assert ap.arm(t, force=True) is MavResult.ACCEPTED
+    assert ap.set_mode(t, MainMode.POSCTL) is MavResult.ACCEPTED
+    t0 = t
+    while t < t0 + 1.2:
+        ap.update(t, LEVEL, LEVEL, landed=False)
+        t += 0.004
+    assert ap.mode == MODE_LAND and ap.failsafe == "rc_loss"  # NAV_RCL_ACT 2, flown as Land
+
+
+def test_px4_ignores_a_joystick_when_told_rc_only(profile: VehicleProfile) -> None:
+    ap = Autopilot(profile, AutopilotConfig())
+    ap.params.set("COM_RC_IN_MODE", 0)
+    assert not ap.on_manual_control(0.0, Joystick(0, 0, 500, 0))
+    ap.params.set("COM_RC_IN_MODE", 1)
+    assert ap.on_manual_control(0.0, Joystick(0, 0, 500, 0))
+    assert not ap.on_manual_control(0.0, Joystick(0, 0, 1500, 0))  # z beyond 0..1000
+
+
+def test_px4_prearm_bit(profile: VehicleProfile, client: Client) -> None:
+    face = px4_face(profile, client)
+    try:
+        st = sys_status(publish(face, client, 0.0))
+        assert st.onboard_control_sensors_present & PREARM_BIT
+        assert st.onboard_control_sensors_health & PREARM_BIT
+    finally:
+        face.close()
+
+
+# ------------------------------------------------------------ ArduCopter radio loss
+
+
+def copter_face(profile: VehicleProfile, client: Client, **cfg: Any) -> ArduPilotFace:
+    ap = ArduCopter(profile, ArduCopterConfig(**cfg), initial_mode=CopterMode.ALT_HOLD)
+    face = ArduPilotFace(
+        parse_endpoint(f"udpout:127.0.0.1:{client.port}"), ap, ardupilot_streams(400.0)
+    )
+    face.rc_lost_freezes = True
+    return face.open()
+
+
+def test_ardupilot_radio_lost_keeps_rc_channels_frozen_and_fails_safe(
+    profile: VehicleProfile, client: Client
+) -> None:
+    face = copter_face(profile, client)
+    ap = face.autopilot
+    sticks = (1520, 1480, 1500, 1510, 1000, 1000)
+    try:
+        t = 0.0
+        while t < 1.0:
+            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
+            t += 0.0025
+        assert ap.arm(t, force=True) is MavResult.ACCEPTED
+        face.snapshot.sticks_us = sticks
+        before = [m for m in publish(face, client, t) if m.get_type() == "RC_CHANNELS"]
+        assert before[0].chancount == 6 and before[0].chan1_raw == 1520
+        # Radio lost (the rc-lost fault): ArduPilot keeps the last values.
+        face.rc_lost = True
+        face.snapshot.sticks_us = (1900,) * 6
+        t_lost = t
+        while t < t_lost + 1.2:
+            ap.update(t, LEVEL, LEVEL, landed=False)
+            t += 0.0025
+        msgs = publish(face, client, t + 0.2)
+        (rc,) = [m for m in msgs if m.get_type() == "RC_CHANNELS"]
+        assert (rc.chancount, rc.chan1_raw, rc.chan2_raw, rc.rssi) == (
+            6, 1520, 1480, before[0].rssi,
+        )  # fmt: skip
+        st = sys_status(msgs)
+        assert st.onboard_control_sensors_present & RC_BIT
+        assert not st.onboard_control_sensors_health & RC_BIT  # after RC_FS_TIMEOUT
+        (hb,) = [m for m in msgs if m.get_type() == "HEARTBEAT"]
+        assert hb.system_status == mavlink2.MAV_STATE_CRITICAL
+        assert hb.custom_mode == CopterMode.RTL  # FS_THR_ENABLE 1
+        texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+        assert "Radio Failsafe" in texts
+    finally:
+        face.close()
+
+
+# ----------------------------------------------------------- ArduCopter arming
+
+
+def test_ardupilot_refuses_to_arm_until_its_ekf_is_ready(
+    profile: VehicleProfile, client: Client
+) -> None:
+    face = copter_face(profile, client, ekf_alt_ready_s=3.0, ekf_position_ready_s=45.0)
+    ap = face.autopilot
+    try:
+        st = sys_status(publish(face, client, 2.5))
+        assert st.onboard_control_sensors_present & PREARM_BIT
+        assert not st.onboard_control_sensors_health & PREARM_BIT
+        assert ap.arm(2.5) is MavResult.FAILED
+        assert (2, "Arm: Need Alt Estimate") in ap.drain_statustexts()
+        # A mode that needs a position waits for the position estimate.
+        assert ap.set_mode(3.5, CopterMode.LOITER) is MavResult.ACCEPTED
+        assert ap.arm(3.5) is MavResult.FAILED
+        assert (2, "PreArm: Need Position Estimate") in ap.drain_statustexts()
+        assert ap.set_mode(3.5, CopterMode.ALT_HOLD) is MavResult.ACCEPTED
+        assert sys_status(publish(face, client, 3.5)).onboard_control_sensors_health & PREARM_BIT
+        assert ap.arm(3.5) is MavResult.ACCEPTED
+        ap.disarm(3.6)
+        assert ap.set_mode(46.0, CopterMode.LOITER) is MavResult.ACCEPTED
+        assert ap.arm(46.0) is MavResult.ACCEPTED
+    finally:
+        face.close()
+
+
+def test_ardupilot_ekf_warmup_is_off_by_default(profile: VehicleProfile) -> None:
+    ap = ArduCopter(profile, ArduCopterConfig(), initial_mode=CopterMode.GUIDED_NOGPS)
+    assert ap.arm(0.0) is MavResult.ACCEPTED
+
+
+def test_heartbeat_critical_in_every_failsafe(profile: VehicleProfile) -> None:
+    px4 = Autopilot(profile, AutopilotConfig())
+    px4.failsafe = "offboard_loss"
+    assert px4.system_status == 5  # disarmed too
+    ap = ArduCopter(profile, ArduCopterConfig())
+    ap.failsafe_radio = True
+    assert ap.system_status == 5
+    assert FlightMode(MainMode.POSCTL).name == "POSCTL"
