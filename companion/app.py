@@ -58,6 +58,7 @@ import asyncio
 import contextlib
 import gc
 import logging
+import math
 import os
 import signal
 import time
@@ -85,7 +86,7 @@ from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
 from companion.samples import SamplePath
-from companion.stacks import FlightStack, SafeMode, stack_for
+from companion.stacks import FlightStack, RateShapingParams, SafeMode, stack_for
 from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
@@ -560,18 +561,22 @@ class Companion(SamplePath):
         moved = prepare_log_dir(d)
         self._writer = writer = RecordWriter()
         self._tlog = TlogWriter(d / "flight.tlog", writer=writer)
+        opts = self.opts
         meta = {
-            "profile": self.opts.profile.name,
-            "profile_path": self.opts.profile_path,
-            "controller": self.opts.controller.kind,
-            "controller_path": self.opts.controller_path,
-            "output": self.opts.output,
-            "engage": self.opts.engage,
+            "profile": opts.profile.name,
+            "profile_path": opts.profile_path,
+            "controller": opts.controller.kind,
+            "controller_path": opts.controller_path,
+            "output": opts.output,
+            "engage": opts.engage,
             "version": __version__,
             "control_compiled": COMPILED,
+            "rates_full_scale_deg_s": repr(opts.rates_full_scale_deg_s),
+            "rates_lead_s": repr(opts.rates_lead_s),
+            "rates_passthrough": str(opts.rates_passthrough),
         }
         self._log_rows = ColumnarLog(
-            d / "control.bin", columns(self.opts.profile.n_motors), meta=meta, writer=writer
+            d / "control.bin", columns(opts.profile.n_motors), meta=meta, writer=writer
         )
         self._log_append = self._log_rows.append
         self._events_file = EventLog(d / "events.jsonl", writer=writer)
@@ -799,6 +804,39 @@ class Companion(SamplePath):
                     "be read as a climb rate; set bit 3 (add 8, e.g. GUID_OPTIONS = "
                     f"{int(value) | _GUID_OPTIONS_THRUST}) so it is a normalised thrust"
                 )
+        if opts.output == "rates" and stack.rate_shaping is not None:
+            await self._learn_rate_shaping(stack.rate_shaping)
+
+    async def _learn_rate_shaping(self, shaping: RateShapingParams) -> None:
+        """Read how the autopilot shapes body-rate setpoints (ArduCopter's input
+        shaping: companion.control.shaping) and give it to the step. Unreadable, its
+        documented defaults are assumed, and an event says so."""
+        values: list[float] = []
+        try:
+            enabled = await self.link.param_read(shaping.enable_param)
+            for name in shaping.accel_params:
+                values.append(await self.link.param_read(name))
+        except LinkError as exc:
+            values = list(shaping.default_accel_cdeg_s2)
+            enabled = 1.0
+            self._event(
+                "rate_shaping_assumed",
+                f"the autopilot's {shaping.enable_param} and {', '.join(shaping.accel_params)} "
+                f"could not be read ({exc}): its defaults assumed",
+            )
+        if not int(enabled):
+            self._event("rate_shaping", f"{shaping.enable_param} = 0: rate setpoints not shaped")
+            return
+        deg = tuple(v * 0.01 for v in values)
+        self.step.set_rate_shaping(tuple(math.radians(d) for d in deg))  # type: ignore[arg-type]
+        if self.step.shaper is not None:
+            shown = "/".join(f"{d:g}" if d > 0 else "none" for d in deg)
+            self._event(
+                "rate_shaping",
+                f"the autopilot limits a rate setpoint's acceleration to {shown} deg/s^2 "
+                f"(roll/pitch/yaw, {', '.join(shaping.accel_params)}): the law flies the "
+                "pilot's rates so shaped, its setpoints within them, no lead",
+            )
 
     async def _request_streams(self) -> None:
         """The IMU stream at the highest rate the stack accepts up to the loop rate,

@@ -834,7 +834,7 @@ def replay_cmd(
         profile = load_profile(prof)
     except ConfigError as exc:
         fail_config(exc)
-    out = replay(cols, cfg, profile)
+    out = replay(cols, cfg, profile, meta=meta)
     diffs = compare(cols, out)
     engaged = int((cols["engaged"] > 0.5).sum())
     click.echo(f"replayed {engaged} engaged samples of {log} with {ctrl} on {prof}")

@@ -285,6 +285,7 @@ class ModePath(Engagement):
     def _reset_laws(self) -> None:
         """Forget what the laws learnt: the rate law and the flight mode's loops."""
         self.controller.reset()
+        self.step.reset()
         self._reset_modes(self._thrust)
 
     def _mode_log(self) -> tuple[float, ...]:

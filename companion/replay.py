@@ -19,10 +19,16 @@ Conventions, matching the live loop and :func:`sitl.lab.simulate.simulate_flight
   there and its outputs are NaN. :func:`compare` ignores those rows.
 * ``on_ground`` (when the log has it) is given to the controller every row, as
   the autopilot's landed state was live: nothing is learnt while it is 1.
+* Rates output to an autopilot that shapes its setpoints
+  (:mod:`companion.control.shaping`): where the log's ``law_ref_*`` columns
+  hold a reference, the law is given it instead of the pilot's, and taught the
+  correction the recorded setpoint (``sent_*``) carried, as it was live; that
+  needs the log's ``rates_full_scale_deg_s`` (``meta``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -45,11 +51,12 @@ def output_columns(n_motors: int) -> list[str]:
     return [*cols, "held", "thrust_out", *(f"motor_{i}" for i in range(1, n_motors + 1))]
 
 
-def _load_inputs(log_path: str | Path | Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+def _load_inputs(
+    log_path: str | Path | Mapping[str, np.ndarray],
+) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     if isinstance(log_path, Mapping):
-        return {k: np.asarray(v, dtype=np.float64) for k, v in log_path.items()}
-    cols, _ = read_columnar(log_path)
-    return cols
+        return {k: np.asarray(v, dtype=np.float64) for k, v in log_path.items()}, {}
+    return read_columnar(log_path)
 
 
 def replay(
@@ -58,6 +65,7 @@ def replay(
     profile: Any,
     *,
     rate_source: str = "meas",
+    meta: Mapping[str, str] | None = None,
 ) -> dict[str, np.ndarray]:
     """Re-run a controller on a recorded log.
 
@@ -76,6 +84,9 @@ def replay(
         Prefix of the measured-rate columns fed to the controller:
         ``"meas"`` uses ``meas_<axis>_rad_s``. A log with other rate columns
         (e.g. a simulation's ``true_<axis>_rad_s``) can be replayed on those.
+    meta
+        The log's metadata (read from the file when ``log_path`` is one): its
+        ``rates_full_scale_deg_s`` teaches a shaped flight's law as it was taught.
 
     Returns
     -------
@@ -100,7 +111,8 @@ def replay(
         else (controller_cfg)
     )
     prof = load_profile(profile) if isinstance(profile, str | Path) else profile
-    cols = _load_inputs(log_path)
+    cols, file_meta = _load_inputs(log_path)
+    meta = dict(meta) if meta is not None else file_meta
     rate_cols = [f"{rate_source}_{a}_rad_s" for a in AXES]
     need = ["t_s", *rate_cols, *(f"ref_{a}_rad_s" for a in AXES), "thrust"]
     missing = [c for c in need if c not in cols]
@@ -121,6 +133,7 @@ def replay(
     r = [cols[f"ref_{a}_rad_s"].tolist() for a in AXES]
     thrust = cols["thrust"].tolist()
     eng = (engaged != 0.0).tolist()
+    shaped = _shaped_reference(cols, meta, n)
     update = controller.update
     learn = controller.learn
     fresh = True
@@ -135,7 +148,20 @@ def replay(
         fresh = False
         prev_t = t[i]
         controller.on_ground = ground[i]
-        o = update(dt, (w[0][i], w[1][i], w[2][i]), (r[0][i], r[1][i], r[2][i]), thrust[i])
+        ref = (r[0][i], r[1][i], r[2][i])
+        taught: tuple[float, float, float] | None = None
+        if shaped is not None and shaped[0][0][i] == shaped[0][0][i]:  # a shaped row
+            (l0, l1, l2), (s0, s1, s2), fs = shaped
+            ref = (l0[i], l1[i], l2[i])
+            if fs is not None and s0[i] == s0[i] and s1[i] == s1[i] and s2[i] == s2[i]:
+                taught = (
+                    _unit((s0[i] - ref[0]) / fs[0]),
+                    _unit((s1[i] - ref[1]) / fs[1]),
+                    _unit((s2[i] - ref[2]) / fs[2]),
+                )
+        o = update(dt, (w[0][i], w[1][i], w[2][i]), ref, thrust[i])
+        if taught is not None:
+            controller.teach_applied(taught)
         learn()
         row = out[i]
         k = 0
@@ -153,6 +179,36 @@ def replay(
     for j, name in enumerate(names):
         result[name] = np.ascontiguousarray(out[:, j])
     return result
+
+
+def _unit(x: float) -> float:
+    return 1.0 if x > 1.0 else -1.0 if x < -1.0 else x
+
+
+def _shaped_reference(
+    cols: Mapping[str, np.ndarray], meta: Mapping[str, str], n: int
+) -> tuple[list[list[float]], list[list[float]], tuple[float, float, float] | None] | None:
+    """The law's shaped reference, the setpoints sent and the full scale (rad/s; None
+    in pass-through, where the law is taught nothing), or None when the log holds
+    no shaped reference."""
+    names = [f"law_ref_{a}_rad_s" for a in AXES]
+    sent = [f"sent_{a}_rad_s" for a in AXES]
+    if not all(c in cols for c in (*names, *sent)):
+        return None
+    law = [np.asarray(cols[c], dtype=np.float64) for c in names]
+    if not np.isfinite(law[0]).any():
+        return None
+    taught = None
+    if meta.get("rates_passthrough") != "True":  # pass-through: nothing the law asked was sent
+        fs_deg = meta.get("rates_full_scale_deg_s")
+        if fs_deg is None:
+            raise ValueError(
+                "the log holds a shaped reference (law_ref_*) but no rates_full_scale_deg_s "
+                "in its metadata: cannot teach the law as it was taught"
+            )
+        fs = math.radians(float(fs_deg))
+        taught = (fs, fs, fs)
+    return [a.tolist() for a in law], [cols[c].tolist() for c in sent], taught
 
 
 def compare(

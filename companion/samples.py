@@ -465,6 +465,7 @@ class SamplePath(ModePath):
                     ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
                     thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
                     self.link_clock.rtt_s * 1e3, age * 1e3, *self._mode_log(),
+                    *(step.law_ref if step.shaper is not None else NO_RATES),
                 ]
             )  # fmt: skip
         if self._telemetry is not None:

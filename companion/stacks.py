@@ -64,6 +64,17 @@ class SafeMode:
 
 
 @dataclass(frozen=True)
+class RateShapingParams:
+    """The parameters with which a stack shapes body-rate setpoints
+    (companion.control.shaping): a switch, and an acceleration limit per axis
+    (roll, pitch, yaw) in centidegrees per second squared, 0 for none."""
+
+    enable_param: str
+    accel_params: tuple[str, str, str]
+    default_accel_cdeg_s2: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class FlightStack:
     """One flight stack's dialect."""
 
@@ -85,6 +96,8 @@ class FlightStack:
     supports_actuator_output: bool = False
     max_imu_rate_hz: float = 1000.0
     """The fastest IMU stream worth asking for; the stack may still deny it."""
+    rate_shaping: RateShapingParams | None = None
+    """How it shapes a body-rate setpoint before flying it; None: it flies it as sent."""
     arm_refusals: tuple[str, ...] = ()
     """How the STATUSTEXTs begin with which the stack says why it refused to arm."""
     mode_refusals: tuple[str, ...] = ()
@@ -196,6 +209,13 @@ ARDUPILOT = FlightStack(
     supports_actuator_output=False,
     # ArduPilot denies intervals shorter than its loop period / 0.8 (~333 Hz at 400 Hz).
     max_imu_rate_hz=400.0,
+    # AC_AttitudeControl::input_rate_bf_roll_pitch_yaw (Copter 4.5): the rate target slews
+    # at ATC_ACCEL_*_MAX while ATC_RATE_FF_ENAB is set (defaults 110000/110000/27000).
+    rate_shaping=RateShapingParams(
+        "ATC_RATE_FF_ENAB",
+        ("ATC_ACCEL_R_MAX", "ATC_ACCEL_P_MAX", "ATC_ACCEL_Y_MAX"),
+        (110000.0, 110000.0, 27000.0),
+    ),
     arm_refusals=("PreArm:", "Arm:"),
     # "Flight mode change failed": older ArduPilot's words, and the bundled SITL's.
     mode_refusals=("Mode change to", "Flight mode change failed"),

@@ -20,6 +20,7 @@ import math
 from typing import Any
 
 from companion.control.gate import gate_actuator, gate_rates
+from companion.control.shaping import RateShaper
 from companion.profile import VehicleProfile
 
 __all__ = ["LANDED_STATE_RATE_HZ", "NO_RATES", "SampleStep", "whole_us"]
@@ -46,6 +47,11 @@ def whole_us(dt: float) -> float:
     return us * 1e-6 if us > 0 else dt
 
 
+def _unit(x: float) -> float:
+    """``x`` within [-1, 1] (a normalised torque)."""
+    return 1.0 if x > 1.0 else -1.0 if x < -1.0 else x
+
+
 class SampleStep:
     """The gyro range gate, the law and the command gate, for one controller.
 
@@ -67,19 +73,30 @@ class SampleStep:
         (the reference's derivative times this).
     rates_passthrough
         Rates output: send the pilot's rate alone (the law still runs).
+    rate_accel_max_rad_s2
+        Rates output: the autopilot's acceleration limits on a body-rate
+        setpoint (ArduCopter's input shaping, :mod:`companion.control.shaping`),
+        or None where it flies the setpoint as sent (PX4). With them the law
+        flies the shaped reference, the setpoint sent respects the limits and
+        the law is taught what was sent; the lead is off (the autopilot would
+        slew it away).
     """
 
     __slots__ = (
         "actuator",
         "controller",
+        "dt_s",
         "gyro",
         "gyro_limit_rad_s",
         "gyro_valid",
+        "last_rates_sent",
         "last_thrust_sent",
+        "law_ref",
         "passthrough",
         "rate_fs_rad_s",
         "rate_max_rad_s",
         "rates_lead_s",
+        "shaper",
     )
 
     def __init__(
@@ -91,6 +108,7 @@ class SampleStep:
         rates_full_scale_deg_s: float | None = None,
         rates_lead_s: float = 0.0,
         rates_passthrough: bool = False,
+        rate_accel_max_rad_s2: tuple[float, float, float] | None = None,
     ) -> None:
         if output not in ("actuator", "rates"):
             raise ValueError(f"output: expected 'actuator' or 'rates', got {output!r}")
@@ -108,6 +126,31 @@ class SampleStep:
         self.gyro: tuple[float, float, float] = NO_RATES
         self.gyro_valid = True
         self.last_thrust_sent = 0.0
+        self.dt_s = 0.0
+        self.shaper: RateShaper | None = None
+        self.law_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        """The reference the law was given on the last sample (the pilot's, or
+        shaped as the autopilot shapes it)."""
+        self.last_rates_sent: tuple[float, float, float] | None = None
+        self.set_rate_shaping(rate_accel_max_rad_s2)
+
+    def set_rate_shaping(self, accel_max_rad_s2: tuple[float, float, float] | None) -> None:
+        """The autopilot's acceleration limits on body-rate setpoints (None: none),
+        as learnt once the stack is known; rates output only. In pass-through the
+        law (logged, and judged by the envelope failsafe) flies the shaped
+        reference too, and the pilot's rate is sent as it is: the autopilot
+        shapes it the same way."""
+        self.shaper = (
+            RateShaper(accel_max_rad_s2)
+            if accel_max_rad_s2 is not None and not self.actuator
+            else None
+        )
+
+    def reset(self) -> None:
+        """Forget what the step carries between samples (an engagement starts afresh)."""
+        if self.shaper is not None:
+            self.shaper.reset()
+        self.last_rates_sent = None
 
     def sample(
         self,
@@ -128,6 +171,11 @@ class SampleStep:
             self.gyro_valid = False
             gyro = NO_RATES
         self.gyro = gyro
+        self.dt_s = dt
+        shaper = self.shaper
+        if shaper is not None:
+            ref = shaper.reference(dt, ref)
+        self.law_ref = ref
         return self.controller.update(dt, gyro, ref, thrust)
 
     def actuator_command(
@@ -147,18 +195,34 @@ class SampleStep:
         correction, within the profile's rate limits (the gate clamps). The
         collective is the pilot's (or the script's): the autopilot mixes it with
         its own rate loop; the law's air-mode shift belongs to torques not sent."""
+        shaper = self.shaper
+        fs = self.rate_fs_rad_s
+        tq = out.torque
         if self.passthrough:
             want: tuple[float, float, float] | list[float] = ref
+        elif shaper is not None:
+            base = self.law_ref
+            asked = (base[0] + tq[0] * fs[0], base[1] + tq[1] * fs[1], base[2] + tq[2] * fs[2])
+            want = shaper.limit(self.dt_s, asked, self.last_rates_sent)
         else:
-            fs = self.rate_fs_rad_s
             lead = self.rates_lead_s
             rd = self.controller.reference_rate_dot
-            tq = out.torque
             want = [ref[i] + lead * rd[i] + tq[i] * fs[i] for i in range(3)]
         sp, thrust_out, replaced = gate_rates(
             want, thrust, ref, self.rate_max_rad_s, self.last_thrust_sent
         )
+        if shaper is not None and not self.passthrough:
+            # The law's next lesson: the correction that was sent, not the one asked.
+            base = self.law_ref
+            self.controller.teach_applied(
+                (
+                    _unit((sp[0] - base[0]) / fs[0]),
+                    _unit((sp[1] - base[1]) / fs[1]),
+                    _unit((sp[2] - base[2]) / fs[2]),
+                )
+            )
         self.last_thrust_sent = thrust_out
+        self.last_rates_sent = sp
         return sp, thrust_out, replaced
 
     def learn(self) -> None:

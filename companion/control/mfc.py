@@ -209,6 +209,12 @@ class MfcController:
         self._last = None
         self._quiet_s = math.inf
 
+    def teach_applied(self, torque: Vec3) -> None:
+        """What of the last output was really applied (normalised torques), when it
+        was not what the mixer achieved: the estimators learn from it at the next
+        update (an autopilot that slews a rate setpoint, companion.control.shaping)."""
+        self._applied = torque
+
     @property
     def reference_rate_dot(self) -> Vec3:
         """Derivative of the prefiltered pilot rate after the last update, rad/s^2
@@ -340,6 +346,10 @@ class PidController:
         self._pid.reset()
         self._last = None
         self._sat_pos = self._sat_neg = (False, False, False)
+
+    def teach_applied(self, torque: Vec3) -> None:
+        """Nothing to teach: the PID learns only its integral (same interface as
+        :meth:`MfcController.teach_applied`)."""
 
     @property
     def reference_rate_dot(self) -> Vec3:

@@ -50,7 +50,10 @@ def columns(n_motors: int) -> list[str]:
     NaN while a stick moves it or on the ground), ``est_north_m``,
     ``est_east_m``, ``est_up_m`` (the autopilot's local position estimate) and
     ``outer_gain_scale`` (the outer gains' backoff while the rate loop saturates:
-    1 as shipped, down to the backoff's floor).
+    1 as shipped, down to the backoff's floor). Last, ``law_ref_<axis>_rad_s``:
+    the reference the law flew when it was not the pilot's rate (rates output to
+    an autopilot that shapes its setpoints: the pilot's rate so shaped,
+    :mod:`companion.control.shaping`), NaN otherwise.
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -72,6 +75,7 @@ def columns(n_motors: int) -> list[str]:
     cols += [f"sp_{a}_rad" for a in AXES] + [f"est_{a}_rad" for a in AXES]
     cols += [f"{w}_{d}_m" for w in ("sp", "est") for d in ("north", "east", "up")]
     cols += ["outer_gain_scale"]
+    cols += [f"law_ref_{a}_rad_s" for a in AXES]
     return cols
 
 

@@ -69,6 +69,14 @@ APM_GUIDED_NOGPS = 20
 
 Result = int | Callable[[Any], int | None]
 
+ARDUPILOT_DEFAULTS: dict[str, float | None] = {
+    "ATC_RATE_FF_ENAB": 1.0,
+    "ATC_ACCEL_R_MAX": 110000.0,
+    "ATC_ACCEL_P_MAX": 110000.0,
+    "ATC_ACCEL_Y_MAX": 27000.0,
+}
+"""What an ArduCopter 4.5 answers for its input shaping unless a test says otherwise."""
+
 
 async def settle(n: int = 10) -> None:
     """Let call_soon deliveries run both ways (one loop iteration per hop)."""
@@ -87,7 +95,7 @@ class FakeAutopilot:
         custom_mode: int = PX4_MANUAL,
         armed: bool = False,
         results: dict[int, Result] | None = None,
-        params: dict[str, float] | None = None,
+        params: dict[str, float | None] | None = None,
         heartbeat_period_s: float = 0.2,
         follow_modes: bool = True,
         position: bool = True,
@@ -97,7 +105,11 @@ class FakeAutopilot:
         self.custom_mode = custom_mode
         self.armed = armed
         self.results: dict[int, Result] = dict(results or {})
-        self.params: dict[str, float] = dict(params or {})
+        given = dict(params or {})
+        if autopilot == mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            given = {**ARDUPILOT_DEFAULTS, **given}
+        # A name given as None is one the autopilot does not answer.
+        self.params: dict[str, float] = {k: v for k, v in given.items() if v is not None}
         self.heartbeat_period_s = heartbeat_period_s
         self.follow_modes = follow_modes
         self.position = position

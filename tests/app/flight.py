@@ -169,7 +169,7 @@ async def flights() -> AsyncIterator[Start]:
         custom_mode: int = PX4_MANUAL,
         armed: bool = False,
         results: dict[int, Any] | None = None,
-        params: dict[str, float] | None = None,
+        params: dict[str, float | None] | None = None,
         heartbeat: bool = True,
         position: bool = True,
         follow_modes: bool = True,
@@ -188,7 +188,8 @@ async def flights() -> AsyncIterator[Start]:
             follow_modes=follow_modes,
         ).open()
         opts.setdefault("failsafe", LOOSE)
-        options = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, **opts)
+        opts.setdefault("controller", CONTROLLER)
+        options = RunOptions(connect="memory", profile=PROFILE, **opts)
         companion = Companion(options, transport=ours)
         task = asyncio.get_running_loop().create_task(companion.run(), name="companion")
         flight = Flight(companion, fake, task)

@@ -29,9 +29,11 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
         assert (b.lag_scaling_max, r.lag_scaling_max) == (2.0, None)
         assert (b.lag_scaling_min, r.lag_scaling_min) == (0.7, None)
         assert (b.window_lag_scaled, r.window_lag_scaled) == (True, False)
-        # Everything else is the same law.
-        assert (b.delay_kd_limit, r.delay_kd_limit) == (0.2, 0.0)
-        assert b.alpha_adapt.delay_candidates_s and not r.alpha_adapt.delay_candidates_s
+        assert (b.delay_kd_limit, r.delay_kd_limit) == (0.2, 0.2)
+        assert max(b.alpha_adapt.delay_candidates_s) == 0.048
+        assert max(r.alpha_adapt.delay_candidates_s) == 0.096
+        assert (b.alpha_adapt.delay_margin_slope, r.alpha_adapt.delay_margin_slope) == (0.5, 0.5)
+        assert (b.alpha_adapt.delay_margin_max, r.alpha_adapt.delay_margin_max) == (0.6, 2.0)
         # Everything else is the same law.
         same = {
             "alpha_adapt": None, "kd": 0.0, "lag_scaling_authority_ref": 0.0,

@@ -86,6 +86,7 @@ def write_log(
             row += [cols["thrust"][i], o.thrust, *o.motors, np.nan, np.nan, np.nan, 0.0]
             row += [np.nan, np.nan]  # link_rtt_ms, sample_age_ms: no TIMESYNC answer
             row += [np.nan] * 13  # the outer loops': --mode rates
+            row += [np.nan] * 3  # law_ref: the pilot's rates flown unshaped
             log.append(row)
 
 
