@@ -112,7 +112,10 @@ class Engagement:
         # The estimates a flight mode needs may still be on their way (asked for
         # at start-up, an --engage auto run engages at once): wait for them a while.
         why = self._not_ready_to_engage()
-        estimates_by = time.monotonic() + _ESTIMATES_WAIT_S
+        # An --engage auto run starts with the autopilot, maybe before its estimator
+        # or the pilot's input is up: it waits as long as it waits to arm.
+        wait_s = self.opts.arm_timeout_s if self.opts.engage == "auto" else _ESTIMATES_WAIT_S
+        estimates_by = time.monotonic() + max(wait_s, _ESTIMATES_WAIT_S)
         while why is not None and time.monotonic() < estimates_by and not self._stop.is_set():
             # (The pilot's switch going low meanwhile cancels this task: _on_rc.)
             await asyncio.sleep(0.02)

@@ -28,6 +28,7 @@ that is not finite, is not an estimate: counted (``estimate_invalid``,
 from __future__ import annotations
 
 import math
+import time
 from typing import TYPE_CHECKING, Any
 
 from companion.control.angle_mode import AngleMode
@@ -54,6 +55,7 @@ class ModePath(Engagement):
 
     imu_rate_hz: float | None
     n_estimate_invalid: int
+    _rc_needed: bool
     step: SampleStep
     _deflection: tuple[float, float, float]
     _thrust: float
@@ -246,8 +248,18 @@ class ModePath(Engagement):
             )
         return None
 
+    def _pilot_fresh(self) -> bool:
+        """A valid frame of the pilot's input came within the RC timeout."""
+        rc = self._rc_wall
+        return rc is not None and time.perf_counter() - rc <= self.opts.failsafe.rc_timeout_s
+
     def _not_ready_to_engage(self) -> str | None:
         """Why the vehicle must not be engaged now, or None."""
+        if self._rc_needed and not self._pilot_fresh():
+            return (
+                "no valid pilot input (RC_CHANNELS, or MANUAL_CONTROL from a joystick) "
+                "yet: the sticks fly"
+            )
         if self.needs_attitude and not self.landed_state_seen:
             return (
                 f"no landed state (EXTENDED_SYS_STATE) yet: --mode {self.flight_mode} holds "

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from companion.config import build_stick_map
+from companion.control.sticks import joystick_channels
 from companion.failsafe import SampleWatch
 from companion.link.timesync import LinkClock
 from companion.modes import ModePath
@@ -66,38 +67,6 @@ _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 
 AGES_KEPT = 1024
 """The last samples' ages kept for the link's figures (about 1 s at 1 kHz)."""
-
-
-def joystick_channels(
-    v: Sequence[int], stick_channels: tuple[int, int, int, int]
-) -> tuple[int, ...]:
-    """MANUAL_CONTROL ``(x, y, z, r, enabled_extensions, aux1..aux6)`` as RC channels.
-
-    The sticks go where the stick map reads them (``stick_channels``: roll,
-    pitch, throttle, yaw), so a joystick flies like the radio it stands for:
-    ``y`` (roll right +) and ``r`` (yaw right +) to ``1500 + v/2`` us; ``x``
-    (pitch, stick forward +, nose down) to ``1500 - x/2`` (a high pitch
-    channel is nose up here); ``z`` (thrust, 0..1000) to ``1000 + z``. The
-    switches ``aux1..aux6`` (each -1000..1000, present when
-    ``enabled_extensions`` bits 2..7 say so) become channels 5..10, so
-    ``--engage-channel 5`` is ``aux1``; an absent one is centred (neither high
-    nor low). A value beyond its range maps out of the valid pulse range, so
-    the stick map calls the frame invalid."""
-    x, y, z, r, ext = v[0], v[1], v[2], v[3], v[4]
-    chans = [1500] * 18
-    for i in range(6):
-        if ext & (4 << i):
-            chans[4 + i] = 1500 + v[5 + i] // 2
-    roll_ch, pitch_ch, thr_ch, yaw_ch = stick_channels
-    for ch, us in (
-        (roll_ch, 1500 + y // 2),
-        (pitch_ch, 1500 - x // 2),
-        (thr_ch, 1000 + z),
-        (yaw_ch, 1500 + r // 2),
-    ):
-        if 0 < ch <= 18:
-            chans[ch - 1] = us
-    return tuple(chans)
 
 
 class SamplePath(ModePath):

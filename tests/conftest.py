@@ -13,6 +13,10 @@ the envelope's corners with a PID tuned for each, the paper reproduction, the
 fuzzer's real-time run) take
 minutes each. The default run leaves them out (they are *deselected*, and the
 header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
+
+The ``realstack`` tier (``tests/realstack``) flies the real PX4 and ArduCopter
+SITL in real time, one stack at a time, about ten minutes: the default run
+leaves it out too; ``--realstack`` runs it alone (``.ci/run`` does).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ _BY_FOLDER = {
     "lab": "lab",
     "integration": "integration",
     "regression": "regression",
+    "realstack": "realstack",
 }
 
 
@@ -42,19 +47,39 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         action="store_true",
         help="run the long checks alone (marked long); the default run leaves them out",
     )
+    parser.addoption(
+        "--realstack",
+        action="store_true",
+        help="run the real-stack tier alone (tests/realstack: the real PX4 and ArduCopter "
+        "SITL); the default run leaves it out",
+    )
 
 
 def pytest_report_header(config: pytest.Config) -> str:
+    if config.getoption("--realstack"):
+        return "real-stack tier: only this (--realstack)"
     if config.getoption("--long"):
         return "long checks: only these (--long)"
-    return "long checks: deselected (--long runs them)"
+    return "long checks and the real-stack tier: deselected (--long, --realstack run them)"
+
+
+def _in_realstack(item: pytest.Item) -> bool:
+    parts = Path(str(item.path)).resolve().relative_to(HERE).parts
+    return len(parts) > 1 and parts[0] == "realstack"
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     long = bool(config.getoption("--long"))
+    realstack = bool(config.getoption("--realstack"))
     kept, dropped = [], []
     for item in items:
-        (kept if (item.get_closest_marker("long") is not None) == long else dropped).append(item)
+        if realstack:
+            wanted = _in_realstack(item)
+        else:
+            wanted = not _in_realstack(item) and (
+                (item.get_closest_marker("long") is not None) == long
+            )
+        (kept if wanted else dropped).append(item)
     if dropped:
         config.hook.pytest_deselected(items=dropped)
         items[:] = kept

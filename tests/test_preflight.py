@@ -382,3 +382,38 @@ def test_the_controller_line_says_whether_the_file_passed_the_fly_check(
 
 def test_no_controller_line_without_a_fly_check() -> None:
     assert "controller" not in [c.name for c in judge(observed(), plan(), GOOD_CORE)]
+
+
+def joystick_only(**changes: Any) -> Observed:
+    """PX4 with no radio, flown from a ground station's joystick (as SIH is)."""
+    chans_lo = [1000, 1000, 1000, 1000, 1000] + [1500] * 13
+    chans_hi = [2000, 2000, 2000, 2000, 2000] + [1500] * 13
+    last = [1500, 1500, 1500, 1500, 1000] + [1500] * 13
+    return observed(
+        rc_messages=0, rc_chancount=0, rc_min_us=[], rc_max_us=[], rc_last_us=[],
+        joystick_messages=120, joystick_min_us=chans_lo, joystick_max_us=chans_hi,
+        joystick_last_us=last, params={"COM_RC_IN_MODE": 1}, **changes,
+    )  # fmt: skip
+
+
+def test_a_joystick_pilot_passes_where_px4_has_no_radio() -> None:
+    checks = judge(joystick_only(), plan(), GOOD_CORE)
+    assert line(checks, "RC") == Check(
+        "RC", "pass", "no radio: the pilot's joystick (MANUAL_CONTROL, 120 messages) flies"
+    )
+    assert line(checks, "engage switch").status == "pass"
+    assert "aux1 (channel 5)" in line(checks, "engage switch").detail
+    assert line(checks, "COM_RC_IN_MODE").status == "pass"
+    assert not [c for c in checks if c.name == "RC map"]  # PX4 maps a joystick's axes itself
+
+
+def test_px4_in_joystick_mode_without_a_joystick_fails_naming_both_ways() -> None:
+    obs = observed(rc_messages=0, rc_chancount=0, params={"COM_RC_IN_MODE": 1})
+    check = line(judge(obs, plan(), GOOD_CORE), "COM_RC_IN_MODE")
+    assert check.status == "fail"
+    assert "no joystick was seen" in check.detail and "joystick" in check.fix
+
+
+def test_a_joystick_engage_channel_must_be_an_aux_channel() -> None:
+    check = line(judge(joystick_only(), plan(engage_channel=12), GOOD_CORE), "engage switch")
+    assert check.status == "fail" and "aux1..aux6 are channels 5..10" in check.detail

@@ -77,7 +77,8 @@ def judge(obs: Observed, plan: Plan, core: CoreCost | None = None) -> list[Check
     checks.append(_check_armed(obs))
     checks.extend(_check_ids(obs, plan))
     if stack is PX4:
-        checks.extend(_px4_params(obs.params, plan))
+        joystick = obs.joystick_messages > 0 and obs.rc_messages == 0
+        checks.extend(_px4_params(obs.params, plan, joystick=joystick))
     else:
         checks.extend(_ardupilot_params(obs.params, plan))
     checks.append(_check_imu_rate(obs, plan, stack))
@@ -239,7 +240,9 @@ def _missing(name: str, label: str = "") -> Check:
     )
 
 
-def _px4_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
+def _px4_params(p: dict[str, float | None], plan: Plan, *, joystick: bool = False) -> list[Check]:
+    """PX4's parameters; ``joystick``: the pilot is a ground station's joystick (no
+    radio), whose axes PX4 maps itself."""
     out: list[Check] = []
     t = p.get("COM_OF_LOSS_T")
     if t is None:
@@ -328,25 +331,28 @@ def _px4_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
         out.append(_missing("COM_RC_IN_MODE"))
     else:
         label = _PX4_RC_IN_MODES.get(int(mode), f"value {int(mode)}")
-        if int(mode) in (1, 4) and plan.engage == "rc-switch":
+        if int(mode) in (1, 4) and plan.engage == "rc-switch" and not joystick:
             out.append(
                 Check(
                     "COM_RC_IN_MODE",
                     "fail",
-                    f"{int(mode)} ({label}): no radio reaches the autopilot, so no engage switch",
-                    "set COM_RC_IN_MODE to 0 (RC only)",
+                    f"{int(mode)} ({label}): no radio reaches the autopilot and no joystick "
+                    "was seen, so no engage switch",
+                    "set COM_RC_IN_MODE to 0 (RC only), or fly a joystick from a ground "
+                    "station with a button on aux1",
                 )
             )
         else:
             out.append(Check("COM_RC_IN_MODE", "pass", f"{int(mode)} ({label})"))
-    out.extend(
-        _rc_map(
-            p,
-            plan,
-            ("RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW"),
-            "RC_MAP_FLTMODE",
+    if not joystick:
+        out.extend(
+            _rc_map(
+                p,
+                plan,
+                ("RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW"),
+                "RC_MAP_FLTMODE",
+            )
         )
-    )
     gyro = p.get("IMU_GYRO_RATEMAX")
     if gyro is None:
         out.append(_missing("IMU_GYRO_RATEMAX"))
@@ -609,6 +615,8 @@ def _check_round_trip(obs: Observed) -> Check:
 
 
 def _check_rc(obs: Observed, plan: Plan) -> list[Check]:
+    if (obs.rc_messages == 0 or obs.rc_chancount == 0) and obs.joystick_messages:
+        return _check_joystick(obs, plan)
     if obs.rc_messages == 0 or obs.rc_chancount == 0:
         if plan.engage == "rc-switch":
             return [
@@ -641,31 +649,63 @@ def _check_rc(obs: Observed, plan: Plan) -> list[Check]:
             )
         )
         return out
-    lo, hi, last = obs.rc_min_us[ch - 1], obs.rc_max_us[ch - 1], obs.rc_last_us[ch - 1]
-    if _SWITCH_HIGH_US[0] <= last <= _SWITCH_HIGH_US[1]:
-        out.append(
-            Check(
-                "engage switch",
-                "warn",
-                f"channel {ch} is high ({last} us): companion run would engage as soon as "
-                "it starts",
-                "put the switch low before starting the companion",
-            )
-        )
-    elif lo < _SWITCH_LOW_BELOW_US and _SWITCH_HIGH_US[0] <= hi <= _SWITCH_HIGH_US[1]:
-        out.append(Check("engage switch", "pass", f"channel {ch} seen low and high ({lo}-{hi} us)"))
-    else:
-        out.append(
-            Check(
-                "engage switch",
-                "warn",
-                f"channel {ch} not seen moving low and high ({lo}-{hi} us)",
-                "flip the engage switch while preflight watches (longer with --watch-s); "
-                f"high is {_SWITCH_HIGH_US[0]}-{_SWITCH_HIGH_US[1]} us, low below "
-                f"{_SWITCH_LOW_BELOW_US} us",
-            )
-        )
+    out.append(_check_switch(ch, obs.rc_min_us, obs.rc_max_us, obs.rc_last_us, f"channel {ch}"))
     return out
+
+
+def _check_joystick(obs: Observed, plan: Plan) -> list[Check]:
+    """The pilot as a ground station's joystick (PX4 streams its MANUAL_CONTROL): the
+    sticks as they are, ``aux1..6`` as channels 5..10 for the engage switch."""
+    out = [
+        Check(
+            "RC",
+            "pass",
+            f"no radio: the pilot's joystick (MANUAL_CONTROL, {obs.joystick_messages} "
+            "messages) flies",
+        )
+    ]
+    if plan.engage != "rc-switch":
+        return out
+    ch = plan.engage_channel
+    if not 5 <= ch <= 10:
+        out.append(
+            Check(
+                "engage switch",
+                "fail",
+                f"channel {ch} is no joystick switch (aux1..aux6 are channels 5..10)",
+                "pick the joystick button's aux channel with --engage-channel 5..10",
+            )
+        )
+        return out
+    name = f"aux{ch - 4} (channel {ch})"
+    out.append(
+        _check_switch(ch, obs.joystick_min_us, obs.joystick_max_us, obs.joystick_last_us, name)
+    )
+    return out
+
+
+def _check_switch(
+    ch: int, lo_us: list[int], hi_us: list[int], last_us: list[int], name: str
+) -> Check:
+    """The engage switch as seen: high (it would engage at once), seen low and high, or not."""
+    lo, hi, last = lo_us[ch - 1], hi_us[ch - 1], last_us[ch - 1]
+    if _SWITCH_HIGH_US[0] <= last <= _SWITCH_HIGH_US[1]:
+        return Check(
+            "engage switch",
+            "warn",
+            f"{name} is high ({last} us): companion run would engage as soon as it starts",
+            "put the switch low before starting the companion",
+        )
+    if lo < _SWITCH_LOW_BELOW_US and _SWITCH_HIGH_US[0] <= hi <= _SWITCH_HIGH_US[1]:
+        return Check("engage switch", "pass", f"{name} seen low and high ({lo}-{hi} us)")
+    return Check(
+        "engage switch",
+        "warn",
+        f"{name} not seen moving low and high ({lo}-{hi} us)",
+        "flip the engage switch while preflight watches (longer with --watch-s); "
+        f"high is {_SWITCH_HIGH_US[0]}-{_SWITCH_HIGH_US[1]} us, low below "
+        f"{_SWITCH_LOW_BELOW_US} us",
+    )
 
 
 def _check_signing(obs: Observed, plan: Plan) -> Check:

@@ -116,6 +116,12 @@ class Observed:
     rc_min_us: list[int] = field(default_factory=list)
     rc_max_us: list[int] = field(default_factory=list)
     rc_last_us: list[int] = field(default_factory=list)
+    joystick_messages: int = 0
+    """MANUAL_CONTROL frames from the autopilot (a ground station's joystick, PX4)."""
+    joystick_min_us: list[int] = field(default_factory=list)
+    joystick_max_us: list[int] = field(default_factory=list)
+    joystick_last_us: list[int] = field(default_factory=list)
+    """The joystick as the channels ``companion run`` reads it (aux1..6 as 5..10)."""
     landed_states: list[int] = field(default_factory=list)
     position_messages: int = 0
     frames_signed: int = 0

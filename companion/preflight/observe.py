@@ -11,6 +11,7 @@ import time
 from dataclasses import asdict
 from typing import Any
 
+from companion.control.sticks import joystick_channels
 from companion.errors import LinkError
 from companion.link.timesync import LinkClock
 from companion.preflight.judge import summary
@@ -31,6 +32,7 @@ __all__ = ["as_data", "measure_core", "observe"]
 _MSG_ATTITUDE = 30
 _MSG_LOCAL_POSITION_NED = 32
 _MSG_RC_CHANNELS = 65
+_MSG_MANUAL_CONTROL = 69
 _MSG_HIGHRES_IMU = 105
 _MSG_AUTOPILOT_VERSION = 148
 _MSG_EXTENDED_SYS_STATE = 245
@@ -81,7 +83,7 @@ async def observe(
     ``link`` is a :class:`~companion.link.mavlink.MavlinkLink` whose ``on_message``
     and ``on_raw`` this replaces."""
     obs = Observed()
-    watcher = _Watcher(obs)
+    watcher = _Watcher(obs, plan.sticks_channels)
     link.on_message = watcher.on_message
     link.on_raw = watcher.on_raw
     await link.start()
@@ -115,6 +117,7 @@ async def observe(
     )
     for msg_id, hz in (
         (_MSG_RC_CHANNELS, _RC_RATE_HZ),
+        (_MSG_MANUAL_CONTROL, _RC_RATE_HZ),
         (_MSG_EXTENDED_SYS_STATE, LANDED_STATE_RATE_HZ),
         (_MSG_LOCAL_POSITION_NED, _POSITION_RATE_HZ),
     ):
@@ -145,11 +148,23 @@ async def _read_version(link: Any, watcher: _Watcher) -> None:
                 await asyncio.wait_for(watcher.version_seen.wait(), 1.0)
 
 
+def _note_channels(chans: list[int], lo: list[int], hi: list[int]) -> None:
+    """Widen the per-channel ranges seen (``lo``, ``hi``, grown as needed) by ``chans``."""
+    if len(chans) > len(lo):
+        grow = len(chans) - len(lo)
+        lo += [65535] * grow
+        hi += [0] * grow
+    for i, v in enumerate(chans):
+        lo[i] = min(lo[i], v)
+        hi[i] = max(hi[i], v)
+
+
 class _Watcher:
     """Counts what the autopilot streams into an :class:`Observed`."""
 
-    def __init__(self, obs: Observed) -> None:
+    def __init__(self, obs: Observed, stick_channels: tuple[int, int, int, int]) -> None:
         self.obs = obs
+        self.stick_channels = stick_channels
         self.version_seen = asyncio.Event()
         self.clock = LinkClock()
         self.imu_id = -1
@@ -183,14 +198,15 @@ class _Watcher:
             obs.rc_chancount = max(obs.rc_chancount, count)
             if count:
                 chans = [int(getattr(msg, f"chan{i}_raw")) for i in range(1, min(count, 18) + 1)]
-                if len(chans) > len(obs.rc_min_us):
-                    grow = len(chans) - len(obs.rc_min_us)
-                    obs.rc_min_us += [65535] * grow
-                    obs.rc_max_us += [0] * grow
-                for i, v in enumerate(chans):
-                    obs.rc_min_us[i] = min(obs.rc_min_us[i], v)
-                    obs.rc_max_us[i] = max(obs.rc_max_us[i], v)
+                _note_channels(chans, obs.rc_min_us, obs.rc_max_us)
                 obs.rc_last_us = chans
+        elif mid == _MSG_MANUAL_CONTROL:
+            obs.joystick_messages += 1
+            fields = (msg.x, msg.y, msg.z, msg.r, msg.enabled_extensions,
+                      *(getattr(msg, f"aux{i}") for i in range(1, 7)))  # fmt: skip
+            chans = list(joystick_channels(tuple(int(v) for v in fields), self.stick_channels))
+            _note_channels(chans, obs.joystick_min_us, obs.joystick_max_us)
+            obs.joystick_last_us = chans
         elif mid == _MSG_EXTENDED_SYS_STATE:
             obs.landed_states.append(int(msg.landed_state))
         elif mid == _MSG_LOCAL_POSITION_NED:

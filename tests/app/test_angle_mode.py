@@ -107,7 +107,8 @@ async def test_full_right_stick_on_a_level_vehicle_rolls_right(start: Start) -> 
 
 
 async def test_engagement_waits_for_an_estimate(start: Start) -> None:
-    f = await start(engage="auto", output="rates", mode="angle")
+    # --engage auto waits for the estimates as long as it would wait to arm.
+    f = await start(engage="auto", output="rates", mode="angle", arm_timeout_s=1.0)
     await streams_requested(f)
     f.fake.extended_sys_state(2)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
@@ -176,7 +177,7 @@ def test_bad_angle_mode_options_are_refused(args: list[str], said: str) -> None:
 
 
 async def test_engagement_waits_for_the_landed_state(start: Start) -> None:
-    f = await start(engage="auto", output="rates", mode="angle")
+    f = await start(engage="auto", output="rates", mode="angle", arm_timeout_s=1.0)
     await streams_requested(f)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(

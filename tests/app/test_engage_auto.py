@@ -170,6 +170,7 @@ async def test_px4s_refusal_is_quoted_from_its_preflight_fail_and_arming_denied(
     f = await start(engage="auto", output="actuator", results={CMD_ARM: arm}, arm_timeout_s=0.0)
     ref.append(f)
     await streams_requested(f)
+    f.fake.rc(1000)  # the pilot's input: an auto engagement waits for it
     await f.feed_until(f.task.done, timeout_s=3.0, what="the run's end")
     assert await f.finish() == 1
     [failed] = f.details("engage_failed")

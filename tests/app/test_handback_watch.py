@@ -109,16 +109,18 @@ async def engage_with_rc(f: Flight) -> None:
 
 
 async def stopped_without_rc(f: Flight, *, imu: int = MSG_HIGHRES_IMU) -> None:
-    """``--engage auto`` with no RC frame ever: setpoints, the engage mode (the fake
-    shows it) and ARM; the run ends before the autopilot shows itself armed, and
-    then it does, so the run's hand-back flies an armed vehicle that has never
-    seen RC.
+    """``--engage auto``: one RC frame (an auto engagement waits for the pilot's
+    input), setpoints, the engage mode (the fake shows it) and ARM; then the RC is
+    gone and the run ends before the autopilot shows itself armed, and then it
+    does, so the run's hand-back flies an armed vehicle without RC.
 
     (Engaged with no valid RC, the RC-lost failsafe fires within one supervisor
     tick: a run's end without RC can only be this one.)"""
     await streams_requested(f, imu)
     send = f.imu if imu == MSG_HIGHRES_IMU else f.att
+    f.fake.rc(1000)
     await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=send, what="ARM")
+    f.companion._rc_wall = f.companion._rc_radio_wall = None  # the radio is gone
     f.companion._stop.set()  # the run ends: nothing engages after this
     f.fake.set_state(armed=True)
 

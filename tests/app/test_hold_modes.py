@@ -99,7 +99,9 @@ async def test_a_position_that_stops_is_a_failsafe_and_no_position_mode_is_hande
 
 
 async def test_no_position_no_engagement(start: Start) -> None:
-    f = await start(engage="auto", output="rates", mode="altitude", position=False)
+    # --engage auto waits for the estimates as long as it would wait to arm.
+    f = await start(engage="auto", output="rates", mode="altitude", position=False,
+                    arm_timeout_s=1.0)  # fmt: skip
     await streams_requested(f)
     f.fake.extended_sys_state(2)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))

@@ -13,8 +13,8 @@ import math
 
 import pytest
 
+from companion.control.sticks import joystick_channels
 from companion.failsafe import FailsafeConfig
-from companion.samples import joystick_channels
 from tests.app.fakes import (
     APM_ALT_HOLD,
     APM_GUIDED_NOGPS,
@@ -117,7 +117,7 @@ async def test_an_rc_receiver_the_autopilot_calls_lost_is_rc_lost(start: Start) 
     f = await start(
         engage="auto",
         output="actuator",
-        failsafe=FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=0.3, link_timeout_s=5.0,
+        failsafe=FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=1.0, link_timeout_s=5.0,
                                 hand_back_watch_s=0.3),
     )  # fmt: skip
     await engage_px4_auto(f)
@@ -163,3 +163,17 @@ async def test_ardupilot_is_engaged_in_guided_nogps_and_says_so(start: Start) ->
     )
     (took,) = f.details("failsafe_autopilot_took_over")
     assert took.startswith("autopilot left GUIDED_NOGPS for ALT_HOLD")
+
+
+async def test_an_auto_engagement_waits_for_the_pilots_input(start: Start) -> None:
+    """Found on the real PX4: a companion started with the autopilot engaged before the
+    ground station's joystick came, flew no throttle and failed safe at once."""
+    f = await start(engage="auto", output="actuator")
+    await streams_requested(f)
+    for _ in range(50):  # 0.2 s of samples, no pilot
+        f.imu()
+        await settle(2)
+    assert not f.fake.commands(CMD_DO_SET_MODE) and not f.fake.setpoints()
+    f.fake.manual_control(-1000)  # the joystick comes
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), what="ARM")
+    assert "failsafe_rc_lost" not in f.kinds()

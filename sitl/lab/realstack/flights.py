@@ -52,6 +52,8 @@ ARDUCOPTER_PARAMS = {
 """What the tests' ArduCopter starts with beyond its defaults (the stacks' README)."""
 
 PX4_LOITER = (4 << 16) | (3 << 24)  # AUTO.LOITER
+FAST_BOOT_SPEEDUP = 8.0
+_LANDED_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 SWITCH_LOW_US = 1000
 SWITCH_HIGH_US = 2000
 _ROOT = Path(__file__).resolve().parents[3]
@@ -179,7 +181,14 @@ def rate_errors(cols: dict[str, np.ndarray], *, skip_s: float = 0.5) -> dict[str
 class Session:
     """One real stack, running, with a ground station and a pilot on it."""
 
-    def __init__(self, stack: str, workdir: Path, *, params: dict[str, float] | None = None):
+    def __init__(
+        self,
+        stack: str,
+        workdir: Path,
+        *,
+        params: dict[str, float] | None = None,
+        fast_boot: bool = True,
+    ):
         self.name = stack
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
@@ -191,7 +200,10 @@ class Session:
             from sitl.lab.fly import free_udp_port
 
             self.companion_port = free_udp_port()
-            merged = {**ARDUCOPTER_PARAMS, **(params or {})}
+            # Booted 8x faster than real time until its EKF uses GPS (about 45 s of sim
+            # time), then at real time (connect()): SIM_SPEEDUP is a parameter.
+            boot = {"SIM_SPEEDUP": FAST_BOOT_SPEEDUP} if fast_boot else {}
+            merged = {**ARDUCOPTER_PARAMS, **boot, **(params or {})}
             self.stack = start_arducopter(
                 self.workdir, params=merged, companion_port=self.companion_port
             )
@@ -205,10 +217,126 @@ class Session:
         st = self.stack
         if self.name == "px4" and not st.wait_log("Ready for takeoff", timeout_s):
             raise RuntimeError(f"PX4 did not get ready in {timeout_s:g} s:\n{st.log()[-2000:]}")
-        self.gcs = GroundStation(st.gcs_url, stack=self.name, rc_port=st.rc_port)
-        self.gcs.wait_heartbeat(timeout_s)
-        self.gcs.set_pilot(self.pilot)
-        return self.gcs
+        self.gcs = g = GroundStation(st.gcs_url, stack=self.name, rc_port=st.rc_port)
+        g.wait_heartbeat(timeout_s)
+        g.set_pilot(self.pilot)
+        if self.name == "ardupilot":
+            if g.wait_text("is using GPS", timeout_s) is None:
+                raise RuntimeError(f"ArduCopter's EKF did not use GPS in {timeout_s:g} s")
+            got = g.param_get("SIM_SPEEDUP")
+            if got is not None and got[0] != 1.0:
+                g.param_set("SIM_SPEEDUP", 1.0)
+        return g
+
+    @property
+    def hold_mode(self) -> tuple[float, float]:
+        """DO_SET_MODE param2, param3 of the mode the tests hold in (PX4 AUTO.LOITER,
+        ArduCopter ALT_HOLD, mid stick)."""
+        return (4.0, 3.0) if self.name == "px4" else (2.0, 0.0)
+
+    def hold(self, timeout_s: float = 10.0) -> None:
+        """Sticks centred, the switch low, and the stack in its hold mode."""
+        g = self.gcs
+        assert g is not None
+        p = self.pilot
+        p.release()
+        p.pilot, p.sticks_us, p.radio_on = None, None, True
+        p.mid_throttle_us = RC_MID_US
+        p2, p3 = self.hold_mode
+        want = PX4_LOITER if self.name == "px4" else int(p2)
+        deadline = time.monotonic() + timeout_s
+        self._retry_until(lambda: g.set_mode(p2, p3) == 0, deadline, "hold mode")
+        g.wait(lambda t: t.mode == want, max(0.0, deadline - time.monotonic()))
+
+    def airborne(self, min_m: float = 5.0) -> bool:
+        g = self.gcs
+        pos = g.now.position_ned_m if g is not None else None
+        return bool(g is not None and g.now.armed and pos is not None and -pos[2] >= min_m)
+
+    def ensure_airborne(self, altitude_m: float = 15.0, timeout_s: float = 90.0) -> None:
+        """In the air (taking off again after a landing) and holding, the sticks centred."""
+        g = self.gcs
+        assert g is not None
+        deadline = time.monotonic() + timeout_s
+        on_ground = g.now.landed_state == _LANDED_ON_GROUND
+        if g.now.armed and on_ground:
+            # Landed: its own auto-disarm follows within seconds; else disarm it.
+            if not g.wait(lambda t: not t.armed, 5.0):
+                self._retry_until(lambda: g.disarm() == 0, deadline, "disarm")
+            g.wait(lambda t: not t.armed, 5.0)
+        if not g.now.armed:
+            time.sleep(1.0)  # PX4 refuses to arm again at once after a landing
+            self.take_off(altitude_m, max(10.0, deadline - time.monotonic()))
+        self.hold()
+        self.climb_to(altitude_m)
+
+    def climb_to(self, altitude_m: float, timeout_s: float = 30.0) -> None:
+        """Back near ``altitude_m`` in the hold mode (PX4: a reposition; ArduCopter: the
+        throttle stick)."""
+        g = self.gcs
+        assert g is not None
+        pos = g.now.position_ned_m
+        if pos is None or abs(-pos[2] - altitude_m) < 2.0:
+            return
+        deadline = time.monotonic() + timeout_s
+        if self.name == "px4":
+            # MAV_CMD_DO_REPOSITION to here at altitude_m (relative: home is the ground)
+            home = g.home_altitude_m()
+            g.command(192, -1, 0, 0, math.nan, math.nan, math.nan, home + altitude_m)
+        else:
+            self.pilot.mid_throttle_us = 1800 if -pos[2] < altitude_m else 1200
+        while time.monotonic() < deadline:
+            pos = g.now.position_ned_m
+            if pos is not None and abs(-pos[2] - altitude_m) < 1.5:
+                break
+            time.sleep(0.1)
+        self.pilot.mid_throttle_us = RC_MID_US
+        time.sleep(1.0)
+
+    def lose_pilot(self) -> None:
+        """The pilot's input lost: PX4's joystick stops; ArduCopter's radio fails
+        (``SIM_RC_FAIL=1``: no pulses, as a receiver that lost its transmitter)."""
+        if self.name == "px4":
+            self.pilot.radio_on = False
+        else:
+            assert self.gcs is not None
+            self.gcs.param_set("SIM_RC_FAIL", 1.0)
+
+    def restore_pilot(self) -> None:
+        """The pilot's input back, sticks centred and the switch low."""
+        self.pilot.release()
+        self.pilot.radio_on = True
+        if self.name != "px4":
+            assert self.gcs is not None
+            self.gcs.param_set("SIM_RC_FAIL", 0.0)
+
+    def fly(
+        self,
+        *args: str,
+        pilot: Pilot | None = None,
+        sticks_us: tuple[int, int, int, int] | None = None,
+        duration_s: float,
+        name: str | None = None,
+        settle_s: float = 4.0,
+        start_s: float = 3.0,
+    ) -> CompanionRun:
+        """``companion run --engage rc-switch *args`` from the hold: the switch low for
+        ``start_s``, then high with ``pilot`` (or the sticks held at ``sticks_us``)
+        for ``duration_s``, then low; ``settle_s`` of its hand-back; then stopped."""
+        g = self.gcs
+        assert g is not None
+        run = self.start_companion("--engage", "rc-switch", *args, name=name)
+        time.sleep(start_s)
+        p = self.pilot
+        p.pilot, p.sticks_us = pilot, sticks_us
+        p.engage(g.clock())
+        self.wait_engaged(run, 5.0)
+        time.sleep(duration_s)
+        p.release()
+        time.sleep(settle_s)
+        run.stop()
+        p.pilot, p.sticks_us = None, None
+        return run
 
     def take_off(self, altitude_m: float = 15.0, timeout_s: float = 90.0) -> None:
         """Into the air and holding, the stack's own way; learns the hover throttle."""

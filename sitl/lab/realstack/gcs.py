@@ -120,6 +120,7 @@ class GroundStation:
         self._pending: list[_Pending] = []
         self._pilot: SticksFn | None = None
         self.pilot_error: Exception | None = None
+        self._home: float | None = None
         self._pilot_period_s = 0.02
         self._rc_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if rc_port else None
         self._thread = threading.Thread(target=self._loop, name="gcs", daemon=True)
@@ -338,6 +339,8 @@ class GroundStation:
         elif mtype == "SYS_STATUS":
             rc = 1 << 16
             now.rc_healthy = bool(msg.onboard_control_sensors_health & rc)
+        elif mtype == "HOME_POSITION":
+            self._home = msg.altitude * 1e-3
         elif mtype == "STATUSTEXT":
             text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
             self.texts.append((t, text.rstrip("\x00")))
@@ -358,6 +361,19 @@ class GroundStation:
                     pend.result = result
                     pend.event.set()
             self._pending = [p for p in self._pending if not p.event.is_set()]
+
+    def home_altitude_m(self, timeout_s: float = 3.0) -> float:
+        """The home position's altitude (AMSL, m), asked for (MAV_CMD_REQUEST_MESSAGE)."""
+        self._home = None
+        deadline = time.monotonic() + timeout_s
+        while self._home is None and time.monotonic() < deadline:
+            self.send("command_long_send", self.target, 1, 512, 0, 242, 0, 0, 0, 0, 0, 0)
+            end = time.monotonic() + 0.5
+            while self._home is None and time.monotonic() < end:
+                time.sleep(0.02)
+        if self._home is None:
+            raise TimeoutError(f"no HOME_POSITION from the {self.stack} SITL")
+        return self._home
 
     # ------------------------------------------------------------------ readings
     def series(self, mtype: str, *names: str, since_s: float = 0.0) -> list[tuple[float, ...]]:

@@ -1,0 +1,106 @@
+"""Flights the real-stack tests share: the hand-back cases and how each is judged."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.stacks import ARDUPILOT, PX4, FlightStack
+from sitl.lab.realstack.flights import Session
+from sitl.pilot.factory import make_pilot
+
+WATCH_S = 5.0
+"""How long the stack is watched after the hand-back (the companion's own watch is 3 s)."""
+_STACKS = {"px4": PX4, "ardupilot": ARDUPILOT}
+
+
+@dataclass(frozen=True)
+class HandbackCase:
+    """A safe mode asked for, with the pilot's input present (the switch goes low) or
+    absent (the pilot's input is lost while engaged)."""
+
+    stack: str
+    safe_mode: str
+    pilot_present: bool
+
+    @property
+    def id(self) -> str:
+        return f"{self.safe_mode}-{'pilot' if self.pilot_present else 'no-pilot'}"
+
+    @property
+    def dialect(self) -> FlightStack:
+        return _STACKS[self.stack]
+
+    def check(self, out: dict[str, Any]) -> None:
+        """What a serious user must see: a mode the vehicle can fly on its own, held."""
+        st = self.dialect
+        end = out["end_mode"]
+        manual = {st.mode_label(m) for m in st.pilot_modes}
+        if self.pilot_present:
+            asked = st.mode(self.safe_mode).name.upper()
+            assert end == asked, out
+            assert not out["failsafe_at_end"], out
+            if self.safe_mode != "land":
+                assert abs(out["altitude_change_m"]) < 4.0, out
+        else:
+            assert end not in manual, out  # never a manual mode without the pilot
+            for text in out["handed_back"]:
+                chosen = text.rsplit("-> ", 1)[-1].split(" ")[0]
+                assert chosen not in manual, out
+            assert out["exit"] == 3, out  # a failsafe, then the run's end
+
+
+def handback_cases(stack: str) -> list[HandbackCase]:
+    """Every safe mode of the stack, with the pilot and without; land last (it lands)."""
+    modes = [m for m in _STACKS[stack].safe_modes if m != "land"] + ["land"]
+    return [HandbackCase(stack, m, present) for m in modes for present in (True, False)]
+
+
+def fly_safe_mode_case(
+    session: Session, case: HandbackCase, args: tuple[str, ...]
+) -> dict[str, Any]:
+    """Engage, fly 2 s of hover, then hand back as the case says; watch ``WATCH_S``."""
+    g = session.gcs
+    assert g is not None
+    session.ensure_airborne(15.0)
+    run = session.start_companion(
+        "--engage", "rc-switch", *args, "--safe-mode", case.safe_mode, name=f"handback-{case.id}"
+    )
+    pilot = session.pilot
+    time.sleep(2.0)
+    pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
+    pilot.engage(g.clock())
+    engaged = session.wait_engaged(run, 5.0)
+    time.sleep(1.5)
+    t0 = g.clock()
+    alt0 = _altitude(session)
+    if case.pilot_present:
+        pilot.release()
+    else:
+        session.lose_pilot()
+    time.sleep(WATCH_S)
+    st = case.dialect
+    statuses = [s for t, _m, _a, s in g.heartbeats if t >= t0]
+    out: dict[str, Any] = {
+        "engaged": engaged,
+        "end_mode": st.mode_label(g.now.mode or 0),
+        "failsafe_seen": any(s in (5, 6) for s in statuses),
+        "failsafe_at_end": g.now.system_status in (5, 6),
+        "altitude_change_m": round(_altitude(session) - alt0, 2),
+        "handed_back": run.details("handed_back"),
+        "said": [t for t in g.texts_since(t0)][:5],
+    }
+    code = run.proc.poll()
+    out["exit"] = code if code is not None else run.stop()
+    session.restore_pilot()
+    pilot.pilot = None
+    return out
+
+
+def _altitude(session: Session) -> float:
+    g = session.gcs
+    pos = g.now.position_ned_m if g is not None else None
+    return float("nan") if pos is None else -pos[2]

@@ -1,0 +1,173 @@
+"""The companion against the real PX4 v1.16 SITL (SIH quadrotor), over MAVLink on UDP.
+
+PX4's SIH has no radio: the pilot is a ground station's joystick (MANUAL_CONTROL,
+``aux1`` the engage switch), which PX4 streams back to the companion. The tests
+run in order on one booted PX4 (the cold start has its own).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from sitl.lab.realstack.flights import Session, rate_errors
+from sitl.pilot.factory import make_pilot
+from tests.realstack.conftest import ROOT, boot
+from tests.realstack.scenarios import fly_safe_mode_case, handback_cases
+
+PROFILE = str(ROOT / "vehicle_profiles" / "px4_sih_quadx.yaml")
+RATES = ("--output", "rates", "--profile", PROFILE)
+PX4_POSCTL = 3 << 16
+PX4_LOITER = (4 << 16) | (3 << 24)
+
+
+@pytest.fixture(scope="module")
+def px4(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
+    session = boot("px4", tmp_path_factory.mktemp("px4"))
+    yield session
+    session.close()
+
+
+def preflight(session: Session, *args: str) -> dict[str, Any]:
+    cmd = [sys.executable, "-m", "companion", "preflight", "--connect",
+           session.stack.companion_url, *RATES, "--json", *args]  # fmt: skip
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert res.returncode in (0, 1), res.stderr
+    data: dict[str, Any] = json.loads(res.stdout)
+    return data
+
+
+def by_name(data: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    return {c["name"]: c for c in data["checks"]}
+
+
+def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str, Any]]) -> None:
+    g = px4.gcs
+    assert g is not None
+    pilot = px4.pilot
+    # The pilot flips the joystick's switch while preflight watches.
+    import threading
+
+    def flick() -> None:
+        time.sleep(2.0)
+        pilot.switch_high = True
+        time.sleep(0.6)
+        pilot.switch_high = False
+
+    threading.Thread(target=flick, daemon=True).start()
+    data = preflight(px4, "--watch-s", "4")
+    checks = by_name(data)
+    figures.append({"test": "px4 preflight", **{k: v["status"] for k, v in checks.items()}})
+    failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
+    assert not failed, failed
+    # Every figure it quotes is the stack's own.
+    for name in ("COM_OF_LOSS_T", "COM_RC_LOSS_T"):
+        value = g.param_get(name)
+        assert value is not None
+        assert checks[name]["detail"].startswith(f"{value[0]:g} s"), checks[name]
+    for name in ("NAV_RCL_ACT", "COM_OBL_RC_ACT", "COM_RCL_EXCEPT", "COM_RC_IN_MODE"):
+        value = g.param_get(name)
+        assert value is not None
+        assert checks[name]["detail"].startswith(f"{int(value[0])}"), checks[name]
+    assert checks["link"]["detail"].startswith("PX4 1.16")
+    assert checks["landed state"]["detail"] == "on ground"
+    assert checks["RC"]["detail"].startswith("no radio: the pilot's joystick")
+    assert checks["engage switch"]["status"] == "pass", checks["engage switch"]
+    assert checks["IMU rate"]["status"] == "pass"
+    assert checks["position"]["status"] == "pass"
+
+
+BAD_PX4 = {
+    "COM_OF_LOSS_T": 5.0,  # fail: holds a rate 5 s
+    "COM_OBL_RC_ACT": 6.0,  # fail: Disarm on offboard loss
+    "COM_RC_LOSS_T": 10.0,  # warn
+    "NAV_RCL_ACT": 0.0,  # fail: nothing on RC loss
+    "COM_RCL_EXCEPT": 4.0,  # warn: RC loss ignored in OFFBOARD
+    "IMU_GYRO_RATEMAX": 100.0,  # warn: below the loop rate asked
+}
+
+
+def test_preflight_flags_each_badly_set_px4_parameter_with_its_fix(
+    px4: Session, figures: list[dict[str, Any]]
+) -> None:
+    g = px4.gcs
+    assert g is not None
+    before = {}
+    for name, value in BAD_PX4.items():
+        got = g.param_get(name)
+        assert got is not None, name
+        before[name] = got[0]
+        g.param_set(name, value)
+    try:
+        checks = by_name(preflight(px4, "--watch-s", "2"))
+    finally:
+        for name, value in before.items():
+            g.param_set(name, value)
+    got = {name: checks[name]["status"] for name in BAD_PX4}
+    figures.append({"test": "px4 preflight, badly set", **got})
+    assert got == {
+        "COM_OF_LOSS_T": "fail", "COM_OBL_RC_ACT": "fail", "COM_RC_LOSS_T": "warn",
+        "NAV_RCL_ACT": "fail", "COM_RCL_EXCEPT": "warn", "IMU_GYRO_RATEMAX": "warn",
+    }  # fmt: skip
+    for name in BAD_PX4:
+        assert checks[name]["fix"], checks[name]
+
+
+def test_mfc_flies_px4s_rate_loop_better_than_passing_the_pilots_rates(
+    px4: Session, figures: list[dict[str, Any]]
+) -> None:
+    px4.ensure_airborne(15.0)
+    errs = {}
+    for name, extra in (("pass-through", ("--rates-passthrough",)), ("mfc", ())):
+        px4.ensure_airborne(15.0)
+        pilot = make_pilot("acro-random", rng=np.random.default_rng(4))
+        run = px4.fly(*RATES, *extra, pilot=pilot, duration_s=22.0, name=f"rates-{name}")
+        assert "engaged" in run.kinds(), run.events()
+        assert not [k for k in run.kinds() if k.startswith("failsafe")], run.events()
+        errs[name] = rate_errors(run.control())
+    figures.append({"test": "px4 rates acro-random seed 4 MAE deg/s", **errs})
+    for axis in ("roll", "pitch", "yaw"):
+        assert errs["mfc"][axis] < errs["pass-through"][axis], (axis, errs)
+
+
+@pytest.mark.parametrize("case", handback_cases("px4"), ids=lambda c: c.id)
+def test_each_safe_mode_with_the_pilot_present_and_absent(
+    px4: Session, case: Any, figures: list[dict[str, Any]]
+) -> None:
+    out = fly_safe_mode_case(px4, case, RATES)
+    figures.append({"test": f"px4 hand-back {case.id}", **out})
+    case.check(out)
+
+
+def test_engage_auto_from_a_cold_start(tmp_path: Path, figures: list[dict[str, Any]]) -> None:
+    session = Session("px4", tmp_path / "cold")
+    try:
+        run = session.start_companion(
+            *RATES, "--engage", "auto", "--duration", "8", "--arm-timeout-s", "60"
+        )
+        # The companion starts while PX4 boots; the pilot's joystick comes with the GCS.
+        g = session.connect(90.0)
+        session.pilot.hover_throttle = 0.5
+        session.pilot.pilot = make_pilot("hover", rng=np.random.default_rng(1))
+        session.pilot.engage(g.clock())
+        code = run.wait(120.0)
+        kinds = run.kinds()
+        figures.append({
+            "test": "px4 engage auto, cold", "exit": code,
+            "arm_refused": len(run.details("arm_refused")), "engaged": "engaged" in kinds,
+            "climbed_m": max((-p[1] for p in g.series("LOCAL_POSITION_NED", "z")), default=0.0),
+        })  # fmt: skip
+        assert code == 0, (code, run.events())
+        assert "engaged" in kinds and "duration" in kinds, run.events()
+        assert not math.isnan(figures[-1]["climbed_m"]) and figures[-1]["climbed_m"] > 1.0
+    finally:
+        session.close()
