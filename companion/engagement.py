@@ -35,6 +35,9 @@ _POSITION_TIMEOUT_S = 1.0
 """A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
 ArduPilot only while their estimate is valid) is younger than this."""
 _WATCH_POLL_S = 0.05
+_SYS_STATUS_WAIT_S = 0.3
+"""How long a hand-back that adopts the autopilot's failsafe waits for its next
+SYS_STATUS (the companion asks for 5 Hz)."""
 _ESTIMATES_WAIT_S = 1.0
 """How long an engagement waits for the estimates its flight mode needs."""
 _RETRY_S = 1.0
@@ -76,6 +79,8 @@ class Engagement:
     _ap_heartbeats: int
     _rc_wall: float | None
     _pos_wall: float | None
+    _rc_receiver_healthy: bool
+    n_sys_status: int
 
     if TYPE_CHECKING:  # the app's
 
@@ -320,7 +325,11 @@ class Engagement:
         if self.needs_position:  # the modes that fly on it judge it themselves
             position = position and self.position_fresh()
         return Conditions(
-            rc_valid=rc is not None and now - rc <= self.opts.failsafe.rc_timeout_s,
+            # Frames that came while the receiver was healthy, and it still is (ArduPilot
+            # streams a lost radio's last pulses; its SYS_STATUS says it is lost).
+            rc_valid=rc is not None
+            and now - rc <= self.opts.failsafe.rc_timeout_s
+            and self._rc_receiver_healthy,
             position_valid=position,
             rc_failsafe=rc_failsafe,
             autopilot_failsafe=failsafe_state(self._ap_status),
@@ -339,6 +348,13 @@ class Engagement:
         mode switch."""
         assert self.stack is not None
         stack, modes = self.stack, self._safe_modes
+        if adopt and failsafe_state(self._ap_status) and self.n_sys_status:
+            # The autopilot announces its failsafe's mode at once, in a HEARTBEAT; what
+            # failed (its RC receiver) comes in its next SYS_STATUS: judge on that.
+            seen = self.n_sys_status
+            wait_by = time.monotonic() + _SYS_STATUS_WAIT_S
+            while self.n_sys_status == seen and time.monotonic() < wait_by:
+                await asyncio.sleep(0.01)
         ap_mode = self._ap_mode
         cond = self._conditions(rc_failsafe=rc_failsafe)
         if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):

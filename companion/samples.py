@@ -104,6 +104,7 @@ class SamplePath(ModePath):
         self.n_sample_errors = 0
         self.n_rc_invalid = 0
         self.n_rc_unhealthy = 0
+        self.n_sys_status = 0
         self._rc_receiver_healthy = True
         self._rc_receiver_seen = False
         self._prearm_ready: bool | None = None
@@ -191,6 +192,7 @@ class SamplePath(ModePath):
         (MAV_SYS_STATUS_PREARM_CHECK), healthy while they pass: ``--engage
         auto`` waits for it before arming. A stack that does not report it
         (the bit not present) leaves ``_prearm_ready`` None: it is just tried."""
+        self.n_sys_status += 1
         present = int(msg.onboard_control_sensors_present)
         if present & _SENSOR_PREARM_CHECK:
             self._prearm_ready = bool(

@@ -98,6 +98,8 @@ class FlightStack:
     """The fastest IMU stream worth asking for; the stack may still deny it."""
     rate_shaping: RateShapingParams | None = None
     """How it shapes a body-rate setpoint before flying it; None: it flies it as sent."""
+    mode_names: dict[int, str] = field(default_factory=dict)
+    """Names of its other modes by ``custom_mode`` (its failsafes' choices, for events)."""
     arm_refusals: tuple[str, ...] = ()
     """How the STATUSTEXTs begin with which the stack says why it refused to arm."""
     mode_refusals: tuple[str, ...] = ()
@@ -137,6 +139,9 @@ class FlightStack:
             return shown.name.upper()
         if self.is_engage_mode(custom_mode):
             return self.engage_label
+        named = self.mode_names.get(custom_mode)
+        if named is not None:
+            return named
         if self.name == "px4":
             main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
             return f"main {main} sub {sub}" if sub else f"main {main}"
@@ -178,6 +183,14 @@ PX4 = FlightStack(
     # MANUAL 1, ALTCTL 2, POSCTL 3, ACRO 5, STABILIZED 7 (main mode, bits 16-23)
     pilot_modes=frozenset(main << 16 for main in (1, 2, 3, 5, 7)),
     throttle_modes=frozenset(main << 16 for main in (1, 5, 7)),
+    # PX4 main mode 5 ACRO; AUTO's sub modes (bits 24-31): 2 TAKEOFF, 4 MISSION, 5 RTL, 9 PRECLAND
+    mode_names={
+        5 << 16: "ACRO",
+        4 << 16 | 2 << 24: "AUTO.TAKEOFF",
+        4 << 16 | 4 << 24: "AUTO.MISSION",
+        4 << 16 | 5 << 24: "AUTO.RTL",
+        4 << 16 | 9 << 24: "AUTO.PRECLAND",
+    },
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
@@ -205,6 +218,17 @@ ARDUPILOT = FlightStack(
     # STABILIZE 0, ACRO 1, ALT_HOLD 2, DRIFT 11, SPORT 13, POSHOLD 16
     pilot_modes=frozenset((0, 1, 2, 11, 13, 16)),
     throttle_modes=frozenset((0, 1)),
+    mode_names={
+        1: "ACRO",
+        3: "AUTO",
+        4: "GUIDED",
+        6: "RTL",
+        7: "CIRCLE",
+        11: "DRIFT",
+        13: "SPORT",
+        16: "POSHOLD",
+        21: "SMART_RTL",
+    },
     imu_message="attitude",
     supports_actuator_output=False,
     # ArduPilot denies intervals shorter than its loop period / 0.8 (~333 Hz at 400 Hz).

@@ -250,7 +250,38 @@ def _paper_acro(rng: np.random.Generator) -> tuple[list[Segment], float]:
     return tl.finish()
 
 
+def _acro_mixed(rng: np.random.Generator) -> tuple[list[Segment], float]:
+    """About 25 s that work every axis, each maneuver's size and order seeded: a
+    roll and a pitch reversal, a yaw turn each way, a roll and a pitch flip, and
+    stick stirring on all three (what a pilot does in a short acro session)."""
+    tl = _Timeline(takeoff_s=1.0)
+
+    def u(lo: float, hi: float) -> float:
+        return float(rng.uniform(lo, hi))
+
+    def sign() -> float:
+        return 1.0 if rng.random() < 0.5 else -1.0
+
+    def flip(axis: int) -> None:
+        tl.punch()
+        tl.spin(axis, sign() * u(450.0, 650.0), 1.0)
+
+    for i in rng.permutation(7):
+        k = int(i)
+        if k < 2:
+            tl.reversal(k, sign() * u(250.0, 400.0), u(30.0, 45.0))
+        elif k < 4:
+            tl.spin(2, sign() * u(150.0, 300.0), 1.0, 0.15, "hold")
+        elif k < 6:
+            flip(k - 4)
+        else:
+            tl.wiggle(rng, u(2.0, 3.0), u(90.0, 150.0))
+        tl.level(u(1.2, 2.0))
+    return tl.finish()
+
+
 MANEUVERS: dict[str, Callable[[np.random.Generator], tuple[list[Segment], float]]] = {
+    "acro-mixed": _acro_mixed,
     "hover": _hover,
     "roll-flip": _flip(0),
     "pitch-flip": _flip(1),

@@ -126,10 +126,13 @@ def test_px4_hold_and_land_custom_modes_carry_the_sub_mode() -> None:
 
 def test_modes_that_are_no_safe_mode_get_a_readable_label() -> None:
     assert PX4.mode_label(PX4_OFFBOARD) == "OFFBOARD"
-    assert PX4.mode_label(PX4_RTL) == "main 4 sub 5"
-    assert PX4.mode_label(PX4_ACRO) == "main 5"
+    assert PX4.mode_label(PX4_RTL) == "AUTO.RTL"
+    assert PX4.mode_label(PX4_ACRO) == "ACRO"
+    assert PX4.mode_label(8 << 16) == "main 8"  # one it does not know
+    assert PX4.mode_label(4 << 16 | 7 << 24) == "main 4 sub 7"
     assert ARDUPILOT.mode_label(APM_GUIDED_NOGPS) == "GUIDED_NOGPS"
-    assert ARDUPILOT.mode_label(APM_RTL) == "mode 6"
+    assert ARDUPILOT.mode_label(APM_RTL) == "RTL"
+    assert ARDUPILOT.mode_label(99) == "mode 99"
     assert ARDUPILOT.safe_mode_shown(APM_RTL) is None
 
 
@@ -427,14 +430,14 @@ def test_judge_rejects_an_earlier_candidate_or_another_mode() -> None:
     # HOLD is earlier than LAND: the autopilot left the land we asked for.
     assert judge(PX4, AUTO, 3, PX4_HOLD, EVERYTHING) == "the autopilot left LAND for HOLD"
     # The autopilot's own failsafe: AUTO.RTL is no candidate.
-    assert judge(PX4, AUTO, 0, PX4_RTL, EVERYTHING) == "the autopilot left POSCTL for main 4 sub 5"
-    assert judge(PX4, AUTO, 2, PX4_RTL, NOTHING) == "the autopilot left HOLD for main 4 sub 5"
+    assert judge(PX4, AUTO, 0, PX4_RTL, EVERYTHING) == "the autopilot left POSCTL for AUTO.RTL"
+    assert judge(PX4, AUTO, 2, PX4_RTL, NOTHING) == "the autopilot left HOLD for AUTO.RTL"
     # OFFBOARD again is not a mode to stay in without the companion.
     assert judge(PX4, AUTO, 2, PX4_OFFBOARD, EVERYTHING) == "the autopilot left HOLD for OFFBOARD"
     # A safe mode of the stack that is not among the candidates after ours.
     apm = candidates(ARDUPILOT, "auto")
     assert judge(ARDUPILOT, apm, 1, APM_BRAKE, EVERYTHING) == "the autopilot left LOITER for BRAKE"
-    assert judge(ARDUPILOT, apm, 0, APM_RTL, EVERYTHING) == "the autopilot left ALT_HOLD for mode 6"
+    assert judge(ARDUPILOT, apm, 0, APM_RTL, EVERYTHING) == "the autopilot left ALT_HOLD for RTL"
     named = candidates(PX4, "hold")  # hold, land
     assert judge(PX4, named, 1, PX4_HOLD, EVERYTHING) == "the autopilot left LAND for HOLD"
 
@@ -447,7 +450,7 @@ def test_judge_keeps_a_mode_flown_from_the_sticks_only_with_valid_rc() -> None:
     assert judge(PX4, AUTO, 1, PX4_POSCTL, EVERYTHING) is None
     # The same without valid RC: nobody flies it.
     assert judge(PX4, AUTO, 2, PX4_MANUAL, POSITION_ONLY) == "the autopilot left HOLD for MANUAL"
-    assert judge(PX4, AUTO, 2, PX4_ACRO, NOTHING) == "the autopilot left HOLD for main 5"
+    assert judge(PX4, AUTO, 2, PX4_ACRO, NOTHING) == "the autopilot left HOLD for ACRO"
     assert judge(PX4, AUTO, 3, PX4_POSCTL, NOTHING) == "the autopilot left LAND for POSCTL"
     # After RC loss, with the radio back, a manual mode is the pilot's own choice: kept.
     assert judge(PX4, AUTO, 2, PX4_MANUAL, RC_BACK_AFTER_RC_LOSS) is None
@@ -476,7 +479,7 @@ def test_judge_loses_a_mode_flown_from_the_sticks_the_autopilot_fails_safe_in() 
     )
     emergency = Conditions(False, True, autopilot_failsafe="EMERGENCY")
     assert judge(PX4, AUTO, 2, PX4_ACRO, emergency) == (
-        "the autopilot is failing safe (EMERGENCY) in main 5"
+        "the autopilot is failing safe (EMERGENCY) in ACRO"
     )
     apm = candidates(ARDUPILOT, "auto")
     assert judge(ARDUPILOT, apm, 0, APM_ALT_HOLD, FAILING_SAFE) == (
@@ -494,7 +497,7 @@ def test_judge_keeps_a_hold_or_land_the_autopilot_fails_safe_in() -> None:
     assert judge(ARDUPILOT, apm, 1, APM_LOITER, FAILING_SAFE) is None
     assert judge(ARDUPILOT, apm, 2, APM_LAND, FAILING_SAFE) is None
     # A mode that is no candidate stays the autopilot leaving ours, as without a failsafe.
-    assert judge(PX4, AUTO, 2, PX4_RTL, FAILING_SAFE) == "the autopilot left HOLD for main 4 sub 5"
+    assert judge(PX4, AUTO, 2, PX4_RTL, FAILING_SAFE) == "the autopilot left HOLD for AUTO.RTL"
 
 
 # ------------------------------------------------------------------- adoptable

@@ -236,7 +236,7 @@ async def test_the_autopilots_own_rtl_after_posctl_is_lost_and_hold_follows(
     t_rtl = time.perf_counter()
     f.fake.set_state(PX4_RTL)
     lost = await event(f, "safe_mode_lost")
-    assert lost.startswith("the autopilot left POSCTL for main 4 sub 5 after ")
+    assert lost.startswith("the autopilot left POSCTL for AUTO.RTL after ")
     assert await f.finish(timeout_s=4.0) == 0
     assert asked(f) == [OFFBOARD, POSCTL, HOLD]
     assert 0.0 < modes.at(HOLD) - t_rtl < MARGIN_S  # judged on the next poll, not the watch

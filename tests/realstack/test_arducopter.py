@@ -1,0 +1,169 @@
+"""The companion against the real ArduCopter 4.5.6 SITL (its quad), over MAVLink on UDP.
+
+The pilot is RC pulses on the SITL's RC input (channel 5 the engage switch,
+``FLTMODE_CH = 6``); the companion engages GUIDED_NOGPS and sends body rates
+(``GUID_OPTIONS = 8``). The stack boots 8x faster than real time until its EKF
+uses GPS, then flies in real time. The tests run in order on one booted stack
+(the cold start has its own).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from sitl.lab.realstack.flights import Session, rate_errors
+from sitl.pilot.factory import make_pilot
+from tests.realstack.conftest import ROOT, boot
+from tests.realstack.scenarios import fly_safe_mode_case, handback_cases
+
+PROFILE = str(ROOT / "vehicle_profiles" / "arducopter_sitl_quad.yaml")
+RATES = ("--output", "rates", "--profile", PROFILE)
+
+
+@pytest.fixture(scope="module")
+def copter(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
+    session = boot("ardupilot", tmp_path_factory.mktemp("arducopter"))
+    yield session
+    session.close()
+
+
+def preflight(session: Session, *args: str) -> dict[str, dict[str, Any]]:
+    cmd = [sys.executable, "-m", "companion", "preflight", "--connect",
+           session.stack.companion_url, *RATES, "--json", *args]  # fmt: skip
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert res.returncode in (0, 1), res.stderr
+    return {c["name"]: c for c in json.loads(res.stdout)["checks"]}
+
+
+def test_preflight_is_true_of_the_real_arducopter(
+    copter: Session, figures: list[dict[str, Any]]
+) -> None:
+    g = copter.gcs
+    assert g is not None
+    pilot = copter.pilot
+
+    def flick() -> None:
+        time.sleep(4.0)  # once preflight has read the parameters and watches
+        pilot.switch_high = True
+        time.sleep(1.0)
+        pilot.switch_high = False
+
+    threading.Thread(target=flick, daemon=True).start()
+    checks = preflight(copter, "--watch-s", "6")
+    figures.append({"test": "arducopter preflight", **{k: v["status"] for k, v in checks.items()}})
+    failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
+    assert not failed, failed
+    for name in ("GUID_TIMEOUT", "RC_FS_TIMEOUT", "SCHED_LOOP_RATE"):
+        value = g.param_get(name)
+        assert value is not None
+        assert checks[name]["detail"].startswith(f"{value[0]:g}"), checks[name]
+    for name in ("GUID_OPTIONS", "FS_THR_ENABLE", "FS_OPTIONS"):
+        value = g.param_get(name)
+        assert value is not None
+        assert checks[name]["detail"].startswith(f"{int(value[0])}"), checks[name]
+    assert checks["link"]["detail"].startswith("ArduPilot 4.5.6"), checks["link"]
+    assert checks["landed state"]["detail"] == "on ground"
+    assert checks["engage switch"]["status"] == "pass", checks["engage switch"]
+    # Its own default GUID_TIMEOUT (3 s) holds a lost companion's last rate that long: said.
+    assert checks["GUID_TIMEOUT"]["status"] == "warn"
+
+
+BAD_ARDU = {
+    "GUID_OPTIONS": 0.0,  # fail: thrust read as a climb rate
+    "GUID_TIMEOUT": 5.0,  # warn
+    "FS_THR_ENABLE": 0.0,  # fail: no radio failsafe
+    "FS_OPTIONS": 4.0,  # warn: GUIDED carries on when the radio is lost
+    "RC_FS_TIMEOUT": 3.0,  # warn
+    "SCHED_LOOP_RATE": 100.0,  # warn: streams at most 80 Hz (read now, applied at reboot)
+}
+
+
+def test_preflight_flags_each_badly_set_arducopter_parameter_with_its_fix(
+    copter: Session, figures: list[dict[str, Any]]
+) -> None:
+    g = copter.gcs
+    assert g is not None
+    before = {}
+    for name, value in BAD_ARDU.items():
+        got = g.param_get(name)
+        assert got is not None, name
+        before[name] = got[0]
+        g.param_set(name, value)
+    try:
+        checks = preflight(copter, "--watch-s", "2")
+    finally:
+        for name, value in before.items():
+            g.param_set(name, value)
+    got = {name: checks[name]["status"] for name in BAD_ARDU}
+    figures.append({"test": "arducopter preflight, badly set", **got})
+    assert got == {
+        "GUID_OPTIONS": "fail", "GUID_TIMEOUT": "warn", "FS_THR_ENABLE": "fail",
+        "FS_OPTIONS": "warn", "RC_FS_TIMEOUT": "warn", "SCHED_LOOP_RATE": "warn",
+    }  # fmt: skip
+    for name in BAD_ARDU:
+        assert checks[name]["fix"], checks[name]
+
+
+def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
+    copter: Session, figures: list[dict[str, Any]]
+) -> None:
+    errs = {}
+    for name, extra in (("pass-through", ("--rates-passthrough",)), ("mfc", ())):
+        copter.ensure_airborne(15.0)
+        pilot = make_pilot("acro-mixed", rng=np.random.default_rng(12))
+        run = copter.fly(
+            *RATES, *extra, pilot=pilot, duration_s=pilot.duration_s, name=f"rates-{name}"
+        )
+        assert "engaged" in run.kinds(), run.events()
+        assert "rate_shaping" in run.kinds(), run.events()
+        errs[name] = rate_errors(run.control())
+        errs[name]["failsafes"] = [k for k in run.kinds() if k.startswith("failsafe")]
+    figures.append({"test": "arducopter rates acro-mixed seed 12 MAE deg/s", **errs})
+    assert not errs["mfc"]["failsafes"], errs
+    for axis in ("roll", "pitch", "yaw"):
+        assert errs["mfc"][axis] < errs["pass-through"][axis], (axis, errs)
+
+
+@pytest.mark.parametrize("case", handback_cases("ardupilot"), ids=lambda c: c.id)
+def test_each_safe_mode_with_the_pilot_present_and_absent(
+    copter: Session, case: Any, figures: list[dict[str, Any]]
+) -> None:
+    out = fly_safe_mode_case(copter, case, RATES)
+    figures.append({"test": f"arducopter hand-back {case.id}", **out})
+    case.check(out)
+
+
+def test_engage_auto_from_a_cold_start(tmp_path: Path, figures: list[dict[str, Any]]) -> None:
+    """Started with the stack, before its EKF has an altitude: the companion waits for
+    the pre-arm checks, arms in GUIDED_NOGPS and takes off on the pilot's throttle."""
+    session = Session("ardupilot", tmp_path / "cold", fast_boot=False)
+    try:
+        run = session.start_companion(
+            *RATES, "--engage", "auto", "--duration", "8", "--arm-timeout-s", "90"
+        )
+        session.pilot.hover_throttle = 0.39
+        session.pilot.pilot = make_pilot("hover", rng=np.random.default_rng(1))
+        session.pilot.engage(0.0)
+        g = session.connect(120.0)
+        code = run.wait(150.0)
+        ups = [-z for _t, z in g.series("LOCAL_POSITION_NED", "z")]
+        figures.append({
+            "test": "arducopter engage auto, cold", "exit": code,
+            "arm_refused": run.details("arm_refused")[:3], "engaged": "engaged" in run.kinds(),
+            "climbed_m": round(max(ups, default=0.0), 2), "said": g.texts_since(0.0)[-6:],
+        })  # fmt: skip
+        assert code == 0, (code, run.events())
+        assert "engaged" in run.kinds() and "duration" in run.kinds(), run.events()
+        assert figures[-1]["climbed_m"] > 1.0
+    finally:
+        session.close()
