@@ -255,7 +255,8 @@ class ModePath(Engagement):
 
     def _not_ready_to_engage(self) -> str | None:
         """Why the vehicle must not be engaged now, or None."""
-        if self._rc_needed and not self._pilot_fresh():
+        if self.opts.engage == "auto" and self._rc_needed and not self._pilot_fresh():
+            # (With rc-switch the pilot's switch, in their own input, is the engagement.)
             return (
                 "no valid pilot input (RC_CHANNELS, or MANUAL_CONTROL from a joystick) "
                 "yet: the sticks fly"

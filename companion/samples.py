@@ -105,6 +105,8 @@ class SamplePath(ModePath):
         self.n_rc_invalid = 0
         self.n_rc_unhealthy = 0
         self.n_sys_status = 0
+        self._joystick_wall: float | None = None
+        """When the last MANUAL_CONTROL frame came, valid or not."""
         self._rc_receiver_healthy = True
         self._rc_receiver_seen = False
         self._prearm_ready: bool | None = None
@@ -488,8 +490,15 @@ class SamplePath(ModePath):
         pilot's joystick as the autopilot streams it (PX4 without a radio: a ground
         station's joystick). Used only while no valid RC_CHANNELS frame came within
         the RC timeout: a radio, where there is one, is the pilot's input."""
+        now = time.perf_counter()
+        timeout = self.opts.failsafe.rc_timeout_s
+        last, self._joystick_wall = self._joystick_wall, now
+        if last is None or now - last > timeout:
+            # PX4 answers the stream's request with one frame at once, a ground
+            # station's joystick or not: a joystick is a stream, from its second frame.
+            return
         radio = self._rc_radio_wall
-        if radio is not None and time.perf_counter() - radio <= self.opts.failsafe.rc_timeout_s:
+        if radio is not None and now - radio <= timeout:
             return
         self._on_pilot(joystick_channels(v, self.sticks.channels))
 

@@ -120,12 +120,20 @@ async def started_up(f: Flight) -> None:
 async def engage_px4_auto(f: Flight) -> None:
     """Start-up, setpoints, OFFBOARD, ARM, and the heartbeat that shows them applied."""
     await streams_requested(f)
-    f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))  # valid sticks, half throttle
+    # Valid sticks, half throttle: a few frames (an auto engagement waits for a stream).
+    pilot_frames(f)
     await f.feed_until(lambda: f.fake.commands(CMD_ARM), what="ARM")
     await settle()
     assert not f.companion.engaged, "engaged on the ACKs alone, before the heartbeat said so"
     f.fake.set_state(PX4_OFFBOARD, armed=True)
     await f.fake.wait_until(lambda: f.companion.engaged, 1.0)
+
+
+def pilot_frames(f: Flight, ch5_us: int = 1000, n: int = 3) -> None:
+    """The pilot's radio streaming (``n`` RC_CHANNELS frames: valid sticks, half
+    throttle): an auto engagement waits for a stream, not one frame."""
+    for _ in range(n):
+        f.fake.rc(ch5_us, sticks=(1500, 1500, 1500, 1500))
 
 
 def index_of(fake: FakeAutopilot, pred: Callable[[Any], bool]) -> int:

@@ -21,6 +21,7 @@ from tests.app.fakes import (
     CMD_ARM,
     CMD_DO_SET_MODE,
     CMD_SET_MESSAGE_INTERVAL,
+    PX4_OFFBOARD,
     PX4_POSCTL,
     mavlink2,
     settle,
@@ -73,8 +74,9 @@ async def test_a_joystick_engages_and_flies_where_the_autopilot_has_no_radio(
     await started_up(f)
     asked = {int(m.param1) for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
     assert {MSG_MANUAL_CONTROL, MSG_SYS_STATUS} <= asked
-    f.fake.manual_control(-1000, sticks=(0, 500, 500, 0))  # roll half right, half thrust
-    await settle()
+    for _ in range(2):  # the first frame of a stream is not taken (PX4 sends one on request)
+        f.fake.manual_control(-1000, sticks=(0, 500, 500, 0))  # roll half right, half thrust
+        await settle()
     assert not f.fake.commands(CMD_DO_SET_MODE)
     f.fake.manual_control(1000, sticks=(0, 500, 500, 0))
     await f.fake.wait_until(lambda: f.fake.commands(CMD_DO_SET_MODE), 2.0)
@@ -120,7 +122,12 @@ async def test_an_rc_receiver_the_autopilot_calls_lost_is_rc_lost(start: Start) 
         failsafe=FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=1.0, link_timeout_s=5.0,
                                 hand_back_watch_s=0.3),
     )  # fmt: skip
-    await engage_px4_auto(f)
+    await streams_requested(f)
+    await f.feed_until(
+        lambda: f.fake.commands(CMD_ARM), send=lambda: (f.fake.rc(1000), f.imu()), what="ARM"
+    )
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=lambda: (f.fake.rc(1000), f.imu()))
     f.fake.sys_status(rc_healthy=True)
     await f.feed_until(
         lambda: "rc_receiver_lost" in f.kinds(),
@@ -134,6 +141,7 @@ async def test_an_rc_receiver_the_autopilot_calls_lost_is_rc_lost(start: Start) 
         what="the RC-lost failsafe",
     )
     assert f.companion.n_rc_unhealthy > 0
+    await f.fake.wait_until(lambda: bool(f.details("handed_back")), 2.0)
     (handed,) = f.details("handed_back")
     assert "RC lost" in handed and "POSCTL" not in handed.split("->")[-1]
 
@@ -174,6 +182,12 @@ async def test_an_auto_engagement_waits_for_the_pilots_input(start: Start) -> No
         f.imu()
         await settle(2)
     assert not f.fake.commands(CMD_DO_SET_MODE) and not f.fake.setpoints()
-    f.fake.manual_control(-1000)  # the joystick comes
-    await f.feed_until(lambda: f.fake.commands(CMD_ARM), what="ARM")
+    f.fake.manual_control(-1000)  # one frame (PX4 sends one on request): no pilot yet
+    for _ in range(50):
+        f.imu()
+        await settle(2)
+    assert not f.fake.commands(CMD_DO_SET_MODE)
+    await f.feed_until(  # the joystick streams
+        lambda: f.fake.commands(CMD_ARM), send=lambda: (f.fake.manual_control(-1000), f.imu())
+    )
     assert "failsafe_rc_lost" not in f.kinds()

@@ -213,14 +213,17 @@ class Session:
         self._runs = 0
 
     # ---------------------------------------------------------------- start-up
-    def connect(self, timeout_s: float = 60.0) -> GroundStation:
+    def connect(self, timeout_s: float = 60.0, *, wait_ready: bool = True) -> GroundStation:
+        """The ground station on the stack, the pilot's input flowing; with
+        ``wait_ready``, once the stack is ready (PX4 "Ready for takeoff", ArduCopter's
+        EKF using GPS, then at real time)."""
         st = self.stack
-        if self.name == "px4" and not st.wait_log("Ready for takeoff", timeout_s):
+        if self.name == "px4" and wait_ready and not st.wait_log("Ready for takeoff", timeout_s):
             raise RuntimeError(f"PX4 did not get ready in {timeout_s:g} s:\n{st.log()[-2000:]}")
         self.gcs = g = GroundStation(st.gcs_url, stack=self.name, rc_port=st.rc_port)
         g.wait_heartbeat(timeout_s)
         g.set_pilot(self.pilot)
-        if self.name == "ardupilot":
+        if self.name == "ardupilot" and wait_ready:
             if g.wait_text("is using GPS", timeout_s) is None:
                 raise RuntimeError(f"ArduCopter's EKF did not use GPS in {timeout_s:g} s")
             got = g.param_get("SIM_SPEEDUP")
