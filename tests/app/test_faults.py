@@ -733,3 +733,19 @@ async def test_a_heartbeat_that_comes_back_gets_the_streams_asked_for_again(star
     await f.fake.wait_until(lambda: "link_restored" in f.kinds(), 1.0)
     await f.fake.wait_until(lambda: len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL)) > asked, 1.0)
     assert not f.task.done()  # rc-switch: idle, it waits for the pilot
+
+
+async def test_a_companion_held_off_the_cpu_reads_what_waits_before_calling_the_imu_stale(
+    start: Start,
+) -> None:
+    """Measured against the real PX4 with both cores busy: the companion saw gaps up to
+    152 ms between IMU samples that were all there, queued in its socket while it was
+    not running. The watchdog reads what waits before it judges."""
+    f = await start(engage="auto", output="actuator")
+    await engage_px4_auto(f)
+    c = f.companion
+    c._last_imu_wall = time.perf_counter() - 1.0  # as if held off the CPU for a second
+    f.imu()  # a sample came meanwhile: it waits to be read
+    assert await c._still_stale(0.25) is False
+    c._last_imu_wall = time.perf_counter() - 1.0  # and with nothing waiting, it is stale
+    assert await c._still_stale(0.25) is True
