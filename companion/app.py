@@ -95,6 +95,14 @@ _COUNTERS_PERIOD_S = 10.0
 _TASKS_STOP_S = 2.0
 """How long the run's end waits for its background tasks after cancelling them."""
 
+_HAND_BACK_RETRY_S = 15.0
+"""How long the run's end goes on asking for a safe mode the autopilot did not
+answer (a cut link), unless the autopilot shows it left the engage mode."""
+_HAND_BACK_RETRY_PERIOD_S = 0.1
+_LINK_QUIET_S = 1.5
+"""No autopilot heartbeat for this long (1 Hz) after an unanswered hand-back: the
+link is down, and the hand-back waits for it."""
+
 _DRAIN_TURNS = 16
 """Turns of the event loop a stale-looking IMU waits for datagrams already there."""
 
@@ -706,6 +714,7 @@ class Companion(SamplePath):
             await self._hand_back(
                 "run ended", was_commanding=True if self._hand_back_owed else None
             )
+            await self._hand_back_once_the_link_is_back()
             self._final_counters()
             if self._telemetry is not None:
                 await self._telemetry.drain(1.0)  # the last events say why it ended
@@ -732,6 +741,35 @@ class Companion(SamplePath):
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
         return self._exit_code
+
+    async def _hand_back_once_the_link_is_back(self) -> None:
+        """A hand-back that went unanswered (the link cut while engaged) is tried
+        again until the autopilot answers, shows it left the engage mode by itself,
+        or ``_HAND_BACK_RETRY_S`` has passed. An autopilot with no offboard-loss
+        failsafe of its own (ArduCopter: after GUID_TIMEOUT it levels and stays in
+        GUIDED_NOGPS) would otherwise be left in the companion's mode with nobody
+        flying it (measured on the real ArduCopter 4.5.6: a link cut for 3 s)."""
+        deadline = time.monotonic() + _HAND_BACK_RETRY_S
+        while self._hand_back_owed and time.monotonic() < deadline:
+            # Only across a silent link: an autopilot whose heartbeats come but which
+            # ignores the switch has had its answer (the run's own try, above).
+            heard = self.link.last_heartbeat_monotonic_s
+            if heard is not None and time.monotonic() - heard < _LINK_QUIET_S:
+                return
+            beats = self._ap_heartbeats
+            while self._ap_heartbeats == beats and time.monotonic() < deadline:
+                await asyncio.sleep(_HAND_BACK_RETRY_PERIOD_S)  # until it is heard again
+            if self._ap_heartbeats == beats:
+                return
+            left = self._ap_mode is not None and not self._autopilot_in_engage_mode()
+            if self.stack is not None and self._ap_mode is not None and left:
+                self._event(
+                    "hand_back_dropped",
+                    f"the link is back; the autopilot left {self.stack.engage_label} by "
+                    f"itself for {self.stack.mode_label(self._ap_mode)}",
+                )
+                return
+            await self._hand_back("link back", was_commanding=True)
 
     def _on_link_anomaly(self, kind: str, detail: str) -> None:
         """The link saw something wrong (frames spoofing the autopilot from another

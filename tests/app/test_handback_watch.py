@@ -663,3 +663,32 @@ async def test_the_autopilot_leaving_offboard_for_posctl_while_failing_safe_is_n
         f"{FAILING_SAFE} (posctl {failing}; altctl {failing}) -> HOLD accepted"
     ]
     assert f.details("safe_mode_held") == ["HOLD for 0.5 s"]
+
+
+async def test_a_hand_back_unanswered_across_a_cut_link_is_tried_again_once_it_is_back(
+    start: Start,
+) -> None:
+    """Found on the real ArduCopter: the link cut for 3 s while engaged, the hand-back
+    went unanswered, the companion ended, and ArduCopter stayed in GUIDED_NOGPS with
+    nobody flying it. The run's end now waits for the link and hands back then."""
+    cut = True
+
+    def while_cut(m: Any) -> int | None:
+        return None if cut else int(ACCEPTED)
+
+    f = await start(engage="auto", output="actuator", failsafe=WATCHED)
+    await engage_px4_auto(f)
+    f.fake.results[CMD_DO_SET_MODE] = while_cut
+    task = f.fake._hb_task
+    assert task is not None
+    task.cancel()  # nothing comes from the autopilot any more
+    f.companion._failsafe("failsafe_stale_imu", "a test's cut link")
+    await asyncio.sleep(3.0)
+    assert not f.task.done()  # waiting for the link
+    cut = False  # the link is back
+    f.fake.heartbeat()
+    assert await f.finish(timeout_s=5.0) == 3
+    details = f.details("handed_back")
+    assert "mode switch unanswered" in details[0]
+    assert details[-1].startswith("link back;") and details[-1].endswith("accepted")
+    assert f.fake.custom_mode != PX4_OFFBOARD

@@ -107,3 +107,68 @@ def _altitude(session: Session) -> float:
     g = session.gcs
     pos = g.now.position_ned_m if g is not None else None
     return float("nan") if pos is None else -pos[2]
+
+
+FAILSAFE_KINDS = ("link-cut", "imu-stopped", "companion-killed")
+"""What can be made real on the real stacks beside the pilot's input lost (the
+hand-back cases): the link cut both ways for 3 s, the IMU stream stopped, the
+companion killed (SIGKILL), each while it hovers the vehicle."""
+
+
+def fly_failsafe_case(session: Session, kind: str, args: tuple[str, ...]) -> dict[str, Any]:
+    """Engage through a relay, hover 2 s, make ``kind`` happen; watch ``WATCH_S``."""
+    import signal
+
+    from sitl.lab.fly import free_udp_port
+    from sitl.lab.realstack.cutter import LinkCutter
+
+    g = session.gcs
+    assert g is not None
+    session.ensure_airborne(15.0)
+    port = int(session.stack.companion_url.rsplit(":", 1)[1])
+    q = free_udp_port()
+    cutter = LinkCutter(port, q)
+    try:
+        run = session.start_companion(
+            "--engage", "rc-switch", *args, name=f"failsafe-{kind}",
+            connect_url=f"udpin:127.0.0.1:{q}",
+        )  # fmt: skip
+        pilot = session.pilot
+        time.sleep(2.0)
+        pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
+        pilot.engage(g.clock())
+        engaged = session.wait_engaged(run, 5.0)
+        time.sleep(2.0)
+        t0 = g.clock()
+        alt0 = _altitude(session)
+        if kind == "link-cut":
+            cutter.cut()
+            time.sleep(3.0)
+            cutter.restore()
+        elif kind == "imu-stopped":
+            cutter.drop_messages({105, 30})  # HIGHRES_IMU, ATTITUDE
+        elif kind == "companion-killed":
+            run.proc.send_signal(signal.SIGKILL)
+        else:
+            raise ValueError(kind)
+        time.sleep(WATCH_S)
+        st = _STACKS[session.name]
+        statuses = [s for t, _m, _a, s in g.heartbeats if t >= t0]
+        alts = [-z for t, z in g.series("LOCAL_POSITION_NED", "z", since_s=t0)]
+        out: dict[str, Any] = {
+            "engaged": engaged,
+            "end_mode": st.mode_label(g.now.mode or 0),
+            "failsafe_seen": any(s in (5, 6) for s in statuses),
+            "altitude_change_m": round(_altitude(session) - alt0, 2),
+            "altitude_min_change_m": round(min(alts, default=alt0) - alt0, 2),
+            "companion_failsafe": [k for k in run.kinds() if k.startswith("failsafe")][:2],
+            "handed_back": run.details("handed_back")[:2],
+            "said": g.texts_since(t0)[:4],
+        }
+        code = run.proc.poll()
+        out["exit"] = code if code is not None else run.stop()
+    finally:
+        cutter.close()
+        pilot.release()
+        pilot.pilot = None
+    return out

@@ -25,7 +25,12 @@ from sitl.lab.realstack.flights import Session, rate_errors
 from sitl.pilot.factory import make_pilot
 from sitl.pilot.rc import RC_MIN_US
 from tests.realstack.conftest import ROOT, boot
-from tests.realstack.scenarios import fly_safe_mode_case, handback_cases
+from tests.realstack.scenarios import (
+    FAILSAFE_KINDS,
+    fly_failsafe_case,
+    fly_safe_mode_case,
+    handback_cases,
+)
 
 PROFILE = str(ROOT / "vehicle_profiles" / "arducopter_sitl_quad.yaml")
 RATES = ("--output", "rates", "--profile", PROFILE)
@@ -142,6 +147,22 @@ def test_each_safe_mode_with_the_pilot_present_and_absent(
     out = fly_safe_mode_case(copter, case, RATES)
     figures.append({"test": f"arducopter hand-back {case.id}", **out})
     case.check(out)
+
+
+@pytest.mark.parametrize("kind", FAILSAFE_KINDS)
+def test_each_failsafe_that_can_be_made_real_leaves_a_vehicle_that_flies(
+    copter: Session, kind: str, figures: list[dict[str, Any]]
+) -> None:
+    out = fly_failsafe_case(copter, kind, RATES)
+    figures.append({"test": f"arducopter failsafe {kind}", **out})
+    assert out["engaged"], out
+    # Whatever the stack does on its own, the vehicle keeps flying level and high.
+    assert out["altitude_min_change_m"] > -4.0, out
+    if kind != "companion-killed":
+        # Handed back (across a cut link, once it is back), to a mode it flies alone.
+        assert out["end_mode"] != copter.stack_dialect.engage_label, out
+        assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
+        assert out["exit"] == 3, out
 
 
 def test_engage_auto_from_a_cold_start(tmp_path: Path, figures: list[dict[str, Any]]) -> None:

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from companion.records import read_columnar
+from companion.stacks import ARDUPILOT, PX4, FlightStack
 from sitl.lab import children
 from sitl.lab.realstack.gcs import GroundStation, Telemetry
 from sitl.lab.realstack.launch import RunningStack, start_arducopter, start_px4
@@ -232,6 +233,11 @@ class Session:
         return g
 
     @property
+    def stack_dialect(self) -> FlightStack:
+        """The companion's view of this stack (its modes' names and numbers)."""
+        return PX4 if self.name == "px4" else ARDUPILOT
+
+    @property
     def hold_mode(self) -> tuple[float, float]:
         """DO_SET_MODE param2, param3 of the mode the tests hold in (PX4 AUTO.LOITER,
         ArduCopter ALT_HOLD, mid stick)."""
@@ -400,14 +406,18 @@ class Session:
         return float(np.mean(vals)) if vals else 0.5
 
     # ---------------------------------------------------------------- companion
-    def start_companion(self, *args: str, name: str | None = None) -> CompanionRun:
-        """``companion run --connect <the stack> --log-dir <a new folder> *args``."""
+    def start_companion(
+        self, *args: str, name: str | None = None, connect_url: str | None = None
+    ) -> CompanionRun:
+        """``companion run --connect <the stack> --log-dir <a new folder> *args``
+        (``connect_url``: another way to the stack, e.g. through a relay)."""
         self._runs += 1
         log_dir = self.workdir / (name or f"companion-{self._runs}")
         log_dir.mkdir(parents=True, exist_ok=True)
         stderr_path = log_dir.with_suffix(".stderr")
+        url = connect_url or self.stack.companion_url
         cmd = [sys.executable, "-m", "companion", "-v", "run", "--connect",
-               self.stack.companion_url, "--log-dir", str(log_dir), *args]  # fmt: skip
+               url, "--log-dir", str(log_dir), *args]  # fmt: skip
         env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
         with stderr_path.open("wb") as err:
             proc = children.start(cmd, cwd=_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
