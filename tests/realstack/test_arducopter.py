@@ -10,6 +10,7 @@ uses GPS, then flies in real time. The tests run in order on one booted stack
 from __future__ import annotations
 
 import json
+import secrets
 import subprocess
 import sys
 import threading
@@ -163,6 +164,44 @@ def test_each_failsafe_that_can_be_made_real_leaves_a_vehicle_that_flies(
         assert out["end_mode"] != copter.stack_dialect.engage_label, out
         assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
         assert out["exit"] == 3, out
+
+
+def test_signing_on_arducopter(
+    copter: Session, tmp_path: Path, figures: list[dict[str, Any]]
+) -> None:
+    """ArduCopter takes a key in SETUP_SIGNING (sent here by the ground station, as
+    MAVProxy's ``signing setup`` does) and signs from then on; the companion with the
+    same key in its file preflights and flies; without it, preflight fails. The last
+    test of the module: every later companion run would need the key."""
+    g = copter.gcs
+    assert g is not None
+    copter.land()  # ArduCopter takes no SETUP_SIGNING while armed
+    key = secrets.token_bytes(32)
+    path = tmp_path / "signing.key"
+    path.write_text(key.hex() + "\n")
+    path.chmod(0o600)
+    stamp = int((time.time() - 1_420_070_400) * 1e5)  # 10 us since 2015-01-01, as MAVLink's
+    g.send("setup_signing_send", g.target, 1, list(key), stamp)
+    time.sleep(1.0)
+    keyed = preflight(copter, "--signing-key", str(path), "--watch-s", "2")
+    unkeyed = preflight(copter, "--watch-s", "1")
+    copter.ensure_airborne(15.0)  # the ground station's channel 0 takes unsigned commands
+    run = copter.fly(
+        *RATES, "--signing-key", str(path), sticks_us=(1500, 1500, 1390, 1500),
+        duration_s=3.0, name="signed",
+    )  # fmt: skip
+    figures.append({
+        "test": "arducopter signing", "keyed": keyed.get("signing") or keyed.get("link"),
+        "unkeyed": unkeyed.get("signing") or unkeyed.get("link"),
+        "engaged": "engaged" in run.kinds(), "handed_back": run.details("handed_back"),
+    })  # fmt: skip
+    # (A few frames at the start may come unsigned: said, as a warning.)
+    assert keyed["signing"]["status"] in ("pass", "warn"), keyed["signing"]
+    assert keyed["link"]["status"] == "pass", keyed["link"]
+    refused = unkeyed.get("signing") or unkeyed["link"]
+    assert refused["status"] == "fail" and "sign" in refused["detail"], unkeyed
+    assert "engaged" in run.kinds(), run.events()
+    assert run.details("handed_back")[-1].endswith("accepted"), run.events()
 
 
 def test_engage_auto_from_a_cold_start(tmp_path: Path, figures: list[dict[str, Any]]) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 import subprocess
 import sys
 import time
@@ -169,6 +170,25 @@ def test_each_failsafe_that_can_be_made_real_leaves_a_vehicle_that_flies(
         assert out["end_mode"] != px4.stack_dialect.engage_label, out
         assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
         assert out["exit"] == 3, out
+
+
+def test_px4_v1_16_does_not_sign_and_a_keyed_companion_says_so(
+    px4: Session, tmp_path: Path, figures: list[dict[str, Any]]
+) -> None:
+    """PX4 v1.16 ignores SETUP_SIGNING (measured: nothing it sends is signed after
+    it): a companion given a key refuses its unsigned frames, and preflight says why."""
+    g = px4.gcs
+    assert g is not None
+    key = secrets.token_bytes(32)
+    path = tmp_path / "signing.key"
+    path.write_text(key.hex() + "\n")
+    path.chmod(0o600)
+    g.send("setup_signing_send", g.target, 1, list(key), int((time.time() - 1_420_070_400) * 1e5))
+    time.sleep(1.0)
+    data = preflight(px4, "--signing-key", str(path), "--watch-s", "1")
+    link = by_name(data)["link"]
+    figures.append({"test": "px4 v1.16 signing", "link": link})
+    assert link["status"] == "fail" and "does not sign" in link["fix"], link
 
 
 def test_engage_auto_from_a_cold_start(tmp_path: Path, figures: list[dict[str, Any]]) -> None:

@@ -257,6 +257,17 @@ class Session:
         self._retry_until(lambda: g.set_mode(p2, p3) == 0, deadline, "hold mode")
         g.wait(lambda t: t.mode == want, max(0.0, deadline - time.monotonic()))
 
+    def land(self, timeout_s: float = 60.0) -> None:
+        """Down and disarmed, the stack's own way (its land mode, then its auto-disarm)."""
+        g = self.gcs
+        assert g is not None
+        deadline = time.monotonic() + timeout_s
+        if g.now.armed:
+            land = (4.0, 6.0) if self.name == "px4" else (9.0, 0.0)
+            self._retry_until(lambda: g.set_mode(*land) == 0, deadline, "land mode")
+            if not g.wait(lambda t: not t.armed, max(1.0, deadline - time.monotonic())):
+                raise RuntimeError(f"{self.name}: not landed and disarmed in {timeout_s:g} s")
+
     def airborne(self, min_m: float = 5.0) -> bool:
         g = self.gcs
         pos = g.now.position_ned_m if g is not None else None
