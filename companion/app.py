@@ -86,7 +86,7 @@ from companion.profile import VehicleProfile
 from companion.records import EventLog
 from companion.reference import ReferenceScript
 from companion.samples import SamplePath
-from companion.stacks import FlightStack, RateShapingParams, SafeMode, stack_for
+from companion.stacks import FlightStack, RateShapingParams, SafeMode, StickParams, stack_for
 from companion.step import LANDED_STATE_RATE_HZ
 
 _COUNTERS_PERIOD_S = 10.0
@@ -141,15 +141,21 @@ _POSITION_RATE_HZ = 4.0
 _HOLD_POSITION_RATE_HZ = 50.0
 """The position estimate's rate the altitude and position modes fly on."""
 _MODE_TEXT = {
-    "angle": "angle: sticks to roll and pitch up to 35 deg and a yaw rate, on the "
-    "autopilot's ATTITUDE_QUATERNION",
-    "altitude": "altitude: sticks to roll and pitch up to 35 deg, a climb rate (the "
-    "altitude held at mid-stick) and a yaw rate, on ATTITUDE_QUATERNION and "
-    "LOCAL_POSITION_NED",
+    "angle": "angle: sticks to roll and pitch angles up to the autopilot's own limit and a "
+    "yaw rate, on the autopilot's ATTITUDE_QUATERNION",
+    "altitude": "altitude: sticks to roll and pitch angles, a climb rate (the altitude held "
+    "at mid-stick) and a yaw rate, within the autopilot's own limits, on "
+    "ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
     "position": "position: sticks to a horizontal velocity and a climb rate (the position "
-    "and altitude held at mid-stick) and a yaw rate, on ATTITUDE_QUATERNION and "
-    "LOCAL_POSITION_NED",
+    "and altitude held at mid-stick) and a yaw rate, shaped as the autopilot's own Position "
+    "mode shapes them, on ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
 }
+_MSG_ATTITUDE_TARGET = 83
+_ATTITUDE_TARGET_RATE_HZ = 20.0
+"""The autopilot's own collective, which the hold modes take over at."""
+_STICK_PARAM_TIMEOUT_S = 0.25
+"""Each stick-limit parameter is asked twice at most, all at once: an autopilot that
+does not answer one costs the start-up 0.5 s, not a second per parameter."""
 _GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 _JOYSTICK_FIELDS = ("x", "y", "z", "r", "enabled_extensions", *(f"aux{i}" for i in range(1, 7)))
@@ -864,6 +870,50 @@ class Companion(SamplePath):
                 )
         if opts.output == "rates" and stack.rate_shaping is not None:
             await self._learn_rate_shaping(stack.rate_shaping)
+        if self.needs_attitude:
+            await self._learn_stick_limits(stack.stick_params)
+
+    async def _learn_stick_limits(self, params: StickParams) -> None:
+        """Read the autopilot's stick limits (companion.stacks: what its own modes
+        let the sticks ask) and its hover thrust, and build the flight mode's law
+        with them. A parameter it does not answer takes the stack's documented
+        default, and an event says so; so do values the limits cannot take."""
+
+        async def read(name: str) -> float | None:
+            try:
+                value = await self.link.param_read(
+                    name, timeout_s=_STICK_PARAM_TIMEOUT_S, retries=1
+                )
+            except LinkError:
+                return None
+            return value if math.isfinite(value) else None
+
+        names = params.names
+        got = await asyncio.gather(*(read(n) for n in names))
+        values = {n: v for n, v in zip(names, got, strict=True) if v is not None}
+        missing = [n for n in names if n not in values]
+        if missing:
+            shown = ", ".join(f"{n} {params.defaults[n]:g}" for n in missing)
+            self._event(
+                "stick_limits_assumed",
+                f"the autopilot did not answer {len(missing)} of {len(names)} parameters: "
+                f"their defaults assumed ({shown})",
+            )
+        try:
+            limits = params.limits(values)
+        except ValueError as exc:
+            self._event(
+                "stick_limits_assumed",
+                f"the autopilot's parameters give no usable limits ({exc}): its defaults assumed",
+            )
+            limits = params.limits()
+            values = {}
+        hover = values.get(params.hover_thrust, params.defaults[params.hover_thrust])
+        self._event(
+            "stick_limits",
+            f"{limits.summary()}; hover thrust {hover:.3g} ({params.hover_thrust})",
+        )
+        self._build_mode_laws(limits, hover)
 
     async def _learn_rate_shaping(self, shaping: RateShapingParams) -> None:
         """Read how the autopilot shapes body-rate setpoints (ArduCopter's input
@@ -945,6 +995,11 @@ class Companion(SamplePath):
             await self._request_for_mode(
                 "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, _HOLD_POSITION_RATE_HZ, event=True
             )
+            await self._request_best_effort(
+                "attitude_target_refused", "ATTITUDE_TARGET", _MSG_ATTITUDE_TARGET,
+                _ATTITUDE_TARGET_RATE_HZ,
+                "the hold modes take over at the autopilot's hover thrust, not its collective",
+            )  # fmt: skip
         # The landed state stops identification on the ground (MfcController.on_ground);
         # the flight modes hold their loops on the ground by it: for them it is needed.
         if self.needs_attitude:

@@ -94,7 +94,10 @@ class Engagement:
 
         def position_fresh(self) -> bool: ...
 
+        def _setpoints_now_flown(self) -> None: ...
+
     needs_position: bool
+    setpoints_flown: bool
     mode_before_engaging: int | None
 
     async def _engage_offboard(self, *, arm: bool) -> None:
@@ -132,6 +135,7 @@ class Engagement:
                 self._stop.set()
             return
         self.mode_before_engaging = self._ap_mode
+        self.setpoints_flown = False
         self.commanding = True
         self._reset_laws()
         auto = self.opts.engage == "auto"
@@ -158,6 +162,7 @@ class Engagement:
                 when_ready=True,
             ):
                 return
+            self._setpoints_now_flown()
         except (EngageError, LinkError) as exc:
             self.commanding = False
             self._event("engage_failed", str(exc))
@@ -262,6 +267,7 @@ class Engagement:
         was = self.commanding
         self.commanding = False
         self.engaged = False
+        self.setpoints_flown = False
         task = self._engage_task
         if task is not None and not task.done():
             task.cancel()

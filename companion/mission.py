@@ -14,11 +14,12 @@ leg goes from there to the first waypoint.
 
 The path (:class:`MissionPath`) moves the position setpoint along each leg in a
 straight line at the leg's speed, the velocity as feedforward, and holds it at a
-waypoint for its ``hold_s``; a climb is no faster than 3 m/s and a descent no
-faster than 1.5 m/s (the position mode's stick limits), the leg taking longer
-if need be. After the last waypoint the setpoint stays there: the vehicle holds
-until the pilot hands back (the engage switch, as any run). The clock of the path
-is the caller's (the app runs it only while the vehicle is in the air).
+waypoint for its ``hold_s``; a climb and a descent are no faster than the
+position mode's stick limits (the autopilot's: PX4 3 and 1.5 m/s by default,
+ArduCopter 2.5 m/s), the leg taking longer if need be. After the last
+waypoint the setpoint stays there: the vehicle holds until the pilot hands back
+(the engage switch, as any run). The clock of the path is the caller's (the app
+runs it only while the vehicle is in the air).
 
 No I/O beyond :func:`load_mission`; no clock.
 """
@@ -32,9 +33,9 @@ from typing import Annotated
 
 from pydantic import Field
 
-from companion.control.hold_modes import CLIMB_MAX_DOWN_M_S, CLIMB_MAX_UP_M_S
 from companion.control.horizontal import DEFAULT_HORIZONTAL_GAINS, HorizontalSetpoint
 from companion.control.outer import OuterSetpoint
+from companion.control.stick_limits import ClimbLimits
 from companion.control.vertical import VerticalSetpoint
 from companion.schema import StrictModel, load_yaml_model
 
@@ -93,9 +94,12 @@ class MissionPath:
         The waypoints.
     origin_ned_m
         Where the mission starts (the position estimate as it engages), NED, m.
+    climb
+        The stack's climb and descent limits (its sticks'): no leg climbs or
+        descends faster.
     """
 
-    def __init__(self, mission: Mission, origin_ned_m: Vec3) -> None:
+    def __init__(self, mission: Mission, origin_ned_m: Vec3, climb: ClimbLimits) -> None:
         o = origin_ned_m
         points = [o] + [
             (o[0] + w.north_m, o[1] + w.east_m, o[2] - w.up_m) for w in mission.waypoints
@@ -114,7 +118,7 @@ class MissionPath:
             up = -d[2]
             duration = max(
                 length / speed,
-                up / CLIMB_MAX_UP_M_S if up > 0.0 else -up / CLIMB_MAX_DOWN_M_S,
+                up / climb.up_max_m_s if up > 0.0 else -up / climb.down_max_m_s,
             )
             if duration > 0.0:
                 self._t.append(t)

@@ -23,6 +23,22 @@ or engaging, it is a failsafe (``failsafe_stale_estimate``,
 quaternion that is not finite or not near unit norm, or a position or velocity
 that is not finite, is not an estimate: counted (``estimate_invalid``,
 ``position_invalid``), and the last good one ages on.
+
+What the sticks may ask is the autopilot's own: the laws are built once the
+stack is known, from its parameters (:meth:`ModePath._build_mode_laws`,
+:mod:`companion.stacks`).
+
+Taking over without a jolt
+--------------------------
+The autopilot flies our setpoints only once it has accepted the engage mode
+(and, with ``--engage auto``, the arming). Until then the setpoints stream but
+are not flown, so nothing the laws would learn from them is true: while
+commanding and not yet flown, every sample starts the laws again from the
+vehicle's state (the rate law and the outer loops reset; the hold modes take
+over at the collective the autopilot flies now, the setpoints at the estimated
+velocity, the holds where the vehicle is). The first setpoint the autopilot
+flies is that one, and from then on the laws run on: the engaged edge (the
+autopilot's heartbeat, up to a second later) does not start them again.
 """
 
 from __future__ import annotations
@@ -33,6 +49,7 @@ from typing import TYPE_CHECKING, Any
 
 from companion.control.angle_mode import AngleMode
 from companion.control.hold_modes import HoldMode
+from companion.control.stick_limits import StickLimits
 from companion.engagement import Engagement
 from companion.mission import MissionPath
 
@@ -48,6 +65,10 @@ _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 _NAN = math.nan
 NO_OUTER_LOG: tuple[float, ...] = (_NAN,) * 13
 """The control log's outer-loop columns when nothing is known (``--mode rates``)."""
+_AUTOPILOT_THRUST_FRESH_S = 0.5
+"""The autopilot's own collective (ATTITUDE_TARGET) is taken over only this fresh."""
+_AUTOPILOT_THRUST_TAU_S = 0.3
+"""... and averaged over this (its collective, streamed at 20 Hz, moves each message)."""
 
 
 class ModePath(Engagement):
@@ -55,6 +76,7 @@ class ModePath(Engagement):
 
     imu_rate_hz: float | None
     n_estimate_invalid: int
+    _restart_dt: bool
     _rc_needed: bool
     step: SampleStep
     _deflection: tuple[float, float, float]
@@ -62,14 +84,19 @@ class ModePath(Engagement):
 
     def _init_modes(self, opts: RunOptions) -> None:
         self.flight_mode = opts.mode
-        self.angle: AngleMode | None = AngleMode() if opts.mode == "angle" else None
-        self.hold: HoldMode | None = (
-            HoldMode(position=opts.mode == "position")
-            if opts.mode in ("altitude", "position")
-            else None
-        )
+        self.angle: AngleMode | None = None
+        self.hold: HoldMode | None = None
+        """The flight mode's law, built once the stack's stick limits are known."""
+        self.stick_limits: StickLimits | None = None
+        self.hover_thrust_prior: float | None = None
+        """The autopilot's hover thrust (its parameter), the vertical loop's prior."""
         self.needs_attitude = opts.mode != "rates"
-        self.needs_position = self.hold is not None
+        self.needs_position = opts.mode in ("altitude", "position")
+        self.setpoints_flown = False
+        """The autopilot flies our setpoints (it accepted the engage mode, and the
+        arming if asked); until then, commanding, the laws track the vehicle."""
+        self._autopilot_thrust: tuple[float, float] | None = None
+        """(wall time, collective) of the autopilot's last ATTITUDE_TARGET."""
         self._stale_estimate_s = opts.failsafe.stale_estimate_s
         self._stale_position_s = opts.failsafe.stale_position_s
         self.n_position_invalid = 0
@@ -91,6 +118,50 @@ class ModePath(Engagement):
         self._dt_typical = 0.0
         """The IMU stream's sample period as it comes (a slow average, gaps bounded)."""
         self._forget_estimates()
+
+    def _build_mode_laws(self, limits: StickLimits, hover_thrust: float | None) -> None:
+        """The flight mode's law, with the stack's stick limits and hover thrust."""
+        self.stick_limits = limits
+        self.hover_thrust_prior = hover_thrust
+        if self.flight_mode == "angle":
+            self.angle = AngleMode(limits.tilt_max_deg)
+        elif self.needs_position:
+            self.hold = HoldMode(position=self.flight_mode == "position", limits=limits)
+            self.hold.on_ground = bool(self.controller.on_ground)
+            self.hold.reset(hover_thrust=hover_thrust)
+
+    def _setpoints_now_flown(self) -> None:
+        """The autopilot accepted the engage mode (and the arming, if asked): from
+        the next sample it flies our setpoints. The flight modes' laws start here,
+        from the vehicle's state (module docstring); rates mode's start at the
+        engaged edge."""
+        if not self.commanding or self.setpoints_flown:
+            return
+        if self.needs_attitude:
+            self._reset_laws()  # before the flag: the take-over is the autopilot's collective
+            self._restart_dt = True
+        self.setpoints_flown = True
+
+    @property
+    def tracking_the_vehicle(self) -> bool:
+        """Commanding, in a flight mode, and the autopilot not flying our setpoints
+        yet: the laws start again from the vehicle's state each sample."""
+        return self.needs_attitude and self.commanding and not self.setpoints_flown
+
+    def _on_attitude_target(self, msg: Any) -> None:
+        """ATTITUDE_TARGET: the collective the autopilot flies (its own, before an
+        engagement; ours after), taken over as the hold modes engage: averaged over
+        ``_AUTOPILOT_THRUST_TAU_S`` (one message is one instant of a busy loop's
+        output)."""
+        thrust = float(msg.thrust)
+        if not (math.isfinite(thrust) and 0.0 <= thrust <= 1.0):
+            return
+        now = time.perf_counter()
+        got = self._autopilot_thrust
+        if got is not None and now - got[0] <= _AUTOPILOT_THRUST_FRESH_S:
+            k = min(1.0, (now - got[0]) / _AUTOPILOT_THRUST_TAU_S)
+            thrust = got[1] + (thrust - got[1]) * k
+        self._autopilot_thrust = (now, thrust)
 
     def _forget_estimates(self) -> None:
         self._att_q: tuple[float, float, float, float] | None = None
@@ -171,6 +242,8 @@ class ModePath(Engagement):
             return _ZERO3, thrust
         q = self._att_q
         assert q is not None
+        if self.angle is None and self.hold is None:
+            return _ZERO3, thrust  # the stack's limits not read yet: nothing engages
         on_ground = bool(self.controller.on_ground)
         if self.controller.held_on_ground:
             # On its legs the rate law starts afresh (MfcController.on_ground: the MFC
@@ -204,7 +277,7 @@ class ModePath(Engagement):
         assert hold is not None and mission is not None
         path = self.mission_path
         if path is None:
-            path = self.mission_path = MissionPath(mission, pos)
+            path = self.mission_path = MissionPath(mission, pos, hold.limits.climb)
             self._mission_t = 0.0
             self._mission_reached = 0
             self._mode_events.append((
@@ -255,6 +328,8 @@ class ModePath(Engagement):
 
     def _not_ready_to_engage(self) -> str | None:
         """Why the vehicle must not be engaged now, or None."""
+        if self.needs_attitude and self.angle is None and self.hold is None:
+            return f"--mode {self.flight_mode}: the autopilot's stick limits not read yet"
         if self.opts.engage == "auto" and self._rc_needed and not self._pilot_fresh():
             # (With rc-switch the pilot's switch, in their own input, is the engagement.)
             return (
@@ -280,20 +355,35 @@ class ModePath(Engagement):
 
     def _reset_modes(self, thrust: float | None = None) -> None:
         """Forget what the outer loops learnt. The hold modes take over at the lowest
-        collective on the ground; in the air at ``thrust`` (the pilot's throttle)
-        when the autopilot flew a mode whose throttle is the collective before the
-        engagement, else at their hover estimate (a mode holding altitude centres
-        the throttle stick whatever the vehicle needs)."""
+        collective on the ground; in the air at :meth:`_take_over_thrust`, with the
+        autopilot's hover thrust as the vertical loop's prior."""
         if self.angle is not None:
             self.angle.reset()
         if self.hold is not None:
-            stack, before = self.stack, self.mode_before_engaging
-            manual = stack is not None and before is not None and before in stack.throttle_modes
-            take_over = 0.0 if self.controller.on_ground else thrust if manual else None
-            self.hold.reset(thrust=take_over)
+            on_ground = bool(self.controller.on_ground)
+            take_over = 0.0 if on_ground else self._take_over_thrust(thrust)
+            q = None if on_ground else self._att_q
+            self.hold.reset(thrust=take_over, hover_thrust=self.hover_thrust_prior, q_wxyz=q)
             self._applied_thrust = None
             self._rate_saturated = None
             self.mission_path = None  # an engagement starts the mission from where it is
+
+    def _take_over_thrust(self, pilot_thrust: float | None) -> float | None:
+        """The collective the vehicle flies now, for the hold modes to take over at:
+        the autopilot's own (ATTITUDE_TARGET, fresh, before it flies ours); else the
+        pilot's throttle when the autopilot flew a mode whose throttle is the
+        collective; else None (the hover estimate: a mode holding altitude centres
+        the throttle stick whatever the vehicle needs)."""
+        got = self._autopilot_thrust
+        if (
+            got is not None
+            and not self.setpoints_flown
+            and time.perf_counter() - got[0] <= _AUTOPILOT_THRUST_FRESH_S
+        ):
+            return got[1]
+        stack, before = self.stack, self.mode_before_engaging
+        manual = stack is not None and before is not None and before in stack.throttle_modes
+        return pilot_thrust if manual else None
 
     def _reset_laws(self) -> None:
         """Forget what the laws learnt: the rate law and the flight mode's loops."""

@@ -55,6 +55,7 @@ _MSG_TIMESYNC = 111
 _MSG_EXTENDED_SYS_STATE = 245
 _MSG_STATUSTEXT = 253
 _MSG_SYS_STATUS = 1
+_MSG_ATTITUDE_TARGET = 83
 _SENSOR_RC_RECEIVER = 1 << 16  # MAV_SYS_STATUS_SENSOR_RC_RECEIVER
 _SENSOR_PREARM_CHECK = 1 << 28  # MAV_SYS_STATUS_PREARM_CHECK
 _STATE_NAMES = {5: "CRITICAL", 6: "EMERGENCY"}
@@ -180,6 +181,8 @@ class SamplePath(ModePath):
             self.link_clock.reply(msg.tc1, msg.ts1, self.link.rx_perf_s)
         elif mid == _MSG_SYS_STATUS:
             self._on_sys_status(msg)
+        elif mid == _MSG_ATTITUDE_TARGET:
+            self._on_attitude_target(msg)
 
     def _on_sys_status(self, msg: Any) -> None:
         """SYS_STATUS: whether the autopilot's RC receiver is healthy, and whether
@@ -383,6 +386,8 @@ class SamplePath(ModePath):
                     self._hand_back_owed = True  # the run's end hands back
                 self._event("duration", f"{self._duration_s} s")
                 self._stop.set()
+        if self.tracking_the_vehicle:
+            self._reset_laws()  # not flown yet: start from the vehicle's state (companion.modes)
         ref = self._ref  # mapped once per RC frame, in _on_rc
         thrust = self._thrust
         script = self._script
@@ -402,7 +407,9 @@ class SamplePath(ModePath):
             if verdict is not None:
                 self._failsafe(*verdict)
         sent: Sequence[float] = NO_RATES
-        engaged = self.engaged  # as the command left (recorded so, whatever follows)
+        # As the command left (recorded so, whatever follows); in a flight mode, from
+        # the first setpoint the autopilot flies (the laws' start: companion.modes).
+        engaged = self.engaged or (self.needs_attitude and self.commanding and self.setpoints_flown)
         if self.commanding:
             sent = self._send_output(t_s, out, ref, thrust)
         else:
@@ -573,8 +580,13 @@ class SamplePath(ModePath):
         self._ap_heartbeats += 1
         if now and not was and not self._stop.is_set():
             # (After a stop signal nothing engages: the run's hand-back is next.)
-            self._reset_laws()  # learn F only from commands that are applied
-            self._restart_dt = True  # the next sample primes it, as a replay does
+            if not (self.needs_attitude and self.setpoints_flown):
+                # Learn F only from commands that are applied. A flight mode's laws
+                # started when the engage mode was accepted (companion.modes): they
+                # run on, or the vehicle would jolt a second time.
+                self._reset_laws()
+                self._restart_dt = True  # the next sample primes it, as a replay does
+            self.setpoints_flown = True
             self.watch.reset()
             self.engaged = True
             self._t_engaged = None  # set by the first sample flown

@@ -26,21 +26,51 @@ why it refused to arm      "Arming denied: ...",        "PreArm: ...", "Arm: ...
 (its STATUSTEXT)           "Preflight Fail: ..."
 why it refused a mode      "Switching to ... is         "Mode change to ... failed: ..."
                            currently not available"
+stick limits (--mode       ``MPC_*`` (Position mode     ``ANGLE_MAX``, ``PILOT_*``,
+angle|altitude|position)   acceleration based, or       ``LOIT_*`` (LOITER), ``THR_DZ``
+                           direct velocity)
+hover thrust               ``MPC_THR_HOVER``            ``MOT_THST_HOVER``
 =========================  ===========================  ==================================
 
 The refusal texts are those of PX4 v1.16 (``src/modules/commander``:
 ``Commander.cpp``, ``HealthAndArmingChecks/``) and ArduCopter 4.5
 (``libraries/AP_Arming/AP_Arming.cpp``, ``ArduCopter/mode.cpp``); :func:`said_why`
 picks them out of what the autopilot said.
+
+The stick limits (:class:`StickParams`) are the stacks' parameters with their
+documented defaults: PX4 v1.16's parameter reference (Multicopter Position
+Control), ArduCopter 4.5's (``ArduCopter/Parameters.cpp``,
+``libraries/AC_WPNav/AC_Loiter.cpp``, ``libraries/AC_AttitudeControl/``). The
+companion reads them at start-up and builds the laws'
+:class:`~companion.control.stick_limits.StickLimits` from them; a parameter the
+autopilot does not answer takes its default here, and an event says so. These
+are the only defaults of the sticks' limits.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
-__all__ = ["ARDUPILOT", "PX4", "FlightStack", "SafeMode", "said_why", "stack_for"]
+from companion.control.stick_limits import (
+    ClimbLimits,
+    HorizontalLimits,
+    LoiterStickAcceleration,
+    Px4DirectVelocity,
+    Px4StickAcceleration,
+    StickLimits,
+)
+
+__all__ = [
+    "ARDUPILOT",
+    "PX4",
+    "FlightStack",
+    "SafeMode",
+    "StickParams",
+    "said_why",
+    "stack_for",
+]
 
 Needs = Literal["rc", "position", "nothing"]
 
@@ -74,6 +104,139 @@ class RateShapingParams:
     default_accel_cdeg_s2: tuple[float, float, float]
 
 
+_TILT_MAX_DEG = 60.0
+"""The angle sticks' tilt is bounded here whatever the stack allows (PX4's
+``MPC_MAN_TILT_MAX`` goes to 70): beyond it the attitude loop's tilt-first error
+and the tilt compensation of the collective are no longer trusted."""
+
+
+@dataclass(frozen=True)
+class StickParams:
+    """The parameters with which a stack limits what the sticks ask in its angle,
+    altitude and position modes, each with its documented default (in the stack's
+    units), and how they make the laws' limits.
+
+    ``hover_thrust`` names the parameter holding the collective that hovers (the
+    vertical loop's prior, and its take-over when nothing better is known); its
+    default is in ``defaults`` too.
+    """
+
+    defaults: Mapping[str, float]
+    build: Callable[[Mapping[str, float]], StickLimits]
+    hover_thrust: str
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.defaults)
+
+    def limits(self, values: Mapping[str, float] | None = None) -> StickLimits:
+        """The limits from ``values`` (by name), the defaults for the rest.
+
+        Raises
+        ------
+        ValueError
+            For a value the limits cannot take (the limits' own message).
+        """
+        return self.build({**self.defaults, **(values or {})})
+
+
+def _px4_stick_limits(p: Mapping[str, float]) -> StickLimits:
+    """PX4 v1.16: Stabilized's tilt, Altitude's climb, Position's sticks
+    (``MPC_POS_MODE`` 0 direct velocity, else acceleration based)."""
+    dz = p["MPC_HOLD_DZ"]
+    climb = ClimbLimits(
+        dz, p["MPC_Z_MAN_EXPO"], p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"],
+        p["MPC_ACC_UP_MAX"], p["MPC_ACC_DOWN_MAX"],
+    )  # fmt: skip
+    horizontal: HorizontalLimits
+    if int(p["MPC_POS_MODE"]) == 0:
+        horizontal = Px4DirectVelocity(dz, p["MPC_XY_MAN_EXPO"], p["MPC_VEL_MANUAL"])
+    else:
+        horizontal = Px4StickAcceleration(
+            dz, p["MPC_XY_MAN_EXPO"], p["MPC_VEL_MANUAL"], p["MPC_ACC_HOR"],
+            p["MPC_JERK_MAX"], p["MPC_TILTMAX_AIR"],
+        )  # fmt: skip
+    return StickLimits(min(p["MPC_MAN_TILT_MAX"], _TILT_MAX_DEG), climb, horizontal)
+
+
+PX4_STICK_PARAMS = StickParams(
+    # PX4 v1.16 parameter reference, Multicopter Position Control (the defaults).
+    defaults={
+        "MPC_MAN_TILT_MAX": 35.0,  # deg: Stabilized and Altitude modes' tilt
+        "MPC_HOLD_DZ": 0.1,  # share of the stick's half-travel
+        "MPC_Z_MAN_EXPO": 0.6,
+        "MPC_Z_VEL_MAX_UP": 3.0,  # m/s
+        "MPC_Z_VEL_MAX_DN": 1.5,  # m/s
+        "MPC_ACC_UP_MAX": 4.0,  # m/s^2
+        "MPC_ACC_DOWN_MAX": 3.0,  # m/s^2
+        "MPC_POS_MODE": 4.0,  # 4 acceleration based, 0 direct velocity
+        "MPC_XY_MAN_EXPO": 0.6,
+        "MPC_VEL_MANUAL": 10.0,  # m/s
+        "MPC_ACC_HOR": 3.0,  # m/s^2 (full stick asks twice this at rest)
+        "MPC_JERK_MAX": 8.0,  # m/s^3
+        "MPC_TILTMAX_AIR": 45.0,  # deg
+        "MPC_THR_HOVER": 0.5,  # normalised collective
+    },
+    build=_px4_stick_limits,
+    hover_thrust="MPC_THR_HOVER",
+)
+"""PX4's stick limits; ``MPC_ACC_HOR_MAX`` is not read: v1.16 uses it in no
+Position mode variant it still has ("4 not used, use MPC_ACC_HOR instead")."""
+
+
+def _ardupilot_stick_limits(p: Mapping[str, float]) -> StickLimits:
+    """ArduCopter 4.5: STABILIZE's and ALT_HOLD's lean angle, the pilot's climb,
+    LOITER's sticks."""
+    lean_max = p["ANGLE_MAX"] * 0.01  # cdeg
+    psc = p["PSC_ANGLE_MAX"]  # deg; 0: ANGLE_MAX
+    if psc > 0.0:
+        lean_max = min(lean_max, psc)
+    loit = p["LOIT_ANG_MAX"]  # deg; 0: 2/3 of the lean angle limit (AC_Loiter::get_angle_max_cd)
+    loiter_angle = min(loit, lean_max) if loit > 0.0 else lean_max * 2.0 / 3.0
+    up = p["PILOT_SPEED_UP"] * 0.01  # cm/s
+    down = p["PILOT_SPEED_DN"] * 0.01 or up  # 0: PILOT_SPEED_UP
+    accel = p["PILOT_ACCEL_Z"] * 0.01  # cm/s^2
+    half_travel_us = 500.0
+    climb = ClimbLimits(p["THR_DZ"] / half_travel_us, 0.0, up, down, accel, accel)
+    horizontal = LoiterStickAcceleration(
+        deadband=p["RC1_DZ"] / half_travel_us,
+        speed_max_m_s=p["LOIT_SPEED"] * 0.01,
+        angle_deg=loiter_angle,
+        input_tc_s=p["ATC_INPUT_TC"],
+        brake_accel_m_s2=p["LOIT_BRK_ACCEL"] * 0.01,
+        brake_jerk_m_s3=p["LOIT_BRK_JERK"] * 0.01,
+        brake_delay_s=p["LOIT_BRK_DELAY"],
+        brake_gain_1_s=0.5 * p["PSC_VELXY_P"],
+    )
+    return StickLimits(min(lean_max, _TILT_MAX_DEG), climb, horizontal)
+
+
+ARDUPILOT_STICK_PARAMS = StickParams(
+    # ArduCopter 4.5 defaults (ArduCopter/Parameters.cpp, AC_Loiter.cpp, AC_PosControl.cpp,
+    # AC_AttitudeControl.cpp, RC_Channel: Copter's roll dead zone).
+    defaults={
+        "ANGLE_MAX": 3000.0,  # cdeg
+        "PSC_ANGLE_MAX": 0.0,  # deg; 0: ANGLE_MAX
+        "LOIT_ANG_MAX": 0.0,  # deg; 0: 2/3 of the lean angle limit
+        "LOIT_SPEED": 1250.0,  # cm/s
+        "LOIT_BRK_ACCEL": 250.0,  # cm/s^2
+        "LOIT_BRK_JERK": 500.0,  # cm/s^3
+        "LOIT_BRK_DELAY": 1.0,  # s
+        "PSC_VELXY_P": 2.0,  # the brake's gain is half of it
+        "ATC_INPUT_TC": 0.15,  # s
+        "PILOT_SPEED_UP": 250.0,  # cm/s
+        "PILOT_SPEED_DN": 0.0,  # cm/s; 0: PILOT_SPEED_UP
+        "PILOT_ACCEL_Z": 250.0,  # cm/s^2
+        "THR_DZ": 100.0,  # us around mid-throttle
+        "RC1_DZ": 20.0,  # us around the roll stick's centre
+        "MOT_THST_HOVER": 0.35,  # normalised throttle (learnt in flight)
+    },
+    build=_ardupilot_stick_limits,
+    hover_thrust="MOT_THST_HOVER",
+)
+"""ArduCopter's stick limits."""
+
+
 @dataclass(frozen=True)
 class FlightStack:
     """One flight stack's dialect."""
@@ -104,6 +267,8 @@ class FlightStack:
     """How the STATUSTEXTs begin with which the stack says why it refused to arm."""
     mode_refusals: tuple[str, ...] = ()
     """How the STATUSTEXTs begin with which it says why it refused a mode switch."""
+    stick_params: StickParams = PX4_STICK_PARAMS
+    """What limits the sticks in its angle, altitude and position modes."""
 
     @property
     def engage_label(self) -> str:
@@ -198,6 +363,7 @@ PX4 = FlightStack(
     # "Preflight Fail: ..." that names the failing check; "Arm auth: Denied".
     arm_refusals=("Arming denied", "Preflight Fail", "Arm auth"),
     mode_refusals=("Switching to",),
+    stick_params=PX4_STICK_PARAMS,
 )
 
 ARDUPILOT = FlightStack(
@@ -243,6 +409,7 @@ ARDUPILOT = FlightStack(
     arm_refusals=("PreArm:", "Arm:"),
     # "Flight mode change failed": older ArduPilot's words, and the bundled SITL's.
     mode_refusals=("Mode change to", "Flight mode change failed"),
+    stick_params=ARDUPILOT_STICK_PARAMS,
 )
 
 _BY_ID = {PX4.autopilot_id: PX4, ARDUPILOT.autopilot_id: ARDUPILOT}

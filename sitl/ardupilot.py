@@ -226,6 +226,8 @@ class ArduCopter(CopterLaws):
         self.rate_target_rad_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
         """Body-rate target of the last rate-loop run (rad/s)."""
         self.hover_throttle = self._hover_throttle(self.config.hover_motor_cmd)
+        # What ArduCopter would have learnt (MOT_HOVER_LEARN 2) and a ground station reads.
+        self.params.set("MOT_THST_HOVER", self.hover_throttle)
         self._target: AngleTarget | None = None
         self._timed_out = False
         self._yaw_hold: float | None = None

@@ -22,8 +22,12 @@ before ``sitl run --param``. Followed by the autopilot: ``ARMING_CHECK``,
 ``FS_THR_ENABLE``, ``FS_OPTIONS``, ``RC_FS_TIMEOUT``, ``GUID_OPTIONS``,
 ``GUID_TIMEOUT``, ``INS_GYRO_FILTER``, ``LAND_SPEED``, ``MOT_*``,
 ``WPNAV_SPEED_*``, ``ATC_RAT_*``; at boot only ``SCHED_LOOP_RATE`` and
-``MAV_SYSID``. Stored only: ``MAV_GCS_SYSID``, ``FS_GCS_*``, ``RCMAP_*`` (the
-SITL radio sends AETR), ``FLTMODE_CH`` (modes change over MAVLink).
+``MAV_SYSID``; ``MOT_THST_HOVER`` is set at boot to the vehicle's hover throttle,
+as ArduCopter learns it in flight (``MOT_HOVER_LEARN`` 2). Stored only: the stick
+limits (``ANGLE_MAX``, ``PILOT_*``, ``LOIT_*``, ``PSC_ANGLE_MAX``, ``PSC_VELXY_P``,
+``ATC_INPUT_TC``, ``THR_DZ``, ``RC1_DZ``: what the companion's flight modes
+read), ``MAV_GCS_SYSID``, ``FS_GCS_*``, ``RCMAP_*`` (the SITL radio sends AETR),
+``FLTMODE_CH`` (modes change over MAVLink).
 """
 
 from __future__ import annotations
@@ -66,6 +70,10 @@ def _rate_pid_specs(axis: str, p: float, i: float, d: float, flte: float) -> lis
 
 
 PARAM_SPECS: tuple[ParamSpec, ...] = (
+    # AC_AttitudeControl.cpp, ArduCopter Parameters.cpp, AC_Loiter.cpp, AC_PosControl.cpp
+    # (Copter-4.5 defaults): what the sticks may ask in STABILIZE, ALT_HOLD and LOITER
+    # (stored only: the companion's flight modes read them).
+    ParamSpec("ANGLE_MAX", 3000, PARAM_INT16, 1000, 8000, "lean angle max, cdeg"),
     ParamSpec("ARMING_CHECK", 1, PARAM_INT32, doc="0: skip the pre-arm checks"),
     # AC_AttitudeControl.cpp / AC_AttitudeControl_Multi.cpp (Copter-4.5 defaults).
     ParamSpec("ATC_ACCEL_P_MAX", 110000.0, PARAM_REAL32, 0, 180000, "pitch accel, cdeg/s^2"),
@@ -74,6 +82,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("ATC_ANG_PIT_P", 4.5, PARAM_REAL32, 3.0, 12.0, "pitch angle P"),
     ParamSpec("ATC_ANG_RLL_P", 4.5, PARAM_REAL32, 3.0, 12.0, "roll angle P"),
     ParamSpec("ATC_ANG_YAW_P", 4.5, PARAM_REAL32, 3.0, 12.0, "yaw angle P"),
+    ParamSpec("ATC_INPUT_TC", 0.15, PARAM_REAL32, 0.0, 1.0, "attitude input time constant, s"),
     ParamSpec("ATC_RATE_FF_ENAB", 1, PARAM_INT8, 0, 1, "1: shape rate input, feed it forward"),
     ParamSpec("ATC_THR_MIX_MAN", 0.1, PARAM_REAL32, 0.1, 0.9, "throttle mix, manual throttle"),
     ParamSpec("ATC_THR_MIX_MAX", 0.5, PARAM_REAL32, 0.5, 0.9, "throttle mix, in the air"),
@@ -87,6 +96,11 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("GUID_TIMEOUT", 3.0, PARAM_REAL32, 0.1, 5.0, "s without targets before levelling"),
     ParamSpec("INS_GYRO_FILTER", 20, PARAM_INT16, 0, 256, "gyro LPF, Hz"),
     ParamSpec("LAND_SPEED", 50, PARAM_INT16, 30, 200, "final descent speed, cm/s"),
+    ParamSpec("LOIT_ANG_MAX", 0.0, PARAM_REAL32, 0.0, 45.0, "deg; 0: 2/3 of ANGLE_MAX"),
+    ParamSpec("LOIT_BRK_ACCEL", 250.0, PARAM_REAL32, 25.0, 250.0, "braking, cm/s^2"),
+    ParamSpec("LOIT_BRK_DELAY", 1.0, PARAM_REAL32, 0.0, 2.0, "brake start delay, s"),
+    ParamSpec("LOIT_BRK_JERK", 500.0, PARAM_REAL32, 500.0, 5000.0, "braking jerk, cm/s^3"),
+    ParamSpec("LOIT_SPEED", 1250.0, PARAM_REAL32, 20.0, 3500.0, "max speed, cm/s"),
     # GCS.cpp (4.7): MAV_GCS_SYSID (was SYSID_MYGCS), MAV_SYSID (was SYSID_THISMAV).
     ParamSpec("MAV_GCS_SYSID", 255, PARAM_INT16, 1, 255, "ground station sysid"),
     ParamSpec("MAV_SYSID", 1, PARAM_INT16, 1, 255, "this vehicle's sysid (at boot)"),
@@ -94,7 +108,14 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("MOT_SPIN_MAX", 0.95, PARAM_REAL32, 0.9, 1.0, "top of the output range"),
     ParamSpec("MOT_SPIN_MIN", 0.15, PARAM_REAL32, 0.0, 0.3, "bottom of the output range"),
     ParamSpec("MOT_THST_EXPO", 0.65, PARAM_REAL32, -1.0, 1.0, "thrust curve expo"),
+    ParamSpec("MOT_THST_HOVER", 0.35, PARAM_REAL32, 0.2, 0.8, "hover throttle (learnt)"),
     ParamSpec("MOT_YAW_HEADROOM", 200, PARAM_INT16, 0, 500, "yaw headroom, PWM us"),
+    ParamSpec("PILOT_ACCEL_Z", 250, PARAM_INT16, 50, 500, "climb acceleration, cm/s^2"),
+    ParamSpec("PILOT_SPEED_DN", 0, PARAM_INT16, 0, 500, "descent, cm/s; 0: PILOT_SPEED_UP"),
+    ParamSpec("PILOT_SPEED_UP", 250, PARAM_INT16, 50, 500, "climb, cm/s"),
+    ParamSpec("PSC_ANGLE_MAX", 0.0, PARAM_REAL32, 0.0, 45.0, "deg; 0: ANGLE_MAX"),
+    ParamSpec("PSC_VELXY_P", 2.0, PARAM_REAL32, 0.1, 6.0, "velocity P, 1/s"),
+    ParamSpec("RC1_DZ", 20, PARAM_INT16, 0, 200, "roll dead zone, us"),
     ParamSpec("RC_FS_TIMEOUT", 1.0, PARAM_REAL32, 0.1, 10.0, "s without RC before failsafe"),
     # AP_RCMapper.cpp; the SITL radio sends AETR whatever they say (stored only).
     ParamSpec("RCMAP_PITCH", 2, PARAM_INT8, 1, 16, "pitch channel"),
@@ -102,6 +123,7 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("RCMAP_THROTTLE", 3, PARAM_INT8, 1, 16, "throttle channel"),
     ParamSpec("RCMAP_YAW", 4, PARAM_INT8, 1, 16, "yaw channel"),
     ParamSpec("SCHED_LOOP_RATE", 400, PARAM_INT16, 50, 2000, "main loop, Hz (at boot)"),
+    ParamSpec("THR_DZ", 100, PARAM_INT16, 0, 300, "mid-throttle dead zone, us"),
     ParamSpec("WPNAV_SPEED_DN", 150.0, PARAM_REAL32, 10, 500, "guided max descent, cm/s"),
     ParamSpec("WPNAV_SPEED_UP", 250.0, PARAM_REAL32, 10, 1000, "guided max climb, cm/s"),
     # AC_AttitudeControl_Multi.h defaults (AC_ATC_MULTI_RATE_*).

@@ -16,8 +16,9 @@ and ``COM_RCL_EXCEPT`` (``sitl.autopilot``), at boot and on ``PARAM_SET``;
 for them. Stored only: ``COM_OBL_RC_ACT`` / ``COM_OBL_ACT`` (the SITL's
 offboard-loss action is fixed: AUTO.LAND in free flight, AUTO.LOITER on the
 test stand), ``COM_RC_IN_MODE``, ``COM_RC_OVERRIDE``, ``NAV_DLL_ACT``,
-``COM_DL_LOSS_T``, the ``RC_MAP_*`` channels (the SITL radio sends AETR
-whatever they say), ``MAV_n_MODE`` / ``MAV_n_RATE`` (the SITL's UDP link
+``COM_DL_LOSS_T``, the ``MPC_*`` stick limits and hover thrust (PX4 v1.16's
+defaults: what the companion's flight modes read), the ``RC_MAP_*`` channels
+(the SITL radio sends AETR whatever they say), ``MAV_n_MODE`` / ``MAV_n_RATE`` (the SITL's UDP link
 streams what is asked, as PX4 SITL's UDP instances, started with their own
 rate, do).
 
@@ -106,6 +107,23 @@ _PX4_SPECS: tuple[ParamSpec, ...] = (
     _i("MAV_0_RATE", 1200, 0, _INT32_MAX, "B/s, instance 0; 0: baud/20 (stored only)"),
     _i("MAV_1_MODE", 2, 0, 13, "instance 1 (TELEM2): 2 Onboard (stored only)"),
     _i("MAV_1_RATE", 0, 0, _INT32_MAX, "B/s, instance 1; 0: baud/20 (stored only)"),
+    # mc_pos_control_params.c / flight_mode_manager (v1.16's defaults): what the
+    # sticks may ask in Stabilized, Altitude and Position mode, and the hover thrust
+    # (stored only: the companion's flight modes read them).
+    _f("MPC_ACC_DOWN_MAX", 3.0, 2.0, 15.0, "m/s^2, climb rate controlled modes' fall"),
+    _f("MPC_ACC_HOR", 3.0, 2.0, 15.0, "m/s^2, Position mode (x2 at full stick)"),
+    _f("MPC_ACC_UP_MAX", 4.0, 2.0, 15.0, "m/s^2, climb rate controlled modes' rise"),
+    _f("MPC_HOLD_DZ", 0.1, 0.0, 1.0, "stick deadzone of the piloted modes"),
+    _f("MPC_JERK_MAX", 8.0, 0.5, 500.0, "m/s^3, Position/Altitude mode"),
+    _f("MPC_MAN_TILT_MAX", 35.0, 1.0, 70.0, "deg, Stabilized and Altitude mode"),
+    _i("MPC_POS_MODE", 4, 0, 4, "Position mode: 0 direct velocity, 4 acceleration based"),
+    _f("MPC_THR_HOVER", 0.5, 0.1, 0.8, "thrust to hover (the estimator's prior)"),
+    _f("MPC_TILTMAX_AIR", 45.0, 20.0, 89.0, "deg, velocity and acceleration modes"),
+    _f("MPC_VEL_MANUAL", 10.0, 3.0, 20.0, "m/s, Position mode at full stick"),
+    _f("MPC_XY_MAN_EXPO", 0.6, 0.0, 1.0, "Position mode's stick expo"),
+    _f("MPC_Z_MAN_EXPO", 0.6, 0.0, 1.0, "throttle's expo (climb rate)"),
+    _f("MPC_Z_VEL_MAX_DN", 1.5, 0.5, 4.0, "m/s, zero throttle's descent"),
+    _f("MPC_Z_VEL_MAX_UP", 3.0, 0.5, 8.0, "m/s, full throttle's climb"),
     # rc_params.c: channel numbers, 0 unassigned (stored only).
     _i("RC_MAP_FLTMODE", 0, 0, 18, "flight-mode switch channel"),
     _i("RC_MAP_OFFB_SW", 0, 0, 18, "offboard switch channel"),

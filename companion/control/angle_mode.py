@@ -12,8 +12,9 @@ Sticks to angles (PX4's Stabilized mode does the same)
 The two stick deflections :math:`(x_r, x_p) \\in [-1, 1]^2` are one tilt vector:
 :math:`\\theta_{max} (x_r, x_p)`, shortened to :math:`\\theta_{max}` when longer
 (a diagonal stick does not tilt further than a straight one). Above centre is
-positive (roll right, nose up), as in rates mode. :data:`MAX_TILT_DEG` is PX4's
-``MPC_MAN_TILT_MAX`` default. No heading is held: the yaw follows the yaw stick's
+positive (roll right, nose up), as in rates mode. :math:`\\theta_{max}` is the
+stack's own (PX4 ``MPC_MAN_TILT_MAX``, ArduCopter ``ANGLE_MAX``: read from its
+parameters, :mod:`companion.stacks`). No heading is held: the yaw follows the yaw stick's
 rate (the stick's rate curve, as in rates mode).
 
 On the ground (the autopilot's landed state) the attitude loop is held reset and
@@ -41,10 +42,7 @@ from companion.control.outer import (
 )
 from companion.control.quaternion import Quat, Vec3
 
-__all__ = ["MAX_TILT_DEG", "AngleMode", "stick_tilt_rad"]
-
-MAX_TILT_DEG = 35.0
-"""Full stick's tilt, deg (PX4 ``MPC_MAN_TILT_MAX`` default)."""
+__all__ = ["AngleMode", "stick_tilt_rad"]
 
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
@@ -66,16 +64,17 @@ class AngleMode:
 
     Parameters
     ----------
+    max_tilt_deg
+        Full stick's tilt, deg, in (0, 60]: the stack's
+        (:attr:`~companion.control.stick_limits.StickLimits.tilt_max_deg`).
     gains
         The attitude loop's (:data:`DEFAULT_ATTITUDE_GAINS`: one set for every vehicle).
-    max_tilt_deg
-        Full stick's tilt, deg, in (0, 60].
     """
 
     def __init__(
         self,
+        max_tilt_deg: float,
         gains: AttitudeGains = DEFAULT_ATTITUDE_GAINS,
-        max_tilt_deg: float = MAX_TILT_DEG,
         backoff: SaturationBackoff = DEFAULT_SATURATION_BACKOFF,
     ) -> None:
         if not (0.0 < max_tilt_deg <= 60.0):

@@ -50,6 +50,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+from companion.control.quaternion import Quat, body_z_ned, normalise_or_none
 from companion.control.ultralocal import (
     DT_MAX_S,
     DT_MIN_S,
@@ -64,6 +65,7 @@ __all__ = [
     "HorizontalGains",
     "HorizontalLoop",
     "HorizontalSetpoint",
+    "tilt_of_attitude",
     "tilt_to_roll_pitch",
 ]
 
@@ -144,6 +146,19 @@ def tilt_to_roll_pitch(u_north: float, u_east: float, heading_rad: float) -> Vec
     return (roll, pitch)
 
 
+def tilt_of_attitude(q_wxyz: Quat) -> Vec2:
+    """The tilt vector (NED) an attitude flies: the thrust's north and east
+    components over its upward one; zero for a quaternion that is no rotation,
+    and for a thrust that does not point up."""
+    q = normalise_or_none(q_wxyz)
+    if q is None:
+        return _ZERO2
+    bn, be, bd = body_z_ned(q)  # the thrust points along -body z
+    if not bd > 1e-3:
+        return _ZERO2
+    return (-bn / bd, -be / bd)
+
+
 class HorizontalLoop:
     """Velocity (and position) to roll and pitch setpoints (module docstring).
 
@@ -205,13 +220,22 @@ class HorizontalLoop:
         self._kx = self._gains.kp_position_1_s * scale
         self.gain_scale = scale
 
-    def reset(self) -> None:
-        """Forget the windows and the references (the vehicle is taken to be level
-        and at rest: the windows start full of rest)."""
-        for est in self._est:
-            est.reset(at_rest=True)
+    def reset(self, tilt_ne: Vec2 = _ZERO2) -> None:
+        """Forget the windows and the references. The vehicle is taken to be at rest
+        holding the tilt vector ``tilt_ne`` (level by default; bounded to
+        ``tilt_max_rad``): the windows start full of that rest, and :math:`\\hat F
+        = -\\alpha u` holds it, so the first output is that tilt (an engagement
+        from the autopilot's own hold starts from the attitude it flew)."""
+        tn, te = tilt_ne
+        mag = math.hypot(tn, te)
+        if not math.isfinite(mag):
+            tn = te = 0.0
+        elif mag > self._tan_max:
+            tn, te = tn * self._tan_max / mag, te * self._tan_max / mag
+        for est, u in zip(self._est, (tn, te), strict=True):
+            est.reset(u, -HORIZONTAL_ALPHA * u, at_rest=True)
         self._v_prev: Vec2 | None = None
-        self.tilt_ne: Vec2 = _ZERO2
+        self.tilt_ne: Vec2 = (tn, te)
         self.velocity_ref_ne_m_s: Vec2 = _ZERO2
         self.f_hat: Vec2 = _ZERO2
         self.limited = False

@@ -267,12 +267,20 @@ class OuterController:
         """The scale of the attitude, velocity and position gains (backoff)."""
         return self._backoff.scale
 
-    def reset(self, thrust: float | None = None, hover_thrust: float | None = None) -> None:
-        """Forget all state (on disarm, on hand-back). ``thrust`` and
-        ``hover_thrust``: as :meth:`VerticalLoop.reset`."""
+    def reset(
+        self,
+        thrust: float | None = None,
+        hover_thrust: float | None = None,
+        tilt_ne: tuple[float, float] = (0.0, 0.0),
+        *,
+        at_rest: bool = False,
+    ) -> None:
+        """Forget all state (on disarm, on hand-back). ``thrust``, ``hover_thrust``
+        and ``at_rest``: as :meth:`VerticalLoop.reset`; ``tilt_ne``: as
+        :meth:`HorizontalLoop.reset`."""
         self.attitude.reset()
-        self.vertical.reset(thrust, hover_thrust)
-        self.horizontal.reset()
+        self.vertical.reset(thrust, hover_thrust, at_rest=at_rest)
+        self.horizontal.reset(tilt_ne)
         self._backoff.reset()
         self.attitude.set_gain_scale(1.0)
         self.horizontal.set_gain_scale(1.0)

@@ -253,7 +253,13 @@ class VerticalLoop:
         """:math:`\\alpha = p g / \\hat T_h`, (m/s^2) per unit collective."""
         return self._alpha
 
-    def reset(self, thrust: float | None = None, hover_thrust: float | None = None) -> None:
+    def reset(
+        self,
+        thrust: float | None = None,
+        hover_thrust: float | None = None,
+        *,
+        at_rest: bool = False,
+    ) -> None:
         """Forget the window and the references.
 
         Parameters
@@ -265,6 +271,12 @@ class VerticalLoop:
             A prior for the hover-thrust estimate (the autopilot's hover
             parameter, the last flight's estimate), clamped to its bounds;
             ``None``: ``hover_thrust_initial``.
+        at_rest
+            The vehicle is not accelerating as the loop takes over (a hover, a
+            steady climb): the window starts full of that rest, the collective
+            held (:class:`~companion.control.ultralocal.LagAwareEstimate`), so its
+            first intervals (the climb rate is differentiated from a position
+            stream slower than the loop) do not each move ``F`` a window's worth.
         """
         g = self._gains
         h = g.hover_thrust_initial
@@ -274,7 +286,7 @@ class VerticalLoop:
         t0 = h if thrust is None or not math.isfinite(thrust) else thrust
         t0 = min(max(t0, g.thrust_min), g.thrust_max)
         # F before the first interval: the value that makes the first output t0.
-        self._est.reset(t0, -self._alpha * t0)
+        self._est.reset(t0, -self._alpha * t0, at_rest=at_rest)
         self.f_hat = self._est.f_hat
         self._climb_prev: float | None = None
         self._out = t0

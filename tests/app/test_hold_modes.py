@@ -144,8 +144,8 @@ async def test_from_a_mode_that_holds_altitude_the_hold_takes_over_at_its_hover_
     start: Start,
 ) -> None:
     """PX4's ALTCTL centres the throttle stick whatever the vehicle needs: the stick is
-    no collective to take over at (found in review)."""
-    f = await engaged(start, "altitude", custom_mode=2 << 16)  # PX4 ALTCTL
+    no collective to take over at (found in review); the autopilot's hover thrust is."""
+    f = await engaged(start, "altitude", custom_mode=2 << 16, params={"MPC_THR_HOVER": 0.42})
     hold = f.companion.hold
     assert hold is not None
     n = len(f.fake.of_type("SET_ATTITUDE_TARGET"))
@@ -153,8 +153,94 @@ async def test_from_a_mode_that_holds_altitude_the_hold_takes_over_at_its_hover_
         estimates_and_imu(f)
         await settle(2)
     first = f.fake.of_type("SET_ATTITUDE_TARGET")[n]
-    assert first.thrust == pytest.approx(hold.outer.vertical.gains.hover_thrust_initial, abs=0.02)
-    assert first.thrust < 0.45  # not the stick's 0.5
+    assert first.thrust == pytest.approx(0.42, abs=0.02)  # not the stick's 0.5
+    assert hold.outer.vertical.hover_thrust == pytest.approx(0.42, abs=0.01)  # the prior
+
+
+async def test_the_hold_takes_over_at_the_collective_the_autopilot_flies(start: Start) -> None:
+    """Engaged from a mode holding position (PX4 AUTO.LOITER), the first setpoint the
+    autopilot flies carries the collective it flew itself (its ATTITUDE_TARGET), not
+    a hover estimate that may be far from it (0.3 against PX4 SIH's 0.5: the vehicle
+    sagged half a metre on the real PX4)."""
+    loiter = (4 << 16) | (3 << 24)
+    f = await start(engage="auto", output="rates", mode="position", position=False,
+                    custom_mode=loiter)  # fmt: skip
+    await streams_requested(f)
+    f.fake.extended_sys_state(2)
+    for _ in range(3):  # the pilot's radio streams
+        f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+
+    def send() -> None:
+        f.fake.mav.attitude_target_send(f.t_ms, 0, (1.0, 0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.47)
+        estimates_and_imu(f)
+
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=send)
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=send)
+    thrusts = [m.thrust for m in f.fake.of_type("SET_ATTITUDE_TARGET")]
+    assert thrusts[0] == pytest.approx(0.47, abs=1e-6)  # streamed before the switch ...
+    assert max(abs(t - 0.47) for t in thrusts) < 0.02  # ... and flown from it, no jump
+
+
+async def test_the_engaged_edge_does_not_start_the_laws_again(start: Start) -> None:
+    """The laws start when the engage mode (and the arming) is accepted: the autopilot
+    flies our setpoints from then. Its heartbeat shows it up to a second later; starting
+    the loops again there jolted the real PX4 a second time (11 deg, 0.5 m of sag)."""
+    f = await start(engage="auto", output="rates", mode="altitude", position=False)
+    await streams_requested(f)
+    f.fake.extended_sys_state(2)
+    for _ in range(3):  # the pilot's radio streams
+        f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=lambda: estimates_and_imu(f))
+    for _ in range(3):
+        estimates_and_imu(f)
+        await settle(2)
+    assert f.companion.setpoints_flown and not f.companion.engaged
+    hold = f.companion.hold
+    assert hold is not None
+    held_at = hold.setpoint.vertical.up_m
+    for _ in range(80):  # half a metre below the hold: the collective rises
+        estimates_and_imu(f, (0.0, 0.0, -4.5))
+        await settle(2)
+    before = f.fake.of_type("SET_ATTITUDE_TARGET")[-1].thrust
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(
+        lambda: f.companion.engaged, send=lambda: estimates_and_imu(f, (0.0, 0.0, -4.5))
+    )
+    for _ in range(2):
+        estimates_and_imu(f, (0.0, 0.0, -4.5))
+        await settle(2)
+    after = f.fake.of_type("SET_ATTITUDE_TARGET")[-1].thrust
+    assert hold.setpoint.vertical.up_m == held_at  # the same hold
+    assert after == pytest.approx(before, abs=0.01)  # no step back to the take-over
+
+
+async def test_the_sticks_limits_are_the_autopilots_own(start: Start) -> None:
+    f = await start(
+        engage="auto", output="rates", mode="position", position=False,
+        params={"MPC_VEL_MANUAL": 5.0, "MPC_MAN_TILT_MAX": 20.0, "MPC_Z_VEL_MAX_UP": 2.0},
+    )  # fmt: skip
+    await streams_requested(f)
+    await f.fake.wait_until(lambda: f.companion.hold is not None, 2.0)
+    hold = f.companion.hold
+    assert hold is not None
+    limits = hold.limits
+    assert limits.tilt_max_deg == 20.0 and limits.climb.up_max_m_s == 2.0
+    assert limits.horizontal.speed_max_m_s == 5.0
+    assert limits.climb.down_max_m_s == 1.5  # not answered: PX4's default, and said so
+    (assumed,) = f.details("stick_limits_assumed")
+    assert "MPC_Z_VEL_MAX_DN 1.5" in assumed and "MPC_VEL_MANUAL" not in assumed
+    assert "5 m/s" in f.details("stick_limits")[0]
+
+
+async def test_an_autopilot_with_unusable_limits_flies_its_defaults(start: Start) -> None:
+    f = await start(engage="auto", output="rates", mode="altitude", position=False,
+                    params={"MPC_Z_VEL_MAX_UP": -1.0})  # fmt: skip
+    await streams_requested(f)
+    await f.fake.wait_until(lambda: f.companion.hold is not None, 2.0)
+    hold = f.companion.hold
+    assert hold is not None and hold.limits.climb.up_max_m_s == 3.0
+    assert any("no usable limits" in d for d in f.details("stick_limits_assumed"))
 
 
 async def test_the_control_log_holds_the_setpoints_and_the_estimates_flown(

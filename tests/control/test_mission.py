@@ -6,8 +6,12 @@ from pathlib import Path
 
 import pytest
 
+from companion.control.stick_limits import ClimbLimits
 from companion.errors import ConfigError
 from companion.mission import Mission, MissionPath, Waypoint, load_mission
+
+CLIMB = ClimbLimits(0.1, 0.6, 3.0, 1.5, 4.0, 3.0)
+"""PX4's defaults: a climb at most 3 m/s, a descent 1.5 m/s."""
 
 
 def square(**first: float) -> Mission:
@@ -23,7 +27,8 @@ def square(**first: float) -> Mission:
 
 
 def test_the_setpoint_moves_along_each_leg_at_its_speed_and_holds_at_waypoints() -> None:
-    path = MissionPath(square(hold_s=1.0), (100.0, 200.0, -3.0))  # from N 100, E 200, 3 m up
+    # From N 100, E 200, 3 m up.
+    path = MissionPath(square(hold_s=1.0), (100.0, 200.0, -3.0), CLIMB)
     # Climb 5 m at 2 m/s: 2.5 s (under the 3 m/s climb limit).
     sp = path.at(1.25)
     assert sp.horizontal.position_ne_m == pytest.approx((100.0, 200.0))
@@ -46,7 +51,7 @@ def test_the_setpoint_moves_along_each_leg_at_its_speed_and_holds_at_waypoints()
 
 
 def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
-    path = MissionPath(square(), (0.0, 0.0, 0.0))
+    path = MissionPath(square(), (0.0, 0.0, 0.0), CLIMB)
     for t in (path.duration_s, 1e6):
         sp = path.at(t)
         assert sp.horizontal == ((0.0, 0.0), pytest.approx((10.0, 10.0)), (0.0, 0.0))
@@ -59,7 +64,9 @@ def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
 
 def test_a_waypoint_where_the_mission_starts_is_reached_at_once() -> None:
     path = MissionPath(
-        Mission(waypoints=[Waypoint(north_m=0, east_m=0, up_m=0, hold_s=2)]), (1.0, 2.0, -3.0)
+        Mission(waypoints=[Waypoint(north_m=0, east_m=0, up_m=0, hold_s=2)]),
+        (1.0, 2.0, -3.0),
+        CLIMB,
     )
     assert path.arrivals_s == [0.0] and path.duration_s == 2.0
     assert path.at(1.0).horizontal.position_ne_m == (1.0, 2.0)
