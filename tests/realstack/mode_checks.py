@@ -1,0 +1,97 @@
+"""How the companion's flight modes are judged against the stack's own, on the real stacks.
+
+Both flights fly the same stick program (``sitl/lab/realstack/modes.py``) and are
+measured the same way; these are the bounds:
+
+* the engagement: under 5 deg of tilt in the first 0.5 s and under 0.2 m of
+  altitude lost before the first stick (PX4's own switch into POSCTL stays under
+  5 deg);
+* the same stick: the largest tilt and speed within 20 % of the stack's own mode
+  (where the stack streams what its mode asks, the speed against that);
+* the holds: horizontal and altitude RMS no worse than 1.5 times the stack's,
+  with 0.1 m allowed for the noise of one short flight (two flights of PX4's own
+  POSCTL measured 0.09 and 0.23 m of altitude RMS); in altitude mode the altitude
+  only, in angle mode none (the throttle is the collective: the altitude is the
+  pilot's).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from sitl.lab.realstack.flights import Session
+from sitl.lab.realstack.modes import (
+    PROGRAMS,
+    STACK_MODES,
+    fly_companion_mode,
+    fly_stack_mode,
+    mode_figures,
+    start_mode_companion,
+)
+
+ENGAGE_TILT_MAX_DEG = 5.0
+ENGAGE_SAG_MAX_M = 0.2
+SAME_STICK = 0.2
+HOLD_FACTOR = 1.5
+HOLD_NOISE_M = 0.1
+
+
+def within(ours: float, theirs: float, share: float) -> bool:
+    return math.isfinite(ours) and math.isfinite(theirs) and abs(ours - theirs) <= share * theirs
+
+
+def failures(
+    mode: str, ours: dict[str, Any], stack: dict[str, Any], *, speed_asked: bool = False,
+    tilt_max_deg: float | None = None,
+) -> list[str]:  # fmt: skip
+    """What is out of bounds (module docstring), as readable lines; empty: all in.
+
+    ``speed_asked``: judge the speed against the speed the stack's mode asked (its
+    own setpoint), not the one it flew; ``tilt_max_deg``: judge the tilt against the
+    stack's limit instead of its flown tilt (both for a stack whose own mode does not
+    fly what it asks: the reason goes with the figures)."""
+    out = []
+    if not ours["engage_tilt_deg"] < ENGAGE_TILT_MAX_DEG:
+        out.append(f"engage tilt {ours['engage_tilt_deg']} deg >= {ENGAGE_TILT_MAX_DEG}")
+    if not ours["engage_sag_m"] < ENGAGE_SAG_MAX_M:
+        out.append(f"engage sag {ours['engage_sag_m']} m >= {ENGAGE_SAG_MAX_M}")
+    if tilt_max_deg is None:
+        if not within(ours["stick_tilt_deg"], stack["stick_tilt_deg"], SAME_STICK):
+            out.append(f"tilt {ours['stick_tilt_deg']} against {stack['stick_tilt_deg']} deg")
+    elif not ours["stick_tilt_deg"] <= tilt_max_deg:
+        out.append(f"tilt {ours['stick_tilt_deg']} beyond the limit {tilt_max_deg} deg")
+    ref = "asked_speed_m_s" if speed_asked else "stick_speed_m_s"
+    if not within(ours["stick_speed_m_s"], stack[ref], SAME_STICK):
+        out.append(f"speed {ours['stick_speed_m_s']} against {stack[ref]} m/s ({ref})")
+    # Angle mode holds nothing (the altitude is the pilot's, on the collective); altitude
+    # mode holds the altitude only.
+    holds = {"angle": (), "altitude": ("alt_rms_m",)}.get(mode, ("hold_rms_m", "alt_rms_m"))
+    for key in holds:
+        bound = HOLD_FACTOR * stack[key] + HOLD_NOISE_M
+        if not ours[key] <= bound:
+            out.append(f"{key} {ours[key]} against {stack[key]} (bound {bound:.3f})")
+    return out
+
+
+def fly_both(
+    session: Session, mode: str, args: tuple[str, ...], figures: list[dict[str, Any]]
+) -> tuple[dict[str, Any], dict[str, Any], str]:
+    """The mode's program in the stack's own mode, then with the companion (started
+    while the stack flies); the figures recorded for the closing note. Returns ours,
+    theirs and the companion's ``stick_limits`` event, after checking the run had no
+    failsafe and read every limit from the stack."""
+    program = PROGRAMS[mode]
+    run = start_mode_companion(session, mode, *args)
+    theirs = mode_figures(fly_stack_mode(session, mode, program))
+    ours = mode_figures(fly_companion_mode(session, run, mode, program))
+    stack = session.name
+    figures.append({
+        "test": f"{stack} --mode {mode} against {STACK_MODES[stack][mode][0]}",
+        "companion": ours, stack: theirs,
+    })  # fmt: skip
+    kinds = run.kinds()
+    assert not [k for k in kinds if k.startswith("failsafe")], run.events()
+    assert "stick_limits_assumed" not in kinds, run.details("stick_limits_assumed")
+    (limits,) = run.details("stick_limits")  # the stack's own, read: nothing assumed
+    return ours, theirs, limits
