@@ -42,6 +42,7 @@ __all__ = [
     "CompanionRun",
     "Session",
     "SwitchPilot",
+    "pilot_view",
     "rate_errors",
 ]
 
@@ -58,6 +59,23 @@ _LANDED_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 SWITCH_LOW_US = 1000
 SWITCH_HIGH_US = 2000
 _ROOT = Path(__file__).resolve().parents[3]
+
+
+def pilot_view(now: Telemetry, t0_s: float, hover_throttle: float) -> PilotView:
+    """What a scripted pilot sees of the vehicle through the ground station, its
+    clock from ``t0_s`` (the ground station's)."""
+    pos = now.position_ned_m or (0.0, 0.0, 0.0)
+    vel = now.velocity_ned_m_s or (0.0, 0.0, 0.0)
+    return PilotView(
+        t_s=max(0.0, now.t_s - t0_s),
+        roll_rad=now.roll_rad,
+        pitch_rad=now.pitch_rad,
+        yaw_rad=now.yaw_rad,
+        rate_frd_rad_s=now.rates_rad_s,
+        altitude_m=-pos[2],
+        climb_rate_m_s=-vel[2],
+        hover_throttle=hover_throttle,
+    )
 
 
 @dataclass
@@ -94,19 +112,7 @@ class SwitchPilot:
             return (*self.sticks_us, *tail)
         if self.pilot is None or self.t_engage_s is None or not self.switch_high:
             return (RC_MID_US, RC_MID_US, self.mid_throttle_us, RC_MID_US, *tail)
-        pos = now.position_ned_m or (0.0, 0.0, 0.0)
-        vel = now.velocity_ned_m_s or (0.0, 0.0, 0.0)
-        view = PilotView(
-            t_s=max(0.0, now.t_s - self.t_engage_s),
-            roll_rad=now.roll_rad,
-            pitch_rad=now.pitch_rad,
-            yaw_rad=now.yaw_rad,
-            rate_frd_rad_s=now.rates_rad_s,
-            altitude_m=-pos[2],
-            climb_rate_m_s=-vel[2],
-            hover_throttle=self.hover_throttle,
-        )
-        s = self.pilot.sticks(view)
+        s = self.pilot.sticks(pilot_view(now, self.t_engage_s, self.hover_throttle))
         return (s.roll_us, s.pitch_us, s.throttle_us, s.yaw_us, *tail)
 
 

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from sitl.lab.realstack.flights import SWITCH_LOW_US, CompanionRun, Session
+from sitl.lab.realstack.flights import SWITCH_LOW_US, CompanionRun, Session, pilot_view
 from sitl.lab.realstack.gcs import Telemetry
 from sitl.pilot.rc import RC_MID_US, Sticks, throttle_to_stick_us
 from sitl.pilot.virtual import PilotParams, PilotView, throttle_command
@@ -275,19 +275,7 @@ class _SwitchLow:
     extra_us: tuple[int, ...]
 
     def __call__(self, now: Telemetry) -> tuple[int, ...]:
-        pos = now.position_ned_m or (0.0, 0.0, 0.0)
-        vel = now.velocity_ned_m_s or (0.0, 0.0, 0.0)
-        view = PilotView(
-            t_s=max(0.0, now.t_s - self.t0_s),
-            roll_rad=now.roll_rad,
-            pitch_rad=now.pitch_rad,
-            yaw_rad=now.yaw_rad,
-            rate_frd_rad_s=now.rates_rad_s,
-            altitude_m=-pos[2],
-            climb_rate_m_s=-vel[2],
-            hover_throttle=self.hover_throttle,
-        )
-        st = self.pilot.sticks(view)
+        st = self.pilot.sticks(pilot_view(now, self.t0_s, self.hover_throttle))
         return (st.roll_us, st.pitch_us, st.throttle_us, st.yaw_us, SWITCH_LOW_US, *self.extra_us)
 
 
