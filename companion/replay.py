@@ -193,8 +193,8 @@ def _shaped_reference(
     no shaped reference."""
     names = [f"law_ref_{a}_rad_s" for a in AXES]
     sent = [f"sent_{a}_rad_s" for a in AXES]
-    if not all(c in cols for c in (*names, *sent)):
-        return None
+    if meta.get("output") != "rates" or not all(c in cols for c in (*names, *sent)):
+        return None  # only rates output shapes the law's reference
     law = [np.asarray(cols[c], dtype=np.float64) for c in names]
     if not np.isfinite(law[0]).any():
         return None
