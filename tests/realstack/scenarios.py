@@ -172,3 +172,100 @@ def fly_failsafe_case(session: Session, kind: str, args: tuple[str, ...]) -> dic
         pilot.release()
         pilot.pilot = None
     return out
+
+
+def preflight(session: Session, rates_args: tuple[str, ...], *args: str) -> dict[str, Any]:
+    """``companion preflight --json`` against the stack: its checks by name."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.realstack.conftest import ROOT
+
+    cmd = [sys.executable, "-m", "companion", "preflight", "--connect",
+           session.stack.companion_url, *rates_args, "--json", *args]  # fmt: skip
+    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert res.returncode in (0, 1), res.stderr
+    return {c["name"]: c for c in json.loads(res.stdout)["checks"]}
+
+
+def flick_the_switch_while_preflight_watches(session: Session) -> None:
+    """The pilot flips the engage switch high for 1 s, 4 s from now (once preflight
+    has read the parameters and watches), in a thread."""
+    import threading
+
+    pilot = session.pilot
+
+    def flick() -> None:
+        time.sleep(4.0)
+        pilot.switch_high = True
+        time.sleep(1.0)
+        pilot.switch_high = False
+
+    threading.Thread(target=flick, daemon=True).start()
+
+
+def fly_rates_pair(session: Session, rates_args: tuple[str, ...], seed: int) -> dict[str, Any]:
+    """The same acro-mixed flight passed through and flown by MFC: the rate MAE of each
+    (deg/s), and the failsafes each met."""
+    from sitl.lab.realstack.flights import rate_errors
+
+    errs: dict[str, Any] = {}
+    for name, extra in (("pass-through", ("--rates-passthrough",)), ("mfc", ())):
+        session.ensure_airborne(15.0)
+        pilot = make_pilot("acro-mixed", rng=np.random.default_rng(seed))
+        run = session.fly(
+            *rates_args, *extra, pilot=pilot, duration_s=pilot.duration_s, name=f"rates-{name}"
+        )
+        assert "engaged" in run.kinds(), run.events()
+        errs[name] = rate_errors(run.control())
+        errs[name]["failsafes"] = [k for k in run.kinds() if k.startswith("failsafe")]
+    return errs
+
+
+def check_failsafe_case(session: Session, kind: str, out: dict[str, Any]) -> None:
+    """Whatever the stack does on its own, the vehicle keeps flying level and high;
+    unless the companion died, it handed back (across a cut link, once it is back)
+    to a mode the vehicle flies alone."""
+    assert out["engaged"], out
+    assert out["altitude_min_change_m"] > -4.0, out
+    if kind != "companion-killed":
+        assert out["end_mode"] != session.stack_dialect.engage_label, out
+        assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
+        assert out["exit"] == 3, out
+
+
+def send_a_signing_key(session: Session, folder: Any) -> Any:
+    """A random key sent in SETUP_SIGNING from the ground station (as MAVProxy's
+    ``signing setup`` does), and the companion's key file holding it."""
+    import secrets
+
+    g = session.gcs
+    assert g is not None
+    key = secrets.token_bytes(32)
+    path = folder / "signing.key"
+    path.write_text(key.hex() + "\n")
+    path.chmod(0o600)
+    stamp = int((time.time() - 1_420_070_400) * 1e5)  # 10 us since 2015-01-01 (MAVLink's)
+    g.send("setup_signing_send", g.target, 1, list(key), stamp)
+    time.sleep(1.0)
+    return path
+
+
+def preflight_with(
+    session: Session, rates_args: tuple[str, ...], params: dict[str, float]
+) -> dict[str, Any]:
+    """Preflight's checks with ``params`` set on the stack (set back afterwards)."""
+    g = session.gcs
+    assert g is not None
+    before = {}
+    try:
+        for name, value in params.items():
+            got = g.param_get(name)
+            assert got is not None, name
+            before[name] = got[0]
+            g.param_set(name, value)
+        return preflight(session, rates_args, "--watch-s", "2")
+    finally:
+        for name, value in before.items():
+            g.param_set(name, value)

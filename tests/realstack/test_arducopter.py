@@ -9,12 +9,6 @@ uses GPS, then flies in real time. The tests run in order on one booted stack
 
 from __future__ import annotations
 
-import json
-import secrets
-import subprocess
-import sys
-import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -22,15 +16,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sitl.lab.realstack.flights import Session, rate_errors
+from sitl.lab.realstack.flights import Session
 from sitl.pilot.factory import make_pilot
 from sitl.pilot.rc import RC_MIN_US
 from tests.realstack.conftest import ROOT, boot
 from tests.realstack.scenarios import (
     FAILSAFE_KINDS,
+    check_failsafe_case,
+    flick_the_switch_while_preflight_watches,
     fly_failsafe_case,
+    fly_rates_pair,
     fly_safe_mode_case,
     handback_cases,
+    preflight,
+    preflight_with,
+    send_a_signing_key,
 )
 
 PROFILE = str(ROOT / "vehicle_profiles" / "arducopter_sitl_quad.yaml")
@@ -44,29 +44,13 @@ def copter(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     session.close()
 
 
-def preflight(session: Session, *args: str) -> dict[str, dict[str, Any]]:
-    cmd = [sys.executable, "-m", "companion", "preflight", "--connect",
-           session.stack.companion_url, *RATES, "--json", *args]  # fmt: skip
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert res.returncode in (0, 1), res.stderr
-    return {c["name"]: c for c in json.loads(res.stdout)["checks"]}
-
-
 def test_preflight_is_true_of_the_real_arducopter(
     copter: Session, figures: list[dict[str, Any]]
 ) -> None:
     g = copter.gcs
     assert g is not None
-    pilot = copter.pilot
-
-    def flick() -> None:
-        time.sleep(4.0)  # once preflight has read the parameters and watches
-        pilot.switch_high = True
-        time.sleep(1.0)
-        pilot.switch_high = False
-
-    threading.Thread(target=flick, daemon=True).start()
-    checks = preflight(copter, "--watch-s", "6")
+    flick_the_switch_while_preflight_watches(copter)
+    checks = preflight(copter, RATES, "--watch-s", "6")
     figures.append({"test": "arducopter preflight", **{k: v["status"] for k, v in checks.items()}})
     failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
     assert not failed, failed
@@ -98,19 +82,7 @@ BAD_ARDU = {
 def test_preflight_flags_each_badly_set_arducopter_parameter_with_its_fix(
     copter: Session, figures: list[dict[str, Any]]
 ) -> None:
-    g = copter.gcs
-    assert g is not None
-    before = {}
-    for name, value in BAD_ARDU.items():
-        got = g.param_get(name)
-        assert got is not None, name
-        before[name] = got[0]
-        g.param_set(name, value)
-    try:
-        checks = preflight(copter, "--watch-s", "2")
-    finally:
-        for name, value in before.items():
-            g.param_set(name, value)
+    checks = preflight_with(copter, RATES, BAD_ARDU)
     got = {name: checks[name]["status"] for name in BAD_ARDU}
     figures.append({"test": "arducopter preflight, badly set", **got})
     assert got == {
@@ -124,17 +96,7 @@ def test_preflight_flags_each_badly_set_arducopter_parameter_with_its_fix(
 def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
     copter: Session, figures: list[dict[str, Any]]
 ) -> None:
-    errs = {}
-    for name, extra in (("pass-through", ("--rates-passthrough",)), ("mfc", ())):
-        copter.ensure_airborne(15.0)
-        pilot = make_pilot("acro-mixed", rng=np.random.default_rng(12))
-        run = copter.fly(
-            *RATES, *extra, pilot=pilot, duration_s=pilot.duration_s, name=f"rates-{name}"
-        )
-        assert "engaged" in run.kinds(), run.events()
-        assert "rate_shaping" in run.kinds(), run.events()
-        errs[name] = rate_errors(run.control())
-        errs[name]["failsafes"] = [k for k in run.kinds() if k.startswith("failsafe")]
+    errs = fly_rates_pair(copter, RATES, seed=12)
     figures.append({"test": "arducopter rates acro-mixed seed 12 MAE deg/s", **errs})
     assert not errs["mfc"]["failsafes"], errs
     # ArduCopter slews a rate setpoint at its ATC_ACCEL_*_MAX: most of the error of a
@@ -163,14 +125,7 @@ def test_each_failsafe_that_can_be_made_real_leaves_a_vehicle_that_flies(
 ) -> None:
     out = fly_failsafe_case(copter, kind, RATES)
     figures.append({"test": f"arducopter failsafe {kind}", **out})
-    assert out["engaged"], out
-    # Whatever the stack does on its own, the vehicle keeps flying level and high.
-    assert out["altitude_min_change_m"] > -4.0, out
-    if kind != "companion-killed":
-        # Handed back (across a cut link, once it is back), to a mode it flies alone.
-        assert out["end_mode"] != copter.stack_dialect.engage_label, out
-        assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
-        assert out["exit"] == 3, out
+    check_failsafe_case(copter, kind, out)
 
 
 def test_signing_on_arducopter(
@@ -183,15 +138,9 @@ def test_signing_on_arducopter(
     g = copter.gcs
     assert g is not None
     copter.land()  # ArduCopter takes no SETUP_SIGNING while armed
-    key = secrets.token_bytes(32)
-    path = tmp_path / "signing.key"
-    path.write_text(key.hex() + "\n")
-    path.chmod(0o600)
-    stamp = int((time.time() - 1_420_070_400) * 1e5)  # 10 us since 2015-01-01, as MAVLink's
-    g.send("setup_signing_send", g.target, 1, list(key), stamp)
-    time.sleep(1.0)
-    keyed = preflight(copter, "--signing-key", str(path), "--watch-s", "2")
-    unkeyed = preflight(copter, "--watch-s", "1")
+    path = send_a_signing_key(copter, tmp_path)
+    keyed = preflight(copter, RATES, "--signing-key", str(path), "--watch-s", "2")
+    unkeyed = preflight(copter, RATES, "--watch-s", "1")
     copter.ensure_airborne(15.0)  # the ground station's channel 0 takes unsigned commands
     run = copter.fly(
         *RATES, "--signing-key", str(path), sticks_us=(1500, 1500, 1390, 1500),

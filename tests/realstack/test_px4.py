@@ -7,12 +7,7 @@ run in order on one booted PX4 (the cold start has its own).
 
 from __future__ import annotations
 
-import json
 import math
-import secrets
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,14 +15,20 @@ from typing import Any
 import numpy as np
 import pytest
 
-from sitl.lab.realstack.flights import Session, rate_errors
+from sitl.lab.realstack.flights import Session
 from sitl.pilot.factory import make_pilot
 from tests.realstack.conftest import ROOT, boot
 from tests.realstack.scenarios import (
     FAILSAFE_KINDS,
+    check_failsafe_case,
+    flick_the_switch_while_preflight_watches,
     fly_failsafe_case,
+    fly_rates_pair,
     fly_safe_mode_case,
     handback_cases,
+    preflight,
+    preflight_with,
+    send_a_signing_key,
 )
 
 PROFILE = str(ROOT / "vehicle_profiles" / "px4_sih_quadx.yaml")
@@ -43,35 +44,11 @@ def px4(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     session.close()
 
 
-def preflight(session: Session, *args: str) -> dict[str, Any]:
-    cmd = [sys.executable, "-m", "companion", "preflight", "--connect",
-           session.stack.companion_url, *RATES, "--json", *args]  # fmt: skip
-    res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
-    assert res.returncode in (0, 1), res.stderr
-    data: dict[str, Any] = json.loads(res.stdout)
-    return data
-
-
-def by_name(data: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    return {c["name"]: c for c in data["checks"]}
-
-
 def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str, Any]]) -> None:
     g = px4.gcs
     assert g is not None
-    pilot = px4.pilot
-    # The pilot flips the joystick's switch while preflight watches.
-    import threading
-
-    def flick() -> None:
-        time.sleep(4.0)  # once preflight has read the parameters and watches
-        pilot.switch_high = True
-        time.sleep(1.0)
-        pilot.switch_high = False
-
-    threading.Thread(target=flick, daemon=True).start()
-    data = preflight(px4, "--watch-s", "6")
-    checks = by_name(data)
+    flick_the_switch_while_preflight_watches(px4)
+    checks = preflight(px4, RATES, "--watch-s", "6")
     figures.append({"test": "px4 preflight", **{k: v["status"] for k, v in checks.items()}})
     failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
     assert not failed, failed
@@ -105,19 +82,7 @@ BAD_PX4 = {
 def test_preflight_flags_each_badly_set_px4_parameter_with_its_fix(
     px4: Session, figures: list[dict[str, Any]]
 ) -> None:
-    g = px4.gcs
-    assert g is not None
-    before = {}
-    for name, value in BAD_PX4.items():
-        got = g.param_get(name)
-        assert got is not None, name
-        before[name] = got[0]
-        g.param_set(name, value)
-    try:
-        checks = by_name(preflight(px4, "--watch-s", "2"))
-    finally:
-        for name, value in before.items():
-            g.param_set(name, value)
+    checks = preflight_with(px4, RATES, BAD_PX4)
     got = {name: checks[name]["status"] for name in BAD_PX4}
     figures.append({"test": "px4 preflight, badly set", **got})
     assert got == {
@@ -131,17 +96,8 @@ def test_preflight_flags_each_badly_set_px4_parameter_with_its_fix(
 def test_mfc_flies_px4s_rate_loop_better_than_passing_the_pilots_rates(
     px4: Session, figures: list[dict[str, Any]]
 ) -> None:
-    px4.ensure_airborne(15.0)
-    errs = {}
-    for name, extra in (("pass-through", ("--rates-passthrough",)), ("mfc", ())):
-        px4.ensure_airborne(15.0)
-        pilot = make_pilot("acro-mixed", rng=np.random.default_rng(11))
-        run = px4.fly(
-            *RATES, *extra, pilot=pilot, duration_s=pilot.duration_s, name=f"rates-{name}"
-        )
-        assert "engaged" in run.kinds(), run.events()
-        assert not [k for k in run.kinds() if k.startswith("failsafe")], run.events()
-        errs[name] = rate_errors(run.control())
+    errs = fly_rates_pair(px4, RATES, seed=11)
+    assert not errs["mfc"]["failsafes"] and not errs["pass-through"]["failsafes"], errs
     figures.append({"test": "px4 rates acro-mixed seed 11 MAE deg/s", **errs})
     for axis in ("roll", "pitch", "yaw"):
         assert errs["mfc"][axis] < errs["pass-through"][axis], (axis, errs)
@@ -162,14 +118,7 @@ def test_each_failsafe_that_can_be_made_real_leaves_a_vehicle_that_flies(
 ) -> None:
     out = fly_failsafe_case(px4, kind, RATES)
     figures.append({"test": f"px4 failsafe {kind}", **out})
-    assert out["engaged"], out
-    # Whatever the stack does on its own, the vehicle keeps flying level and high.
-    assert out["altitude_min_change_m"] > -4.0, out
-    if kind != "companion-killed":
-        # Handed back (across a cut link, once it is back), to a mode it flies alone.
-        assert out["end_mode"] != px4.stack_dialect.engage_label, out
-        assert out["companion_failsafe"][:1] == ["failsafe_stale_imu"], out
-        assert out["exit"] == 3, out
+    check_failsafe_case(px4, kind, out)
 
 
 def test_px4_v1_16_does_not_sign_and_a_keyed_companion_says_so(
@@ -177,16 +126,8 @@ def test_px4_v1_16_does_not_sign_and_a_keyed_companion_says_so(
 ) -> None:
     """PX4 v1.16 ignores SETUP_SIGNING (measured: nothing it sends is signed after
     it): a companion given a key refuses its unsigned frames, and preflight says why."""
-    g = px4.gcs
-    assert g is not None
-    key = secrets.token_bytes(32)
-    path = tmp_path / "signing.key"
-    path.write_text(key.hex() + "\n")
-    path.chmod(0o600)
-    g.send("setup_signing_send", g.target, 1, list(key), int((time.time() - 1_420_070_400) * 1e5))
-    time.sleep(1.0)
-    data = preflight(px4, "--signing-key", str(path), "--watch-s", "1")
-    link = by_name(data)["link"]
+    path = send_a_signing_key(px4, tmp_path)
+    link = preflight(px4, RATES, "--signing-key", str(path), "--watch-s", "1")["link"]
     figures.append({"test": "px4 v1.16 signing", "link": link})
     assert link["status"] == "fail" and "does not sign" in link["fix"], link
 
