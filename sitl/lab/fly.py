@@ -11,6 +11,7 @@ simulation times.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -126,6 +127,8 @@ def fly_mavlink(
     timeout_s: float | None = None,
     progress: Callable[[float], None] | None = None,
     on_started: Callable[[subprocess.Popen[bytes], subprocess.Popen[bytes]], None] | None = None,
+    relay: Callable[[int], int] | None = None,
+    sitl_flies_on: bool = False,
 ) -> FlightProcesses:
     """Fly ``scenario`` with the SITL and the companion as separate processes.
 
@@ -155,6 +158,15 @@ def fly_mavlink(
     on_started
         Called with (sitl, companion) processes once both are running (tests
         use it to send signals).
+    relay
+        Called with the companion's UDP port before anything starts; returns the
+        port the SITL sends to instead (a relay there, started by the caller,
+        forwards to the companion's).
+    sitl_flies_on
+        When the companion ends, let the SITL fly on to the end of its own
+        ``--duration`` (in ``sitl_args``; counted from arming) or a crash, within
+        ``timeout_s``, instead of stopping it: what the autopilot does alone after
+        a companion that died.
     timeout_s
         Wall-clock limit for the companion; default 30 s + 4x the flight.
 
@@ -177,6 +189,7 @@ def fly_mavlink(
         # (plus start-up) is generous, and a hang does not stall a test run for long.
         timeout_s = 30.0 + 4.0 * duration_s
     port = free_udp_port()
+    sitl_port = port if relay is None else relay(port)
     py = sys.executable
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     if autopilot == "ardupilot":
@@ -184,7 +197,7 @@ def fly_mavlink(
     sitl_cmd = [
         py, "-m", "sitl", "run",
         "--profile", str(profile_path),
-        "--mavlink", f"udpout:127.0.0.1:{port}",
+        "--mavlink", f"udpout:127.0.0.1:{sitl_port}",
         "--scenario", str(scenario),
         "--clock", "lockstep",
         "--pilot-from-arm", "--no-auto-arm",
@@ -231,6 +244,10 @@ def fly_mavlink(
                     progress(_progress(out / "companion" / "events.jsonl", duration_s))
                 time.sleep(0.2)
             comp_rc = comp.wait()
+            if sitl_flies_on:
+                left_s = timeout_s - (time.monotonic() - t0)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    sitl.wait(timeout=max(0.0, left_s))
         finally:
             # The companion is done (its hand-back watched): what the SITL would fly
             # of the pilot's timeline after that is nobody's flight. Stop it now; it
