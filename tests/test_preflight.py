@@ -114,15 +114,34 @@ def test_a_well_set_autopilot_passes_every_line(stack: str) -> None:
         ("px4", {"capabilities": 64}, {}, "output", "warn", "--output rates"),
         ("px4", {"armed": True}, {}, "armed", "warn", "disarmed"),
         # PX4's parameters.
-        ("px4", {"params": {"COM_OF_LOSS_T": 1.0}}, {}, "COM_OF_LOSS_T", "warn", "to 0.3"),
+        ("px4", {"params": {"COM_OF_LOSS_T": 0.5}}, {}, "COM_OF_LOSS_T", "warn", "to 0.3"),
+        ("px4", {"params": {"COM_OF_LOSS_T": 1.0}}, {}, "COM_OF_LOSS_T", "fail", "to 0.3"),
         ("px4", {"params": {"COM_OF_LOSS_T": 5.0}}, {}, "COM_OF_LOSS_T", "fail", "to 0.3"),
+        # A body rate held from a roll (a companion killed mid-manoeuvre) costs
+        # altitude too: PX4's default of 1 s is a warning with rates, 3 s the limit.
+        (
+            "px4",
+            {"params": {"COM_OF_LOSS_T": 1.0}},
+            {"output": "rates"},
+            "COM_OF_LOSS_T",
+            "warn",
+            "to 0.3",
+        ),
         (
             "px4",
             {"params": {"COM_OF_LOSS_T": 2.0}},
             {"output": "rates"},
             "COM_OF_LOSS_T",
             "warn",
-            "to 1",
+            "to 0.3",
+        ),
+        (
+            "px4",
+            {"params": {"COM_OF_LOSS_T": 5.0}},
+            {"output": "rates"},
+            "COM_OF_LOSS_T",
+            "fail",
+            "to 0.3",
         ),
         ("px4", {"params": {"COM_OF_LOSS_T": None}}, {}, "COM_OF_LOSS_T", "warn", "ground station"),
         ("px4", {"params": {"COM_OBL_RC_ACT": 6}}, {}, "COM_OBL_RC_ACT", "fail", "Position"),

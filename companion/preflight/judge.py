@@ -51,11 +51,16 @@ _ARDU_FS_THR = {
     7: "brake or land",
 }
 
-_ACTUATOR_LOSS_S = 0.3
-"""With actuator output a held torque can flip the vehicle within the autopilot's
-offboard-loss timeout: 0.3 s is the most it should be (README, "Flying a real vehicle")."""
-_RATES_LOSS_S = 1.0
-"""With body rates the autopilot holds the last rate: PX4's default of 1 s."""
+_PX4_LOSS_S = 0.3
+"""PX4 holds the companion's last setpoint for ``COM_OF_LOSS_T`` after the companion
+dies or its link is lost: 0.3 s is the most it should be with either output (a
+body rate held 1 s from a roll cost up to 26 m; docs/failsafes.md, "The companion
+dies")."""
+_PX4_LOSS_FAIL_S = {"actuator": 0.9, "rates": 3.0}
+"""Beyond these it fails: a torque held 1 s from a roll ran away to thousands of
+deg/s; a body rate held stays bounded by PX4's rate loop."""
+_GUID_TIMEOUT_S = 1.0
+"""ArduPilot's ``GUID_TIMEOUT``: it holds the last rate that long, then levels."""
 _RC_LOSS_MAX_S = 1.0
 _CORE_WARN_SHARE = 0.25
 """The law's update may take this share of the loop period before it is a warning:
@@ -248,16 +253,18 @@ def _px4_params(p: dict[str, float | None], plan: Plan, *, joystick: bool = Fals
     if t is None:
         out.append(_missing("COM_OF_LOSS_T"))
     else:
-        bound = _ACTUATOR_LOSS_S if plan.output == "actuator" else _RATES_LOSS_S
+        bound = _PX4_LOSS_S
         what = "torque" if plan.output == "actuator" else "body rate"
+        fail_s = _PX4_LOSS_FAIL_S["actuator" if plan.output == "actuator" else "rates"]
         if t <= bound + 1e-6:
             out.append(Check("COM_OF_LOSS_T", "pass", f"{t:g} s (<= {bound:g} s)"))
         else:
             out.append(
                 Check(
                     "COM_OF_LOSS_T",
-                    "fail" if t > 3 * _RATES_LOSS_S else "warn",
-                    f"{t:g} s: a lost companion link holds the last {what} that long",
+                    "fail" if t > fail_s + 1e-6 else "warn",
+                    f"{t:g} s: a companion that dies, or whose link is lost, leaves the "
+                    f"last {what} held that long",
                     f"set COM_OF_LOSS_T to {bound:g}",
                 )
             )
@@ -449,7 +456,7 @@ def _ardupilot_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
     t = p.get("GUID_TIMEOUT")
     if t is None:
         out.append(_missing("GUID_TIMEOUT"))
-    elif t <= _RATES_LOSS_S + 1e-6:
+    elif t <= _GUID_TIMEOUT_S + 1e-6:
         out.append(Check("GUID_TIMEOUT", "pass", f"{t:g} s"))
     else:
         out.append(
@@ -458,7 +465,7 @@ def _ardupilot_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
                 "warn",
                 f"{t:g} s: a lost companion link holds the last body rate that long "
                 "before the vehicle levels",
-                f"set GUID_TIMEOUT to {_RATES_LOSS_S:g}",
+                f"set GUID_TIMEOUT to {_GUID_TIMEOUT_S:g}",
             )
         )
     name = "MAV_GCS_SYSID" if p.get("MAV_GCS_SYSID") is not None else "SYSID_MYGCS"
