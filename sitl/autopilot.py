@@ -29,11 +29,19 @@ Offboard rules (as PX4)
 * In OFFBOARD, if no setpoint arrives for ``offboard_timeout_s`` (parameter
   ``COM_OF_LOSS_T``) the vehicle fails safe. Default 1.0 s, PX4's
   ``COM_OF_LOSS_T`` default since v1.9 (commander_params.c; older releases had 0).
-  In free flight it switches to AUTO LAND (main 4, sub 6): level and descend,
-  then disarm on touchdown. On the test stand it switches to AUTO LOITER (main 4,
-  sub 3): hold level with the last offboard thrust, clamped to
-  [``failsafe_thrust_min``, hover thrust]. The action is fixed: PX4's
-  ``COM_OBL_RC_ACT`` (``COM_OBL_ACT`` before 1.14) is stored, not followed.
+  As PX4's mode fallback (``Failsafe::checkModeFallback``, v1.14 and later) it
+  says "Failsafe activated" (CRITICAL), shows CRITICAL while the fallback lasts and
+  flies ``COM_OBL_RC_ACT``'s mode: 0 Position mode (POSCTL; ALTCTL without a
+  position estimate, PX4's default), 1 Altitude (ALTCTL), 2 Stabilized (MANUAL up to
+  1.13), 3 Return (flown as Land), 4 Land, 5 Hold (Land without a position),
+  6 Terminate and 7 Disarm (motors off). The manual modes need stick input: without
+  it PX4 >= 1.14 falls through to Hold; PX4 1.13 flies ``COM_OBL_ACT`` instead (0
+  Land, 1 Hold, 2 Return, 3 Terminate, 4 Lockdown; -1 nothing). The real PX4 v1.16
+  SIH, its companion killed with the joystick there, went to POSCTL. The fallback
+  lasts while the setpoints do not come and the mode is not changed: a setpoint
+  brings OFFBOARD back, a mode command ends it. On the test stand it switches to
+  AUTO LOITER (main 4, sub 3) whatever the parameters: hold level with the last
+  offboard thrust, clamped to [``failsafe_thrust_min``, hover thrust].
 * Actuator setpoints (``SET_ACTUATOR_CONTROL_TARGET`` group 0, PX4 <= 1.13) are
   mixed directly; body-rate setpoints (``SET_ATTITUDE_TARGET`` with ``type_mask``
   bit 128) go through the internal rate loop first (PX4 >= 1.14). Non-finite
@@ -217,6 +225,12 @@ _JOYSTICK_IN_MODES = (1, 2, 3)
 stick input)."""
 MANUAL_LOSS = "manual_control_loss"
 """The failsafe of a manual mode entered without stick input."""
+OFFBOARD_LOSS = "offboard_loss"
+"""The failsafe of OFFBOARD without setpoints for ``COM_OF_LOSS_T``."""
+_OBL_POSITION, _OBL_ALTITUDE, _OBL_STABILIZED, _OBL_RETURN, _OBL_LAND, _OBL_HOLD = range(6)
+_OBL_TERMINATE, _OBL_DISARM, _OBL_NONE = 6, 7, -1
+_OBL_LEGACY = {0: _OBL_LAND, 1: _OBL_HOLD, 2: _OBL_RETURN, 3: _OBL_TERMINATE, 4: _OBL_DISARM}
+"""PX4 1.13's ``COM_OBL_ACT`` (offboard lost without RC) as ``COM_OBL_RC_ACT`` values."""
 
 
 @dataclass(frozen=True)
@@ -305,6 +319,8 @@ class Autopilot(Personality[FlightMode]):
         self._last_rate_t_s: float | None = None
         self._joystick: Joystick | None = None
         self._joystick_t_s: float | None = None
+        self._offboard_fallback = False
+        """OFFBOARD is what the user asked for, and its offboard-loss fallback is flown."""
 
     # ------------------------------------------------------------------ status
 
@@ -394,7 +410,18 @@ class Autopilot(Personality[FlightMode]):
         self.rate_pid.filter.reset()
 
     def set_mode(self, t_s: float, main: int, sub: int = 0) -> MavResult:
-        """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub)."""
+        """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub).
+
+        An accepted one is the user's choice: an offboard-loss fallback ends there.
+        """
+        result = self._set_mode(t_s, main, sub)
+        if result == MavResult.ACCEPTED and self._offboard_fallback:
+            self._offboard_fallback = False
+            if self.failsafe == OFFBOARD_LOSS:
+                self.failsafe = None
+        return result
+
+    def _set_mode(self, t_s: float, main: int, sub: int) -> MavResult:
         try:
             main_mode = MainMode(main)
         except ValueError:
@@ -581,12 +608,77 @@ class Autopilot(Personality[FlightMode]):
         return self._allocate(torque_thrust)
 
     def _check_offboard_loss(self, t_s: float) -> None:
-        if self.mode != MODE_OFFBOARD or not self.armed:
+        """PX4's offboard-loss mode fallback (see the module's docstring): entered
+        after ``COM_OF_LOSS_T`` in OFFBOARD, its mode chosen again on each sample
+        while it lasts (the stick input may go or come), left for OFFBOARD when a
+        setpoint arrives."""
+        if not self.armed:
+            self._offboard_fallback = False
             return
-        if self.setpoint_age_s(t_s) <= self.config.offboard_timeout_s:
+        lost = self.setpoint_age_s(t_s) > self.config.offboard_timeout_s
+        if self._offboard_fallback:
+            if not lost:
+                self._offboard_fallback = False
+                self._change_mode(t_s, MODE_OFFBOARD, reason="offboard regained")
+                self._event(t_s, "failsafe_cleared", cause=OFFBOARD_LOSS)
+                return
+            new = self._offboard_loss_mode(t_s)
+            if new is not None and new != self.mode:
+                self._enter_failsafe(t_s, OFFBOARD_LOSS, new, reason="offboard lost")
             return
-        new = MODE_LOITER if self.config.test_stand else MODE_LAND
-        self._enter_failsafe(t_s, "offboard_loss", new, reason="offboard lost")
+        if self.mode != MODE_OFFBOARD or not lost:
+            return
+        action = self._offboard_loss_action(t_s)
+        if action == _OBL_NONE:
+            return
+        self._text(MAV_SEVERITY_CRITICAL, "Failsafe activated")
+        if action in (_OBL_TERMINATE, _OBL_DISARM):
+            self.failsafe = OFFBOARD_LOSS
+            name = "TERMINATE" if action == _OBL_TERMINATE else "DISARM"
+            self._event(t_s, "failsafe", cause=OFFBOARD_LOSS, action=name)
+            self.disarm(t_s, force=True, reason="offboard lost")
+            return
+        new = self._offboard_loss_mode(t_s)
+        assert new is not None
+        self._offboard_fallback = True
+        self._enter_failsafe(t_s, OFFBOARD_LOSS, new, reason="offboard lost")
+
+    def _offboard_loss_action(self, t_s: float) -> int:
+        """The offboard-loss action as a ``COM_OBL_RC_ACT`` value: that parameter's,
+        or with no stick input on PX4 1.13 (which has ``COM_OBL_ACT``) that one's;
+        Hold on the test stand."""
+        if self.config.test_stand:
+            return _OBL_HOLD
+        params = self.params
+        if "COM_OBL_ACT" in params and self.rc_lost(t_s):
+            return _OBL_LEGACY.get(int(params["COM_OBL_ACT"]), _OBL_NONE)
+        return int(params["COM_OBL_RC_ACT"])
+
+    def _offboard_loss_mode(self, t_s: float) -> FlightMode | None:
+        """The mode the offboard-loss fallback flies now (None: no mode, it disarms
+        or does nothing). The manual modes need stick input and fall through to Hold
+        without it (PX4 >= 1.14's ``getSelectedAction``); Position mode needs a
+        position estimate (else Altitude); Hold too (else Land); Return is flown as
+        Land (no navigation here)."""
+        if self.config.test_stand:
+            return MODE_LOITER
+        action = self._offboard_loss_action(t_s)
+        if action in (_OBL_TERMINATE, _OBL_DISARM, _OBL_NONE):
+            return None
+        if action in (_OBL_POSITION, _OBL_ALTITUDE, _OBL_STABILIZED):
+            if self.rc_lost(t_s):
+                action = _OBL_HOLD
+            elif action == _OBL_POSITION and self.position_valid:
+                return FlightMode(MainMode.POSCTL)
+            elif action != _OBL_STABILIZED:
+                return FlightMode(MainMode.ALTCTL)
+            elif "COM_OBL_ACT" in self.params:
+                return FlightMode(MainMode.MANUAL)  # PX4 1.13's value 2: Manual
+            else:
+                return FlightMode(MainMode.STABILIZED)
+        if action == _OBL_HOLD and self.position_valid:
+            return MODE_LOITER
+        return MODE_LAND
 
     def _check_rc_loss(self, t_s: float) -> None:
         """PX4's RC-loss failsafe (``NAV_RCL_ACT``), once per loss."""
@@ -595,7 +687,8 @@ class Autopilot(Personality[FlightMode]):
         if not self.rc_lost(t_s):
             return
         exc = self.config.rc_loss_exceptions
-        mode = self.mode
+        # What the user asked for: OFFBOARD while its offboard-loss fallback flies.
+        mode = MODE_OFFBOARD if self._offboard_fallback else self.mode
         if (
             mode == MODE_LAND
             or (mode == MODE_LOITER and exc & _RCL_EXCEPT_HOLD)
@@ -606,6 +699,7 @@ class Autopilot(Personality[FlightMode]):
         action = self.config.rc_loss_action
         if action == _RCL_NONE:
             return
+        self._offboard_fallback = False  # the worse action wins, and stays
         if action in (_RCL_TERMINATE, _RCL_DISARM):
             # Motors off where it is (Terminate also fires a parachute PX4 may have).
             self.failsafe = "rc_loss"

@@ -37,6 +37,10 @@ ATTITUDE, ATTITUDE_QUATERNION at 50 Hz (never faster than the IMU). Interval
 requests faster than 1 kHz are DENIED. The attitude and LOCAL_POSITION_NED are
 the estimator's (``sitl.mavlink_face``: "The estimate, not the truth"); a
 LOCAL_POSITION_NED due before the first position estimate goes out when it comes.
+MANUAL_CONTROL is off until asked for; then, as PX4 v1.16 does, one frame goes
+out at once (the joystick's, or with none the neutral x 0, y 0, z 500, r 0,
+``enabled_extensions`` 252), and the stream goes on only while a ground
+station's joystick is the stick input.
 """
 
 from __future__ import annotations
@@ -110,6 +114,9 @@ FLIGHT_SW_VERSION = PX4_DEFAULT_FIRMWARE.flight_sw_version
 ID_MANUAL_CONTROL = mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL
 JOYSTICK_EXTENSIONS = 252
 """``MANUAL_CONTROL.enabled_extensions`` PX4 streams: bits 2..7, aux1..aux6."""
+NEUTRAL_JOYSTICK = Joystick(0, 0, 500, 0, JOYSTICK_EXTENSIONS)
+"""The first frame of PX4's MANUAL_CONTROL stream without a joystick: the
+``manual_control_setpoint`` of no input (sticks and aux 0, throttle 0 in [-1, 1])."""
 
 
 def px4_streams(imu_rate_hz: float) -> MessageStreams:
@@ -169,6 +176,8 @@ class Px4Face(MavlinkFace[Autopilot]):
         """``SET_ACTUATOR_CONTROL_TARGET`` is handled (PX4 <= 1.13)."""
         if not self.actuator_targets:
             self.lockstep_setpoints = frozenset(("SET_ATTITUDE_TARGET",))
+        self._manual_control_first = False
+        """The MANUAL_CONTROL stream was just turned on: its first frame is due."""
 
     # -------------------------------------------------------------- handling
 
@@ -215,8 +224,13 @@ class Px4Face(MavlinkFace[Autopilot]):
             super()._send_one(msg_id)
             return
         # PX4 streams the manual_control_setpoint it flies on: only while a joystick
-        # is its stick input (nothing once it stops), from its own sysid.
+        # is its stick input (nothing once it stops), from its own sysid. A new
+        # stream's first frame is the last setpoint published, joystick or not: with
+        # none, the neutral one (throttle 0 in PX4's [-1, 1] is z 500).
         j = self.autopilot.joystick(self.snapshot.t_s)
+        first, self._manual_control_first = self._manual_control_first, False
+        if j is None and first:
+            j = NEUTRAL_JOYSTICK
         if j is not None:
             self.mav.manual_control_send(
                 self.sysid, j.x, j.y, j.z, j.r, 0, 0, JOYSTICK_EXTENSIONS, 0, 0, *j.aux
@@ -251,7 +265,19 @@ class Px4Face(MavlinkFace[Autopilot]):
             return ap.set_mode(t_s, as_int(p[1]), as_int(p[2]))
         if command == mavlink.MAV_CMD_NAV_LAND:
             return ap.set_mode(t_s, MainMode.AUTO, AUTO_SUB_LAND)
+        if command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and as_int(p[0]) == ID_MANUAL_CONTROL:
+            return self._manual_control_interval(float(p[1]), t_s)
         return None
+
+    def _manual_control_interval(self, interval_us: float, t_s: float) -> MavResult:
+        """The MANUAL_CONTROL stream asked for: a stream that was off starts with one
+        frame at once (PX4 v1.16 answered so, a ground station's joystick there or not),
+        then streams while a joystick is the stick input."""
+        was_on = self.streams.interval_s(ID_MANUAL_CONTROL) > 0.0
+        result = self.streams.set_interval(ID_MANUAL_CONTROL, interval_us, t_s=t_s)
+        if result == MavResult.ACCEPTED and not was_on:
+            self._manual_control_first = self.streams.interval_s(ID_MANUAL_CONTROL) > 0.0
+        return result
 
     # ------------------------------------------------------------ parameters
 

@@ -11,11 +11,11 @@ Defaults are PX4's parameter reference (the ``PARAM_DEFINE_*`` / ``module.yaml``
 named beside each spec). Wired: ``COM_OF_LOSS_T`` (the offboard-loss timeout,
 the same as ``sitl run --offboard-timeout``), ``COM_RC_LOSS_T``, ``NAV_RCL_ACT``
 and ``COM_RCL_EXCEPT`` (``sitl.autopilot``), at boot and on ``PARAM_SET``;
+``COM_OBL_RC_ACT`` / ``COM_OBL_ACT`` (the offboard-loss fallback, read when it
+acts) and ``COM_RC_IN_MODE`` (whether a joystick is taken);
 ``MAV_SYS_ID`` / ``MAV_COMP_ID`` (the face's ids) and ``IMU_GYRO_RATEMAX``
 (the fastest IMU stream the face accepts) at boot only, as PX4 needs a reboot
-for them. Stored only: ``COM_OBL_RC_ACT`` / ``COM_OBL_ACT`` (the SITL's
-offboard-loss action is fixed: AUTO.LAND in free flight, AUTO.LOITER on the
-test stand), ``COM_RC_IN_MODE``, ``COM_RC_OVERRIDE``, ``NAV_DLL_ACT``,
+for them. Stored only: ``COM_RC_OVERRIDE``, ``NAV_DLL_ACT``,
 ``COM_DL_LOSS_T``, the ``MPC_*`` stick limits and hover thrust (PX4 v1.16's
 defaults: what the companion's flight modes read), the ``RC_MAP_*`` channels
 (the SITL radio sends AETR whatever they say), ``MAV_n_MODE`` / ``MAV_n_RATE`` (the SITL's UDP link
@@ -89,9 +89,9 @@ def _f(name: str, default: float, lo: float, hi: float, doc: str) -> ParamSpec:
 _PX4_SPECS: tuple[ParamSpec, ...] = (
     # commander_params.c
     _i("COM_DL_LOSS_T", 10, 5, 300, "s without GCS before NAV_DLL_ACT (stored only)"),
-    _i("COM_OBL_RC_ACT", 0, 0, 7, "offboard loss: 0 Position ... 4 Land, 5 Hold (stored only)"),
+    _i("COM_OBL_RC_ACT", 0, 0, 7, "offboard loss: 0 Position ... 4 Land, 5 Hold, 7 Disarm"),
     _f("COM_OF_LOSS_T", 1.0, 0.0, 60.0, "s without offboard setpoints before failsafe"),
-    _i("COM_RC_IN_MODE", 3, 0, 4, "0 RC only ... 3 RC or MAVLink, first kept (stored only)"),
+    _i("COM_RC_IN_MODE", 3, 0, 4, "0 RC only ... 3 RC or MAVLink, first kept; 4 none"),
     _f("COM_RC_LOSS_T", 0.5, 0.0, 35.0, "s without RC before it counts as lost"),
     _i("COM_RC_OVERRIDE", 1, 0, 3, "stick override: bit 0 auto modes, bit 1 offboard (stored)"),
     _i("COM_RCL_EXCEPT", 0, 0, 7, "RC loss ignored in: bit 0 mission, 1 hold, 2 offboard"),
@@ -134,7 +134,7 @@ _PX4_SPECS: tuple[ParamSpec, ...] = (
 )
 
 _COM_OBL_ACT = _i(
-    "COM_OBL_ACT", 0, -1, 4, "offboard loss without RC: 0 Land, 1 Hold, 2 Return (stored only)"
+    "COM_OBL_ACT", 0, -1, 4, "offboard loss without RC: 0 Land, 1 Hold, 2 Return, 4 Lockdown"
 )
 """PX4 <= 1.13 only (commander_params.c of those releases)."""
 

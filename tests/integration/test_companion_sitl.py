@@ -123,7 +123,7 @@ def test_failsafe_ends_in_hand_back(tmp_path: Path, fault: str, expected: set[st
     clock = ("--clock", "realtime") if fault.startswith(("imu-stop", "link-drop")) else ()
     # A lost link leaves the autopilot holding the last actuator setpoint until its own
     # offboard-loss timeout. With PX4's default COM_OF_LOSS_T of 1 s, the torque held
-    # from the middle of paper-acro's wiggle at 6 s flipped the F450 before AUTO LAND
+    # from the middle of paper-acro's wiggle at 6 s flipped the F450 before its failsafe
     # took over (seen in CI with the identified controller), so the README tells
     # actuator-output users to set 0.3 s, and this test flies that setting.
     loss = ("--offboard-timeout", "0.3") if fault.startswith("link-drop") else ()
@@ -152,9 +152,12 @@ def test_failsafe_ends_in_hand_back(tmp_path: Path, fault: str, expected: set[st
         assert fault.startswith("motor-fail")
     elif fault.startswith("link-drop"):
         # Nothing gets through any more: the hand-back goes unanswered and the
-        # SITL's own offboard-loss failsafe takes over (AUTO LAND).
+        # SITL's own offboard-loss failsafe takes over: with the pilot's radio there,
+        # COM_OBL_RC_ACT's Position mode, as the real PX4 v1.16 did.
         assert "unanswered" in first(flight.companion_events, "handed_back")["detail"]
-        assert "LAND" in sitl_modes(flight)
+        assert sitl_modes(flight) == ["OFFBOARD", "POSCTL"]
+        fs = [e for e in flight.sitl_events if e.get("kind") == "failsafe"]
+        assert [(e["cause"], e["action"]) for e in fs] == [("offboard_loss", "POSCTL")]
     else:
         assert sitl_modes(flight)[-1] == "POSCTL"
 

@@ -20,10 +20,12 @@ from tests.integration import test_failsafe_cases as _cases
 from tests.integration.conftest import SitlProcess, free_udp_port
 from tests.integration.test_failsafe_cases import (
     COMPANION_IDS,
+    ID_SETPOINT,
     CompanionProcess,
     kinds,
     modes,
     read_tlog,
+    times,
     write_stick_script,
 )
 
@@ -83,3 +85,34 @@ def test_the_companion_flies_a_joystick_pilot_and_engages_on_aux1(
     assert not [f for f in frames if f.msg_id == ID_RC_CHANNELS]
     # The companion engaged on the joystick's aux1 and commanded.
     assert [f for f in frames if (f.sysid, f.compid) == COMPANION_IDS]
+
+
+def test_px4s_one_frame_without_a_joystick_is_not_taken_for_a_pilot(
+    start_sitl: Callable[..., SitlProcess],
+    start_companion: Callable[..., CompanionProcess],
+) -> None:
+    """PX4 v1.16 answers the request for its MANUAL_CONTROL stream with one frame at
+    once (x 0, y 0, z 500, r 0), a ground station's joystick there or not. With none
+    there, ``--engage auto`` must not take that frame for a pilot: it waits for the
+    pilot's input through ``--arm-timeout-s`` and gives up, having flown nothing."""
+    port = free_udp_port()
+    comp = start_companion(
+        port, "--engage", "auto", "--arm-timeout-s", "2", "--rate-hz", "250",
+        "--stale-imu-s", "0.5",
+    )  # fmt: skip
+    sitl = start_sitl(port, "--pilot-input", "joystick", "--clock", "realtime", duration_s=30.0)
+    try:
+        rc = comp.proc.wait(timeout=30)
+    finally:
+        sitl.stop()
+    assert rc == 1, (kinds(comp.events()), comp.stderr()[-2000:])
+    failed = [e["detail"] for e in comp.events() if e["kind"] == "engage_failed"]
+    assert failed and failed[0].startswith("no valid pilot input"), kinds(comp.events())
+    frames = read_tlog(comp.log_dir / "flight.tlog")
+    (mc,) = [
+        f for f in frames if (f.sysid, f.compid, f.msg_id) == (*AUTOPILOT_IDS, ID_MANUAL_CONTROL)
+    ]
+    m = mc.decode()
+    assert (m.x, m.y, m.z, m.r, m.enabled_extensions) == (0, 0, 500, 0, 252)
+    assert times(frames, COMPANION_IDS, ID_SETPOINT) == []  # nothing flown
+    assert "OFFBOARD" not in modes(read_log(sitl.log_path).events)

@@ -13,6 +13,11 @@ Flown against the real stacks (``sitl/lab/realstack``, issue 42's notes):
 * ArduCopter refuses to arm until its EKF has an altitude estimate ("Arm: Need Alt
   Estimate") and, in a mode that needs one, a position ("PreArm: Need Position
   Estimate"); SYS_STATUS's pre-arm bit is healthy only when its checks pass.
+* PX4 answers a request for its ``MANUAL_CONTROL`` stream with one frame at once
+  (x 0, y 0, z 500, r 0, ``enabled_extensions`` 252), a joystick there or not.
+* PX4 with no offboard setpoint for ``COM_OF_LOSS_T`` (the companion killed) says
+  "Failsafe activated", shows CRITICAL and flies ``COM_OBL_RC_ACT``'s mode
+  (Position mode, POSCTL) while the joystick is there.
 
 Each face runs in this process on a real UDP socket with a ground station
 (``tests/sitl/udp_client.py``).
@@ -36,9 +41,10 @@ from sitl.ardupilot_face import ArduPilotFace, ardupilot_streams
 from sitl.ardupilot_modes import CopterMode
 from sitl.autopilot import Autopilot, AutopilotConfig, Joystick, joystick_channels
 from sitl.mavlink_link import parse_endpoint
-from sitl.personality import MavResult
+from sitl.personality import FirmwareVersion, MavResult
 from sitl.px4_face import Px4Face, px4_streams
-from sitl.px4_modes import MODE_LAND, FlightMode, MainMode
+from sitl.px4_modes import MODE_LAND, MODE_LOITER, MODE_OFFBOARD, FlightMode, MainMode
+from sitl.px4_params import Px4Params
 from sitl.runner import joystick_from_channels
 from tests.sitl.udp_client import Client
 
@@ -245,3 +251,153 @@ def test_heartbeat_critical_in_every_failsafe(profile: VehicleProfile) -> None:
     ap.failsafe_radio = True
     assert ap.system_status == 5
     assert FlightMode(MainMode.POSCTL).name == "POSCTL"
+
+
+# ------------------------------------------------- PX4's answer to the stream request
+
+
+def request_manual_control(face: Px4Face, client: Client, interval_us: float) -> None:
+    client.mav.command_long_send(
+        1, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, MANUAL_CONTROL, interval_us, 0, 0, 0, 0, 0
+    )
+    assert [m.result for m in client.exchange(face) if m.get_type() == "COMMAND_ACK"] == [0]
+
+
+def manual_controls(msgs: list[Any]) -> list[Any]:
+    return [m for m in msgs if m.get_type() == "MANUAL_CONTROL"]
+
+
+def test_px4_answers_the_manual_control_request_with_one_frame_without_a_joystick(
+    profile: VehicleProfile, client: Client
+) -> None:
+    face = px4_face(profile, client)
+    try:
+        request_manual_control(face, client, 20_000)
+        (mc,) = manual_controls(publish(face, client, 0.0))
+        assert (mc.get_srcSystem(), mc.get_srcComponent(), mc.target) == (1, 1, 1)
+        assert (mc.x, mc.y, mc.z, mc.r, mc.enabled_extensions) == (0, 0, 500, 0, 252)
+        assert (mc.aux1, mc.aux2, mc.aux3, mc.aux4, mc.aux5, mc.aux6) == (0,) * 6
+        # No joystick: nothing more, and asking again while the stream is on sends none.
+        assert not manual_controls(publish(face, client, 0.02))
+        request_manual_control(face, client, 20_000)
+        assert not manual_controls(publish(face, client, 0.04) + publish(face, client, 1.0))
+        # Off, then asked for again: a new stream, a new first frame.
+        request_manual_control(face, client, -1)
+        request_manual_control(face, client, 20_000)
+        assert len(manual_controls(publish(face, client, 1.1))) == 1
+        assert not manual_controls(publish(face, client, 1.2))
+    finally:
+        face.close()
+
+
+# ------------------------------------------------------ PX4: the companion killed
+
+
+def px4_in_offboard(
+    profile: VehicleProfile, firmware: FirmwareVersion, *, joystick: bool
+) -> tuple[Autopilot, float]:
+    """Flying in OFFBOARD on body rates for 1 s, the joystick's frames coming (or none)."""
+    ap = Autopilot(profile, AutopilotConfig(), params=Px4Params(firmware))
+    t = 0.0
+    while t < 1.0:
+        ap.on_rates_target(t, LEVEL, 0.5)
+        if joystick:
+            ap.on_manual_control(t, Joystick(0, 0, 500, 0))
+        if abs(t - 0.5) < 1e-9:
+            assert ap.set_mode(t, MainMode.OFFBOARD) is MavResult.ACCEPTED
+            assert ap.arm(t) is MavResult.ACCEPTED
+        ap.update(t, LEVEL, LEVEL, landed=False)
+        t = round(t + 0.02, 6)
+    assert ap.mode == MODE_OFFBOARD and ap.armed
+    ap.drain_statustexts()
+    return ap, t
+
+
+def without_setpoints(ap: Autopilot, t0: float, t1: float, *, joystick: bool) -> float:
+    t = t0
+    while t < t1:
+        if joystick:
+            ap.on_manual_control(t, Joystick(0, 0, 500, 0))
+        ap.update(t, LEVEL, LEVEL, landed=False)
+        t = round(t + 0.02, 6)
+    return t
+
+
+PX4_116 = FirmwareVersion(1, 16, 0)
+
+
+def test_px4_killed_companion_with_a_joystick_falls_back_to_position_mode(
+    profile: VehicleProfile,
+) -> None:
+    ap, t = px4_in_offboard(profile, PX4_116, joystick=True)
+    t = without_setpoints(ap, t, t + 0.96, joystick=True)  # within COM_OF_LOSS_T (1 s)
+    assert ap.mode == MODE_OFFBOARD and ap.failsafe is None
+    t = without_setpoints(ap, t, t + 0.1, joystick=True)
+    assert ap.mode == FlightMode(MainMode.POSCTL)  # COM_OBL_RC_ACT 0: Position mode
+    assert ap.failsafe == "offboard_loss" and ap.system_status == 5  # CRITICAL
+    assert ap.drain_statustexts() == [(2, "Failsafe activated")]
+    assert ap.armed
+    # The fallback lasts while the setpoints do not come: when they do, OFFBOARD again.
+    ap.on_rates_target(t, LEVEL, 0.5)
+    ap.update(t, LEVEL, LEVEL, landed=False)
+    assert ap.mode == MODE_OFFBOARD and ap.failsafe is None and ap.system_status == 4
+
+
+@pytest.mark.parametrize(
+    ("firmware", "joystick", "params", "expected"),
+    [
+        (PX4_116, True, (("COM_OBL_RC_ACT", 1),), FlightMode(MainMode.ALTCTL)),
+        (PX4_116, True, (("COM_OBL_RC_ACT", 2),), FlightMode(MainMode.STABILIZED)),
+        (PX4_116, True, (("COM_OBL_RC_ACT", 4),), MODE_LAND),
+        (PX4_116, True, (("COM_OBL_RC_ACT", 5),), MODE_LOITER),
+        # No stick input: the manual modes cannot run, PX4 >= 1.14 falls through to Hold.
+        (PX4_116, False, (), MODE_LOITER),
+        # PX4 1.13 without RC: COM_OBL_ACT (0 Land, 1 Hold); with it, COM_OBL_RC_ACT.
+        (FirmwareVersion(1, 13, 3), False, (), MODE_LAND),
+        (FirmwareVersion(1, 13, 3), False, (("COM_OBL_ACT", 1),), MODE_LOITER),
+        (FirmwareVersion(1, 13, 3), True, (), FlightMode(MainMode.POSCTL)),
+    ],
+)
+def test_px4_offboard_loss_flies_com_obl_rc_act(
+    profile: VehicleProfile,
+    firmware: FirmwareVersion,
+    joystick: bool,
+    params: tuple[tuple[str, int], ...],
+    expected: FlightMode,
+) -> None:
+    ap, t = px4_in_offboard(profile, firmware, joystick=joystick)
+    for name, value in params:
+        ap.params.set(name, value)
+    without_setpoints(ap, t, t + 1.1, joystick=joystick)
+    assert ap.mode == expected and ap.failsafe == "offboard_loss" and ap.armed
+
+
+@pytest.mark.parametrize(("value", "kind"), [(6, "TERMINATE"), (7, "DISARM")])
+def test_px4_offboard_loss_terminates_or_disarms(
+    profile: VehicleProfile, value: int, kind: str
+) -> None:
+    ap, t = px4_in_offboard(profile, PX4_116, joystick=True)
+    ap.params.set("COM_OBL_RC_ACT", value)
+    ap.drain_events()
+    without_setpoints(ap, t, t + 1.1, joystick=True)
+    assert not ap.armed and ap.failsafe == "offboard_loss"
+    assert [e.detail.get("action") for e in ap.drain_events() if e.kind == "failsafe"] == [kind]
+
+
+def test_px4_offboard_fallback_without_a_position_is_altitude_mode(
+    profile: VehicleProfile,
+) -> None:
+    ap, t = px4_in_offboard(profile, PX4_116, joystick=True)
+    ap.position_valid = False
+    without_setpoints(ap, t, t + 1.1, joystick=True)
+    assert ap.mode == FlightMode(MainMode.ALTCTL)
+
+
+def test_px4_offboard_fallback_ends_with_a_mode_change(profile: VehicleProfile) -> None:
+    ap, t = px4_in_offboard(profile, PX4_116, joystick=True)
+    t = without_setpoints(ap, t, t + 1.1, joystick=True)
+    assert ap.mode == FlightMode(MainMode.POSCTL)
+    assert ap.set_mode(t, MainMode.ALTCTL) is MavResult.ACCEPTED  # the pilot's choice
+    ap.on_rates_target(t, LEVEL, 0.5)
+    ap.update(t, LEVEL, LEVEL, landed=False)
+    assert ap.mode == FlightMode(MainMode.ALTCTL) and ap.failsafe is None
