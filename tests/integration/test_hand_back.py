@@ -141,18 +141,20 @@ def test_ardupilot_without_radio_or_position_lands(tmp_path: Path) -> None:
     assert sitl_modes(flight)[-1] == "LAND"
 
 
-def test_ardupilot_rc_loss_radio_failsafe_first_then_the_companion_hands_back_to_loiter(
+def test_ardupilot_rc_loss_the_radio_failsafe_acts_and_the_companion_hands_back(
     tmp_path: Path,
 ) -> None:
     """With a pilot: the radio is lost mid-flight. ArduCopter keeps streaming the
     last RC_CHANNELS (as the real 4.5.6 does), so the companion learns of the loss
     from SYS_STATUS's RC receiver health, which ArduCopter clears at RC_FS_TIMEOUT
     (1 s), the moment its own radio failsafe acts (FS_THR_ENABLE 1: RTL, shown as RTL
-    and flown as Land here). The companion's RC-lost failsafe follows 0.5 s later and
-    hands back to LOITER, not ALT_HOLD, which holds.
+    and flown as Land here).
 
-    The companion overrides ArduCopter's RTL with LOITER here: what the SITL shows
-    today, pinned (the real stack's radio failsafe came first too)."""
+    Which the companion sees first depends on timing, and both orders end safe:
+    the HEARTBEAT showing RTL (the companion keeps the autopilot's failsafe mode,
+    as on the real stack), or its own RC-lost failsafe 0.5 s after the receiver
+    was called lost (it hands back to LOITER, a mode that needs no pilot; a
+    loaded CI machine showed this order). Never a manual mode."""
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path / "flight", duration_s=20.0, autopilot="ardupilot",
         sitl_args=("--fault", "rc-lost@3", "--clock", "realtime"),
@@ -160,17 +162,22 @@ def test_ardupilot_rc_loss_radio_failsafe_first_then_the_companion_hands_back_to
     )  # fmt: skip
     assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
     ev = flight.companion_events
-    fs = only(ev, "failsafe_rc_lost")
-    back = only(ev, "handed_back")
-    assert back["detail"].endswith("-> LOITER accepted"), back
-    assert "(the failsafe is RC loss)" in back["detail"]
-    assert 0.0 <= back["wall"] - fs["wall"] < 1.0
-    held = only(ev, "safe_mode_held")
-    assert held["detail"].startswith("LOITER"), held
     lost = only(ev, "rc_receiver_lost")
-    # The receiver is called lost at RC_FS_TIMEOUT, the companion fails safe its own
-    # 0.5 s later: seen within a heartbeat or two.
-    assert 0.2 < fs["wall"] - lost["wall"] < 2.0, (lost, fs)
-    assert sitl_modes(flight)[-2:] == ["RTL", "LOITER"]
+    failsafes = [e for e in ev if str(e["kind"]).startswith("failsafe_")]
+    assert len(failsafes) == 1, kinds(ev)
+    fs = failsafes[0]
+    back = only(ev, "handed_back")
+    assert 0.0 <= back["wall"] - fs["wall"] < 1.0
+    # Seen within a heartbeat or two of the receiver's loss.
+    assert 0.0 <= fs["wall"] - lost["wall"] < 2.0, (lost, fs)
+    if fs["kind"] == "failsafe_rc_lost":
+        assert back["detail"].endswith("-> LOITER accepted"), back
+        assert "(the failsafe is RC loss)" in back["detail"]
+        assert only(ev, "safe_mode_held")["detail"].startswith("LOITER")
+        assert sitl_modes(flight)[-2:] == ["RTL", "LOITER"]
+    else:
+        assert fs["kind"] == "failsafe_autopilot_took_over", kinds(ev)
+        assert back["detail"].endswith("-> RTL kept (the autopilot's mode)"), back
+        assert sitl_modes(flight)[-1] == "RTL"
     causes = [e.get("cause") for e in flight.sitl_events if e.get("kind") == "failsafe"]
     assert causes == ["radio"]
