@@ -56,7 +56,8 @@ GUIDED attitude targets (``GCS_MAVLINK_Copter::handle_message_set_attitude_targe
   With bit 3 it is collective thrust, clipped to [-1, 1] then [0, 1] by the motors,
   with ArduPilot's angle boost (``AC_AttitudeControl_Multi::get_throttle_boosted``).
 * After ``GUID_TIMEOUT`` s without a target: level (yaw held), climb rate 0, and
-  thrust semantics back to climb rate, staying in the mode (``angle_control_run``).
+  thrust semantics back to climb rate, staying in the mode, silently
+  (``angle_control_run``).
 
 Rate loop (``AC_AttitudeControl_Multi`` + ``AC_PID`` defaults)
 --------------------------------------------------------------
@@ -112,6 +113,14 @@ GUID_OPTION_THRUST_AS_THRUST = 8
 """``GUID_OPTIONS`` bit 3: SET_ATTITUDE_TARGET's thrust is thrust, not a climb rate."""
 _FS_OPTION_CONTINUE_GUIDED = 4
 """``FS_OPTIONS`` bit 2: carry on in GUIDED / GUIDED_NOGPS on RC loss."""
+_ARMING_CHECK_ALL, _ARMING_CHECK_RC = 1, 64
+"""``ARMING_CHECK`` bits: all checks; the RC checks (bit 6)."""
+_RC_OPTION_ARMING_CHECK_THROTTLE = 32
+"""``RC_OPTIONS`` bit 5: the throttle must be at idle to arm (ArduCopter's default)."""
+INTERNAL_ERROR_FLOW_OF_CTRL = 0x100000
+"""``AP_InternalError::error_t::flow_of_ctrl`` (bit 20)."""
+_FLOW_OF_CTRL_LINE = 57
+"""Where ArduCopter 4.5 raises it: ``land_detector.cpp`` line 57 (the pre-arm text's ``l:``)."""
 
 
 # ------------------------------------------------------------------ autopilot
@@ -234,6 +243,8 @@ class ArduCopter(CopterLaws):
         self._last_imu_t_s: float | None = None
         self._next_loop_s: float | None = None
         self._limit = [False, False, False]
+        self.internal_errors = 0
+        """``AP_InternalError``'s bitmask: kept until a reboot (a new SITL)."""
 
     # ---------------------------------------------------------------- status
 
@@ -337,10 +348,16 @@ class ArduCopter(CopterLaws):
     # -------------------------------------------------------------- commands
 
     def prearm_failures(self) -> list[str]:
-        """Pre-arm checks that fail now (only run when ``ARMING_CHECK`` != 0)."""
+        """Pre-arm checks that fail now (only run when ``ARMING_CHECK`` != 0): the
+        ``--prearm-fail`` text; an internal error since boot (``AP_Arming::system_checks``,
+        a check no ``ARMING_CHECK`` bit turns off)."""
         fails = []
         if self.config.prearm_fail:
             fails.append(self.config.prearm_fail)
+        if self.internal_errors:
+            fails.append(
+                f"Internal errors 0x{self.internal_errors:x} l:{_FLOW_OF_CTRL_LINE} flow_of_ctrl"
+            )
         return fails
 
     def _arming_problem(self, t_s: float, *, force: bool) -> str | None:
@@ -370,11 +387,15 @@ class ArduCopter(CopterLaws):
 
         A refusal answers FAILED (``GCS_MAVLINK::handle_command_component_arm_disarm``)
         and is reported as ``STATUSTEXT "Arm: ..."`` / ``"PreArm: ..."`` (severity
-        CRITICAL): a crash, LAND, a failing ``--prearm-fail`` check, no position
-        estimate yet in a mode that needs one (``ekf_position_ready_s`` after boot,
-        or none), no altitude estimate yet (``ekf_alt_ready_s``).
+        CRITICAL): a crash, LAND, a failing ``--prearm-fail`` check or an internal
+        error since boot, no position estimate yet in a mode that needs one
+        (``ekf_position_ready_s`` after boot, or none), no altitude estimate yet
+        (``ekf_alt_ready_s``); then the radio's throttle above idle
+        (:meth:`_throttle_problem`).
         """
         problem = self._arming_problem(t_s, force=force)
+        if problem is None and not force:
+            problem = self._throttle_problem(t_s)
         if problem is None:
             return None
         if problem.startswith("PreArm: ") and problem[8:] in self.prearm_failures():
@@ -384,6 +405,46 @@ class ArduCopter(CopterLaws):
             self._text(MAV_SEVERITY_CRITICAL, problem)
         reason = problem.split(": ", 1)[1]
         return self._arm_denied(t_s, reason.lower() if problem.startswith("Arm: ") else reason)
+
+    def throttle_control_in(self, pwm_us: int) -> int:
+        """The throttle channel's ``control_in`` (0..1000) for a pulse of ``pwm_us``:
+        ``RC_Channel::pwm_to_range_dz``, zero up to ``RC3_MIN + RC3_DZ``, in integers."""
+        p = self.params
+        lo, hi = int(p["RC3_MIN"]), int(p["RC3_MAX"])
+        low = lo + int(p["RC3_DZ"])
+        r_in = min(max(pwm_us, lo), hi)
+        return 1000 * (r_in - low) // (hi - low) if r_in > low and hi > low else 0
+
+    def _throttle_problem(self, t_s: float) -> str | None:
+        """ArduCopter 4.5's arming checks on the throttle stick (arm checks, not
+        pre-arm: SYS_STATUS's pre-arm bit does not see them), with a radio whose
+        frames came within ``RC_FS_TIMEOUT`` (``rc_arm_checks`` needs input within
+        the last second) and the RC checks on (``ARMING_CHECK`` 1 or bit 6).
+
+        * ``AP_Arming_Copter::arm_checks``, skipped when arming from a ground station
+          in GUIDED / GUIDED_NOGPS: a climb asked (``control_in`` above mid-stick +
+          ``THR_DZ``, ``get_pilot_desired_climb_rate`` > 0) or, with a manual
+          throttle (STABILIZE, ACRO), any throttle: "Arm: Throttle too high".
+        * ``AP_Arming::rc_arm_checks``, with ``RC_OPTIONS`` bit 5: the throttle not at
+          idle (``control_in`` != 0), in any mode: "Arm: Throttle (RC3) is not neutral"
+          (the real 4.5.6 in GUIDED_NOGPS: 1100 to 1500 us refused, 1000 us armed).
+        """
+        checks = int(self.params["ARMING_CHECK"])
+        sticks = self._last_sticks
+        if not checks & (_ARMING_CHECK_ALL | _ARMING_CHECK_RC) or sticks is None or len(sticks) < 3:
+            return None
+        if self.rc_lost(t_s) or self.failsafe_radio:
+            return None
+        thr = self.throttle_control_in(sticks[2])
+        if self.mode not in GUIDED:
+            p = self.params
+            lo, hi = int(p["RC3_MIN"]), int(p["RC3_MAX"])
+            mid = self.throttle_control_in((lo + hi) // 2)
+            if thr > mid + int(p["THR_DZ"]) or (self.mode in MANUAL_THROTTLE and thr > 0):
+                return "Arm: Throttle too high"
+        if int(self.params["RC_OPTIONS"]) & _RC_OPTION_ARMING_CHECK_THROTTLE and thr != 0:
+            return "Arm: Throttle (RC3) is not neutral"
+        return None
 
     def _on_armed(self, t_s: float) -> None:
         # The flight starts here: the filters, the rate loop and its schedule too,
@@ -514,7 +575,33 @@ class ArduCopter(CopterLaws):
         if not self.armed:
             return self._disarmed()
         sticks = None if self.failsafe_radio or self.rc_lost(t_s) else self._last_sticks
-        return self._run(t_s, self.gyro_filtered_rad_s, euler_rad, climb_rate_m_s, sticks)
+        motors = self._run(t_s, self.gyro_filtered_rad_s, euler_rad, climb_rate_m_s, sticks)
+        self._check_take_off(t_s)
+        return motors
+
+    def _check_take_off(self, t_s: float) -> None:
+        """ArduCopter 4.5's land detector on the ground: a throttle above half the
+        hover throttle that no mode announced as a take-off is a bug it reports,
+        ``INTERNAL_ERROR(flow_of_ctrl)``, once per boot ("Internal Errors 0x100000",
+        CRITICAL) before flying on; the error then fails the pre-arm checks until a
+        reboot. GUIDED / GUIDED_NOGPS with ``GUID_OPTIONS`` bit 3 does not announce
+        its take-off (``ModeGuided::angle_control_run`` calls ``set_land_complete``
+        only on a climb rate: ArduPilot issue 26865, fixed after 4.5.7); STABILIZE,
+        ACRO and the climb-rate modes do."""
+        tgt = self._target
+        if (
+            not self.landed
+            or self.mode not in GUIDED
+            or tgt is None
+            or not tgt.use_thrust
+            or self._timed_out
+            or self.last_torque_thrust[3] <= self.hover_throttle / 2.0
+            or self.internal_errors & INTERNAL_ERROR_FLOW_OF_CTRL
+        ):
+            return
+        self.internal_errors |= INTERNAL_ERROR_FLOW_OF_CTRL
+        self._text(MAV_SEVERITY_CRITICAL, f"Internal Errors 0x{self.internal_errors:x}")
+        self._event(t_s, "internal_error", errors=f"0x{self.internal_errors:x}", cause="take-off")
 
     def _check_radio(self, t_s: float) -> None:
         """The radio failsafe: on when RC is lost (``RC_FS_TIMEOUT``), acting once."""
@@ -567,6 +654,5 @@ class ArduCopter(CopterLaws):
             return
         self._timed_out = True
         self._climb_integral = 0.0 if tgt.use_thrust else self._climb_integral
+        # ArduCopter says nothing (ModeGuided::angle_control_run): an event only.
         self._event(t_s, "guided_timeout", age_s=round(t_s - tgt.t_s, 3), action="level, hold alt")
-        # SITL-only message: ArduCopter levels silently.
-        self._text(MAV_SEVERITY_WARNING, "Guided: target timeout, levelling")

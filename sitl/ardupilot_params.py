@@ -21,13 +21,14 @@ Defaults are ArduCopter's; the SITL vehicle is then set up at boot with
 before ``sitl run --param``. Followed by the autopilot: ``ARMING_CHECK``,
 ``FS_THR_ENABLE``, ``FS_OPTIONS``, ``RC_FS_TIMEOUT``, ``GUID_OPTIONS``,
 ``GUID_TIMEOUT``, ``INS_GYRO_FILTER``, ``LAND_SPEED``, ``MOT_*``,
-``WPNAV_SPEED_*``, ``ATC_RAT_*``; at boot only ``SCHED_LOOP_RATE`` and
-``MAV_SYSID``; ``MOT_THST_HOVER`` is set at boot to the vehicle's hover throttle,
-as ArduCopter learns it in flight (``MOT_HOVER_LEARN`` 2). Stored only: the stick
-limits (``ANGLE_MAX``, ``PILOT_*``, ``LOIT_*``, ``PSC_ANGLE_MAX``, ``PSC_VELXY_P``,
-``ATC_INPUT_TC``, ``THR_DZ``, ``RC1_DZ``: what the companion's flight modes
-read), ``MAV_GCS_SYSID``, ``FS_GCS_*``, ``RCMAP_*`` (the SITL radio sends AETR),
-``FLTMODE_CH`` (modes change over MAVLink).
+``WPNAV_SPEED_*``, ``ATC_RAT_*``; ``RC3_MIN``, ``RC3_MAX``, ``RC3_DZ``,
+``RC_OPTIONS`` and ``THR_DZ`` (the throttle's arming checks); at boot only
+``SCHED_LOOP_RATE`` and ``MAV_SYSID``; ``MOT_THST_HOVER`` is set at boot to the
+vehicle's hover throttle, as ArduCopter learns it in flight (``MOT_HOVER_LEARN``
+2). Stored only: the stick limits (``ANGLE_MAX``, ``PILOT_*``, ``LOIT_*``,
+``PSC_ANGLE_MAX``, ``PSC_VELXY_P``, ``ATC_INPUT_TC``, ``RC1_DZ``: what the
+companion's flight modes read, ``THR_DZ`` too), ``MAV_GCS_SYSID``, ``FS_GCS_*``,
+``RCMAP_*`` (the SITL radio sends AETR), ``FLTMODE_CH`` (modes change over MAVLink).
 """
 
 from __future__ import annotations
@@ -116,7 +117,14 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("PSC_ANGLE_MAX", 0.0, PARAM_REAL32, 0.0, 45.0, "deg; 0: ANGLE_MAX"),
     ParamSpec("PSC_VELXY_P", 2.0, PARAM_REAL32, 0.1, 6.0, "velocity P, 1/s"),
     ParamSpec("RC1_DZ", 20, PARAM_INT16, 0, 200, "roll dead zone, us"),
+    # The throttle channel as the real SITL's copter.parm calibrates it (ArduPilot's
+    # RC3_MIN default is 1100); Copter's throttle dead zone; RC_OPTIONS bit 5 (32,
+    # the default): the throttle must be at idle to arm.
+    ParamSpec("RC3_DZ", 30, PARAM_INT16, 0, 200, "throttle dead zone above RC3_MIN, us"),
+    ParamSpec("RC3_MAX", 2000, PARAM_INT16, 800, 2200, "throttle channel maximum, us"),
+    ParamSpec("RC3_MIN", 1000, PARAM_INT16, 800, 2200, "throttle channel minimum, us"),
     ParamSpec("RC_FS_TIMEOUT", 1.0, PARAM_REAL32, 0.1, 10.0, "s without RC before failsafe"),
+    ParamSpec("RC_OPTIONS", 32, PARAM_INT32, 0, 2**31 - 1, "bit 5 (32): throttle idle to arm"),
     # AP_RCMapper.cpp; the SITL radio sends AETR whatever they say (stored only).
     ParamSpec("RCMAP_PITCH", 2, PARAM_INT8, 1, 16, "pitch channel"),
     ParamSpec("RCMAP_ROLL", 1, PARAM_INT8, 1, 16, "roll channel"),

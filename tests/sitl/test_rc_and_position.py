@@ -24,6 +24,8 @@ from sitl.px4_modes import MODE_LAND, MODE_LOITER, MODE_OFFBOARD, FlightMode, Ma
 ROOT = Path(__file__).resolve().parents[2]
 LEVEL = (0.0, 0.0, 0.0)
 STICKS = (1500, 1500, 1500, 1500, 1000, 1500, 1500, 1500)
+THROTTLE_DOWN = (1500, 1500, 1000, 1500, 1000, 1500, 1500, 1500)
+"""ArduCopter arms only with the throttle at idle (tests/sitl/test_real_stack_behaviours.py)."""
 RATES = 128  # SET_ATTITUDE_TARGET: body rates + thrust
 
 
@@ -181,11 +183,12 @@ def test_px4_without_a_position(profile: VehicleProfile) -> None:
 def copter_flying(
     profile: VehicleProfile, mode: CopterMode, *params: tuple[str, float]
 ) -> ArduCopter:
-    """Armed in the air in ``mode`` at t = 1 s, RC seen until then."""
+    """Armed in the air in ``mode`` at t = 1 s, RC seen until then (the throttle at
+    idle, then at mid-stick from arming on)."""
     ap = ArduCopter(profile, ArduCopterConfig(params=params), initial_mode=CopterMode.ALT_HOLD)
     t = 0.0
     while t < 1.0:
-        ap.update(t, LEVEL, LEVEL, sticks_us=STICKS)
+        ap.update(t, LEVEL, LEVEL, sticks_us=THROTTLE_DOWN)
         t += 0.0025
     assert ap.arm(t) is MavResult.ACCEPTED
     ap.update(t, LEVEL, LEVEL, sticks_us=STICKS)

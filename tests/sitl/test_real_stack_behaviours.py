@@ -15,6 +15,13 @@ Flown against the real stacks (``sitl/lab/realstack``, issue 42's notes):
   Estimate"); SYS_STATUS's pre-arm bit is healthy only when its checks pass.
 * PX4 answers a request for its ``MANUAL_CONTROL`` stream with one frame at once
   (x 0, y 0, z 500, r 0, ``enabled_extensions`` 252), a joystick there or not.
+* ArduCopter refuses to arm with the throttle up: "Arm: Throttle (RC3) is not
+  neutral" in GUIDED_NOGPS at 1100, 1250, 1400 and 1500 us, armed at 1000 us
+  (``RC3_MIN`` 1000); "Arm: Throttle too high" where its own checks run first.
+* ArduCopter taking off in GUIDED_NOGPS with ``GUID_OPTIONS`` 8 says "Internal
+  Errors 0x100000" once and flies on.
+* ArduCopter with no GUIDED target for ``GUID_TIMEOUT`` (the companion killed)
+  levels and holds, in GUIDED_NOGPS, flying.
 * PX4 with no offboard setpoint for ``COM_OF_LOSS_T`` (the companion killed) says
   "Failsafe activated", shows CRITICAL and flies ``COM_OBL_RC_ACT``'s mode
   (Position mode, POSCTL) while the joystick is there.
@@ -25,10 +32,12 @@ Each face runs in this process on a real UDP socket with a ground station
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 os.environ["MAVLINK20"] = "1"
@@ -40,12 +49,17 @@ from sitl.ardupilot import ArduCopter, ArduCopterConfig
 from sitl.ardupilot_face import ArduPilotFace, ardupilot_streams
 from sitl.ardupilot_modes import CopterMode
 from sitl.autopilot import Autopilot, AutopilotConfig, Joystick, joystick_channels
+from sitl.frames import quat_to_euler_rad
+from sitl.imu import Imu
 from sitl.mavlink_link import parse_endpoint
 from sitl.personality import FirmwareVersion, MavResult
+from sitl.physics import Quadrotor
 from sitl.px4_face import Px4Face, px4_streams
 from sitl.px4_modes import MODE_LAND, MODE_LOITER, MODE_OFFBOARD, FlightMode, MainMode
 from sitl.px4_params import Px4Params
+from sitl.rotors import hover_motor_command
 from sitl.runner import joystick_from_channels
+from tests.sitl.plant import autopilot_on_imu
 from tests.sitl.udp_client import Client
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -53,6 +67,7 @@ LEVEL = (0.0, 0.0, 0.0)
 RC_BIT = mavlink2.MAV_SYS_STATUS_SENSOR_RC_RECEIVER
 PREARM_BIT = mavlink2.MAV_SYS_STATUS_PREARM_CHECK
 MANUAL_CONTROL = mavlink2.MAVLINK_MSG_ID_MANUAL_CONTROL
+RATES = 128  # ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE: body rates + thrust
 
 
 @pytest.fixture(scope="module")
@@ -286,6 +301,191 @@ def test_px4_answers_the_manual_control_request_with_one_frame_without_a_joystic
         request_manual_control(face, client, 20_000)
         assert len(manual_controls(publish(face, client, 1.1))) == 1
         assert not manual_controls(publish(face, client, 1.2))
+    finally:
+        face.close()
+
+
+# ------------------------------------------------------ ArduCopter's throttle at arming
+
+
+def copter_with_throttle(
+    profile: VehicleProfile, mode: CopterMode, throttle_us: int, *params: tuple[str, float]
+) -> ArduCopter:
+    """Disarmed in ``mode``, the radio's sticks centred but the throttle at ``throttle_us``."""
+    ap = ArduCopter(profile, ArduCopterConfig(params=params), initial_mode=mode)
+    for k in range(5):
+        ap.update(k * 0.0025, LEVEL, LEVEL, landed=True, sticks_us=(1500, 1500, throttle_us, 1500))
+    return ap
+
+
+NOT_NEUTRAL = "Arm: Throttle (RC3) is not neutral"
+TOO_HIGH = "Arm: Throttle too high"
+
+
+@pytest.mark.parametrize(
+    ("mode", "throttle_us", "refusal"),
+    [
+        # Measured on ArduCopter 4.5.6 (RC3_MIN 1000): GUIDED_NOGPS, armed from the GCS.
+        (CopterMode.GUIDED_NOGPS, 1000, None),
+        (CopterMode.GUIDED_NOGPS, 1100, NOT_NEUTRAL),
+        (CopterMode.GUIDED_NOGPS, 1250, NOT_NEUTRAL),
+        (CopterMode.GUIDED_NOGPS, 1400, NOT_NEUTRAL),
+        (CopterMode.GUIDED_NOGPS, 1500, NOT_NEUTRAL),
+        (CopterMode.GUIDED_NOGPS, 1900, NOT_NEUTRAL),  # no "too high" from the GCS in guided
+        (CopterMode.GUIDED, 1500, NOT_NEUTRAL),
+        # Within RC3_DZ (30 us) above RC3_MIN the throttle reads zero.
+        (CopterMode.GUIDED_NOGPS, 1030, None),
+        (CopterMode.GUIDED_NOGPS, 1031, NOT_NEUTRAL),
+        # A climb-rate mode: above the mid-stick dead band (THR_DZ) asks a climb first.
+        (CopterMode.ALT_HOLD, 1000, None),
+        (CopterMode.ALT_HOLD, 1100, NOT_NEUTRAL),
+        (CopterMode.ALT_HOLD, 1500, NOT_NEUTRAL),
+        (CopterMode.ALT_HOLD, 1700, TOO_HIGH),
+        (CopterMode.LOITER, 1700, TOO_HIGH),
+        # Manual throttle: anything above zero is too high.
+        (CopterMode.STABILIZE, 1000, None),
+        (CopterMode.STABILIZE, 1100, TOO_HIGH),
+        (CopterMode.ACRO, 1100, TOO_HIGH),
+    ],
+    ids=lambda v: v.name if isinstance(v, CopterMode) else None,
+)
+def test_ardupilot_refuses_to_arm_with_the_throttle_up(
+    profile: VehicleProfile, mode: CopterMode, throttle_us: int, refusal: str | None
+) -> None:
+    ap = copter_with_throttle(profile, mode, throttle_us)
+    assert ap.prearm_ok(0.01)  # an arming check, not a pre-arm one: SYS_STATUS says ready
+    if refusal is None:
+        assert ap.arm(0.01) is MavResult.ACCEPTED
+        assert ap.drain_statustexts() == []
+    else:
+        assert ap.arm(0.01) is MavResult.FAILED
+        assert ap.drain_statustexts() == [(2, refusal)]
+        assert not ap.armed
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        (("ARMING_CHECK", 0.0),),  # no checks
+        (("ARMING_CHECK", 2.0),),  # checks, but not RC (bit 6)
+        (("RC_OPTIONS", 0.0),),  # bit 5 off: the throttle need not be idle...
+    ],
+)
+def test_ardupilot_throttle_arming_check_follows_its_parameters(
+    profile: VehicleProfile, params: tuple[tuple[str, float], ...]
+) -> None:
+    ap = copter_with_throttle(profile, CopterMode.GUIDED_NOGPS, 1500, *params)
+    assert ap.arm(0.01) is MavResult.ACCEPTED
+
+
+def test_ardupilot_throttle_arming_check_needs_a_radio(profile: VehicleProfile) -> None:
+    # ...and Copter's own "too high" still runs without bit 5 (RC_OPTIONS 0).
+    ap = copter_with_throttle(profile, CopterMode.ALT_HOLD, 1700, ("RC_OPTIONS", 0.0))
+    assert ap.arm(0.01) is MavResult.FAILED
+    assert ap.drain_statustexts() == [(2, TOO_HIGH)]
+    # Force-arming (param2 2989) skips it; no radio frame within a second: not checked.
+    assert ap.arm(0.02, force=True) is MavResult.ACCEPTED
+    ap = copter_with_throttle(profile, CopterMode.GUIDED_NOGPS, 1500)
+    assert ap.arm(1.5) is MavResult.ACCEPTED
+    assert ArduCopter(profile, initial_mode=CopterMode.STABILIZE).arm(0.0) is MavResult.ACCEPTED
+
+
+# ------------------------------------ ArduCopter: GUIDED_NOGPS, thrust as thrust, alone
+
+
+def fly_guided_thrust(
+    profile: VehicleProfile, *, targets_until_s: float, end_s: float
+) -> tuple[ArduCopter, list[tuple[int, str]], Any]:
+    """Take off in GUIDED_NOGPS with ``GUID_OPTIONS`` 8 (thrust 0.7 for 1 s, then the
+    hover throttle), roll at 0.5 rad/s from 2 s to 2.2 s, and send no target after
+    ``targets_until_s`` (the companion killed); fly to ``end_s``. Returns the
+    autopilot, its STATUSTEXTs and the vehicle's last state."""
+    quad = Quadrotor(profile, rng=np.random.default_rng(1), dt_s=0.001)
+    imu = Imu(profile.physics.imu, rng=np.random.default_rng(2), dt_s=0.001)
+    ap = ArduCopter(
+        profile,
+        ArduCopterConfig(
+            hover_motor_cmd=hover_motor_command(profile),
+            params=(("FS_THR_ENABLE", 0.0), ("GUID_OPTIONS", 8.0)),  # no radio here
+        ),
+        initial_mode=CopterMode.GUIDED_NOGPS,
+    )
+    assert ap.arm(0.0) is MavResult.ACCEPTED
+    texts: list[tuple[int, str]] = []
+    motors: tuple[float, ...] = (0.0,) * 4
+    while quad.t_s < end_s:
+        t = quad.t_s
+        if t < targets_until_s and quad.steps % 4 == 0:  # 250 Hz, a companion's rate
+            thrust = 0.7 if t < 1.0 else ap.hover_throttle
+            ap.on_attitude_target(t, RATES, (0.5 if 2.0 <= t < 2.2 else 0.0, 0.0, 0.0), thrust)
+        out = autopilot_on_imu(ap, imu, quad)
+        if out is not None:
+            motors = out
+            texts += ap.drain_statustexts()
+        quad.step(motors)
+    return ap, texts, quad.state
+
+
+def test_ardupilot_thrust_take_off_raises_an_internal_error_once_and_flies_on(
+    profile: VehicleProfile,
+) -> None:
+    ap, texts, st = fly_guided_thrust(profile, targets_until_s=4.0, end_s=4.0)
+    assert texts == [(2, "Internal Errors 0x100000")]
+    assert ap.armed and ap.mode is CopterMode.GUIDED_NOGPS
+    assert -st.pos_ned_m[2] > 1.0 and not st.crashed
+    # The error stays until a reboot: landed and disarmed, it refuses to arm again.
+    ap.update(5.0, LEVEL, LEVEL, landed=True)
+    assert ap.disarm(5.0) is MavResult.ACCEPTED
+    assert not ap.prearm_ok(5.0)
+    assert ap.arm(5.0) is MavResult.FAILED
+    assert ap.drain_statustexts() == [(2, "PreArm: Internal errors 0x100000 l:57 flow_of_ctrl")]
+    assert ap.arm(5.0, force=True) is MavResult.ACCEPTED
+
+
+def test_ardupilot_climb_rate_take_off_raises_no_internal_error(profile: VehicleProfile) -> None:
+    ap = ArduCopter(
+        profile, ArduCopterConfig(params=(("FS_THR_ENABLE", 0.0),)),
+        initial_mode=CopterMode.GUIDED_NOGPS,
+    )  # fmt: skip
+    assert ap.arm(0.0) is MavResult.ACCEPTED
+    ap.on_attitude_target(0.0, RATES, LEVEL, 0.9)  # GUID_OPTIONS 0: climb at 2 m/s
+    for k in range(100):
+        ap.update(k * 0.0025, LEVEL, LEVEL, landed=True)
+    assert ap.drain_statustexts() == []
+    assert ap.prearm_ok(1.0)
+
+
+def test_ardupilot_left_without_targets_levels_and_holds_in_guided_nogps(
+    profile: VehicleProfile,
+) -> None:
+    """The companion killed while engaged: GUID_TIMEOUT (3 s) later the vehicle is
+    level, in GUIDED_NOGPS, flying, as the real ArduCopter 4.5.6 was (silently)."""
+    ap, texts, st = fly_guided_thrust(profile, targets_until_s=2.3, end_s=9.0)
+    assert texts == [(2, "Internal Errors 0x100000")]  # nothing about the timeout
+    assert [e.kind for e in ap.drain_events()].count("guided_timeout") == 1
+    assert ap.armed and ap.mode is CopterMode.GUIDED_NOGPS and not st.landed
+    roll, pitch, _ = quat_to_euler_rad(st.q_wxyz)
+    assert abs(roll) < math.radians(2.0) and abs(pitch) < math.radians(2.0)
+    assert max(abs(r) for r in st.rate_frd_rad_s) < math.radians(5.0)
+    assert abs(st.vel_ned_m_s[2]) < 0.3  # holding its height, not sinking
+
+
+# --------------------------------------------------------------- ArduCopter signing
+
+
+def test_ardupilot_setup_signing_is_not_handled_by_the_sitl(
+    profile: VehicleProfile, client: Client
+) -> None:
+    """The SITL signs only with a key given at start (``sitl run --signing-key``):
+    SETUP_SIGNING changes nothing (ArduCopter 4.5.6 takes it disarmed:
+    docs/research/ardupilot.md)."""
+    face = copter_face(profile, client)
+    try:
+        client.mav.setup_signing_send(1, 1, [7] * 32, 1)
+        client.send_last(face)
+        face.poll(0.0)
+        assert face.messages_received == 1
+        assert not face.mav.signing.sign_outgoing and face.mav.signing.secret_key is None
     finally:
         face.close()
 
