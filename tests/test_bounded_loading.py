@@ -11,7 +11,6 @@ import os
 import resource
 import subprocess
 import sys
-import time
 import tracemalloc
 from pathlib import Path
 from typing import Any
@@ -88,10 +87,10 @@ def test_check_config_refuses_an_alias_bomb_at_once(tmp_path: Path, flag: str) -
     p = tmp_path / "bomb.yaml"
     p.write_text(bomb(), encoding="utf-8")
     assert 2000 < p.stat().st_size < 3000
-    t0 = time.monotonic()
+    # Refused by the size check, in a child whose memory is limited: an expansion
+    # would end it in a MemoryError, not this message.
     res = companion("check-config", flag, str(p))
     refused(res, str(p), "too large: over the limit of", "once aliases are expanded")
-    assert time.monotonic() - t0 < 15.0  # the child's start-up; the bomb itself is ms
     assert len(res.stderr) < 1000
 
 
@@ -101,16 +100,14 @@ def test_an_alias_bomb_fails_fast_in_little_memory(tmp_path: Path) -> None:
     # this process seconds and tens of MB, not all of them.
     p.write_text(bomb(levels=6, laugh="lol"), encoding="utf-8")
     tracemalloc.start()
-    t0 = time.perf_counter()
     try:
         with pytest.raises(ConfigError, match="once aliases are expanded") as info:
             load_yaml_model(p, _Named)
-        elapsed_s = time.perf_counter() - t0
         peak_bytes = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
     assert info.value.path == str(p)
-    assert elapsed_s < 1.0
+    # Fast because nothing was expanded: the memory says so whatever the machine's speed.
     assert peak_bytes < 4 * 2**20  # the read buffer: 1 MiB
 
 

@@ -255,11 +255,10 @@ async def test_the_autopilot_landing_after_posctl_is_kept(start: Start) -> None:
     f.companion._stop.set()
     await event(f, "handed_back")
     assert f.details("handed_back")[0].endswith("-> POSCTL accepted")
-    t_land = time.perf_counter()
     f.fake.set_state(PX4_LAND)
     assert await f.finish() == 0
-    assert time.perf_counter() - t_land < 2.0 - MARGIN_S  # the watch ended on LAND
     assert asked(f) == [OFFBOARD, POSCTL]
+    # The watch ended on LAND: at its 2 s bound it would say "POSCTL for 2 s".
     [held] = f.details("safe_mode_held")
     assert held.startswith("LAND kept after ")
     assert "safe_mode_lost" not in f.kinds()
@@ -299,11 +298,10 @@ async def test_a_disarm_during_the_watch_ends_it(start: Start) -> None:
     await engage_px4_auto(f)
     f.companion._stop.set()
     await event(f, "handed_back")
-    t_disarm = time.perf_counter()
     f.fake.set_state(armed=False)  # landed and disarmed in POSCTL
     assert await f.finish() == 0
-    assert time.perf_counter() - t_disarm < 2.0 - MARGIN_S
     assert asked(f) == [OFFBOARD, POSCTL]
+    # The watch ended on the disarm: at its 2 s bound it would say "POSCTL for 2 s".
     [held] = f.details("safe_mode_held")
     assert held.startswith("disarmed after ")
     assert "safe_mode_lost" not in f.kinds()

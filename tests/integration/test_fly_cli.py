@@ -52,7 +52,7 @@ def test_a_short_fly_writes_its_report_and_the_numbers_hold(tmp_path: Path) -> N
     m = read_metrics(out)
     assert m["crashed"] is False and m["failsafe_events"] == []
     assert m["scenario"] == "paper-acro" and m["sim_time_s"] == pytest.approx(10.0, abs=0.05)
-    assert 0.0 < m["wall_time_s"] < 60.0
+    assert m["wall_time_s"] > 0.0  # recorded (how long it took is the machine's, not tested)
     bounds = {"roll": 10.5, "pitch": 4.1, "yaw": 1.8}
     for a in AXES:
         assert 0.0 < m["mae_deg_s"][a] < bounds[a], (a, m["mae_deg_s"])
