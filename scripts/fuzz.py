@@ -8,10 +8,10 @@ Usage::
     python scripts/fuzz.py config --json --seed 1 --n 100         # controller configs
 
 Prints the report (``--json``: one JSON object) and exits 0 when the targets
-are met, 1 otherwise. The harness is ``tests/fuzzing.py`` (test equipment,
-kept out of ``companion/``); its docstring describes the topology, the kinds
-and the targets. ``config``: the seeded mutation campaign over the controller
-config, ``tests/config_fuzzing.py``.
+are met, 1 otherwise. The harness is :mod:`sitl.lab.fuzzing.mavlink` (lab
+equipment, kept out of ``companion/``); its docstring describes the topology, the
+kinds and the targets. ``config``: the seeded mutation campaign over the controller
+config, :mod:`sitl.lab.fuzzing.config`.
 """
 
 from __future__ import annotations
@@ -23,9 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["config"]:
-        from tests.config_fuzzing import main as config_main
+        from sitl.lab.fuzzing.config import main as config_main
 
         sys.exit(config_main(sys.argv[2:]))
-    from tests.fuzzing import main
+    from sitl.lab.fuzzing.mavlink import main
 
     sys.exit(main())

@@ -283,8 +283,8 @@ def test_every_numeric_option_has_two_finite_ends(param: click.Parameter) -> Non
 
 
 def _script_parsers() -> list[tuple[str, argparse.ArgumentParser]]:
-    from tests.config_fuzzing import parser as config_fuzz_parser
-    from tests.fuzzing import _parser as fuzz_parser
+    from sitl.lab.fuzzing.config import parser as config_fuzz_parser
+    from sitl.lab.fuzzing.mavlink import _parser as fuzz_parser
 
     return [("fuzz.py", fuzz_parser()), ("fuzz.py config", config_fuzz_parser())]
 
@@ -304,7 +304,7 @@ def test_the_scripts_numbers_are_bounded(capsys: pytest.CaptureFixture[str]) -> 
             assert f"argument {flag}" in capsys.readouterr().err
             checked.append(f"{prog} {flag}")
     assert {"fuzz.py --rate", "fuzz.py --duration", "fuzz.py config --n"} <= set(checked)
-    from tests.fuzzing import _options
+    from sitl.lab.fuzzing.mavlink import _options
 
     ap = _script_parsers()[0][1]
     with pytest.raises(SystemExit) as exc:

@@ -3,7 +3,7 @@
 One short seeded run (a clean flight, then about 3000 cases of every default
 kind over two 3 s flights on the real-time clock; about 35 s of wall time) as a
 subprocess, the way a user runs it; its JSON report is the witness. The harness
-and the kinds are described in ``tests/fuzzing.py``.
+and the kinds are described in :mod:`sitl.lab.fuzzing.mavlink`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 
-from tests.fuzzing import DEFAULT_KINDS, KINDS, StreamState, generate_cases
+from sitl.lab.fuzzing.mavlink import DEFAULT_KINDS, KINDS, StreamState, generate_cases
 
 ROOT = Path(__file__).resolve().parents[2]
 CASES = 3000

@@ -1,4 +1,4 @@
-"""The config mutation campaign (``scripts/fuzz.py config``, tests/config_fuzzing.py) on
+"""The config mutation campaign (``scripts/fuzz.py config``, sitl/lab/fuzzing/config.py) on
 a small seeded sample: no config the schema and ``check-config --fly`` accept crashes
 or blows up on the held-out flights. The full figure (100 mutants) is in the closing
 note of the issue that asked for it: ``python scripts/fuzz.py config --seed 1 --n 100``."""
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.config_fuzzing import campaign, mutants
+from sitl.lab.fuzzing.config import campaign, mutants
 
 
 def test_mutants_are_seeded() -> None:

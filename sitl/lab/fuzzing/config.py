@@ -14,7 +14,7 @@ one time in ten the sign is flipped. Then, in order:
    crashes there, or whose error exceeds the shipped controller's by more than
    the check's margin, is a *violation*.
 
-Target: no violation. Test equipment: kept out of ``companion/`` and ``sitl/``.
+Target: no violation. Lab equipment: the product imports nothing of it.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller
 from companion.options import SEED, WORKERS, argparse_type
 from companion.profile import load_profile
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 HELD_OUT = ("f450", "x500")  # train-acro's own seed, 314
 HELD_OUT_S = 15.0
 

@@ -1,10 +1,8 @@
 """Seeded MAVLink fuzzing: the companion and the SITL as two processes, garbage in between.
 
-``scripts/fuzz.py`` is the entry point; this module is the harness. It lives in
-``tests/`` beside the other test tooling (``tests/link/peer.py``,
-``tests/app/fakes.py``) because it is test equipment: it must never be
-installed on a vehicle with ``companion/``, and ``scripts/`` holds only thin
-entry points.
+``scripts/fuzz.py`` is the entry point; this module is the harness. It is lab
+equipment (it flies the bundled SITL): the product imports nothing of it, and
+``scripts/`` holds only thin entry points.
 
 Topology (127.0.0.1, real UDP, as ``companion fly`` but with a relay)::
 
@@ -125,7 +123,7 @@ __all__ = [
 
 _log = logging.getLogger("fuzz")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 PROFILE = ROOT / "vehicle_profiles" / "f450.yaml"
 SCENARIO = "paper-acro"
 IMU_RATE_HZ = 250.0
