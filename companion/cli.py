@@ -1,9 +1,10 @@
 """The ``companion`` command line.
 
 The product's commands (``run``, ``check-config``, ``replay``) live here. The
-lab's (``fly``, ``simulate``, ``campaign``, ``envelope``) live in
-:mod:`sitl.lab.cli` and are imported only when one of them is asked for, so a
-companion computer's install needs neither the simulator nor its plotting.
+lab's (``fly``, ``simulate``, ``campaign``, ``envelope``) and the flights of
+``check-config --fly`` are the lab's own: found through the entry points it
+registers (:mod:`companion.lab`) and loaded only when one of them is asked for, so
+a companion computer's install needs neither the simulator nor its plotting.
 
 Exit codes: 0 success, 1 a run that failed (e.g. crashed when asked to fail
 on it), 2 bad input (a configuration error names the file and the field;
@@ -12,7 +13,6 @@ nothing is started).
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import sys
@@ -23,8 +23,9 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from companion import __version__
-from companion.errors import EXIT_ERROR, ConfigError, MfcError
+from companion.errors import EXIT_ERROR, ConfigError, LabMissingError, MfcError
 from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
+from companion.lab import LAB_COMMANDS, LAB_EXTRA, fly_check_flights, lab_command
 from companion.options import (
     EXIT_BAD_INPUT,
     RUN_DURATION_MAX_S,
@@ -80,36 +81,29 @@ def _failsafe_opt(
     )
 
 
-_LAB_MODULE = "sitl.lab.cli"
-_LAB_COMMANDS = ("campaign", "envelope", "fly", "simulate")
-"""The lab's commands, by name: each is an attribute of :data:`_LAB_MODULE`."""
-
-
 class _Commands(click.Group):
-    """The product's commands, and the lab's imported when one is asked for."""
+    """The product's commands, and the lab's loaded when one is asked for."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted({*super().list_commands(ctx), *_LAB_COMMANDS})
+        return sorted({*super().list_commands(ctx), *LAB_COMMANDS})
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         cmd = super().get_command(ctx, cmd_name)
-        if cmd is not None or cmd_name not in _LAB_COMMANDS:
+        if cmd is not None or cmd_name not in LAB_COMMANDS:
             return cmd
         try:
-            lab = importlib.import_module(_LAB_MODULE)
-        except ImportError as exc:
+            return lab_command(cmd_name)
+        except LabMissingError as exc:
             return _missing_lab(cmd_name, exc)
-        command: click.Command = getattr(lab, cmd_name)
-        return command
 
 
-def _missing_lab(name: str, exc: ImportError) -> click.Command:
-    """A stand-in for a lab command this install cannot import: it says why."""
+def _missing_lab(name: str, exc: LabMissingError) -> click.Command:
+    """A stand-in for a lab command this install cannot load: it says why."""
 
     def fail() -> None:
         raise click.ClickException(
             f"'companion {name}' is a lab command and this install has no lab ({exc}); "
-            "install the project with its simulator: pip install 'mfc-companion[lab]'"
+            f"install the project with its simulator: {LAB_EXTRA}"
         )
 
     return click.Command(
@@ -276,8 +270,15 @@ def check_config(profile_path: Path, controller_path: Path | None, fly: bool, wo
     }
     failed: list[str] = []
     if fly:
-        from sitl.lab.config_check import check_controller
-
+        try:
+            check_controller = fly_check_flights()
+        except LabMissingError as exc:
+            click.echo(
+                f"error: check-config --fly flies the bundled simulator and this install has "
+                f"no lab ({exc}); install the project with its simulator: {LAB_EXTRA}",
+                err=True,
+            )
+            sys.exit(EXIT_BAD_INPUT)
         flights = check_controller(cfg, workers=workers)
         doc["flight_check"] = [f.as_dict() for f in flights]
         failed = [p for f in flights for p in f.problems]

@@ -7,7 +7,8 @@
     ├── LinkError                      the MAVLink transport failed or was closed
     │   └── SigningError               a signing key file is unusable
     ├── EngageError                    the autopilot refused engagement (ACK denied, timeout)
-    └── LogDirInUseError               another run holds the --log-dir (its lock)
+    ├── LogDirInUseError               another run holds the --log-dir (its lock)
+    └── LabMissingError                this install has no lab (a lab command, check-config --fly)
 
 A simulated flight's outcome (landed, crashed, failsafe) is a value, not an exception.
 
@@ -25,6 +26,7 @@ __all__ = [
     "EXIT_OK",
     "ConfigError",
     "EngageError",
+    "LabMissingError",
     "LinkError",
     "LogDirInUseError",
     "MfcError",
@@ -69,3 +71,8 @@ class EngageError(MfcError):
 
 class LogDirInUseError(MfcError):
     """Another run holds the ``--log-dir`` (its lock); the message names the folder and its pid."""
+
+
+class LabMissingError(MfcError):
+    """This install has no lab (:mod:`companion.lab`): the entry point the lab registers
+    is absent or its module does not import; the message says which, or why."""

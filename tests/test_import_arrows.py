@@ -1,8 +1,10 @@
-"""Imports go one way: the scripts import the package, never the tests.
+"""Imports go one way: the product imports nothing of the simulator or the lab, and the
+scripts import the package, never the tests.
 
 Read from the source with :mod:`ast` (an ``import`` statement, or
 ``importlib.import_module`` / ``__import__`` of a literal name), so a comment or a
-docstring that names a module counts for nothing.
+docstring that names a module counts for nothing. What the product finds of the lab
+at run time it finds through the entry points the lab registers (:mod:`companion.lab`).
 """
 
 from __future__ import annotations
@@ -55,6 +57,12 @@ def python_scripts() -> list[Path]:
         if path.suffix == ".py" or path.read_bytes()[:64].split(b"\n")[0].find(b"python") > 0:
             found.append(path)
     return found
+
+
+def test_the_product_imports_nothing_of_the_simulator() -> None:
+    files = sorted((ROOT / "companion").rglob("*.py"))
+    assert len(files) > 40
+    assert offences(files, "sitl") == []
 
 
 def test_the_scripts_import_nothing_of_the_tests() -> None:

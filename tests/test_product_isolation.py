@@ -94,3 +94,18 @@ def test_product_commands_work_and_lab_commands_explain_without_the_lab() -> Non
     )
     assert proc.returncode == 1
     assert "lab command" in proc.stderr and "mfc-companion[lab]" in proc.stderr
+
+
+def test_check_config_fly_without_the_lab_exits_2_saying_what_brings_it() -> None:
+    """``--fly`` flies the lab's simulator (the entry point it registers): without the
+    lab, nothing is printed but the reason, and the exit is bad input's."""
+    proc = _run(
+        """
+        from companion.cli import cli
+        cli(["check-config", "--fly"], prog_name="companion")
+        """
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "check-config --fly flies the bundled simulator" in proc.stderr
+    assert "mfc-companion[lab]" in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.stdout == ""
