@@ -9,7 +9,7 @@ north with 2 m/s gusts. Scored from 8 s after lift-off to the companion's end
 (its ``--duration``, engaged time; after it the SITL's own mode flies), on the true
 position from the SITL's log, against where the vehicle lifted off (the hold is
 taken there): ``rms_m`` (horizontal), ``max_m``, ``mean_offset_m`` (the steady
-part), and with both personalities ``rates_over_actuator`` (issue #12's target:
+part), and with both personalities ``rates_over_actuator`` (the target:
 <= 1.5).
 
 Usage::

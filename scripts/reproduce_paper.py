@@ -87,9 +87,9 @@ PAPER_VEHICLES = ("f450", "f450_cut_props", "tarot650")
 OWN_PID = {"f450": "pid_f450_tuned", "f450_cut_props": "pid_cut_tuned", "tarot650": "pid_tuned"}
 """Per paper vehicle, the PID tuned on it (``sitl/lab/pidtune.py`` on ``train-acro``)."""
 TARGET_OVER_ORACLE = 1.15
-"""#13's target: MFC's MAE within 1.15x of the oracle's, per vehicle and axis."""
+"""The target: MFC's MAE within 1.15x of the oracle's, per vehicle and axis."""
 TARGET_OVER_OWN_PID = 1.0
-"""#13's target: MFC no worse than the PID tuned on the very vehicle."""
+"""The target: MFC no worse than the PID tuned on the very vehicle."""
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Profiles that cannot hurt: wrong units and inconsistent physics are refused by
 magnitude, naming the field and the likely mistake; doubts are warnings.
 
-Each mistake from the issue ("Configs that cannot hurt") is written to a real
+Each mistake below (wrong units, inconsistent physics) is written to a real
 YAML file and loaded; the shipped profiles and every vehicle the envelope
 generator makes (corners, a seeded sample, damage variants) still load clean.
 """

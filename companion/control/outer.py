@@ -1,6 +1,6 @@
 r"""The outer loops, cascaded on the rate loop: position and altitude to body rates and thrust.
 
-Issue #12, step one: the pure laws. The cascade, slowest first
+The pure laws. The cascade, slowest first
 (``docs/research/outer.md`` has the design, the numbers and what is not done)::
 
     position ─P─▶ velocity ref ─iP─▶ tilt (roll, pitch) ──┐

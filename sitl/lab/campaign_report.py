@@ -110,7 +110,7 @@ def _against_the_limit(
 ) -> list[str]:
     """Per profile and axis: the oracle's median MAE, each controller's median MAE
     and its median ratio to the oracle in the same case, and the first MFC
-    controller's median ratio to each PID in the same flight's case (#13)."""
+    controller's median ratio to each PID in the same flight's case."""
     if not any(r.get("oracle_mae_deg_s") for r in records):
         return []
     kind = {r["controller"]: r["controller_kind"] for r in records}

@@ -1,7 +1,7 @@
 r"""PX4's default cascaded controller (attitude P, position P, velocity PID), the baseline.
 
-Issue #12 asks for a baseline "in the style of PX4's mc_att_control /
-mc_pos_control with its default gains", flown behind the same interface as the
+The baseline for the outer loops is PX4's mc_att_control / mc_pos_control with
+their default gains, flown behind the same interface as the
 MFC outer loops (:class:`companion.control.outer.OuterController`), so that
 :mod:`sitl.lab.outer_flight` can fly either. This module is that baseline: pure
 (no I/O, no clock; ``dt_s`` and the samples come from the caller), written from

@@ -1,4 +1,4 @@
-"""PX4's cascade retuned for each vehicle: the per-vehicle baseline of issue #12.
+"""PX4's cascade retuned for each vehicle: the outer loops' per-vehicle baseline.
 
 The outer loops are compared as the rate loop is: MFC with one config for every
 vehicle, against PX4's default cascade (:mod:`sitl.lab.cascade_pid`) and against
@@ -24,7 +24,7 @@ Usage::
 
 ``--compare`` flies the test flights (the table's scenarios with their own
 seed) with the MFC cascade and each vehicle's tuned PX4 cascade and prints the
-ratios (below 1: MFC better; the issue's target: at most 1.25).
+ratios (below 1: MFC better; the target: at most 1.25).
 """
 
 from __future__ import annotations

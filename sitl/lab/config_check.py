@@ -43,7 +43,7 @@ CHECK_SCENARIO = "config-check"
 
 EXCESS_MAX_DEG_S = 20.0
 """Mean absolute error allowed beyond the shipped controller's, per vehicle and
-axis (deg/s): the margin the issue that asked for this check called blowing up."""
+axis (deg/s): beyond it a config counts as blowing up."""
 
 _ROOT = Path(__file__).resolve().parents[2]
 _PROFILES = _ROOT / "vehicle_profiles"

@@ -39,7 +39,7 @@ Targets (:data:`RATIO_TARGET`)
 * ``ratio_mfc_tuned <= 1.25`` on every vehicle, case and axis.
 * MFC better than PX4's default PID on every vehicle, case and axis
   (``ratio_mfc_default < 1``).
-* #13's, on the worst axis of each feasible case over the tuned PID
+* against the tuned PID, on the worst axis of each feasible case
   (:data:`sitl.lab.envelope_setup.WORST_TARGET`, ``P90_TARGET``): the worst
   case <= 1.1, the 90th percentile <= 1.0.
 

@@ -85,10 +85,10 @@ def summary_markdown(
         f"| MFC / tuned PID MAE <= {RATIO_TARGET:g} on every axis | "
         f"{_met(a['ratio_within_target'])} ({a['ratio_failures']} case-axes fail) | "
         f"{_met(i['ratio_within_target'])} ({i['ratio_failures']} fail) |",
-        f"| MFC / tuned PID, worst axis, worst case <= {WORST_TARGET:g} (#13) | "
+        f"| MFC / tuned PID, worst axis, worst case <= {WORST_TARGET:g} | "
         f"{_met(a['worst_within_target'])} ({_fmt_ratio(a['worst_case_ratio'])}) | "
         f"{_met(i['worst_within_target'])} ({_fmt_ratio(i['worst_case_ratio'])}) |",
-        f"| MFC / tuned PID, worst axis, p90 <= {P90_TARGET:g} (#13) | "
+        f"| MFC / tuned PID, worst axis, p90 <= {P90_TARGET:g} | "
         f"{_met(a['p90_within_target'])} ({_fmt_ratio(a['p90_worst_axis_ratio'])}) | "
         f"{_met(i['p90_within_target'])} ({_fmt_ratio(i['p90_worst_axis_ratio'])}) |",
         f"| MFC better than PX4's default PID on every axis | "

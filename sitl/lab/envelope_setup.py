@@ -39,10 +39,10 @@ RATIO_TARGET = 1.25
 """Target: MFC MAE over the tuned PID's MAE, on every vehicle, case and axis."""
 
 WORST_TARGET = 1.1
-"""#13's target: the worst feasible case's worst-axis MFC / tuned PID ratio."""
+"""The target for the worst feasible case's worst-axis MFC / tuned PID ratio."""
 
 P90_TARGET = 1.0
-"""#13's target: the 90th percentile of the feasible cases' worst-axis ratio."""
+"""The target for the 90th percentile of the feasible cases' worst-axis ratio."""
 
 ENVELOPE_TEST_SCENARIO = "envelope-test"
 """The held-out test flight of this campaign (never trained on)."""

@@ -58,7 +58,7 @@ def verdicts(records: Sequence[dict[str, Any]]) -> dict[str, Any]:
         ``better_than_default`` (bools, over the feasible cases) with the number
         of failing (case, axis) pairs; ``worst_case_ratio`` and
         ``p90_worst_axis_ratio`` (the worst axis per feasible case over the tuned
-        PID, inf where MFC crashed) against #13's ``worst_within_target``
+        PID, inf where MFC crashed) against the targets: ``worst_within_target``
         (<= :data:`WORST_TARGET`) and ``p90_within_target`` (<= :data:`P90_TARGET`).
     """
     out: dict[str, Any] = {

@@ -1,6 +1,6 @@
 r"""The oracle: a rate controller that knows the plant, flown in the lab's simulation.
 
-A reference for every tracking figure (#23): for a scenario and a vehicle, what a
+A reference for every tracking figure: for a scenario and a vehicle, what a
 controller that knows the true plant and sees its true state reaches under the
 same actuator limits, motor lag, mixer and sensor path as the shipped laws. It is
 flown by :func:`sitl.lab.simulate.simulate_flight` like any law (same pilot, same

@@ -1,6 +1,6 @@
 r"""Fly the outer loops (attitude, vertical, horizontal) on the rate loop, in process.
 
-Issue #12, step two. The loop is :func:`sitl.lab.simulate.simulate_flight`'s on
+The loop is :func:`sitl.lab.simulate.simulate_flight`'s on
 its ideal link (no link model here), with the pilot replaced by the outer loops:
 
 * the plant (:class:`sitl.physics.Quadrotor`, the scenario's wind) and the IMU as

@@ -334,7 +334,7 @@ PURE_ONLY_TESTS = (
     "test_mission.py",
 )
 """Control tests of modules the build does not compile (the outer loops and the flight
-modes, #12): the checkout's run covers them."""
+modes): the checkout's run covers them."""
 
 
 def test_the_control_tests_pass_on_the_compiled_core(installed: Installed) -> None:

@@ -1,4 +1,4 @@
-"""``companion campaign`` on Dask (#11): a real scheduler and workers on loopback.
+"""``companion campaign`` on Dask: a real scheduler and workers on loopback.
 
 The campaign runs as a separate client process (``python -m companion``), once on
 a ``LocalCluster`` and against ``dask scheduler`` and ``dask worker`` processes:

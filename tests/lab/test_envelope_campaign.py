@@ -6,7 +6,7 @@ the real test flight
 (``envelope-test``, 30 s). To stay quick the PID is tuned on the first
 :data:`TRAIN_SLICE_S` seconds of ``train-acro`` with :data:`BUDGET` flights (two
 rounds of the search) instead of the campaign's 35 s and 40 flights. No crash
-and the ratio targets are asserted as the issue states them; the median ratio is
+and the ratio targets are asserted as the envelope states them; the median ratio is
 also held near what was measured, so that a regression fails.
 """
 
@@ -67,9 +67,9 @@ CORNERS_FLOWN = ("tiny-fast", "heavy-weak")
 """Two of the five corners, for the suite's time: the one whose ratios sit nearest
 the target and the heavy, weak one, nearest a crash (each case flies the same
 whichever others fly with it; the full campaign flies all five, and the last one,
-59 cases, is in docs/research/envelope.md and the #13 note: no crash on a
-feasible case). tiny-slow-motor, flown here until November 2026 for the suite's
-time, measured 0.86 / 0.97 / 0.35 and 0.94 of the default PID."""
+59 cases, is in docs/research/envelope.md: no crash on a feasible case). Left out
+for the suite's time, tiny-slow-motor measured 0.86 / 0.97 / 0.35 and 0.94 of the
+default PID."""
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Crashes no controller avoids are told apart (#13): a campaign flies the oracle
+"""Crashes no controller avoids are told apart: a campaign flies the oracle
 that knows the plant and may also set the collective (sitl/lab/oracle.py) on each
 case where a controller crashed; if it crashes too, the case is infeasible, and
 its flights are reported apart, not counted as crashes."""

@@ -94,7 +94,7 @@ def test_the_oracle_is_no_worse_than_mfc_on_roll_and_pitch(profile: str, axis: s
     F450 1.26 vs 0.85, cut props 5.04 vs 3.76, Tarot 1.67 vs 1.01 deg/s; full flight
     7.7 vs 7.2, 26.4 vs 24.9, 13.0 vs 11.7): it tracks the true rate behind the
     mixer's roll-and-pitch-first priority while MFC closes its loop on the filtered
-    gyro. What the oracle should aim at on yaw is #13's open question, not a test.
+    gyro. What the oracle should aim at on yaw is an open question, not a test.
 
     Within 2 %: the oracle tracks the true rate and the figures are read from the
     filtered gyro, so MFC can edge it on a slice. Since the kd floor rose to 0.7

@@ -1,7 +1,7 @@
 """The config mutation campaign (``scripts/fuzz.py config``, sitl/lab/fuzzing/config.py) on
 a small seeded sample: no config the schema and ``check-config --fly`` accept crashes
-or blows up on the held-out flights. The full figure (100 mutants) is in the closing
-note of the issue that asked for it: ``python scripts/fuzz.py config --seed 1 --n 100``."""
+or blows up on the held-out flights. The full figure (100 mutants) comes from
+``python scripts/fuzz.py config --seed 1 --n 100``."""
 
 from __future__ import annotations
 

@@ -105,7 +105,7 @@ LINK_FULL = {
     ("f450", "usb-serial"): (10.046, 8.98, 7.673),
 }
 LINK_10MS_MAX_RATIO = 2.5
-"""#14's target for 10 ms each way: within 2.5x of the ideal link's MAE, no crash."""
+"""The target for 10 ms each way: within 2.5x of the ideal link's MAE, no crash."""
 
 
 @pytest.mark.parametrize(("profile", "link"), sorted(LINK_FULL))

@@ -1,6 +1,6 @@
 """What the real PX4 v1.16 and ArduCopter 4.5.6 SITL showed, reproduced by the personalities.
 
-Flown against the real stacks (``sitl/lab/realstack``, issue 42's notes):
+Flown against the real stacks (``sitl/lab/realstack``; docs/research/realstack.md):
 
 * PX4 SIH has no radio: a ground station's ``MANUAL_CONTROL`` (any sysid) is its
   stick input; it streams its own ``MANUAL_CONTROL`` back on request (sysid 1,
