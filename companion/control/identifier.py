@@ -245,7 +245,7 @@ class PlantIdentifier:
         (with ``authority_ref`` 0, the lag term alone). A lower margin is a larger
         loop gain: slow motors need it to stop a reversal's overshoot, and a
         vehicle with much authority can give it without saturating, while a
-        weak one keeps the whole margin (docs/research/gains.md, point 7).
+        weak one keeps the whole margin (docs/research/gains.md#strong-vehicle-margin).
         """
         cfg = self._cfg
         tau0 = self.tau0

@@ -25,7 +25,7 @@ Remark on :math:`\dot e`). With a good :math:`\hat F` the error obeys
 (iP). ``u`` is saturated at ``output_limit``; there is no integrator of the
 command to wind up: ``u`` is recomputed from scratch every sample, and ``F``
 is learnt from the command that was really applied. The shipped controllers
-fly the iPD with :math:`K_P = 0` (``docs/research/gains.md``, point 5): its rate part,
+fly the iPD with :math:`K_P = 0` (``docs/research/gains.md#no-angle-term``): its rate part,
 an iP on the rate :math:`\dot y`.
 
 Estimate of F (Section II-D)
@@ -443,14 +443,16 @@ class IntelligentController:
         back part of the kd cut: by ``sqrt(authority / ref)``, never beyond the
         unscaled kd. A strong vehicle can afford the faster error dynamics
         without saturating; a weak one, which saturates, keeps the full cut
-        (docs/research/gains.md, point 6).
+        (docs/research/gains.md#strong-vehicle-kd).
 
         A fast lag raises the gains by at most ``lag_scaling_max``: below the
         configured lag, the estimate's window and the reference prefilter, not
-        the motors, bound how fast the error may be driven (docs/research/gains.md,
-        point 8). A slow lag cuts them to no less than ``lag_scaling_min``: beyond the
+        the motors, bound how fast the error may be driven
+        (docs/research/gains.md#fast-lag-kd).
+        A slow lag cuts them to no less than ``lag_scaling_min``: beyond the
         slowest lag worth scaling for, part of what the identifier calls lag is
-        the loop's delays, which a cut in kd does not serve (point 10)."""
+        the loop's delays, which a cut in kd does not serve
+        (docs/research/gains.md#slow-lag-floor)."""
         ident = self._ident
         r = self._tau / ident.tau if self._lag_scaled else 1.0  # type: ignore[union-attr]
         if r > self._lag_max:

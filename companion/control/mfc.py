@@ -175,7 +175,7 @@ class MfcController:
         then learn nothing, whatever the collective. On the ground the command
         answers the gyro's noise and the "response" is that noise again, which a
         least-squares slope reads as a small input gain, the most aggressive alpha
-        (docs/research/gains.md, point 9). Not reset by :meth:`reset`: it is the
+        (docs/research/gains.md#small-motions). Not reset by :meth:`reset`: it is the
         autopilot's state, not the controller's.
 
         While the legs visibly hold the vehicle (:attr:`held_on_ground`: this flag

@@ -85,7 +85,7 @@ def test_the_shipped_roll_identifier_learns_from_small_motions() -> None:
 
     Until it has learnt, alpha is 1.0, the strong end of the envelope, and the
     command is divided by it, so the corrections before the first maneuver are
-    small. The shipped thresholds learn from them (docs/research/gains.md, point 9); the
+    small. The shipped thresholds learn from them (docs/research/gains.md#small-motions); the
     ones before (3 us, 0.5 rad/s^2, 500 us^2) learnt nothing. (On 0.2 per us the
     slope from such small steps comes out about 30 % high, 0.266: the response
     gate keeps the samples where the slow F adds to the answer; with it at 0 the
@@ -461,7 +461,7 @@ def _landing(settle_on_the_legs: bool) -> tuple[float, float, float, float]:
 def test_on_the_legs_the_law_holds_no_torque_and_starts_afresh() -> None:
     """F learnt in the air holds its torque on the ground unless the law is told it
     landed: a damaged vehicle's mixer then saturates and cuts the collective (the
-    cut-prop F450 with a motor at 80 % sat on the ground after a hop, #12). Told, the
+    cut-prop F450 with a motor at 80 % sat on the ground after a hop). Told, the
     law starts afresh every sample, what it identified too (a hop teaches it from
     samples on the legs before the landed state arrives)."""
     air, held, alpha_air, _ = _landing(settle_on_the_legs=False)
@@ -500,7 +500,7 @@ def test_a_vehicle_that_turns_is_not_held_by_its_legs_and_the_law_flies_it() -> 
     """The landed state comes up to 0.25 s late. A law restarted on every sample of
     it answers a tipping vehicle with its prior alpha alone (1.0, the F450's is about
     0.12) and no F: the cut-prop F450 with a motor at 60 % tipped at 90 deg/s at each
-    lift-off, fell back and never flew (#12's sweep: 5 m of vertical error). Past
+    lift-off, fell back and never flew (5 m of vertical error in the outer loops' sweep). Past
     20 deg/s the legs hold nothing and the law keeps its F, which turns the rate
     back within the 0.25 s; it still learns nothing (the flag is set), so with the
     prior alpha it is slow. Measured: peak 2.99 rad/s, 2.33 at 0.25 s; restarted,

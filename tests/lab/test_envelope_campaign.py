@@ -108,9 +108,9 @@ def test_no_crash_at_the_corners(corner_records: Records) -> None:
     assert crashed == [], crashed
 
 
-# The issue's targets at the corners: ratio <= RATIO_TARGET (1.25) on every corner and
-# axis, and MFC better than PX4's default PID everywhere. Both met since the margin
-# falls on slow lags with much authority (docs/research/gains.md, point 7). Measured with the
+# The targets at the corners: ratio <= RATIO_TARGET (1.25) on every corner and axis,
+# and MFC better than PX4's default PID everywhere. Both met since the margin falls on
+# slow lags with much authority (docs/research/gains.md#strong-vehicle-margin). Measured with the
 # shipped controller (this test's short tuning, 25 flights on 15 s of train-acro),
 # ratio MFC / tuned PID roll/pitch/yaw: tiny-fast 0.84/0.98/0.98, tiny-slow-motor
 # 0.86/0.97/0.35, heavy-weak 0.86/0.76/0.76; MFC over the default PID at most 0.94
