@@ -7,10 +7,10 @@ vehicle profile's geometry (the mixer) and nothing else from the profile.
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from importlib.resources import files
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import Field, field_validator, model_validator
 
@@ -34,6 +34,7 @@ __all__ = [
     "DEFAULT_CONTROLLER",
     "PID_DEFAULT_CONTROLLER",
     "RATES_CONTROLLER",
+    "TABLE1_CONTROLLER",
     "MfcConfig",
     "PidConfig",
     "build_controller",
@@ -41,6 +42,8 @@ __all__ = [
     "build_stick_map",
     "default_controller",
     "load_controller",
+    "mfc_gains",
+    "pid_gains",
 ]
 
 DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "mfc_default.yaml"))
@@ -54,6 +57,10 @@ def default_controller(output: str = "actuator") -> Path:
 
 
 PID_DEFAULT_CONTROLLER = Path(str(files("companion") / "data" / "pid_px4_default.yaml"))
+TABLE1_CONTROLLER = Path(str(files("companion") / "data" / "mfc_table1.yaml"))
+"""The paper's Table I, literally."""
+
+_L = TypeVar("_L")
 
 
 class AxisRatesConfig(StrictModel):
@@ -371,61 +378,38 @@ def build_stick_map(cfg: MfcConfig | PidConfig) -> StickMap:
     return StickMap(axis(s.roll), axis(s.pitch), axis(s.yaw), s.channels, s.deadband_us)
 
 
-def mfc_gains(cfg: MfcConfig) -> MfcGains:
-    def axis(a: MfcAxisConfig) -> MfcAxisGains:
-        return MfcAxisGains(
-            order=a.order,
-            alpha=a.alpha,
-            window_s=a.window_s,
-            kp=a.kp,
-            kd=a.kd,
-            output_limit=a.output_limit_us,
-            error_limit_rad=a.error_limit_rad,
-            estimator=a.estimator,
-            actuator_tau_s=a.actuator_tau_s,
-            lag_scaled_gains=a.lag_scaled_gains,
-            lag_scaling_authority_ref=a.lag_scaling_authority_ref,
-            lag_scaling_max=math.inf if a.lag_scaling_max is None else a.lag_scaling_max,
-            lag_scaling_min=0.0 if a.lag_scaling_min is None else a.lag_scaling_min,
-            window_lag_scaled=a.window_lag_scaled,
-            delay_kd_limit=a.delay_kd_limit,
-            adapt=None
-            if a.alpha_adapt is None
-            else AlphaAdaptation(
-                alpha_min=a.alpha_adapt.alpha_min,
-                alpha_max=a.alpha_adapt.alpha_max,
-                margin=a.alpha_adapt.margin,
-                memory_s=a.alpha_adapt.memory_s,
-                highpass_s=a.alpha_adapt.highpass_s,
-                min_excitation=a.alpha_adapt.min_excitation_us,
-                min_samples_weight=a.alpha_adapt.min_samples_weight_us2,
-                tau_candidates_s=a.alpha_adapt.tau_candidates_s,
-                min_response=a.alpha_adapt.min_response_rad_s2,
-                margin_min=a.alpha_adapt.margin_min,
-                delay_candidates_s=a.alpha_adapt.delay_candidates_s,
-                delay_margin_slope=a.alpha_adapt.delay_margin_slope,
-                delay_margin_free_ratio=a.alpha_adapt.delay_margin_free_ratio,
-                delay_margin_max=a.alpha_adapt.delay_margin_max,
-            ),
-        )
+def _law_settings(cls: type[_L], model: StrictModel, **given: Any) -> _L:
+    """``cls`` (a law's frozen dataclass) from ``model``, field for field under the
+    same names, nested settings too; ``given`` are the fields the caller builds
+    itself. The schema is the one place a gain has its default, unit and bounds:
+    a law field the schema lacks is an AttributeError here (and a test)."""
+    values = dict(given)
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        if f.name not in values:
+            v = getattr(model, f.name)
+            nested = isinstance(v, AlphaAdaptConfig)
+            values[f.name] = _law_settings(AlphaAdaptation, v) if nested else v
+    return cls(**values)
 
-    return MfcGains(
-        roll=axis(cfg.axes.roll),
-        pitch=axis(cfg.axes.pitch),
-        yaw=axis(cfg.axes.yaw),
-        command_full_scale=cfg.command_full_scale_us,
-        prefilter_hz=cfg.prefilter_hz,
-        adapt_min_thrust=cfg.adapt_min_thrust,
-        dt_min_s=cfg.dt_min_s,
-        dt_max_s=cfg.dt_max_s,
+
+def mfc_gains(cfg: MfcConfig) -> MfcGains:
+    """The laws' settings from a validated MFC configuration."""
+    return _law_settings(
+        MfcGains,
+        cfg,
+        roll=_law_settings(MfcAxisGains, cfg.axes.roll),
+        pitch=_law_settings(MfcAxisGains, cfg.axes.pitch),
+        yaw=_law_settings(MfcAxisGains, cfg.axes.yaw),
     )
 
 
 def pid_gains(cfg: PidConfig) -> PidGains:
-    def axis(a: PidAxisConfig) -> PidAxisGains:
-        return PidAxisGains(a.kp, a.ki, a.kd, a.kff, a.i_limit, a.d_lpf_hz)
-
-    return PidGains(axis(cfg.axes.roll), axis(cfg.axes.pitch), axis(cfg.axes.yaw))
+    """The PID's gains from a validated PID configuration."""
+    return PidGains(
+        roll=_law_settings(PidAxisGains, cfg.axes.roll),
+        pitch=_law_settings(PidAxisGains, cfg.axes.pitch),
+        yaw=_law_settings(PidAxisGains, cfg.axes.yaw),
+    )
 
 
 def build_controller(

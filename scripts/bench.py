@@ -110,11 +110,10 @@ def bench_control(n_updates: int = 200_000) -> dict[str, Any]:
     from companion.config import (
         DEFAULT_CONTROLLER,
         PID_DEFAULT_CONTROLLER,
+        TABLE1_CONTROLLER,
         build_controller,
-        build_mixer,
         load_controller,
     )
-    from companion.control import MfcController, MfcGains
     from companion.profile import load_profile
 
     root = Path(__file__).resolve().parents[1]
@@ -137,7 +136,7 @@ def bench_control(n_updates: int = 200_000) -> dict[str, Any]:
     for name, ctl in (
         ("mfc", build_controller(load_controller(DEFAULT_CONTROLLER), f450)),
         ("pid", build_controller(load_controller(PID_DEFAULT_CONTROLLER), f450)),
-        ("mfc_table1", MfcController(MfcGains(), build_mixer(f450))),
+        ("mfc_table1", build_controller(load_controller(TABLE1_CONTROLLER), f450)),
     ):
 
         def step(

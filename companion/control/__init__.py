@@ -20,7 +20,7 @@ from companion.control.identifier import MAX_DELAY_S, AlphaAdaptation
 from companion.control.intelligent import IntelligentController, MfcAxisGains
 from companion.control.mfc import ControlOutput, MfcController, MfcGains, PidController
 from companion.control.mixer import Mixer, MixResult
-from companion.control.pid import PX4_DEFAULT_GAINS, PidAxisGains, PidGains, RatePid
+from companion.control.pid import PidAxisGains, PidGains, RatePid
 from companion.control.prefilter import ReferencePrefilter
 from companion.control.sticks import AxisRates, PilotCommand, StickMap
 
@@ -29,7 +29,6 @@ __all__ = [
     "COMPILED",
     "CORE",
     "MAX_DELAY_S",
-    "PX4_DEFAULT_GAINS",
     "AlgebraicEstimator",
     "AlphaAdaptation",
     "AxisRates",

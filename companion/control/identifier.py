@@ -39,7 +39,10 @@ than the rest of a sample's arithmetic while changing the result by < 0.1 %."""
 class AlphaAdaptation:
     r"""Online identification of :math:`\alpha` (and the actuator lag) per axis.
 
-    Settings of :class:`PlantIdentifier`, which explains the method.
+    Settings of :class:`PlantIdentifier`, which explains the method, built
+    only from the validated configuration (``companion.config``'s
+    ``AlphaAdaptConfig``, field for field under the same names: its schema holds
+    the defaults, bounds and the rules between them).
 
     Attributes
     ----------
@@ -52,13 +55,13 @@ class AlphaAdaptation:
         Forgetting time of the slope, s.
     highpass_s
         Time constant separating fast ``u`` changes from slow ``F``, s.
-    min_excitation
+    min_excitation_us
         Smallest :math:`|x|` (command units) that updates the slope.
-    min_samples_weight
+    min_samples_weight_us2
         :math:`\sum x^2` (command units squared) needed before the slope is used.
     tau_candidates_s
         Actuator lags to choose from, s; empty: only the axis's ``actuator_tau_s``.
-    min_response
+    min_response_rad_s2
         Smallest :math:`|z|` (rad/s^m) that updates the slope: a vehicle that
         does not move (on the ground) teaches nothing, rather than "b = 0".
     margin_min
@@ -77,49 +80,18 @@ class AlphaAdaptation:
 
     alpha_min: float
     alpha_max: float
-    margin: float = 1.0
-    memory_s: float = 2.0
-    highpass_s: float = 0.05
-    min_excitation: float = 10.0
-    min_samples_weight: float = 2.0e4
-    tau_candidates_s: tuple[float, ...] = ()
-    min_response: float = 2.0
-    margin_min: float = 0.0
-    delay_candidates_s: tuple[float, ...] = ()
-    delay_margin_slope: float = 0.0
-    delay_margin_free_ratio: float = 0.0
-    delay_margin_max: float = 0.0
-
-    def __post_init__(self) -> None:
-        vals = (self.alpha_min, self.alpha_max, self.margin, self.memory_s, self.highpass_s)
-        if not all(math.isfinite(v) and v > 0.0 for v in vals):
-            raise ValueError("alpha adaptation bounds, margin and times must be finite and > 0")
-        if self.alpha_min > self.alpha_max:
-            raise ValueError("alpha_min must not exceed alpha_max")
-        if self.min_excitation < 0.0 or self.min_samples_weight < 0.0:
-            raise ValueError("min_excitation and min_samples_weight must be >= 0")
-        if not all(math.isfinite(t) and t >= 0.0 for t in self.tau_candidates_s):
-            raise ValueError("tau_candidates_s must be finite and >= 0")
-        if not 0.0 <= self.margin_min <= self.margin:
-            raise ValueError("margin_min must be in [0, margin]")
-        if not all(math.isfinite(d) and 0.0 <= d <= MAX_DELAY_S for d in self.delay_candidates_s):
-            raise ValueError(f"delay_candidates_s must be in [0, {MAX_DELAY_S}] s")
-        if not (
-            math.isfinite(self.delay_margin_slope)
-            and self.delay_margin_slope >= 0.0
-            and math.isfinite(self.delay_margin_free_ratio)
-            and self.delay_margin_free_ratio >= 0.0
-        ):
-            raise ValueError(
-                "delay_margin_slope and delay_margin_free_ratio must be finite and >= 0"
-            )
-        if self.delay_margin_slope > 0.0:
-            if not self.delay_candidates_s:
-                raise ValueError(
-                    "delay_margin_slope needs delay_candidates_s (a delay to rise with)"
-                )
-            if not self.margin <= self.delay_margin_max <= 10.0:
-                raise ValueError("delay_margin_max must be in [margin, 10]")
+    margin: float
+    memory_s: float
+    highpass_s: float
+    min_excitation_us: float
+    min_samples_weight_us2: float
+    tau_candidates_s: tuple[float, ...]
+    min_response_rad_s2: float
+    margin_min: float
+    delay_candidates_s: tuple[float, ...]
+    delay_margin_slope: float
+    delay_margin_free_ratio: float
+    delay_margin_max: float
 
 
 class PlantIdentifier:
@@ -138,10 +110,10 @@ class PlantIdentifier:
     :math:`\sum z^2 - (\sum z x_i)^2 / \sum x_i^2` gives the lag, its slope
     gives :math:`\alpha = \mathrm{clip}(\text{margin}\,\hat b_i,
     \alpha_{min}, \alpha_{max})`. Sums are updated only while the command moves
-    (:math:`|\tilde u| \ge` ``min_excitation``), the vehicle answers
-    (:math:`|z| \ge` ``min_response``) and the caller says the pilot flies
+    (:math:`|\tilde u| \ge` ``min_excitation_us``), the vehicle answers
+    (:math:`|z| \ge` ``min_response_rad_s2``) and the caller says the pilot flies
     (collective), so hover, the ground and noise teach it nothing; until
-    ``min_samples_weight`` of excitation is gathered the configured
+    ``min_samples_weight_us2`` of excitation is gathered the configured
     ``alpha`` and ``actuator_tau_s`` stay.
 
     :attr:`margin` is alpha over the slope in use: the configured one unless
@@ -306,10 +278,10 @@ class PlantIdentifier:
         if n_hist > 1:
             self._hist_i = h = (self._hist_i + 1) % n_hist
             hist[h] = list(x)
-        if not learn or abs(ut) < cfg.min_excitation:
+        if not learn or abs(ut) < cfg.min_excitation_us:
             return
         z = y_m - y_lp
-        if abs(z) < cfg.min_response:
+        if abs(z) < cfg.min_response_rad_s2:
             return
         lam = self._lam
         self._szz = szz = lam * self._szz + z * z
@@ -320,7 +292,7 @@ class PlantIdentifier:
         h = self._hist_i
         best = -1
         best_res = math.inf
-        w = cfg.min_samples_weight
+        w = cfg.min_samples_weight_us2
         for j in range(nd):
             xs = hist[(h - delays[j]) % n_hist] if n_hist > 1 else x
             for i in range(len(x)):

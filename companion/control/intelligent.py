@@ -22,7 +22,7 @@ with :math:`e = y - y_r = \int (\omega - \omega_r)\,dt` (clamped to
 catch up) and :math:`\dot e = \omega - \omega_r`, the gyro's (the paper's
 Remark on :math:`\dot e`). With a good :math:`\hat F` the error obeys
 :math:`\ddot e + K_D \dot e + K_P e = 0` (iPD), :math:`\dot e + K_P e = 0`
-(iP). ``u`` is saturated at ``output_limit``; there is no integrator of the
+(iP). ``u`` is saturated at ``output_limit_us``; there is no integrator of the
 command to wind up: ``u`` is recomputed from scratch every sample, and ``F``
 is learnt from the command that was really applied. The shipped controllers
 fly the iPD with :math:`K_P = 0` (``docs/research/gains.md#no-angle-term``): its rate part,
@@ -62,109 +62,50 @@ candidate may name) at up to 2.5 kHz; a longer delay uses the oldest."""
 
 @dataclass(frozen=True)
 class MfcAxisGains:
-    r"""One axis of the MFC controller (one row of Table I plus limits).
+    r"""One axis of the MFC controller, as its configuration file gives it.
 
-    Attributes
-    ----------
-    order
-        ``m``: 2 for iPD, 1 for iP.
-    alpha
-        :math:`\alpha`, (rad/s^m) per command unit (us).
-    window_s
-        Estimation window ``T``, s.
-    kp, kd
-        Feedback gains, 1/s^m and 1/s^(m-1) (``kd`` unused when ``m = 1``).
-    output_limit
-        Saturation of ``u``, command units (us).
-    error_limit_rad
-        Bound on ``|e|``, rad.
-    estimator
-        ``"window"`` (the paper's average) or ``"algebraic"``.
-    actuator_tau_s
-        The actuator lag in the estimate of ``F``, s (0: none, the paper).
-    lag_scaled_gains
-        Scale ``kp`` and ``kd`` with the identified lag; needs ``adapt`` and
-        ``actuator_tau_s`` > 0, the lag the gains are given for.
-    adapt
-        Online identification of ``alpha`` and the lag (None: off, the paper).
+    Built only from the validated configuration (``companion.config``'s
+    ``MfcAxisConfig``, field for field under the same names): the file's schema
+    holds each gain's default, unit, bounds and the rules between them; this
+    holds the values. ``order``: 2 for the iPD, 1 for the iP; ``alpha``, (rad/s^m)
+    per command unit (us); ``window_s``, the estimation window; ``kp``, ``kd``,
+    1/s^m and 1/s^(m-1) (``kd`` unused when ``m = 1``); ``output_limit_us``, the
+    saturation of ``u``; ``error_limit_rad``, the bound on ``|e|``;
+    ``estimator``, ``"window"`` (the paper's average) or ``"algebraic"``;
+    ``actuator_tau_s``, the actuator lag in the estimate of ``F`` (0: none, the
+    paper); ``alpha_adapt``, the online identification of ``alpha`` and the lag
+    (None: off, the paper). With ``lag_scaled_gains``, ``kp`` and ``kd`` follow
+    the identified lag (:class:`IntelligentController`): a vehicle identified
+    with more authority than ``lag_scaling_authority_ref`` (rad/s^m per
+    full-scale command; 0: off) keeps more of ``kd`` on a slow lag (``kd`` times
+    ``sqrt(authority / ref)``, at most back to the unscaled ``kd``; with
+    ``alpha_adapt.margin_min`` the same reference eases the margin's fall); a
+    lag faster than ``actuator_tau_s`` raises the gains by at most
+    ``lag_scaling_max`` (None: no cap), a slower one cuts them to at least
+    ``lag_scaling_min`` (None: no floor); ``window_lag_scaled`` shortens the
+    window by the factor the gains are raised by (the window's delay bounds the
+    loop as the motors do). With an identified loop delay ``D``
+    (``alpha_adapt.delay_candidates_s``), ``kd`` is at most
+    ``delay_kd_limit / D`` (``kp`` by the square of the same cut; 0: off), so the
+    phase a delay costs at the error dynamics' bandwidth stays bounded.
     """
 
     order: int
     alpha: float
     window_s: float
     kp: float
-    kd: float = 0.0
-    output_limit: float = 500.0
-    error_limit_rad: float = 0.5
-    estimator: Literal["window", "algebraic"] = "window"
-    actuator_tau_s: float = 0.0
-    lag_scaled_gains: bool = False
-    lag_scaling_authority_ref: float = 0.0
-    """With ``lag_scaled_gains``, rad/s^m per full-scale command (0: off). A vehicle
-    identified with more authority than this keeps more of ``kd`` on a slow lag:
-    kd is multiplied by ``sqrt(authority / ref)``, at most back to the unscaled kd.
-    With ``adapt.margin_min``, the same reference eases the margin's fall."""
-    lag_scaling_max: float = math.inf
-    """With ``lag_scaled_gains``, the largest factor (>= 1) a lag faster than
-    ``actuator_tau_s`` may raise the gains by (``inf``: no cap)."""
-    lag_scaling_min: float = 0.0
-    """With ``lag_scaled_gains``, the smallest factor (<= 1) a lag slower than
-    ``actuator_tau_s`` may cut the gains to (0: no floor)."""
-    window_lag_scaled: bool = False
-    """With ``lag_scaled_gains``, a fast lag shortens the estimate's window by the
-    factor it raises the gains by (``window_s`` divided by at most
-    ``lag_scaling_max``): the window's delay bounds the loop as the motors do."""
-    delay_kd_limit: float = 0.0
-    """With an identified loop delay ``D`` (``adapt.delay_candidates_s``), kd is
-    at most ``delay_kd_limit / D`` (kp by the square of the same cut): the phase
-    a delay costs at the error dynamics' bandwidth stays bounded (0: off)."""
-    adapt: AlphaAdaptation | None = None
-
-    def __post_init__(self) -> None:
-        if self.adapt is not None and self.estimator != "window":
-            raise ValueError("alpha adaptation needs the window estimator")
-        if self.actuator_tau_s > 0.0 and self.estimator != "window":
-            raise ValueError("actuator_tau_s needs the window estimator")
-        if self.order not in (1, 2):
-            raise ValueError(f"order must be 1 or 2, got {self.order}")
-        if self.actuator_tau_s < 0.0:
-            raise ValueError("actuator_tau_s must be >= 0")
-        for name in (
-            "alpha", "window_s", "kp", "kd", "output_limit", "error_limit_rad", "actuator_tau_s",
-        ):  # fmt: skip
-            v = getattr(self, name)
-            if not math.isfinite(v):
-                raise ValueError(f"{name} must be finite, got {v}")
-        if self.alpha == 0.0 or self.window_s <= 0.0 or self.output_limit <= 0.0:
-            raise ValueError("alpha must be non-zero; window_s and output_limit positive")
-        if not self.lag_scaling_max >= 1.0:
-            raise ValueError("lag_scaling_max must be >= 1 (it caps a raise, not a cut)")
-        if not 0.0 <= self.lag_scaling_min <= 1.0:
-            raise ValueError("lag_scaling_min must be in [0, 1] (it floors a cut, not a raise)")
-        # Settings that would reach nothing are refused rather than ignored.
-        adapt = self.adapt
-        margin_min = 0.0 if adapt is None else adapt.margin_min
-        if margin_min > 0.0 and self.actuator_tau_s <= 0.0:
-            raise ValueError("adapt.margin_min needs actuator_tau_s > 0 (the lag it falls from)")
-        if self.lag_scaled_gains and (adapt is None or self.actuator_tau_s <= 0.0):
-            raise ValueError(
-                "lag_scaled_gains needs adapt (a lag to scale for) and actuator_tau_s > 0 "
-                "(the lag the gains are given for)"
-            )
-        if not self.lag_scaled_gains and (
-            self.lag_scaling_max != math.inf or self.lag_scaling_min != 0.0
-        ):
-            raise ValueError("lag_scaling_max and lag_scaling_min need lag_scaled_gains")
-        if self.window_lag_scaled and not (self.lag_scaled_gains and self.estimator == "window"):
-            raise ValueError("window_lag_scaled needs lag_scaled_gains and the window estimator")
-        if self.lag_scaling_authority_ref > 0.0 and not self.lag_scaled_gains and margin_min <= 0.0:
-            raise ValueError("lag_scaling_authority_ref needs lag_scaled_gains or adapt.margin_min")
-        if not (math.isfinite(self.delay_kd_limit) and self.delay_kd_limit >= 0.0):
-            raise ValueError("delay_kd_limit must be finite and >= 0")
-        if self.delay_kd_limit > 0.0 and (adapt is None or not adapt.delay_candidates_s):
-            raise ValueError(
-                "delay_kd_limit needs adapt.delay_candidates_s (a delay to limit kd by)"
-            )
+    kd: float
+    output_limit_us: float
+    error_limit_rad: float
+    estimator: Literal["window", "algebraic"]
+    actuator_tau_s: float
+    alpha_adapt: AlphaAdaptation | None
+    lag_scaled_gains: bool
+    lag_scaling_authority_ref: float
+    lag_scaling_max: float | None
+    lag_scaling_min: float | None
+    window_lag_scaled: bool
+    delay_kd_limit: float
 
 
 class IntelligentController:
@@ -188,7 +129,7 @@ class IntelligentController:
     * With :class:`AlphaAdaptation`, :math:`\alpha` and :math:`\tau` come from
       a :class:`~companion.control.identifier.PlantIdentifier` fed with the
       same window means (:meth:`learn`).
-    * With ``adapt.delay_candidates_s``, the identifier also names the loop's
+    * With ``alpha_adapt.delay_candidates_s``, the identifier also names the loop's
       delay :math:`D` (a companion's link both ways): the command in the
       estimate is the window mean of one :math:`D` ago,
       :math:`\hat F = \bar y^{(m)} - \alpha L_\tau \bar u(t - D)`, the one
@@ -233,14 +174,14 @@ class IntelligentController:
         "update",
     )  # fmt: skip
 
-    def __init__(self, gains: MfcAxisGains, *, command_full_scale: float = 500.0) -> None:
+    def __init__(self, gains: MfcAxisGains, *, command_full_scale_us: float) -> None:
         self.order = gains.order
         self._alpha = gains.alpha
         self._kp = gains.kp
         self._kd = gains.kd
-        self._lim = gains.output_limit
+        self._lim = gains.output_limit_us
         self._e_lim = gains.error_limit_rad
-        self._scale = command_full_scale
+        self._scale = command_full_scale_us
         self._est: FEstimator = make_estimator(
             gains.estimator, gains.order, gains.alpha, gains.window_s
         )
@@ -249,25 +190,26 @@ class IntelligentController:
         self._tau = gains.actuator_tau_s
         self._ident = (
             PlantIdentifier(
-                gains.adapt,
+                gains.alpha_adapt,
                 gains.alpha,
                 gains.actuator_tau_s,
                 authority_ref=gains.lag_scaling_authority_ref,
-                full_scale=command_full_scale,
+                full_scale=command_full_scale_us,
             )
-            if gains.adapt is not None
+            if gains.alpha_adapt is not None
             else None
         )
         self._plain = self._ident is None and self._tau <= 0.0
         self._lag_scaled = gains.lag_scaled_gains  # (so an identifier and a lag > 0)
         self._authority_ref = gains.lag_scaling_authority_ref
-        self._lag_max = gains.lag_scaling_max
-        self._lag_min = gains.lag_scaling_min
+        self._lag_max = math.inf if gains.lag_scaling_max is None else gains.lag_scaling_max
+        self._lag_min = 0.0 if gains.lag_scaling_min is None else gains.lag_scaling_min
         self._window_s = gains.window_s
         self._window_scaled = gains.window_lag_scaled
         self._lag_dt = self._lag_tau = -1.0
         self._lag_k = 0.0
-        self._delayed = gains.adapt is not None and bool(gains.adapt.delay_candidates_s)
+        adapt = gains.alpha_adapt
+        self._delayed = adapt is not None and bool(adapt.delay_candidates_s)
         self._delay_kd = gains.delay_kd_limit
         self.adapting = False
         """Whether the identifier may learn now (the caller's say: the pilot flies)."""
@@ -318,7 +260,7 @@ class IntelligentController:
             :math:`\dot y_r` (rad/s) and :math:`\ddot y_r` (rad/s^2).
         applied
             The previous command as really applied, normalised (its share of
-            ``command_full_scale``); ``None`` means the previous output was
+            ``command_full_scale_us``); ``None`` means the previous output was
             applied as computed.
 
         Returns

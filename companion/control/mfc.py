@@ -29,7 +29,7 @@ Unit convention under which Table I is used
   throttle point, as in the paper's mixer (equation (motors)) on an 8-bit
   flight controller driving 1000-2000 us ESCs. A full-scale normalised torque
   of 1 is 500 us (one motor at the top of its range, its opposite at the
-  bottom, at mid throttle): ``command_full_scale``, by which the law's output
+  bottom, at mid throttle): ``command_full_scale_us``, by which the law's output
   is divided before the mixer.
 
 Why this reading: the paper asks that :math:`y^{(m)}`, ``F`` and
@@ -47,7 +47,7 @@ assembled the same way (law, then mixer) behind the same interface.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 from companion.control.intelligent import IntelligentController, MfcAxisGains
@@ -63,26 +63,21 @@ _ZERO3: Vec3 = (0.0, 0.0, 0.0)
 
 @dataclass(frozen=True)
 class MfcGains:
-    """The three axes plus shared settings; Table I by default."""
+    """The three axes plus shared settings, as the configuration file gives them
+    (``companion.config``'s ``MfcConfig``, field for field; its schema holds the
+    defaults and bounds). ``command_full_scale_us``: the command that makes a
+    normalised torque of 1; ``adapt_min_thrust``: the identification learns only
+    while the pilot's collective is at least this; ``dt_min_s``, ``dt_max_s``:
+    the sample intervals the laws trust."""
 
-    roll: MfcAxisGains = field(
-        default_factory=lambda: MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=3.0, kd=0.096)
-    )
-    pitch: MfcAxisGains = field(
-        default_factory=lambda: MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=2.7, kd=0.096)
-    )
-    yaw: MfcAxisGains = field(
-        default_factory=lambda: MfcAxisGains(
-            order=1, alpha=1.0, window_s=0.02, kp=2.7, output_limit=250.0
-        )
-    )
-    command_full_scale: float = 500.0
-    """Command units (us) that make a normalised torque of 1."""
-    prefilter_hz: float | None = 20.0
-    adapt_min_thrust: float = 0.15
-    """Alpha adaptation learns only while the pilot's collective is at least this."""
-    dt_min_s: float = 0.000125
-    dt_max_s: float = 0.02
+    roll: MfcAxisGains
+    pitch: MfcAxisGains
+    yaw: MfcAxisGains
+    command_full_scale_us: float
+    prefilter_hz: float | None
+    adapt_min_thrust: float
+    dt_min_s: float
+    dt_max_s: float
 
     def axes(self) -> tuple[MfcAxisGains, MfcAxisGains, MfcAxisGains]:
         return (self.roll, self.pitch, self.yaw)
@@ -146,7 +141,7 @@ class MfcController:
     Parameters
     ----------
     gains
-        The controller configuration (Table I by default).
+        The controller's settings (``companion.config.mfc_gains``).
     mixer
         Motor allocation from the vehicle's geometry (or the paper's equation).
     """
@@ -155,14 +150,14 @@ class MfcController:
         self.gains = gains
         self.mixer = mixer
         self._axes = tuple(
-            IntelligentController(g, command_full_scale=gains.command_full_scale)
+            IntelligentController(g, command_full_scale_us=gains.command_full_scale_us)
             for g in gains.axes()
         )
         self._filter = ReferencePrefilter(gains.prefilter_hz) if gains.prefilter_hz else None
         self._prev_ref: Vec3 | None = None  # without a prefilter: the last raw reference
-        self._any_adapt = any(g.adapt is not None for g in gains.axes())
+        self._any_adapt = any(g.alpha_adapt is not None for g in gains.axes())
         self._adapt_thrust = gains.adapt_min_thrust
-        self._scale = 1.0 / gains.command_full_scale
+        self._scale = 1.0 / gains.command_full_scale_us
         self._mix = mixer.mix_fn  # Mixer.mix, bound for this geometry
         self._applied: Vec3 = _ZERO3
         self._dt_min = gains.dt_min_s

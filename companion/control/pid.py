@@ -17,22 +17,28 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-__all__ = ["PX4_DEFAULT_GAINS", "PidAxisGains", "PidGains", "RatePid"]
+__all__ = ["PidAxisGains", "PidGains", "RatePid"]
 
 Vec3 = tuple[float, float, float]
 
 
+_OUTPUT_LIMIT = 1.0
+"""Each axis's output is a normalised torque: at most full scale either way."""
+
+
 @dataclass(frozen=True)
 class PidAxisGains:
-    """Gains of one axis, in normalised torque per rad/s (PX4 MC_*RATE_* units)."""
+    """Gains of one axis, in normalised torque per rad/s (PX4 MC_*RATE_* units), as
+    the configuration file gives them (``companion.config``'s ``PidAxisConfig``,
+    field for field; its schema holds the defaults and bounds; PX4's defaults are
+    ``companion/data/pid_px4_default.yaml``)."""
 
     kp: float
     ki: float
     kd: float
-    kff: float = 0.0
-    i_limit: float = 0.3
-    d_lpf_hz: float = 20.0
-    output_limit: float = 1.0
+    kff: float
+    i_limit: float
+    d_lpf_hz: float
 
 
 @dataclass(frozen=True)
@@ -43,15 +49,6 @@ class PidGains:
 
     def axes(self) -> tuple[PidAxisGains, PidAxisGains, PidAxisGains]:
         return (self.roll, self.pitch, self.yaw)
-
-
-PX4_DEFAULT_GAINS = PidGains(
-    # MC_ROLLRATE_P/I/D 0.15/0.2/0.003, MC_RR_INT_LIM 0.3 (facts.md 7)
-    roll=PidAxisGains(kp=0.15, ki=0.2, kd=0.003, i_limit=0.3),
-    pitch=PidAxisGains(kp=0.15, ki=0.2, kd=0.003, i_limit=0.3),
-    # MC_YAWRATE_P/I 0.2/0.1, no D
-    yaw=PidAxisGains(kp=0.2, ki=0.1, kd=0.0, i_limit=0.3),
-)
 
 
 class RatePid:
@@ -65,7 +62,7 @@ class RatePid:
 
     __slots__ = ("_d_state", "_gains", "_integral", "_prev_rate", "_primed")
 
-    def __init__(self, gains: PidGains = PX4_DEFAULT_GAINS) -> None:
+    def __init__(self, gains: PidGains) -> None:
         self._gains = gains.axes()
         self._integral = [0.0, 0.0, 0.0]
         self._prev_rate = [0.0, 0.0, 0.0]
@@ -129,7 +126,7 @@ class RatePid:
                 integ = min(g.i_limit, max(-g.i_limit, integ + di))
             self._integral[i] = integ
             u = g.kp * e + integ + g.kff * sp - g.kd * self._d_state[i]
-            lim = g.output_limit
+            lim = _OUTPUT_LIMIT
             out[i] = lim if u > lim else (-lim if u < -lim else u)
         self._primed = True
         return (out[0], out[1], out[2])

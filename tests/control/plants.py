@@ -104,7 +104,7 @@ def run_axis_loop(
     filled, tracking settled) the controller's error is set to ``e0`` through
     its public attribute, and the run continues for ``duration_s``.
     """
-    ctrl = IntelligentController(gains)
+    ctrl = IntelligentController(gains, command_full_scale_us=500.0)
     order = gains.order
     u = 0.0
 

@@ -1,8 +1,9 @@
-"""Controller files: Table I defaults, validation errors, and building the laws."""
+"""Controller files: Table I, validation errors, and building the laws from them."""
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -10,12 +11,16 @@ from typing import Any
 import pytest
 import yaml
 from click.testing import CliRunner
+from pydantic import BaseModel
 
 from companion.cli import cli as companion_cli
 from companion.config import (
     DEFAULT_CONTROLLER,
     PID_DEFAULT_CONTROLLER,
+    AlphaAdaptConfig,
+    MfcAxisConfig,
     MfcConfig,
+    PidAxisConfig,
     PidConfig,
     build_controller,
     build_stick_map,
@@ -23,7 +28,15 @@ from companion.config import (
     mfc_gains,
     pid_gains,
 )
-from companion.control import PX4_DEFAULT_GAINS, MfcController, MfcGains, PidController, StickMap
+from companion.control import (
+    AlphaAdaptation,
+    MfcAxisGains,
+    MfcController,
+    MfcGains,
+    PidAxisGains,
+    PidController,
+    StickMap,
+)
 from companion.errors import ConfigError
 from tests.control.plants import f450_mixer, f450_profile
 
@@ -47,14 +60,18 @@ def test_table_1_file_holds_the_papers_values() -> None:
     )
     assert (yaw.order, yaw.alpha, yaw.window_s, yaw.kp) == (1, 1.0, 0.02, 2.7)
     assert cfg.command_full_scale_us == 500.0
-    # The shipped file and the code's defaults are the same controller.
-    assert mfc_gains(cfg) == MfcGains()
 
 
 def test_pid_default_file_loads() -> None:
     cfg = load_controller(PID_DEFAULT_CONTROLLER)
     assert isinstance(cfg, PidConfig)
-    assert pid_gains(cfg) == PX4_DEFAULT_GAINS
+    gains = pid_gains(cfg)
+    # PX4's MC_ROLLRATE_P/I/D, MC_PITCHRATE_*, MC_YAWRATE_P/I and MC_*R_INT_LIM defaults.
+    assert (gains.roll.kp, gains.roll.ki, gains.roll.kd, gains.roll.i_limit) == (
+        0.15, 0.2, 0.003, 0.3,
+    )  # fmt: skip
+    assert gains.pitch == gains.roll
+    assert (gains.yaw.kp, gains.yaw.ki, gains.yaw.kd, gains.yaw.i_limit) == (0.2, 0.1, 0.0, 0.3)
 
 
 def test_default_sticks() -> None:
@@ -66,7 +83,7 @@ def test_build_controller_uses_the_profile_geometry() -> None:
     expected = f450_mixer()
     mfc = build_controller(load_controller(TABLE1), profile)
     assert isinstance(mfc, MfcController)
-    assert mfc.gains == MfcGains()  # MfcGains() defaults are Table I
+    assert mfc.gains == mfc_gains(load_controller(TABLE1))
     assert isinstance(build_controller(load_controller(DEFAULT_CONTROLLER), profile), MfcController)
     pid = build_controller(load_controller(PID_DEFAULT_CONTROLLER), profile)
     assert isinstance(pid, PidController)
@@ -376,3 +393,29 @@ def test_config_objects_are_frozen() -> None:
     cfg = load_controller()
     with pytest.raises(Exception):  # noqa: B017 - pydantic's frozen error type
         cfg.kind = "pid"  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("law", "model", "built"),
+    [
+        (MfcGains, MfcConfig, {"roll", "pitch", "yaw"}),
+        (MfcAxisGains, MfcAxisConfig, set()),
+        (AlphaAdaptation, AlphaAdaptConfig, set()),
+        (PidAxisGains, PidAxisConfig, set()),
+    ],
+    ids=lambda x: getattr(x, "__name__", ""),
+)
+def test_each_law_setting_is_defined_once_in_the_schema(
+    law: type, model: type[BaseModel], built: set[str]
+) -> None:
+    """A law's settings are the schema's fields under the same names (the builder
+    renames nothing), and the schema alone holds their defaults: a gain added to one
+    and not the other, or given a second default in the law, fails here."""
+    names = {f.name for f in dataclasses.fields(law)}
+    assert names - built == set(model.model_fields) - {"kind", "sticks", "axes"}
+    defaulted = [
+        f.name
+        for f in dataclasses.fields(law)
+        if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING
+    ]
+    assert defaulted == []

@@ -5,31 +5,30 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from companion.control import (
-    PX4_DEFAULT_GAINS,
     ControlOutput,
-    MfcAxisGains,
     MfcController,
-    MfcGains,
     PidController,
     ReferencePrefilter,
     WindowEstimator,
 )
+from tests.control.gains import axis, px4_default_pid, table_one
 from tests.control.plants import RatePlant3, f450_mixer, run_rate_loop
 
 Controller = MfcController | PidController
 
 
 def make_mfc() -> MfcController:
-    return MfcController(MfcGains(), f450_mixer())
+    return MfcController(table_one(), f450_mixer())
 
 
 def make_pid() -> PidController:
-    return PidController(PX4_DEFAULT_GAINS, f450_mixer())
+    return PidController(px4_default_pid(), f450_mixer())
 
 
 FACTORIES: list[Callable[[], Controller]] = [make_mfc, make_pid]
@@ -80,7 +79,7 @@ def test_mfc_tracks_a_smooth_reference_on_a_three_axis_plant(
     stays bounded and does not grow.
     """
     mixer = f450_mixer()
-    ctrl = MfcController(MfcGains(), mixer)
+    ctrl = MfcController(table_one(), mixer)
     plant = RatePlant3(mixer, b, (0.5, 0.5, 8.0), disturbance)
     dt = 1.0 / rate_hz
     ts, err = run_rate_loop(ctrl, plant, reference, dt=dt, duration_s=6.0)
@@ -98,7 +97,7 @@ def test_mfc_tracks_a_smooth_reference_on_a_three_axis_plant(
 
 def test_mfc_output_fields_are_consistent() -> None:
     mixer = f450_mixer()
-    ctrl = MfcController(MfcGains(), mixer)
+    ctrl = MfcController(table_one(), mixer)
     out = ctrl.update(0.004, (0.1, -0.2, 0.05), (0.3, 0.1, -0.1), 0.5)
     assert not out.held
     # First sample: estimators prime (F_hat = 0), the prefilter starts at the
@@ -109,7 +108,7 @@ def test_mfc_output_fields_are_consistent() -> None:
     u_pitch = -(2.7 * e_dot[1] * 0.004 + 0.096 * e_dot[1])
     u_yaw = -(0.0 - (-0.1) + 2.7 * e_dot[2] * 0.004)  # iP: -(F_hat - y_r' + kp e)
     assert out.u == pytest.approx((u_roll, u_pitch, u_yaw), rel=1e-12)
-    # Unsaturated: torque = u / command_full_scale, motors from the mixer.
+    # Unsaturated: torque = u / command_full_scale_us, motors from the mixer.
     assert out.torque == pytest.approx(tuple(x / 500.0 for x in out.u), rel=1e-12)
     assert out.motors == mixer.mix(0.5, *out.torque).motors
     assert out.f_hat == (0.0, 0.0, 0.0)
@@ -119,13 +118,14 @@ def test_mfc_teaches_estimators_the_applied_command() -> None:
     """When the mixer cuts a command, the estimators learn what was realised.
 
     Checked from the outside: a standalone WindowEstimator fed the realised
-    torque of the previous output (times command_full_scale) reproduces the
+    torque of the previous output (times command_full_scale_us) reproduces the
     controller's F_hat on every axis, through a stretch where roll takes the
     whole motor range and yaw gets nothing.
     """
-    g = MfcGains(
-        roll=MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=3000.0, kd=0.096),
-        yaw=MfcAxisGains(order=1, alpha=1.0, window_s=0.02, kp=3000.0, output_limit=250.0),
+    g = replace(
+        table_one(),
+        roll=axis(order=2, alpha=1.0, window_s=0.02, kp=3000.0, kd=0.096),
+        yaw=axis(order=1, alpha=1.0, window_s=0.02, kp=3000.0, output_limit_us=250.0),
     )
     ctrl = MfcController(g, f450_mixer())
     shadow = [WindowEstimator(a.order, a.alpha, a.window_s) for a in g.axes()]
@@ -148,8 +148,9 @@ def test_mfc_teaches_estimators_the_applied_command() -> None:
 
 
 def test_mfc_without_prefilter_differentiates_the_reference() -> None:
-    g = MfcGains(
-        roll=MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=0.0),
+    g = replace(
+        table_one(),
+        roll=axis(order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=0.0),
         prefilter_hz=None,
     )
     ctrl = MfcController(g, f450_mixer())

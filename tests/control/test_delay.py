@@ -18,17 +18,27 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from companion.config import DEFAULT_CONTROLLER, MfcConfig, load_controller, mfc_gains
+from companion.config import (
+    DEFAULT_CONTROLLER,
+    AlphaAdaptConfig,
+    MfcAxisConfig,
+    MfcConfig,
+    load_controller,
+    mfc_gains,
+)
 from companion.control import AlphaAdaptation, IntelligentController, MfcAxisGains
 from companion.control.identifier import PlantIdentifier
 from companion.schema import format_validation_error
+from tests.control.gains import adapt as adaptation
+from tests.control.gains import axis as axis_gains
+from tests.control.gains import law
 from tests.control.plants import timestamps_dt
 
 B = 0.3  # the plant's input gain, (rad/s^2) per us
 TAUS = (0.01, 0.02, 0.04, 0.08)
 DELAYS = (0.0, 0.004, 0.008, 0.012, 0.016, 0.024, 0.032, 0.048)  # the shipped candidates
 MARGIN = 0.5
-ADAPT = AlphaAdaptation(
+ADAPT = adaptation(
     alpha_min=0.03, alpha_max=10.0, margin=MARGIN, tau_candidates_s=TAUS, delay_candidates_s=DELAYS
 )
 FULL_SCALE = 500.0  # us: ``applied`` is a share of it
@@ -38,9 +48,9 @@ def _gains(adapt: AlphaAdaptation | None = ADAPT, **kw: Any) -> MfcAxisGains:
     """An iPD on the rate, unsaturated so the gains show in the command."""
     base: dict[str, Any] = {
         "order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 0.0, "kd": 10.0,
-        "output_limit": 1e4, "actuator_tau_s": 0.03, "adapt": adapt,
+        "output_limit_us": 1e4, "actuator_tau_s": 0.03, "alpha_adapt": adapt,
     }  # fmt: skip
-    return MfcAxisGains(**{**base, **kw})
+    return axis_gains(**{**base, **kw})
 
 
 def _fly(
@@ -99,7 +109,7 @@ def _delay(ax: IntelligentController) -> float:
 def test_identifies_the_delay_with_the_lag(rate_hz: float, delay_s: float, tau_s: float) -> None:
     """The delay is counted in 4 ms identification intervals, at 250 Hz (every sample)
     as at 1 kHz (every 4th); the lag and the slope are found through it."""
-    ax = IntelligentController(_gains())
+    ax = law(_gains())
     _fly(ax, tau_s=tau_s, delay_s=delay_s, rate_hz=rate_hz)
     assert _delay(ax) == pytest.approx(delay_s, abs=1e-9)
     assert ax.tau_s == tau_s
@@ -111,12 +121,12 @@ def test_without_delay_candidates_nothing_changes() -> None:
     for bit, and the delay stays 0, even behind a 16 ms delay it cannot name."""
     traces = []
     for delays in ((), (0.0,)):
-        adapt = AlphaAdaptation(
+        adapt = adaptation(
             alpha_min=0.03, alpha_max=10.0, margin=MARGIN, tau_candidates_s=TAUS,
             delay_candidates_s=delays,
         )  # fmt: skip
         trace: list[tuple[float, float, float, float]] = []
-        _fly(IntelligentController(_gains(adapt)), tau_s=0.02, delay_s=0.016, trace=trace)
+        _fly(law(_gains(adapt)), tau_s=0.02, delay_s=0.016, trace=trace)
         traces.append(trace)
     assert traces[0] == traces[1]
     assert {delay for *_, delay in traces[0]} == {0.0}
@@ -126,7 +136,7 @@ def test_without_delay_candidates_nothing_changes() -> None:
 # ---------------------------------------------------------------------------
 # 3. The margin a delay raises.
 
-DELAY_MARGIN = AlphaAdaptation(
+DELAY_MARGIN = adaptation(
     alpha_min=0.03, alpha_max=10.0, margin=0.4, delay_candidates_s=DELAYS,
     delay_margin_slope=0.5, delay_margin_free_ratio=0.3, delay_margin_max=0.6,
 )  # fmt: skip
@@ -177,7 +187,7 @@ def test_kd_is_bounded_by_the_identified_delay(delay_s: float, kd: float, kp: fl
     Behind 16 ms, delay_kd_limit 0.2 caps kd at 0.2 / 0.016 = 12.5 and kp by the same
     cut squared (iPD), to 25; without a delay they stay lag-scaled."""
     gains = _gains(kp=25.0, kd=12.5, actuator_tau_s=0.04, lag_scaled_gains=True, delay_kd_limit=0.2)
-    ax = IntelligentController(gains)
+    ax = law(gains)
     w = _fly(ax, tau_s=0.02, delay_s=delay_s)
     assert (_delay(ax), ax.tau_s) == (pytest.approx(delay_s, abs=1e-9), 0.02)
     # The next command from public state: u = -(F_hat - y_r'' + kp e + kd e') / alpha.
@@ -194,16 +204,16 @@ def test_the_shipped_roll_axis_behind_16_ms() -> None:
     cfg = load_controller(DEFAULT_CONTROLLER)
     assert isinstance(cfg, MfcConfig)
     roll = mfc_gains(cfg).roll
-    assert roll.adapt is not None
-    assert roll.adapt.delay_candidates_s == DELAYS
+    assert roll.alpha_adapt is not None
+    assert roll.alpha_adapt.delay_candidates_s == DELAYS
     assert (roll.delay_kd_limit, roll.kd, roll.kp) == (0.2, 25.0, 0.0)
-    ax = IntelligentController(roll)
+    ax = law(roll)
     w = _fly(ax, tau_s=0.02, delay_s=0.016)
     assert (_delay(ax), ax.tau_s) == (pytest.approx(0.016, abs=1e-9), 0.02)
     assert ax._ident is not None and ax._ident.margin == 0.6
     assert ax.alpha == pytest.approx(0.6 * B, rel=0.05)
     got = ax.update(0.004, w, w - 0.1, 0.0)
-    assert abs(got) < roll.output_limit  # unsaturated, so kd shows
+    assert abs(got) < roll.output_limit_us  # unsaturated, so kd shows
     assert got == pytest.approx(-(ax.f_hat + 12.5 * ax.e_dot) / ax.alpha, rel=1e-9)
 
 
@@ -223,11 +233,11 @@ def test_f_hat_sees_a_command_step_one_identified_delay_later(
     """After identification (then frozen), the rate held still and the command at 0, a
     100 us step: F_hat = y'' - alpha L_tau(mean u(t - D)) is the analytic lag of the
     delayed window mean, unmoved for D, moving at once without a delay to use."""
-    adapt = AlphaAdaptation(
+    adapt = adaptation(
         alpha_min=0.03, alpha_max=10.0, margin=MARGIN, tau_candidates_s=TAUS,
         delay_candidates_s=delays,
     )  # fmt: skip
-    ax = IntelligentController(_gains(adapt))
+    ax = law(_gains(adapt))
     _fly(ax, tau_s=0.02, delay_s=plant_delay_s, rate_hz=rate_hz)
     assert _delay(ax) == pytest.approx(seen_after_s, abs=1e-9)
     ax.adapting = False
@@ -278,15 +288,19 @@ def test_f_hat_sees_a_command_step_one_identified_delay_later(
 )
 def test_bad_delay_settings_are_refused(kwargs: dict[str, Any], field: str) -> None:
     with pytest.raises(ValueError, match=field):
-        AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=0.4, **kwargs)
+        AlphaAdaptConfig(alpha_min=0.03, alpha_max=10.0, margin=0.4, **kwargs)
 
 
 def test_delay_kd_limit_needs_a_delay_to_limit_kd_by() -> None:
-    no_delays = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, tau_candidates_s=TAUS)
-    for adapt, limit in ((no_delays, 0.2), (None, 0.2), (ADAPT, -0.1), (ADAPT, math.nan)):
+    axis = {"order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 0.0, "kd": 10.0}
+    base = {"alpha_min": 0.03, "alpha_max": 10.0, "margin": MARGIN}
+    no_delays = {**base, "tau_candidates_s": TAUS}
+    delays = {**base, "tau_candidates_s": TAUS, "delay_candidates_s": DELAYS}
+    for adapt, limit in ((no_delays, 0.2), (None, 0.2), (delays, -0.1), (delays, math.nan)):
         with pytest.raises(ValueError, match="delay_kd_limit"):
-            _gains(adapt, delay_kd_limit=limit)
-    assert _gains(ADAPT, delay_kd_limit=0.2).delay_kd_limit == 0.2
+            MfcAxisConfig(**axis, alpha_adapt=adapt, delay_kd_limit=limit)
+    cfg = MfcAxisConfig(**axis, alpha_adapt=delays, delay_kd_limit=0.2)
+    assert cfg.delay_kd_limit == 0.2
 
 
 def _shipped_with(path: str, value: Any) -> list[str]:

@@ -13,6 +13,8 @@ from hypothesis import strategies as st
 
 from companion.config import (
     DEFAULT_CONTROLLER,
+    AlphaAdaptConfig,
+    MfcAxisConfig,
     MfcConfig,
     build_controller,
     load_controller,
@@ -28,10 +30,13 @@ from companion.control import (
 from companion.control import mfc as mfc_module
 from companion.control.identifier import PlantIdentifier
 from companion.profile import load_profile
+from tests.control.gains import adapt as adaptation
+from tests.control.gains import axis as axis_gains
+from tests.control.gains import law
 
 F450 = load_profile(Path(__file__).resolve().parents[2] / "vehicle_profiles" / "f450.yaml")
 TAUS = (0.01, 0.02, 0.04, 0.08)
-ADAPT = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=1.0, tau_candidates_s=TAUS)
+ADAPT = adaptation(alpha_min=0.03, alpha_max=10.0, margin=1.0, tau_candidates_s=TAUS)
 
 
 def _excited_plant(
@@ -93,12 +98,14 @@ def test_the_shipped_roll_identifier_learns_from_small_motions() -> None:
     """
     shipped = load_controller(DEFAULT_CONTROLLER)
     assert isinstance(shipped, MfcConfig)
-    cfg = mfc_gains(shipped).roll.adapt
+    cfg = mfc_gains(shipped).roll.alpha_adapt
     assert cfg is not None
     learnt = _excited_plant(0.35, 0.02, ident=PlantIdentifier(cfg, 1.0, 0.03), u_max=2.0)
     assert learnt.tau == 0.02
     assert learnt.alpha == pytest.approx(cfg.margin * 0.35, rel=0.1)
-    before = replace(cfg, min_excitation=3.0, min_response=0.5, min_samples_weight=500.0)
+    before = replace(
+        cfg, min_excitation_us=3.0, min_response_rad_s2=0.5, min_samples_weight_us2=500.0
+    )
     untrained = _excited_plant(0.35, 0.02, ident=PlantIdentifier(before, 1.0, 0.03), u_max=2.0)
     assert (untrained.alpha, untrained.tau) == (1.0, 0.03)
 
@@ -142,7 +149,7 @@ def test_reset_restores_the_configured_values() -> None:
     assert (ident.alpha, ident.tau) == (1.0, 0.03)
 
 
-SLOW_LAG = AlphaAdaptation(
+SLOW_LAG = adaptation(
     alpha_min=0.03, alpha_max=10.0, margin=0.4, margin_min=0.3, tau_candidates_s=TAUS
 )
 
@@ -193,59 +200,74 @@ def test_identified_alpha_uses_the_slow_lag_margin() -> None:
 
 
 def test_bad_adaptation_settings_are_rejected() -> None:
+    """By the schema, where the laws' settings come from."""
+    base = {"alpha_min": 0.1, "alpha_max": 1.0}
     with pytest.raises(ValueError, match="alpha_min"):
-        AlphaAdaptation(alpha_min=2.0, alpha_max=1.0)
+        AlphaAdaptConfig(alpha_min=2.0, alpha_max=1.0)
     with pytest.raises(ValueError, match="tau_candidates_s"):
-        AlphaAdaptation(alpha_min=0.1, alpha_max=1.0, tau_candidates_s=(math.nan,))
+        AlphaAdaptConfig(**base, tau_candidates_s=(math.nan,))
     with pytest.raises(ValueError, match="margin_min"):
-        AlphaAdaptation(alpha_min=0.1, alpha_max=1.0, margin=0.4, margin_min=0.5)
-    with pytest.raises(ValueError, match="window estimator"):
-        MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, estimator="algebraic", adapt=ADAPT)
+        AlphaAdaptConfig(**base, margin=0.4, margin_min=0.5)
+    axis = {"order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 1.0}
+    with pytest.raises(ValueError, match="alpha_adapt needs estimator: window"):
+        MfcAxisConfig(**axis, estimator="algebraic", alpha_adapt=base)
     for cap in (0.5, math.nan):
         with pytest.raises(ValueError, match="lag_scaling_max"):
-            MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_max=cap)
+            MfcAxisConfig(**axis, lag_scaling_max=cap)
     for floor in (-0.1, 1.5, math.nan):
         with pytest.raises(ValueError, match="lag_scaling_min"):
-            MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=1.0, lag_scaling_min=floor)
+            MfcAxisConfig(**axis, lag_scaling_min=floor)
 
 
 def test_settings_that_would_reach_nothing_are_refused() -> None:
     """Lag scaling needs an identified lag and the lag its gains are given for; its
     bounds need lag scaling; the authority reference needs lag scaling or a falling
     margin; the lag model needs the window estimator (the algebraic one has no
-    window means to lag)."""
+    window means to lag). Refused by the schema; reached, the law takes them."""
     axis = {"order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 0.0, "kd": 15.0}
-    slow = AlphaAdaptation(alpha_min=0.03, alpha_max=10.0, margin=0.4, margin_min=0.3)
+    adapt = {"alpha_min": 0.03, "alpha_max": 10.0}
+    slow = {**adapt, "margin": 0.4, "margin_min": 0.3}
     refused = [
-        ("lag_scaled_gains needs adapt", {"actuator_tau_s": 0.03, "lag_scaled_gains": True}),
-        ("lag_scaled_gains needs adapt", {"lag_scaled_gains": True, "adapt": ADAPT}),
-        ("need lag_scaled_gains", {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_max": 1.0}),
+        ("lag_scaled_gains needs alpha_adapt", {"actuator_tau_s": 0.03, "lag_scaled_gains": True}),
+        ("lag_scaled_gains needs alpha_adapt", {"lag_scaled_gains": True, "alpha_adapt": adapt}),
+        (
+            "need lag_scaled_gains",
+            {"actuator_tau_s": 0.03, "alpha_adapt": adapt, "lag_scaling_max": 1.0},
+        ),
         ("need lag_scaled_gains", {"lag_scaling_min": 0.5}),
         ("window_lag_scaled needs", {"window_lag_scaled": True}),
         (
             "window_lag_scaled needs",
-            {"actuator_tau_s": 0.03, "adapt": ADAPT, "window_lag_scaled": True},
+            {"actuator_tau_s": 0.03, "alpha_adapt": adapt, "window_lag_scaled": True},
         ),
         (
             "lag_scaling_authority_ref needs",
-            {"actuator_tau_s": 0.03, "adapt": ADAPT, "lag_scaling_authority_ref": 150.0},
+            {"actuator_tau_s": 0.03, "alpha_adapt": adapt, "lag_scaling_authority_ref": 150.0},
         ),
-        ("margin_min needs actuator_tau_s", {"adapt": slow}),
-        ("actuator_tau_s needs the window", {"estimator": "algebraic", "actuator_tau_s": 0.03}),
+        ("margin_min needs actuator_tau_s", {"alpha_adapt": slow}),
+        (
+            "actuator_tau_s needs estimator: window",
+            {"estimator": "algebraic", "actuator_tau_s": 0.03},
+        ),
     ]
     for message, settings_ in refused:
         with pytest.raises(ValueError, match=message):
-            MfcAxisGains(**axis, **settings_)
+            MfcAxisConfig(**axis, **settings_)
     # Reached: the authority reference also eases a falling margin.
-    ident = IntelligentController(
-        MfcAxisGains(**axis, actuator_tau_s=0.03, adapt=slow, lag_scaling_authority_ref=150.0)
+    ident = law(
+        axis_gains(
+            **axis,
+            actuator_tau_s=0.03,
+            alpha_adapt=adaptation(**slow),
+            lag_scaling_authority_ref=150.0,
+        )
     )
     assert ident._ident is not None and ident._ident._authority_ref == 150.0
 
 
 def _closed_loop_mae(gains: MfcAxisGains, b: float, tau: float) -> float:
     """Rate MAE of one axis, y'' = b * lag_tau(u) + F, tracking a square wave of rate."""
-    ax = IntelligentController(gains)
+    ax = law(gains)
     ax.adapting = True
     dt = 0.001
     k = -math.expm1(-dt / tau)
@@ -269,11 +291,11 @@ def test_identified_law_holds_its_worst_case_where_fixed_alpha_does_not() -> Non
     b = 0.1, by saturation (50 rad/s^2 at most). Measured: identified 0.37-2.39 rad/s,
     the fixed-alpha law of the paper's structure 2.1-4.8 (it chatters at b = 4).
     """
-    adaptive = MfcAxisGains(
+    adaptive = axis_gains(
         order=2, alpha=1.0, window_s=0.02, kp=60.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT,
     )  # fmt: skip
-    fixed = MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=6.0, kd=4.0, error_limit_rad=1.0)
+    fixed = axis_gains(order=2, alpha=1.0, window_s=0.02, kp=6.0, kd=4.0, error_limit_rad=1.0)
     cases = [(b, tau) for b in (0.1, 0.35, 4.0) for tau in (0.01, 0.08)]
     worst_adaptive = max(_closed_loop_mae(adaptive, b, tau) for b, tau in cases)
     worst_fixed = max(_closed_loop_mae(fixed, b, tau) for b, tau in cases)
@@ -306,11 +328,11 @@ def _fly_a_lag(ax: IntelligentController, order: int, tau: float = 0.08) -> tupl
 def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
     """With the lag identified at 80 ms instead of the configured 30 ms, the gain on
     the rate error scales by 30/80 (iPD kd, iP kp) and the iPD's kp by (30/80)^2."""
-    gains = MfcAxisGains(
+    gains = axis_gains(
         order=order, alpha=1.0, window_s=0.02, kp=40.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT,
     )  # fmt: skip
-    ax = IntelligentController(gains)
+    ax = law(gains)
     w, ref = _fly_a_lag(ax, order)
     dt = 0.001
     assert ax.tau_s == 0.08
@@ -331,11 +353,11 @@ def test_lag_scaled_gains_follow_the_identified_lag(order: int) -> None:
 def test_a_fast_lag_raises_kd_at_most_by_lag_scaling_max(cap: float, want_r: float) -> None:
     """Identified at 10 ms against the configured 30 ms, kd would triple; with
     lag_scaling_max it rises by at most that factor."""
-    gains = MfcAxisGains(
+    gains = axis_gains(
         order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_max=cap,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT, lag_scaling_max=cap,
     )  # fmt: skip
-    ax = IntelligentController(gains)
+    ax = law(gains)
     w, ref = _fly_a_lag(ax, 2, tau=0.01)
     assert ax.tau_s == 0.01
     got = ax.update(0.001, w + 0.1, ref, 0.0)
@@ -351,12 +373,12 @@ def test_a_fast_lag_shortens_the_window_as_it_raises_kd(tau: float, want_window_
     """window_lag_scaled: identified at 10 ms against the configured 30 ms, kd is raised
     by lag_scaling_max (2) and the 20 ms window shortened by as much; at 20 ms, by
     30/20; a slow lag (80 ms) cuts kd and leaves the window. reset() restores it."""
-    gains = MfcAxisGains(
+    gains = axis_gains(
         order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_max=2.0,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT, lag_scaling_max=2.0,
         window_lag_scaled=True,
     )  # fmt: skip
-    ax = IntelligentController(gains)
+    ax = law(gains)
     _fly_a_lag(ax, 2, tau=tau)
     assert ax.tau_s == tau
     est = ax._est
@@ -370,11 +392,11 @@ def test_a_fast_lag_shortens_the_window_as_it_raises_kd(tau: float, want_window_
 def test_a_slow_lag_cuts_kd_at_most_to_lag_scaling_min(floor: float, want_r: float) -> None:
     """Identified at 80 ms against the configured 30 ms, kd would fall to 30/80 of
     itself; with lag_scaling_min it falls no lower than that factor."""
-    gains = MfcAxisGains(
+    gains = axis_gains(
         order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT, lag_scaling_min=floor,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT, lag_scaling_min=floor,
     )  # fmt: skip
-    ax = IntelligentController(gains)
+    ax = law(gains)
     w, ref = _fly_a_lag(ax, 2)
     assert ax.tau_s == 0.08
     got = ax.update(0.001, w + 0.1, ref, 0.0)
@@ -412,12 +434,12 @@ def test_a_strong_vehicle_keeps_more_of_kd_on_a_slow_lag(ref: float) -> None:
     """lag_scaling_authority_ref: the kd cut 30/80 is eased by sqrt(authority / ref),
     authority = identified b (alpha / margin) x the full-scale 500 us, and never past
     the unscaled kd; below ref (or with ref 0) the cut stays whole."""
-    gains = MfcAxisGains(
+    gains = axis_gains(
         order=2, alpha=1.0, window_s=0.02, kp=0.0, kd=15.0, error_limit_rad=1.0,
-        actuator_tau_s=0.03, lag_scaled_gains=True, adapt=ADAPT,
+        actuator_tau_s=0.03, lag_scaled_gains=True, alpha_adapt=ADAPT,
         lag_scaling_authority_ref=ref,
     )  # fmt: skip
-    ax = IntelligentController(gains)
+    ax = law(gains)
     w, ref_rate = _fly_a_lag(ax, 2)
     dt = 0.001
     assert ax.tau_s == 0.08

@@ -24,7 +24,9 @@ import math
 import numpy as np
 import pytest
 
-from companion.control import IntelligentController, MfcAxisGains
+from companion.config import MfcAxisConfig
+from companion.control import MfcAxisGains
+from tests.control.gains import axis, law
 from tests.control.plants import LoopResult, run_axis_loop
 
 C_DRAG = 2.0  # the plant's -c*state term, 1/s
@@ -47,13 +49,13 @@ def ref_rate_dot(t: float) -> float:
 
 def gains(order: int, window_s: float, kp: float = 100.0, kd: float = 20.0) -> MfcAxisGains:
     # Limits out of the way: this is the unsaturated law.
-    return MfcAxisGains(
+    return axis(
         order=order,
         alpha=1.0,
         window_s=window_s,
         kp=kp,
         kd=kd if order == 2 else 0.0,
-        output_limit=1e9,
+        output_limit_us=1e9,
         error_limit_rad=10.0,
     )
 
@@ -143,8 +145,8 @@ def test_same_gains_hold_when_the_plant_gain_changes(
 
 
 def test_error_is_clamped_to_error_limit() -> None:
-    g = MfcAxisGains(order=2, alpha=1.0, window_s=0.02, kp=3.0, kd=0.096, error_limit_rad=0.2)
-    ctrl = IntelligentController(g)
+    g = axis(order=2, alpha=1.0, window_s=0.02, kp=3.0, kd=0.096, error_limit_rad=0.2)
+    ctrl = law(g)
     for _ in range(100):
         ctrl.update(0.01, 5.0, 0.0, 0.0)  # 5 rad/s of error for 1 s
     assert ctrl.e == pytest.approx(0.2)
@@ -154,9 +156,9 @@ def test_error_is_clamped_to_error_limit() -> None:
 
 
 def test_ipd_law_single_step_by_hand() -> None:
-    """u = -(F_hat - ydd_r + kp e + kd e_dot) / alpha, saturated at output_limit."""
-    g = MfcAxisGains(order=2, alpha=2.0, window_s=0.02, kp=3.0, kd=0.5, output_limit=100.0)
-    ctrl = IntelligentController(g)
+    """u = -(F_hat - ydd_r + kp e + kd e_dot) / alpha, saturated at output_limit_us."""
+    g = axis(order=2, alpha=2.0, window_s=0.02, kp=3.0, kd=0.5, output_limit_us=100.0)
+    ctrl = law(g)
     # First sample primes the estimator: F_hat = 0.
     # e_dot = 1.0 - 0.25 = 0.75; e = 0 + 0.75 * 0.01 = 0.0075;
     # u = -(0 - 2.0 + 3 * 0.0075 + 0.5 * 0.75) / 2 = -(-1.6025) / 2 = 0.80125.
@@ -170,14 +172,14 @@ def test_ipd_law_single_step_by_hand() -> None:
     u = ctrl.update(0.01, 1.1, 0.25, 2.0)
     assert ctrl.f_hat == pytest.approx(8.3975, rel=1e-12)
     assert u == pytest.approx(-3.43525, rel=1e-12)
-    # Saturation at +-output_limit.
+    # Saturation at +-output_limit_us.
     assert ctrl.update(0.01, -1000.0, 0.0, 0.0) == 100.0
 
 
 def test_ip_law_single_step_by_hand() -> None:
     """u = -(F_hat - y_r' + kp e) / alpha (kd unused)."""
-    g = MfcAxisGains(order=1, alpha=0.5, window_s=0.02, kp=2.0, kd=99.0)
-    ctrl = IntelligentController(g)
+    g = axis(order=1, alpha=0.5, window_s=0.02, kp=2.0, kd=99.0)
+    ctrl = law(g)
     # e = (0.3 - 1.0) * 0.004 = -0.0028; u = -(0 - 1.0 + 2 * -0.0028) / 0.5 = 2.0112.
     assert ctrl.update(0.004, 0.3, 1.0, 123.0) == pytest.approx(2.0112, rel=1e-12)
     # F_hat (m = 1) = 0.5 - 0.5 * 2.0112 = -0.5056; e = -0.0028 - 0.002 = -0.0048;
@@ -186,12 +188,12 @@ def test_ip_law_single_step_by_hand() -> None:
 
 
 def test_reset_clears_controller_state() -> None:
-    ctrl = IntelligentController(gains(2, 0.02))
+    ctrl = law(gains(2, 0.02))
     for k in range(50):
         ctrl.update(0.004, math.sin(k), 0.3, 0.1)
     ctrl.reset()
     assert (ctrl.e, ctrl.e_dot, ctrl.f_hat, ctrl.u_prev) == (0.0, 0.0, 0.0, 0.0)
-    fresh = IntelligentController(gains(2, 0.02))
+    fresh = law(gains(2, 0.02))
     for k in range(30):
         assert ctrl.update(0.004, math.cos(k), 0.1, 0.0) == fresh.update(
             0.004, math.cos(k), 0.1, 0.0
@@ -204,12 +206,13 @@ def test_reset_clears_controller_state() -> None:
         {"order": 3},
         {"alpha": 0.0},
         {"window_s": 0.0},
-        {"output_limit": 0.0},
+        {"output_limit_us": 0.0},
         {"kp": math.nan},
         {"alpha": math.inf},
     ],
 )
 def test_axis_gains_reject_bad_values(kwargs: dict[str, float]) -> None:
+    """The schema is where a gain is checked: the law's settings come only from it."""
     base = {"order": 2, "alpha": 1.0, "window_s": 0.02, "kp": 3.0}
     with pytest.raises(ValueError):
-        MfcAxisGains(**{**base, **kwargs})  # type: ignore[arg-type]
+        MfcAxisConfig(**{**base, **kwargs})

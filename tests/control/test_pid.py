@@ -11,10 +11,11 @@ import math
 
 import pytest
 
-from companion.control import PX4_DEFAULT_GAINS, PidAxisGains, PidController, PidGains, RatePid
+from companion.control import PidController, PidGains, RatePid
+from tests.control.gains import pid_axis, px4_default_pid
 from tests.control.plants import f450_mixer
 
-AX = PidAxisGains(kp=0.5, ki=2.0, kd=0.01, kff=0.1, i_limit=0.3, d_lpf_hz=20.0)
+AX = pid_axis(kp=0.5, ki=2.0, kd=0.01, kff=0.1, i_limit=0.3, d_lpf_hz=20.0)
 GAINS = PidGains(AX, AX, AX)
 
 
@@ -43,7 +44,7 @@ def test_p_i_d_ff_by_hand() -> None:
 
 
 def test_axes_are_independent_and_signed() -> None:
-    pid = RatePid(PX4_DEFAULT_GAINS)
+    pid = RatePid(px4_default_pid())
     # Roll error +1, pitch error -2, yaw error 0.5 (first step: P + I only).
     out = pid.update(0.004, (1.0, -2.0, 0.5), (0.0, 0.0, 0.0))
     assert out == pytest.approx(
@@ -53,7 +54,7 @@ def test_axes_are_independent_and_signed() -> None:
 
 
 def test_integrator_clamped_at_i_limit() -> None:
-    g = PidAxisGains(kp=0.0, ki=10.0, kd=0.0, i_limit=0.3)
+    g = pid_axis(kp=0.0, ki=10.0, kd=0.0, i_limit=0.3)
     pid = RatePid(PidGains(g, g, g))
     for _ in range(20):  # +0.1 per step
         out = pid.update(0.01, (1.0, -1.0, 0.0), (0.0, 0.0, 0.0))
@@ -65,12 +66,12 @@ def test_integrator_clamped_at_i_limit() -> None:
 
 
 def test_output_limited() -> None:
-    pid = RatePid(PX4_DEFAULT_GAINS)
+    pid = RatePid(px4_default_pid())
     assert pid.update(0.004, (100.0, -100.0, 100.0), (0.0, 0.0, 0.0)) == (1.0, -1.0, 1.0)
 
 
 def test_anti_windup_freezes_only_the_saturated_direction() -> None:
-    g = PidAxisGains(kp=0.0, ki=1.0, kd=0.0, i_limit=1.0)
+    g = pid_axis(kp=0.0, ki=1.0, kd=0.0, i_limit=1.0)
     pid = RatePid(PidGains(g, g, g))
     pid.update(0.1, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))  # I = 0.1 on every axis
     pos = (True, False, False)
@@ -84,7 +85,7 @@ def test_anti_windup_freezes_only_the_saturated_direction() -> None:
 
 
 def test_nan_setpoint_falls_back_to_zero_error() -> None:
-    g = PidAxisGains(kp=0.5, ki=2.0, kd=0.0, kff=0.0)
+    g = pid_axis(kp=0.5, ki=2.0, kd=0.0, kff=0.0)
     pid = RatePid(PidGains(g, g, g))
     pid.update(0.01, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))  # I = 0.02
     out = pid.update(0.01, (math.nan, math.inf, 1.0), (0.3, 0.3, 0.0))
@@ -114,7 +115,7 @@ def test_gains_property_round_trips() -> None:
 def test_pid_controller_anti_windup_from_mixer_feedback() -> None:
     """A huge roll error saturates the mixer; from the next sample on the
     integrator stops growing in that direction."""
-    ctrl = PidController(PX4_DEFAULT_GAINS, f450_mixer())
+    ctrl = PidController(px4_default_pid(), f450_mixer())
     dt = 0.004
     for _ in range(10):
         out = ctrl.update(dt, (0.0, 0.0, 0.0), (50.0, 0.0, 0.0), 0.5)
@@ -141,11 +142,11 @@ def test_pid_controller_holds_its_integrator_on_the_ground() -> None:
     """On its legs a held roll stick is a rate error the vehicle cannot answer; the
     integrator must not wind up there and tip the vehicle at lift-off (PX4 holds it
     while landed). In the air it integrates again."""
-    ctrl = PidController(PX4_DEFAULT_GAINS, f450_mixer())
+    ctrl = PidController(px4_default_pid(), f450_mixer())
     ctrl.on_ground = True
     for _ in range(500):  # 2 s of a 1 rad/s roll request at 250 Hz
         ctrl.update(0.004, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.3)
     assert ctrl._pid.integral == (0.0, 0.0, 0.0)
     ctrl.on_ground = False
     ctrl.update(0.004, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.3)
-    assert ctrl._pid.integral[0] == pytest.approx(PX4_DEFAULT_GAINS.roll.ki * 1.0 * 0.004)
+    assert ctrl._pid.integral[0] == pytest.approx(px4_default_pid().roll.ki * 1.0 * 0.004)

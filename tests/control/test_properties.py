@@ -22,12 +22,12 @@ from hypothesis import strategies as st
 
 from companion.config import DEFAULT_CONTROLLER, build_controller, load_controller
 from companion.control import (
-    PX4_DEFAULT_GAINS,
     ControlOutput,
     MfcController,
     MixResult,
     PidController,
 )
+from tests.control.gains import px4_default_pid
 from tests.control.plants import f450_mixer, f450_profile
 
 SPECIALS = [math.nan, math.inf, -math.inf, 0.0, -0.0]
@@ -85,7 +85,7 @@ def make_mfc() -> MfcController:
 
 
 def make_pid() -> PidController:
-    return PidController(PX4_DEFAULT_GAINS, f450_mixer())
+    return PidController(px4_default_pid(), f450_mixer())
 
 
 def run(
