@@ -238,13 +238,55 @@ ARDUPILOT_STICK_PARAMS = StickParams(
 
 
 @dataclass(frozen=True)
+class ModeCodec:
+    """How a stack shows a mode in HEARTBEAT ``custom_mode``, and sets it with
+    ``MAV_CMD_DO_SET_MODE``'s param2 and param3.
+
+    PX4 packs a main mode in bits 16-23 and a sub mode in bits 24-31 (its
+    ``px4_custom_mode`` union); a mode is recognised by its main mode, and
+    DO_SET_MODE takes the two as param2 and param3. ArduPilot's ``custom_mode``
+    is the mode number itself, DO_SET_MODE's param2."""
+
+    main_shift: int
+    main_mask: int
+    sub_shift: int | None
+    """None: the stack has no sub modes."""
+
+    def custom_mode(self, param2: float, param3: float) -> int:
+        """The ``custom_mode`` a switch to (param2, param3) shows."""
+        value = int(param2) << self.main_shift
+        return value if self.sub_shift is None else value | int(param3) << self.sub_shift
+
+    def main(self, custom_mode: int) -> int:
+        """The main mode of a ``custom_mode``."""
+        return (custom_mode >> self.main_shift) & self.main_mask
+
+    def unnamed(self, custom_mode: int) -> str:
+        """A label for a ``custom_mode`` the stack's tables do not name."""
+        if self.sub_shift is None:
+            return f"mode {custom_mode}"
+        sub = (custom_mode >> self.sub_shift) & 0xFF
+        main = self.main(custom_mode)
+        return f"main {main} sub {sub}" if sub else f"main {main}"
+
+
+PX4_MODES = ModeCodec(main_shift=16, main_mask=0xFF, sub_shift=24)
+ARDUPILOT_MODES = ModeCodec(main_shift=0, main_mask=0xFFFFFFFF, sub_shift=None)
+
+
+@dataclass(frozen=True, eq=False)
 class FlightStack:
-    """One flight stack's dialect."""
+    """One flight stack's dialect (each exists once: compared and hashed by identity)."""
 
     name: str
+    display_name: str
+    """How the stack is named to a pilot ("PX4", "ArduPilot")."""
     autopilot_id: int
+    modes: ModeCodec
     engage_mode: tuple[float, float]
     """DO_SET_MODE param2, param3 that engage the companion."""
+    engage_label: str
+    """The engage mode's name as the stack calls it."""
     safe_modes: dict[str, SafeMode] = field(default_factory=dict)
     auto_safe_modes: tuple[str, ...] = ()
     """``--safe-mode auto``'s candidates, most capable first (companion.handback)."""
@@ -270,21 +312,12 @@ class FlightStack:
     stick_params: StickParams = PX4_STICK_PARAMS
     """What limits the sticks in its angle, altitude and position modes."""
 
-    @property
-    def engage_label(self) -> str:
-        """The engage mode's name as the stack calls it."""
-        return "OFFBOARD" if self.name == "px4" else "GUIDED_NOGPS"
-
     def is_engage_mode(self, custom_mode: int) -> bool:
-        if self.name == "px4":
-            return ((custom_mode >> 16) & 0xFF) == int(self.engage_mode[0])
-        return custom_mode == int(self.engage_mode[0])
+        return self.modes.main(custom_mode) == int(self.engage_mode[0])
 
     def custom_mode(self, mode: SafeMode) -> int:
         """The HEARTBEAT ``custom_mode`` that shows ``mode``."""
-        if self.name == "px4":
-            return (int(mode.param2) << 16) | (int(mode.param3) << 24)
-        return int(mode.param2)
+        return self.modes.custom_mode(mode.param2, mode.param3)
 
     def safe_mode_shown(self, custom_mode: int) -> SafeMode | None:
         """The safe mode a HEARTBEAT ``custom_mode`` shows, or None."""
@@ -307,10 +340,7 @@ class FlightStack:
         named = self.mode_names.get(custom_mode)
         if named is not None:
             return named
-        if self.name == "px4":
-            main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-            return f"main {main} sub {sub}" if sub else f"main {main}"
-        return f"mode {custom_mode}"
+        return self.modes.unnamed(custom_mode)
 
     def mode(self, name: str) -> SafeMode:
         """A safe mode by name.
@@ -331,8 +361,11 @@ class FlightStack:
 
 PX4 = FlightStack(
     name="px4",
+    display_name="PX4",
     autopilot_id=12,
+    modes=PX4_MODES,
     engage_mode=(6.0, 0.0),
+    engage_label="OFFBOARD",
     safe_modes={
         m.name: m
         for m in (
@@ -368,8 +401,11 @@ PX4 = FlightStack(
 
 ARDUPILOT = FlightStack(
     name="ardupilot",
+    display_name="ArduPilot",
     autopilot_id=3,
+    modes=ARDUPILOT_MODES,
     engage_mode=(20.0, 0.0),
+    engage_label="GUIDED_NOGPS",
     safe_modes={
         m.name: m
         for m in (

@@ -436,3 +436,22 @@ def test_px4_in_joystick_mode_without_a_joystick_fails_naming_both_ways() -> Non
 def test_a_joystick_engage_channel_must_be_an_aux_channel() -> None:
     check = line(judge(joystick_only(), plan(engage_channel=12), GOOD_CORE), "engage switch")
     assert check.status == "fail" and "aux1..aux6 are channels 5..10" in check.detail
+
+
+def test_preflight_reads_what_its_rules_judge_and_no_parameter_twice() -> None:
+    """Regression check of the table (companion/preflight/rules.py): today's lists."""
+    from companion.preflight import params_read
+    from companion.stacks import ARDUPILOT, PX4
+
+    assert params_read(PX4) == (
+        "COM_OF_LOSS_T", "COM_OBL_RC_ACT", "COM_RC_LOSS_T", "NAV_RCL_ACT", "COM_RCL_EXCEPT",
+        "COM_RC_IN_MODE", "RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW",
+        "RC_MAP_FLTMODE", "IMU_GYRO_RATEMAX",
+    )  # fmt: skip
+    assert params_read(ARDUPILOT) == (
+        "GUID_OPTIONS", "GUID_TIMEOUT", "MAV_GCS_SYSID", "FS_THR_ENABLE", "FS_OPTIONS",
+        "RC_FS_TIMEOUT", "SCHED_LOOP_RATE", "RCMAP_ROLL", "RCMAP_PITCH", "RCMAP_THROTTLE",
+        "RCMAP_YAW", "FLTMODE_CH",
+    )  # fmt: skip
+    for stack in (PX4, ARDUPILOT):
+        assert len(set(params_read(stack))) == len(params_read(stack))

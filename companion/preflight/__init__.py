@@ -12,8 +12,6 @@ that is planned, tested against exact answers.
 
 from companion.preflight.judge import judge, summary
 from companion.preflight.model import (
-    ARDUPILOT_PARAMS,
-    PX4_PARAMS,
     Check,
     CoreCost,
     Observed,
@@ -21,10 +19,9 @@ from companion.preflight.model import (
     Status,
 )
 from companion.preflight.observe import as_data, measure_core, observe
+from companion.preflight.rules import params_read
 
 __all__ = [
-    "ARDUPILOT_PARAMS",
-    "PX4_PARAMS",
     "Check",
     "CoreCost",
     "Observed",
@@ -34,5 +31,6 @@ __all__ = [
     "judge",
     "measure_core",
     "observe",
+    "params_read",
     "summary",
 ]

@@ -10,7 +10,8 @@ from collections.abc import Iterable
 
 from companion.link.timesync import LINK_RTT_SHOWN_MS
 from companion.preflight.model import Check, CoreCost, Observed, Plan
-from companion.stacks import ARDUPILOT, PX4, FlightStack
+from companion.preflight.rules import judge_params
+from companion.stacks import FlightStack
 
 __all__ = ["judge", "summary"]
 
@@ -21,47 +22,6 @@ _LANDED_STATES = {0: "undefined", 1: "on ground", 2: "in air", 3: "taking off", 
 _SWITCH_HIGH_US = (1700, 2200)
 """The engage switch counts as high in this range (companion.samples)."""
 _SWITCH_LOW_BELOW_US = 1300
-
-_PX4_OBL_ACTIONS = {
-    0: "Position mode",
-    1: "Altitude mode",
-    2: "Manual",
-    3: "Return",
-    4: "Land",
-    5: "Hold",
-    6: "Terminate",
-    7: "Disarm",
-}
-_PX4_RCL_ACTIONS = {0: "Disabled", 1: "Hold", 2: "Return", 3: "Land", 5: "Terminate", 6: "Disarm"}
-_PX4_RC_IN_MODES = {
-    0: "RC only",
-    1: "MAVLink joystick only",
-    2: "RC and joystick with fallback",
-    3: "RC or joystick, first kept",
-    4: "stick input disabled",
-}
-_ARDU_FS_THR = {
-    0: "disabled",
-    1: "RTL",
-    2: "continue mission in auto",
-    3: "land",
-    4: "SmartRTL or RTL",
-    5: "SmartRTL or land",
-    6: "auto DO_LAND_START or RTL",
-    7: "brake or land",
-}
-
-_PX4_LOSS_S = 0.3
-"""PX4 holds the companion's last setpoint for ``COM_OF_LOSS_T`` after the companion
-dies or its link is lost: 0.3 s is the most it should be with either output (a
-body rate held 1 s from a roll cost up to 26 m; docs/failsafes.md, "The companion
-dies")."""
-_PX4_LOSS_FAIL_S = {"actuator": 0.9, "rates": 3.0}
-"""Beyond these it fails: a torque held 1 s from a roll ran away to thousands of
-deg/s; a body rate held stays bounded by PX4's rate loop."""
-_GUID_TIMEOUT_S = 1.0
-"""ArduPilot's ``GUID_TIMEOUT``: it holds the last rate that long, then levels."""
-_RC_LOSS_MAX_S = 1.0
 _CORE_WARN_SHARE = 0.25
 """The law's update may take this share of the loop period before it is a warning:
 the sample path also decodes, gates, logs and sends."""
@@ -81,11 +41,8 @@ def judge(obs: Observed, plan: Plan, core: CoreCost | None = None) -> list[Check
     checks.append(_check_output(obs, plan, stack))
     checks.append(_check_armed(obs))
     checks.extend(_check_ids(obs, plan))
-    if stack is PX4:
-        joystick = obs.joystick_messages > 0 and obs.rc_messages == 0
-        checks.extend(_px4_params(obs.params, plan, joystick=joystick))
-    else:
-        checks.extend(_ardupilot_params(obs.params, plan))
+    joystick = obs.joystick_messages > 0 and obs.rc_messages == 0
+    checks.extend(judge_params(stack, obs.params, plan, joystick=joystick))
     checks.append(_check_imu_rate(obs, plan, stack))
     checks.append(_check_round_trip(obs))
     checks.extend(_check_rc(obs, plan))
@@ -149,24 +106,24 @@ def _check_link_up(obs: Observed, plan: Plan) -> Check:
             f"autopilot type {obs.autopilot_id} is not supported",
             "the companion flies PX4 (autopilot 12) and ArduPilot Copter (autopilot 3)",
         )
-    name = "PX4" if obs.stack is PX4 else "ArduPilot"
+    name = obs.stack.display_name
     version = ".".join(map(str, obs.version)) if obs.version else "version unknown"
     return Check("link", "pass", f"{name} {version}, system {obs.target[0]} component "
                  f"{obs.target[1]}" if obs.target else f"{name} {version}")  # fmt: skip
 
 
 def _check_output(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
-    name = "PX4" if stack is PX4 else "ArduPilot"
+    name = stack.display_name
     if obs.version is None:
         shown = "no AUTOPILOT_VERSION answer"
     else:
         shown = f"{name} {'.'.join(map(str, obs.version))}"
     if plan.output == "actuator":
-        if stack is ARDUPILOT:
+        if not stack.supports_actuator_output:
             return Check(
                 "output",
                 "fail",
-                "ArduPilot accepts no actuator setpoints over MAVLink",
+                f"{stack.display_name} accepts no actuator setpoints over MAVLink",
                 "run with --output rates (body rates, SET_ATTITUDE_TARGET)",
             )
         if obs.version is None:
@@ -198,8 +155,9 @@ def _check_output(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
             f"{shown} does not advertise SET_ATTITUDE_TARGET",
             "check the firmware: body-rate setpoints need it",
         )
-    mode = "OFFBOARD" if stack is PX4 else "GUIDED_NOGPS"
-    return Check("output", "pass", f"{shown} takes body rates in {mode} (--output rates)")
+    return Check(
+        "output", "pass", f"{shown} takes body rates in {stack.engage_label} (--output rates)"
+    )
 
 
 def _check_armed(obs: Observed) -> Check:
@@ -234,320 +192,6 @@ def _check_ids(obs: Observed, plan: Plan) -> list[Check]:
             else f"companion {ours[0]}/{ours[1]}",
         )
     ]
-
-
-def _missing(name: str, label: str = "") -> Check:
-    return Check(
-        label or name,
-        "warn",
-        f"{name} not read (no PARAM_VALUE)",
-        f"check {name} in a ground station",
-    )
-
-
-def _px4_params(p: dict[str, float | None], plan: Plan, *, joystick: bool = False) -> list[Check]:
-    """PX4's parameters; ``joystick``: the pilot is a ground station's joystick (no
-    radio), whose axes PX4 maps itself."""
-    out: list[Check] = []
-    t = p.get("COM_OF_LOSS_T")
-    if t is None:
-        out.append(_missing("COM_OF_LOSS_T"))
-    else:
-        bound = _PX4_LOSS_S
-        what = "torque" if plan.output == "actuator" else "body rate"
-        fail_s = _PX4_LOSS_FAIL_S["actuator" if plan.output == "actuator" else "rates"]
-        if t <= bound + 1e-6:
-            out.append(Check("COM_OF_LOSS_T", "pass", f"{t:g} s (<= {bound:g} s)"))
-        else:
-            out.append(
-                Check(
-                    "COM_OF_LOSS_T",
-                    "fail" if t > fail_s + 1e-6 else "warn",
-                    f"{t:g} s: a companion that dies, or whose link is lost, leaves the "
-                    f"last {what} held that long",
-                    f"set COM_OF_LOSS_T to {bound:g}",
-                )
-            )
-    act = p.get("COM_OBL_RC_ACT")
-    if act is None:
-        out.append(_missing("COM_OBL_RC_ACT"))
-    else:
-        label = _PX4_OBL_ACTIONS.get(int(act), f"value {int(act)}")
-        if int(act) in (6, 7):
-            out.append(
-                Check(
-                    "COM_OBL_RC_ACT",
-                    "fail",
-                    f"{int(act)} ({label}): a lost companion link drops the vehicle",
-                    "set COM_OBL_RC_ACT to 0 (Position mode) or 1 (Altitude mode)",
-                )
-            )
-        elif int(act) not in _PX4_OBL_ACTIONS:
-            out.append(
-                Check("COM_OBL_RC_ACT", "warn", f"{label}: not a known action", "set it to 0")
-            )
-        else:
-            out.append(Check("COM_OBL_RC_ACT", "pass", f"{int(act)} ({label}) on offboard loss"))
-    t = p.get("COM_RC_LOSS_T")
-    if t is None:
-        out.append(_missing("COM_RC_LOSS_T"))
-    elif t <= _RC_LOSS_MAX_S + 1e-6:
-        out.append(Check("COM_RC_LOSS_T", "pass", f"{t:g} s"))
-    else:
-        out.append(
-            Check(
-                "COM_RC_LOSS_T",
-                "warn",
-                f"{t:g} s before a lost radio counts",
-                f"set COM_RC_LOSS_T to at most {_RC_LOSS_MAX_S:g} (default 0.5)",
-            )
-        )
-    act = p.get("NAV_RCL_ACT")
-    if act is None:
-        out.append(_missing("NAV_RCL_ACT"))
-    else:
-        label = _PX4_RCL_ACTIONS.get(int(act), f"value {int(act)}")
-        if int(act) in (0, 5, 6):
-            out.append(
-                Check(
-                    "NAV_RCL_ACT",
-                    "fail",
-                    f"{int(act)} ({label}) on RC loss",
-                    "set NAV_RCL_ACT to 2 (Return), 3 (Land) or 1 (Hold)",
-                )
-            )
-        else:
-            out.append(Check("NAV_RCL_ACT", "pass", f"{int(act)} ({label}) on RC loss"))
-    ex = p.get("COM_RCL_EXCEPT")
-    if ex is None:
-        out.append(_missing("COM_RCL_EXCEPT"))
-    elif int(ex) & 4:
-        out.append(
-            Check(
-                "COM_RCL_EXCEPT",
-                "warn",
-                f"{int(ex)}: bit 2 set, PX4 ignores RC loss in OFFBOARD",
-                "clear bit 2 so the autopilot acts on a lost radio too (the companion's own "
-                f"RC-loss failsafe is the only one otherwise): COM_RCL_EXCEPT = {int(ex) & ~4}",
-            )
-        )
-    else:
-        out.append(Check("COM_RCL_EXCEPT", "pass", f"{int(ex)}: RC loss acted on in OFFBOARD"))
-    mode = p.get("COM_RC_IN_MODE")
-    if mode is None:
-        out.append(_missing("COM_RC_IN_MODE"))
-    else:
-        label = _PX4_RC_IN_MODES.get(int(mode), f"value {int(mode)}")
-        if int(mode) in (1, 4) and plan.engage == "rc-switch" and not joystick:
-            out.append(
-                Check(
-                    "COM_RC_IN_MODE",
-                    "fail",
-                    f"{int(mode)} ({label}): no radio reaches the autopilot and no joystick "
-                    "was seen, so no engage switch",
-                    "set COM_RC_IN_MODE to 0 (RC only), or fly a joystick from a ground "
-                    "station with a button on aux1",
-                )
-            )
-        else:
-            out.append(Check("COM_RC_IN_MODE", "pass", f"{int(mode)} ({label})"))
-    if not joystick:
-        out.extend(
-            _rc_map(
-                p,
-                plan,
-                ("RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW"),
-                "RC_MAP_FLTMODE",
-            )
-        )
-    gyro = p.get("IMU_GYRO_RATEMAX")
-    if gyro is None:
-        out.append(_missing("IMU_GYRO_RATEMAX"))
-    elif gyro + 1e-6 < plan.rate_hz:
-        out.append(
-            Check(
-                "IMU_GYRO_RATEMAX",
-                "warn",
-                f"{gyro:g} Hz: below the loop rate asked ({plan.rate_hz:g} Hz)",
-                f"set IMU_GYRO_RATEMAX to at least {plan.rate_hz:g}, or run with "
-                f"--rate-hz {gyro:g}",
-            )
-        )
-    else:
-        out.append(Check("IMU_GYRO_RATEMAX", "pass", f"{gyro:g} Hz"))
-    return out
-
-
-def _rc_map(
-    p: dict[str, float | None], plan: Plan, names: tuple[str, str, str, str], mode_name: str
-) -> list[Check]:
-    """The autopilot's stick channels against the controller's, and the flight-mode
-    channel against the engage channel."""
-    out: list[Check] = []
-    seen = [p.get(n) for n in names]
-    if any(v is None for v in seen):
-        out.append(_missing(", ".join(n for n, v in zip(names, seen) if v is None), "RC map"))
-    else:
-        theirs = tuple(int(v) for v in seen if v is not None)
-        unmapped = [n for n, c in zip(names, theirs) if c == 0]
-        if unmapped:
-            out.append(
-                Check(
-                    "RC map",
-                    "fail",
-                    f"{', '.join(unmapped)} 0: no channel mapped at the autopilot",
-                    "calibrate the radio in a ground station (it sets "
-                    + ", ".join(names)
-                    + f" to channels {_chans(plan.sticks_channels)})",
-                )
-            )
-        elif theirs != plan.sticks_channels:
-            out.append(
-                Check(
-                    "RC map",
-                    "fail",
-                    f"roll/pitch/throttle/yaw on channels {_chans(theirs)} at the autopilot, "
-                    f"{_chans(plan.sticks_channels)} in the controller config",
-                    "make them the same: the controller config's sticks.channels, or "
-                    + ", ".join(names),
-                )
-            )
-        else:
-            out.append(Check("RC map", "pass", f"roll/pitch/throttle/yaw on {_chans(theirs)}"))
-    if plan.engage == "rc-switch":
-        fm = p.get(mode_name)
-        if fm is not None and int(fm) == plan.engage_channel:
-            out.append(
-                Check(
-                    mode_name,
-                    "fail",
-                    f"channel {int(fm)} is the flight-mode switch and the engage switch",
-                    f"move the engage switch (--engage-channel) or {mode_name} to another channel",
-                )
-            )
-        elif fm is not None and 1 <= int(fm) <= 18 and int(fm) in plan.sticks_channels:
-            out.append(
-                Check(mode_name, "fail", f"channel {int(fm)} is also a stick", f"fix {mode_name}")
-            )
-    return out
-
-
-def _chans(c: tuple[int, ...]) -> str:
-    return "/".join(str(x) for x in c)
-
-
-def _ardupilot_params(p: dict[str, float | None], plan: Plan) -> list[Check]:
-    out: list[Check] = []
-    g = p.get("GUID_OPTIONS")
-    if g is None:
-        out.append(_missing("GUID_OPTIONS"))
-    elif plan.output == "rates" and not int(g) & 8:
-        out.append(
-            Check(
-                "GUID_OPTIONS",
-                "fail",
-                f"{int(g)}: bit 3 clear, SET_ATTITUDE_TARGET thrust is read as a climb rate",
-                f"set GUID_OPTIONS to {int(g) | 8} (add 8: thrust is thrust); companion run "
-                "refuses to start otherwise",
-            )
-        )
-    else:
-        out.append(Check("GUID_OPTIONS", "pass", f"{int(g)}: thrust is a normalised thrust"))
-    t = p.get("GUID_TIMEOUT")
-    if t is None:
-        out.append(_missing("GUID_TIMEOUT"))
-    elif t <= _GUID_TIMEOUT_S + 1e-6:
-        out.append(Check("GUID_TIMEOUT", "pass", f"{t:g} s"))
-    else:
-        out.append(
-            Check(
-                "GUID_TIMEOUT",
-                "warn",
-                f"{t:g} s: a lost companion link holds the last body rate that long "
-                "before the vehicle levels",
-                f"set GUID_TIMEOUT to {_GUID_TIMEOUT_S:g}",
-            )
-        )
-    name = "MAV_GCS_SYSID" if p.get("MAV_GCS_SYSID") is not None else "SYSID_MYGCS"
-    gcs = p.get(name)
-    if gcs is None:
-        out.append(_missing("MAV_GCS_SYSID or SYSID_MYGCS", "MAV_GCS_SYSID"))
-    elif int(gcs) == plan.source_system:
-        out.append(
-            Check(
-                name,
-                "warn",
-                f"{int(gcs)}: the companion's system id is the ground station's, so its "
-                "heartbeat hides a lost ground station",
-                f"set {name} to the ground station's id (255 by default)",
-            )
-        )
-    else:
-        out.append(
-            Check(name, "pass", f"{int(gcs)}: RC overrides and GCS failsafe from that system")
-        )
-    fs = p.get("FS_THR_ENABLE")
-    if fs is None:
-        out.append(_missing("FS_THR_ENABLE"))
-    elif int(fs) == 0:
-        out.append(
-            Check(
-                "FS_THR_ENABLE",
-                "fail",
-                "0: no radio failsafe",
-                "set FS_THR_ENABLE to 1 (RTL) or 3 (land)",
-            )
-        )
-    else:
-        label = _ARDU_FS_THR.get(int(fs), f"value {int(fs)}")
-        out.append(Check("FS_THR_ENABLE", "pass", f"{int(fs)} ({label}) on RC loss"))
-    opt = p.get("FS_OPTIONS")
-    if opt is None:
-        out.append(_missing("FS_OPTIONS"))
-    elif int(opt) & 4:
-        out.append(
-            Check(
-                "FS_OPTIONS",
-                "warn",
-                f"{int(opt)}: bit 2 set, GUIDED continues on RC loss",
-                f"clear bit 2 (FS_OPTIONS = {int(opt) & ~4}) so a lost radio is acted on while "
-                "the companion flies",
-            )
-        )
-    else:
-        out.append(Check("FS_OPTIONS", "pass", f"{int(opt)}: RC loss acted on in GUIDED"))
-    t = p.get("RC_FS_TIMEOUT")
-    if t is not None:
-        if t <= _RC_LOSS_MAX_S + 1e-6:
-            out.append(Check("RC_FS_TIMEOUT", "pass", f"{t:g} s"))
-        else:
-            out.append(
-                Check(
-                    "RC_FS_TIMEOUT",
-                    "warn",
-                    f"{t:g} s before a lost radio counts",
-                    f"set RC_FS_TIMEOUT to at most {_RC_LOSS_MAX_S:g}",
-                )
-            )
-    loop = p.get("SCHED_LOOP_RATE")
-    if loop is None:
-        out.append(_missing("SCHED_LOOP_RATE"))
-    elif 0.8 * loop + 1e-6 < plan.rate_hz:
-        out.append(
-            Check(
-                "SCHED_LOOP_RATE",
-                "warn",
-                f"{loop:g} Hz: ArduPilot streams at most {0.8 * loop:g} Hz, below the "
-                f"{plan.rate_hz:g} Hz asked",
-                f"run with --rate-hz {math.floor(0.8 * loop):g}, or raise SCHED_LOOP_RATE",
-            )
-        )
-    else:
-        out.append(Check("SCHED_LOOP_RATE", "pass", f"{loop:g} Hz"))
-    out.extend(
-        _rc_map(p, plan, ("RCMAP_ROLL", "RCMAP_PITCH", "RCMAP_THROTTLE", "RCMAP_YAW"), "FLTMODE_CH")
-    )
-    return out
 
 
 def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:

@@ -13,42 +13,9 @@ from companion.stacks import FlightStack, stack_for
 if TYPE_CHECKING:
     from companion.fly_check import FlyCheck
 
-__all__ = ["ARDUPILOT_PARAMS", "PX4_PARAMS", "Check", "CoreCost", "Observed", "Plan", "Status"]
+__all__ = ["Check", "CoreCost", "Observed", "Plan", "Status"]
 
 Status = Literal["pass", "warn", "fail"]
-
-PX4_PARAMS = (
-    "COM_OF_LOSS_T",
-    "COM_OBL_RC_ACT",
-    "COM_RC_LOSS_T",
-    "NAV_RCL_ACT",
-    "COM_RCL_EXCEPT",
-    "COM_RC_IN_MODE",
-    "RC_MAP_ROLL",
-    "RC_MAP_PITCH",
-    "RC_MAP_THROTTLE",
-    "RC_MAP_YAW",
-    "RC_MAP_FLTMODE",
-    "IMU_GYRO_RATEMAX",
-)
-"""What preflight reads from PX4 (its parameter reference has each)."""
-
-ARDUPILOT_PARAMS = (
-    "GUID_OPTIONS",
-    "GUID_TIMEOUT",
-    "MAV_GCS_SYSID",
-    "FS_THR_ENABLE",
-    "FS_OPTIONS",
-    "RC_FS_TIMEOUT",
-    "SCHED_LOOP_RATE",
-    "RCMAP_ROLL",
-    "RCMAP_PITCH",
-    "RCMAP_THROTTLE",
-    "RCMAP_YAW",
-    "FLTMODE_CH",
-)
-"""What preflight reads from ArduPilot Copter (MAV_GCS_SYSID from 4.7; SYSID_MYGCS,
-its name before, is read when it is missing)."""
 
 
 @dataclass(frozen=True)

@@ -15,15 +15,8 @@ from companion.control.sticks import joystick_channels
 from companion.errors import LinkError
 from companion.link.timesync import LinkClock
 from companion.preflight.judge import summary
-from companion.preflight.model import (
-    ARDUPILOT_PARAMS,
-    PX4_PARAMS,
-    Check,
-    CoreCost,
-    Observed,
-    Plan,
-)
-from companion.stacks import ARDUPILOT, PX4
+from companion.preflight.model import Check, CoreCost, Observed, Plan
+from companion.preflight.rules import OLDER_NAMES, params_read
 from companion.step import LANDED_STATE_RATE_HZ
 
 __all__ = ["as_data", "measure_core", "observe"]
@@ -101,14 +94,15 @@ async def observe(
     if stack is None:
         return obs
     await _read_version(link, watcher)
-    names = PX4_PARAMS if stack is PX4 else ARDUPILOT_PARAMS
+    names = params_read(stack)
     if obs.frames_signed and not plan.signing:
         # It would refuse everything we send: nothing more to learn.
         return obs
     for name in names:
         obs.params[name] = await _param(link, name)
-    if stack is ARDUPILOT and obs.params.get("MAV_GCS_SYSID") is None:
-        obs.params["SYSID_MYGCS"] = await _param(link, "SYSID_MYGCS")
+        older = OLDER_NAMES.get(name)
+        if older is not None and obs.params[name] is None:
+            obs.params[older] = await _param(link, older)
     imu_id = _MSG_HIGHRES_IMU if stack.imu_message == "highres_imu" else _MSG_ATTITUDE
     obs.imu_message = "HIGHRES_IMU" if imu_id == _MSG_HIGHRES_IMU else "ATTITUDE"
     obs.imu_asked_hz = min(plan.rate_hz, stack.max_imu_rate_hz)
