@@ -3,9 +3,10 @@
 :class:`GroundStation` is what a test needs beside the companion: it sets and
 reads parameters, sends commands (mode, arm, take-off), records what the
 autopilot says about the flight (attitude, position, mode, status, its
-STATUSTEXTs), and flies the pilot's sticks: PX4 SIH has no radio, so the sticks
-go as ``MANUAL_CONTROL`` on the ground station's link (joystick input, with
-``aux1..6`` as the switches); ArduCopter's SITL takes RC pulses on a UDP port.
+STATUSTEXTs), uploads a mission (the MAVLink mission protocol), and flies the
+pilot's sticks: PX4 SIH has no radio, so the sticks go as ``MANUAL_CONTROL`` on
+the ground station's link (joystick input, with ``aux1..6`` as the switches);
+ArduCopter's SITL takes RC pulses on a UDP port.
 
 One background thread receives and sends; the calls from the test's thread
 only queue frames under a lock and wait on what the thread records.
@@ -20,7 +21,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,7 +29,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from pymavlink import mavutil
 
-__all__ = ["GroundStation", "Sample", "SticksFn", "Telemetry"]
+__all__ = ["GroundStation", "MissionItem", "Sample", "SticksFn", "Telemetry"]
 
 SticksFn = Callable[["Telemetry"], tuple[int, ...] | None]
 """The pilot: from what the ground station sees, RC channels in us (AETR, then
@@ -79,6 +80,19 @@ class Telemetry:
     rc_healthy: bool | None = None
 
 
+@dataclass(frozen=True)
+class MissionItem:
+    """One MISSION_ITEM_INT: a command at a global position (``frame`` a MAV_FRAME,
+    ``MAV_FRAME_GLOBAL_RELATIVE_ALT_INT`` (6) by default: the altitude above home)."""
+
+    command: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    params: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    frame: int = 6
+
+
 @dataclass
 class _Pending:
     kind: str
@@ -120,7 +134,7 @@ class GroundStation:
         self._pending: list[_Pending] = []
         self._pilot: SticksFn | None = None
         self.pilot_error: Exception | None = None
-        self._home: float | None = None
+        self._upload: tuple[MissionItem, ...] = ()
         self._pilot_period_s = 0.02
         self._rc_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM) if rc_port else None
         self._thread = threading.Thread(target=self._loop, name="gcs", daemon=True)
@@ -267,6 +281,34 @@ class GroundStation:
                     return confirmed
         raise RuntimeError(f"{self.stack} did not confirm {name} = {value:g}")
 
+    def upload_mission(self, items: Sequence[MissionItem], timeout_s: float = 10.0) -> int | None:
+        """Replace the autopilot's mission with ``items`` (the mission protocol:
+        MISSION_COUNT, then each MISSION_ITEM_INT it asks for with MISSION_REQUEST_INT
+        or MISSION_REQUEST); the MISSION_ACK's type (0: accepted; None: no answer)."""
+        with self._lock:
+            self._upload = tuple(items)
+        try:
+            for _ in range(2):
+                pend = self._expect("mission_ack", 0)
+                self.send("mission_count_send", self.target, 1, len(items), 0)
+                if pend.event.wait(timeout_s / 2):
+                    return int(pend.result)
+            return None
+        finally:
+            with self._lock:
+                self._upload = ()
+
+    def _send_mission_item(self, seq: int) -> None:
+        with self._lock:
+            items = self._upload
+        if not 0 <= seq < len(items):
+            return
+        it = items[seq]
+        self.send(
+            "mission_item_int_send", self.target, 1, seq, it.frame, it.command,
+            0, 1, *it.params, round(it.lat_deg * 1e7), round(it.lon_deg * 1e7), it.alt_m, 0,
+        )  # fmt: skip
+
     def _expect(self, kind: str, key: Any) -> _Pending:
         pend = _Pending(kind, key)
         with self._lock:
@@ -340,7 +382,16 @@ class GroundStation:
             rc = 1 << 16
             now.rc_healthy = bool(msg.onboard_control_sensors_health & rc)
         elif mtype == "HOME_POSITION":
-            self._home = msg.altitude * 1e-3
+            self._resolve("message", mtype, msg.altitude * 1e-3)
+        elif mtype == "GLOBAL_POSITION_INT":
+            got = (msg.lat * 1e-7, msg.lon * 1e-7, msg.relative_alt * 1e-3)
+            self._resolve("message", mtype, got)
+        elif mtype in ("MISSION_REQUEST_INT", "MISSION_REQUEST"):
+            if getattr(msg, "mission_type", 0) == 0:
+                self._send_mission_item(int(msg.seq))
+        elif mtype == "MISSION_ACK":
+            if getattr(msg, "mission_type", 0) == 0:
+                self._resolve("mission_ack", 0, int(msg.type))
         elif mtype == "STATUSTEXT":
             text = msg.text if isinstance(msg.text, str) else msg.text.decode(errors="replace")
             self.texts.append((t, text.rstrip("\x00")))
@@ -364,16 +415,23 @@ class GroundStation:
 
     def home_altitude_m(self, timeout_s: float = 3.0) -> float:
         """The home position's altitude (AMSL, m), asked for (MAV_CMD_REQUEST_MESSAGE)."""
-        self._home = None
+        return float(self._request_message(242, "HOME_POSITION", timeout_s))
+
+    def global_position(self, timeout_s: float = 3.0) -> tuple[float, float, float]:
+        """(latitude deg, longitude deg, altitude above home m) of the vehicle now
+        (GLOBAL_POSITION_INT, asked for with MAV_CMD_REQUEST_MESSAGE)."""
+        lat, lon, up = self._request_message(33, "GLOBAL_POSITION_INT", timeout_s)
+        return float(lat), float(lon), float(up)
+
+    def _request_message(self, msg_id: int, name: str, timeout_s: float) -> Any:
+        """What :meth:`_on_message` makes of the next ``name``, asked for every 0.5 s."""
         deadline = time.monotonic() + timeout_s
-        while self._home is None and time.monotonic() < deadline:
-            self.send("command_long_send", self.target, 1, 512, 0, 242, 0, 0, 0, 0, 0, 0)
-            end = time.monotonic() + 0.5
-            while self._home is None and time.monotonic() < end:
-                time.sleep(0.02)
-        if self._home is None:
-            raise TimeoutError(f"no HOME_POSITION from the {self.stack} SITL")
-        return self._home
+        while time.monotonic() < deadline:
+            pend = self._expect("message", name)
+            self.send("command_long_send", self.target, 1, 512, 0, msg_id, 0, 0, 0, 0, 0, 0)
+            if pend.event.wait(min(0.5, max(0.0, deadline - time.monotonic()))):
+                return pend.result
+        raise TimeoutError(f"no {name} from the {self.stack} SITL")
 
     # ------------------------------------------------------------------ readings
     def series(self, mtype: str, *names: str, since_s: float = 0.0) -> list[tuple[float, ...]]:

@@ -51,11 +51,13 @@ __all__ = [
     "ModeFlight",
     "Phase",
     "ProgramPilot",
+    "boot_offset",
     "fly_companion_mode",
     "fly_stack_mode",
     "mode_figures",
     "settle",
     "start_mode_companion",
+    "tilt_deg",
     "watch_targets",
 ]
 
@@ -330,7 +332,7 @@ def fly_companion_mode(
     flown = cols["engaged"] > 0.5
     t_eng = t0
     if flown.any():
-        t_eng = float(cols["t_s"][flown][0]) + _boot_offset(session, t_end)
+        t_eng = float(cols["t_s"][flown][0]) + boot_offset(session, t_end)
     flight = _record(session, "companion", mode, t0, t_eng, program)
     flight.run = run
     flight.position = [r for r in flight.position if r[0] <= t_end]
@@ -339,7 +341,7 @@ def fly_companion_mode(
     return flight
 
 
-def _boot_offset(session: Session, until_s: float) -> float:
+def boot_offset(session: Session, until_s: float) -> float:
     """The ground station's clock less the autopilot's boot time (ATTITUDE's
     ``time_boot_ms``), its median over the last minute: the companion's IMU time
     is the autopilot's boot time."""
@@ -349,7 +351,7 @@ def _boot_offset(session: Session, until_s: float) -> float:
     return float(np.median([r.t_s - r.fields["time_boot_ms"] * 1e-3 for r in rows]))
 
 
-def _tilt_deg(roll: float, pitch: float) -> float:
+def tilt_deg(roll: float, pitch: float) -> float:
     c = max(-1.0, min(1.0, math.cos(roll) * math.cos(pitch)))
     return math.degrees(math.acos(c))
 
@@ -361,7 +363,7 @@ def mode_figures(flight: ModeFlight) -> dict[str, Any]:
     t0, te = flight.t_start_s, flight.t_engaged_s
     att = np.asarray(flight.attitude, dtype=float).reshape(-1, 3)
     pos = np.asarray(flight.position, dtype=float).reshape(-1, 7)
-    ta, tilt = att[:, 0], np.array([_tilt_deg(r, p) for _, r, p in att])
+    ta, tilt = att[:, 0], np.array([tilt_deg(r, p) for _, r, p in att])
     tp = pos[:, 0]
     up = -pos[:, 3]
     speed = np.hypot(pos[:, 4], pos[:, 5])
