@@ -16,6 +16,7 @@ import asyncio
 import time
 from typing import TYPE_CHECKING, Any
 
+from companion.control import RateController
 from companion.errors import EXIT_ERROR, EXIT_FAILSAFE, EngageError, LinkError
 from companion.handback import Conditions, adoptable, failsafe_state, judge, next_kind, pick
 from companion.stacks import FlightStack, SafeMode, said_why
@@ -57,7 +58,7 @@ class Engagement:
     # What the app holds and these methods use.
     opts: RunOptions
     link: Any
-    controller: Any
+    controller: RateController
     stack: FlightStack | None
     engaged: bool
     commanding: bool

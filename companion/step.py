@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from companion.control import RateController
 from companion.control.gate import gate_actuator, gate_rates
 from companion.control.shaping import RateShaper
 from companion.profile import VehicleProfile
@@ -58,8 +59,7 @@ class SampleStep:
     Parameters
     ----------
     controller
-        The law (``update``, ``learn``, ``reset``; ``reference_rate_dot`` for
-        rates output).
+        The law.
     profile
         The vehicle: its gyro range and its rate limits.
     output
@@ -101,7 +101,7 @@ class SampleStep:
 
     def __init__(
         self,
-        controller: Any,
+        controller: RateController,
         profile: VehicleProfile,
         *,
         output: str = "actuator",

@@ -18,7 +18,13 @@ from companion.control._compiled import COMPILED, CORE
 from companion.control.estimator import AlgebraicEstimator, WindowEstimator, make_estimator
 from companion.control.identifier import MAX_DELAY_S, AlphaAdaptation
 from companion.control.intelligent import IntelligentController, MfcAxisGains
-from companion.control.mfc import ControlOutput, MfcController, MfcGains, PidController
+from companion.control.mfc import (
+    ControlOutput,
+    MfcController,
+    MfcGains,
+    PidController,
+    RateController,
+)
 from companion.control.mixer import Mixer, MixResult
 from companion.control.pid import PidAxisGains, PidGains, RatePid
 from companion.control.prefilter import ReferencePrefilter
@@ -43,6 +49,7 @@ __all__ = [
     "PidController",
     "PidGains",
     "PilotCommand",
+    "RateController",
     "RatePid",
     "ReferencePrefilter",
     "StickMap",

@@ -48,14 +48,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from companion.control.intelligent import IntelligentController, MfcAxisGains
 from companion.control.mixer import Mixer
 from companion.control.pid import PidGains, RatePid
 from companion.control.prefilter import ReferencePrefilter
 
-__all__ = ["ControlOutput", "MfcController", "MfcGains", "PidController"]
+__all__ = ["ControlOutput", "MfcController", "MfcGains", "PidController", "RateController"]
 
 Vec3 = tuple[float, float, float]
 _ZERO3: Vec3 = (0.0, 0.0, 0.0)
@@ -129,6 +129,47 @@ the rate law starts afresh again (two periods of the 4 Hz landed state)."""
 def _all_finite(dt_s: float, a: Vec3, b: Vec3, thrust: float) -> bool:
     # Summing is the cheapest finiteness test: inf/nan anywhere poisons the sum.
     return math.isfinite(dt_s + a[0] + a[1] + a[2] + b[0] + b[1] + b[2] + thrust)
+
+
+class RateController(Protocol):
+    """What the companion and the lab ask of a rate law (:class:`MfcController`,
+    :class:`PidController`): one :meth:`update` per IMU sample."""
+
+    mixer: Mixer
+    on_ground: bool
+    """The autopilot says the vehicle is on the ground: nothing is learnt."""
+    nonfinite_events: int
+    """Updates given a non-finite input (each held the last output)."""
+    dt_clamped_events: int
+    """Updates whose time step was clamped to the law's bounds."""
+
+    @property
+    def held_on_ground(self) -> bool:
+        """On the ground and held there: the law starts afresh on every sample."""
+        ...
+
+    @property
+    def reference_rate_dot(self) -> Vec3:
+        """The reference's derivative after the last update, rad/s^2."""
+        ...
+
+    def update(
+        self, dt_s: float, rate_frd_rad_s: Vec3, rate_ref_rad_s: Vec3, thrust: float
+    ) -> ControlOutput:
+        """One control update from one IMU sample."""
+        ...
+
+    def learn(self) -> None:
+        """Online identification for the sample just processed, once its command is out."""
+        ...
+
+    def reset(self) -> None:
+        """Forget all state."""
+        ...
+
+    def teach_applied(self, torque: Vec3) -> None:
+        """What of the last output was really applied, when not what the mixer achieved."""
+        ...
 
 
 class MfcController:
@@ -313,9 +354,7 @@ class MfcController:
 class PidController:
     """The PX4-style PID with the same interface as :class:`MfcController`."""
 
-    def __init__(
-        self, gains: PidGains, mixer: Mixer, *, dt_min_s: float = 0.000125, dt_max_s: float = 0.02
-    ) -> None:
+    def __init__(self, gains: PidGains, mixer: Mixer, *, dt_min_s: float, dt_max_s: float) -> None:
         self.gains = gains
         self.mixer = mixer
         self._pid = RatePid(gains)

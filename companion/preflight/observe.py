@@ -11,6 +11,7 @@ import time
 from dataclasses import asdict
 from typing import Any
 
+from companion.control import RateController
 from companion.control.sticks import joystick_channels
 from companion.errors import LinkError
 from companion.link.timesync import LinkClock
@@ -38,7 +39,9 @@ _RC_RATE_HZ = 50.0
 _POSITION_RATE_HZ = 4.0
 
 
-def measure_core(controller: Any, compiled: bool, rate_hz: float, updates: int = 3000) -> CoreCost:
+def measure_core(
+    controller: RateController, compiled: bool, rate_hz: float, updates: int = 3000
+) -> CoreCost:
     """Time the law's update and learning on a made-up flight (a slow sine on
     every axis), after a warm-up."""
     dt = 1.0 / rate_hz

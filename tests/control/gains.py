@@ -27,7 +27,9 @@ from companion.control import (
     IntelligentController,
     MfcAxisGains,
     MfcGains,
+    Mixer,
     PidAxisGains,
+    PidController,
     PidGains,
 )
 
@@ -68,6 +70,17 @@ def table_one() -> MfcGains:
     cfg = load_controller(TABLE1_CONTROLLER)
     assert isinstance(cfg, MfcConfig)
     return mfc_gains(cfg)
+
+
+def pid_controller(gains: PidGains, mixer: Mixer) -> PidController:
+    """The PID with the schema's sample-interval bounds."""
+    fields = PidConfig.model_fields
+    return PidController(
+        gains,
+        mixer,
+        dt_min_s=float(fields["dt_min_s"].default),
+        dt_max_s=float(fields["dt_max_s"].default),
+    )
 
 
 def px4_default_pid() -> PidGains:

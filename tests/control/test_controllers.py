@@ -17,7 +17,7 @@ from companion.control import (
     ReferencePrefilter,
     WindowEstimator,
 )
-from tests.control.gains import axis, px4_default_pid, table_one
+from tests.control.gains import axis, pid_controller, px4_default_pid, table_one
 from tests.control.plants import RatePlant3, f450_mixer, run_rate_loop
 
 Controller = MfcController | PidController
@@ -28,7 +28,7 @@ def make_mfc() -> MfcController:
 
 
 def make_pid() -> PidController:
-    return PidController(px4_default_pid(), f450_mixer())
+    return pid_controller(px4_default_pid(), f450_mixer())
 
 
 FACTORIES: list[Callable[[], Controller]] = [make_mfc, make_pid]

@@ -11,8 +11,8 @@ import math
 
 import pytest
 
-from companion.control import PidController, PidGains, RatePid
-from tests.control.gains import pid_axis, px4_default_pid
+from companion.control import PidGains, RatePid
+from tests.control.gains import pid_axis, pid_controller, px4_default_pid
 from tests.control.plants import f450_mixer
 
 AX = pid_axis(kp=0.5, ki=2.0, kd=0.01, kff=0.1, i_limit=0.3, d_lpf_hz=20.0)
@@ -115,7 +115,7 @@ def test_gains_property_round_trips() -> None:
 def test_pid_controller_anti_windup_from_mixer_feedback() -> None:
     """A huge roll error saturates the mixer; from the next sample on the
     integrator stops growing in that direction."""
-    ctrl = PidController(px4_default_pid(), f450_mixer())
+    ctrl = pid_controller(px4_default_pid(), f450_mixer())
     dt = 0.004
     for _ in range(10):
         out = ctrl.update(dt, (0.0, 0.0, 0.0), (50.0, 0.0, 0.0), 0.5)
@@ -142,7 +142,7 @@ def test_pid_controller_holds_its_integrator_on_the_ground() -> None:
     """On its legs a held roll stick is a rate error the vehicle cannot answer; the
     integrator must not wind up there and tip the vehicle at lift-off (PX4 holds it
     while landed). In the air it integrates again."""
-    ctrl = PidController(px4_default_pid(), f450_mixer())
+    ctrl = pid_controller(px4_default_pid(), f450_mixer())
     ctrl.on_ground = True
     for _ in range(500):  # 2 s of a 1 rad/s roll request at 250 Hz
         ctrl.update(0.004, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), 0.3)

@@ -27,7 +27,7 @@ from companion.control import (
     MixResult,
     PidController,
 )
-from tests.control.gains import px4_default_pid
+from tests.control.gains import pid_controller, px4_default_pid
 from tests.control.plants import f450_mixer, f450_profile
 
 SPECIALS = [math.nan, math.inf, -math.inf, 0.0, -0.0]
@@ -85,7 +85,7 @@ def make_mfc() -> MfcController:
 
 
 def make_pid() -> PidController:
-    return PidController(px4_default_pid(), f450_mixer())
+    return pid_controller(px4_default_pid(), f450_mixer())
 
 
 def run(
