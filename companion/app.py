@@ -341,6 +341,8 @@ class Companion(SamplePath):
         _log.log(level, "%s: %s", kind, detail)
         try:
             self._events_file.append(ev)  # memory, and a buffer the writer thread empties
+            if self._log_rows is not None:
+                self._log_rows.event(ev)  # the control log's /events, with its next rows
             if self._telemetry is not None:
                 self._telemetry.publish_event(kind, detail, t)
                 if kind != "counters":  # bookkeeping: the retained status keeps what matters
@@ -577,7 +579,7 @@ class Companion(SamplePath):
         from companion import __version__
         from companion.control import COMPILED
         from companion.records import (
-            ColumnarLog,
+            ControlLog,
             RecordWriter,
             TlogWriter,
             columns,
@@ -609,8 +611,8 @@ class Companion(SamplePath):
             "rates_lead_s": repr(opts.rates_lead_s),
             "rates_passthrough": str(opts.rates_passthrough),
         }
-        self._log_rows = ColumnarLog(
-            d / "control.bin", columns(opts.profile.n_motors), meta=meta, writer=writer
+        self._log_rows = ControlLog(
+            d / "control.mcap", columns(opts.profile.n_motors), meta=meta, writer=writer
         )
         self._log_append = self._log_rows.append
         self._events_file = EventLog(d / "events.jsonl", writer=writer)
@@ -629,7 +631,7 @@ class Companion(SamplePath):
             with contextlib.suppress(Exception):
                 self._writer.close(2.0)
         # A start that failed (no autopilot, a refused stack) must not leave files
-        # that look like a flight: a control.bin without a row and a flight.tlog
+        # that look like a flight: a control log without a row and a flight.tlog
         # without a frame from the autopilot go; events.jsonl stays and says why.
         rows, tlog = self._log_rows, self._tlog
         for record, empty in (

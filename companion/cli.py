@@ -454,7 +454,7 @@ def preflight(
     type=click.Path(file_okay=False),
     callback=usable_out_dir,
     default=None,
-    help="Write flight.tlog, control.bin and events.jsonl here. An earlier run's are moved "
+    help="Write flight.tlog, control.mcap and events.jsonl here. An earlier run's are moved "
     "into earlier-<UTC time>/ in it first; a folder another run is using is refused (exit 1).",
 )
 @click.option("--mqtt", "mqtt_url", default=None, help="mqtt://HOST[:PORT]/PREFIX telemetry.")
@@ -803,13 +803,13 @@ its controller file."""
     type=click.Path(dir_okay=False),
     callback=usable_out_file,
     default=None,
-    help="Write the replayed outputs here as a columnar log (an earlier file of that name "
+    help="Write the replayed outputs here as a control log, MCAP (an earlier file of that name "
     "is moved into earlier-<UTC time>/ beside it first).",
 )
 def replay_cmd(
     log: Path, controller_path: Path | None, profile_path: Path | None, out_path: Path | None
 ) -> None:
-    """Re-run a controller offline on a recorded control log (control.bin).
+    """Re-run a controller offline on a recorded control log (control.mcap).
 
     With the recorded controller the outputs must match the log (a check that
     the flight was what the code says); with another controller they show what
@@ -817,11 +817,11 @@ def replay_cmd(
     """
     from companion.config import DEFAULT_CONTROLLER, load_controller
     from companion.profile import load_profile
-    from companion.records import ColumnarLog, read_columnar
+    from companion.records import ControlLog, read_control_log
     from companion.replay import compare, replay
 
     try:
-        cols, meta = read_columnar(log)
+        cols, meta = read_control_log(log)
     except ValueError as exc:
         click.echo(f"error: {exc}", err=True)
         sys.exit(EXIT_BAD_INPUT)
@@ -839,10 +839,9 @@ def replay_cmd(
     diffs = compare(cols, out)
     engaged = int((cols["engaged"] > 0.5).sum())
     click.echo(f"replayed {engaged} engaged samples of {log} with {ctrl} on {prof}")
-    if "partial_last_row_bytes" in meta:
+    if meta.get("cut_short") == "true":
         click.echo(
-            f"note: {log} ends in a partial row ({meta['partial_last_row_bytes']} bytes, "
-            "ignored): its writer did not close it",
+            f"note: {log} was not closed by its writer (killed?): read up to its last whole chunk",
             err=True,
         )
     worst = max(diffs.values()) if diffs else 0.0
@@ -852,7 +851,7 @@ def replay_cmd(
     if out_path is not None:
         keep_earlier(f"--out {out_path}", out_path.parent, (out_path.name,))
         names = list(out)
-        with ColumnarLog(
+        with ControlLog(
             out_path, names, meta={"replay_of": str(log), "controller": str(ctrl)}
         ) as w:
             for row in zip(*(out[n].tolist() for n in names), strict=True):

@@ -1,6 +1,7 @@
-"""Re-run a rate controller offline on a recorded columnar flight log.
+"""Re-run a rate controller offline on a recorded control log.
 
-A log written with :func:`companion.records.columns` holds, for every control
+A control log (:class:`companion.records.ControlLog`, in the
+:func:`companion.records.columns` layout) holds, for every control
 sample, what the controller was given (``t_s``, ``meas_*_rad_s``,
 ``ref_*_rad_s``, ``thrust``) and what it produced. :func:`replay` feeds the
 inputs to a fresh controller, sample by sample, exactly as the live loop did;
@@ -36,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from companion.control import AXES
-from companion.records import read_columnar
+from companion.records import read_control_log
 
 __all__ = ["OUTPUT_PREFIXES", "compare", "output_columns", "replay"]
 
@@ -56,7 +57,7 @@ def _load_inputs(
 ) -> tuple[dict[str, np.ndarray], dict[str, str]]:
     if isinstance(log_path, Mapping):
         return {k: np.asarray(v, dtype=np.float64) for k, v in log_path.items()}, {}
-    return read_columnar(log_path)
+    return read_control_log(log_path)
 
 
 def replay(
@@ -72,8 +73,8 @@ def replay(
     Parameters
     ----------
     log_path
-        A columnar log file, or its columns as returned by
-        :func:`companion.records.read_columnar`.
+        A control log file, or its columns as returned by
+        :func:`companion.records.read_control_log`.
     controller_cfg
         A controller configuration (:class:`companion.config.MfcConfig` or
         ``PidConfig``), or the path of a controller file.

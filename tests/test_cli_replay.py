@@ -1,11 +1,11 @@
 """``companion replay LOG`` through the command line, on a log a real flight wrote.
 
 The contract (companion/cli.py ``replay_cmd``, companion/replay.py): re-run a
-controller on the ``control.bin`` of a flight; with the recorded controller the
+controller on the ``control.mcap`` of a flight; with the recorded controller the
 outputs match the log to rounding, with another one they show what it would
 have commanded; it prints the engaged sample count, the largest differences
 per column and the largest one overall, and with ``--out`` writes the replayed
-outputs as a columnar log. A file that is not a control log, or in another
+outputs as a control log. A file that is not a control log, or in another
 format, is exit 2; a log the recorded controller no longer reproduces is exit 1.
 """
 
@@ -18,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer
 
-from companion.records import read_columnar
+from companion.records import FORMAT, read_control_log
 from companion.replay import output_columns
 from sitl.lab.fly import fly_mavlink
 
@@ -37,6 +39,26 @@ def companion(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )  # fmt: skip
 
 
+def rewrite(src: Path, dst: Path, **meta: str) -> None:
+    """``src`` copied with the mcap package's reader and writer, its ``companion``
+    metadata updated with ``meta``."""
+    with src.open("rb") as f, dst.open("wb") as out:
+        reader = make_reader(f)
+        w = Writer(out)
+        w.start()
+        for m in reader.iter_metadata():
+            w.add_metadata(m.name, {**m.metadata, **meta} if m.name == "companion" else m.metadata)
+        summary = reader.get_summary()
+        assert summary is not None
+        for s in summary.schemas.values():
+            assert w.register_schema(s.name, s.encoding, s.data) == s.id
+        for c in summary.channels.values():
+            assert w.register_channel(c.topic, c.message_encoding, c.schema_id) == c.id
+        for _, c, m in reader.iter_messages(log_time_order=False):
+            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+
+
 def largest(stdout: str) -> float:
     m = re.search(r"^largest difference: (\S+)$", stdout, re.MULTILINE)
     assert m, stdout
@@ -45,15 +67,15 @@ def largest(stdout: str) -> float:
 
 def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_path: Path) -> None:
     # A short lockstep flight (5 s engaged, paper-acro's first maneuvers) records
-    # control.bin; the paths in its header are absolute, so replay finds the
+    # control.mcap; the paths in its header are absolute, so replay finds the
     # recorded controller and profile from any working directory.
     flight = fly_mavlink(F450, "paper-acro", tmp_path / "flight", duration_s=5.0, timeout_s=60.0)
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     log = flight.control_log
-    cols, meta = read_columnar(log)
+    cols, meta = read_control_log(log)
     n_engaged = int((cols["engaged"] > 0.5).sum())
     assert n_engaged >= 5.0 * 250 - 5  # 5 s of samples at 250 Hz
-    out = tmp_path / "replayed.bin"
+    out = tmp_path / "replayed.mcap"
 
     res = companion("replay", str(log), "--out", str(out), cwd=tmp_path)
     assert res.returncode == 0, res.stderr
@@ -69,7 +91,7 @@ def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_pa
     assert largest(res.stdout) < 1e-6
     assert lines[-1] == f"wrote {out}"
 
-    rep, rep_meta = read_columnar(out)
+    rep, rep_meta = read_control_log(out)
     assert list(rep) == ["t_s", "engaged", *output_columns(4)]
     assert rep_meta["replay_of"] == str(log)
     assert rep_meta["controller"] == meta["controller_path"]
@@ -90,30 +112,32 @@ def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_pa
     # The log says it was flown with another controller than the one that flew it
     # (as when a controller file changes after its flight): the recorded controller
     # no longer reproduces it, and replay says so and fails.
-    data = log.read_bytes()
-    head, marker, rows = data.partition(b"# float64 rows follow\n")
-    recorded = meta["controller_path"].encode()
-    forged = tmp_path / "forged.bin"
-    forged.write_bytes(head.replace(recorded, str(other).encode()) + marker + rows)
+    forged = tmp_path / "forged.mcap"
+    rewrite(log, forged, controller_path=str(other))
     res3 = companion("replay", str(forged), cwd=tmp_path)
     assert res3.returncode == 1, (res3.stdout, res3.stderr)
     assert largest(res3.stdout) > 1.0
     assert f"error: the recorded controller {other} on " in res3.stderr
     assert f"does not reproduce {forged}" in res3.stderr
 
-    # A log cut in the middle of a row (its writer was killed): the whole rows
+    # A log cut in the middle of a chunk (its writer was killed): the whole chunks
     # replay, and the cut is reported.
-    cut = tmp_path / "cut.bin"
-    cut.write_bytes(data[:-3])
+    cut = tmp_path / "cut.mcap"
+    with log.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    last = max(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    cut.write_bytes(log.read_bytes()[: last.chunk_start_offset + last.chunk_length // 2])
     res4 = companion("replay", str(cut), cwd=tmp_path)
     assert res4.returncode == 0, res4.stderr
-    assert "ends in a partial row" in res4.stderr
+    assert "was not closed by its writer" in res4.stderr
     assert largest(res4.stdout) < 1e-6
+    assert 0 < int(res4.stdout.split()[1]) <= n_engaged
 
 
 def test_replay_of_a_file_that_is_not_a_control_log_exits_2(tmp_path: Path) -> None:
-    bogus = tmp_path / "not_a_log.bin"
-    bogus.write_bytes(b"\x00\x01 definitely not a columnar log\n" * 10)
+    bogus = tmp_path / "not_a_log.mcap"
+    bogus.write_bytes(b"\x00\x01 definitely not a control log\n" * 10)
     res = companion("replay", str(bogus), cwd=tmp_path)
     assert res.returncode == 2, (res.stdout, res.stderr)
     assert res.stderr.startswith("error: ")
@@ -122,12 +146,13 @@ def test_replay_of_a_file_that_is_not_a_control_log_exits_2(tmp_path: Path) -> N
 
 
 def test_replay_of_a_log_in_another_format_exits_2(tmp_path: Path) -> None:
-    future = tmp_path / "future.bin"
-    future.write_bytes(
-        b"# format: companion-columnar 9 (binary float64 rows)\nt_s\n# float64 rows follow\n"
-        + np.zeros(3).tobytes()
-    )
+    future = tmp_path / "future.mcap"
+    with future.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_metadata("companion", {"format": "mfc-companion control log 9", "columns": "t_s"})
+        w.finish()
     res = companion("replay", str(future), cwd=tmp_path)
     assert res.returncode == 2, (res.stdout, res.stderr)
-    assert f"error: {future}: format 'companion-columnar 9" in res.stderr
-    assert "this version reads 'companion-columnar 2" in res.stderr
+    assert f"error: {future}: format 'mfc-companion control log 9" in res.stderr
+    assert f"this version reads '{FORMAT}'" in res.stderr

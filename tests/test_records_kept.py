@@ -21,7 +21,7 @@ from click.testing import CliRunner, Result
 
 from companion.cli import cli as companion_cli
 from companion.config import DEFAULT_CONTROLLER
-from companion.records import LOCK_FILE, RECORD_FILES, ColumnarLog, columns, read_columnar
+from companion.records import LOCK_FILE, RECORD_FILES, ControlLog, columns, read_control_log
 from sitl.cli import cli as sitl_cli
 from sitl.flight_log import read_log
 from sitl.lab.envelope_setup import load_setup
@@ -87,35 +87,35 @@ def test_fly_moves_the_earlier_flight_aside_whole(tmp_path: Path) -> None:
     # logs, the companion's records and the pass-through flight.
     out = tmp_path / "out"
     written = plant(out, ["metrics.json", "report.md", "sitl.npz", "companion.stderr",
-                          "companion/control.bin", "companion/events.jsonl",
-                          "passthrough/companion/control.bin"])  # fmt: skip
+                          "companion/control.mcap", "companion/events.jsonl",
+                          "passthrough/companion/control.mcap"])  # fmt: skip
     res = companion("fly", "--duration", "1", "--out", str(out), "--no-progress")
     assert res.exit_code == 0, res.output + (out / "companion.stderr").read_text()
     kept(out, written)
     assert not (out / "passthrough").exists()
-    assert read_columnar(out / "companion" / "control.bin")[0]["t_s"].size > 0
+    assert read_control_log(out / "companion" / "control.mcap")[0]["t_s"].size > 0
     assert not list((out / "companion").glob("earlier-*"))  # moved whole, by fly
 
 
 def replay_log(path: Path) -> None:
-    """A small control.bin (columns() layout) naming its profile, for replay to re-run."""
+    """A small control.mcap (columns() layout) naming its profile, for replay to re-run."""
     names = columns(4)
-    with ColumnarLog(path, names, meta={"profile_path": str(F450)}) as log:
+    with ControlLog(path, names, meta={"profile_path": str(F450)}) as log:
         for i in range(20):
             row = dict.fromkeys(names, 0.0) | {"t_s": 0.004 * i, "engaged": 1.0, "thrust": 0.5}
             log.append([row[n] for n in names])
 
 
 def test_replay_out_moves_an_earlier_file_aside(tmp_path: Path) -> None:
-    log = tmp_path / "control.bin"
+    log = tmp_path / "control.mcap"
     replay_log(log)
-    out = tmp_path / "replayed.bin"
-    written = plant(tmp_path, ["replayed.bin"])
+    out = tmp_path / "replayed.mcap"
+    written = plant(tmp_path, ["replayed.mcap"])
     res = companion("replay", str(log), "--out", str(out), "--controller", str(DEFAULT_CONTROLLER))
     assert res.exit_code == 0, res.output
     kept(tmp_path, written)
-    assert read_columnar(out)[0]["u_roll"].size == 20
-    assert (tmp_path / "control.bin").exists()  # the input is not an output
+    assert read_control_log(out)[0]["u_roll"].size == 20
+    assert (tmp_path / "control.mcap").exists()  # the input is not an output
 
 
 def test_sitl_run_log_moves_the_earlier_log_and_its_events_aside(tmp_path: Path) -> None:
@@ -194,7 +194,7 @@ def wait_locked(log_dir: Path, proc: subprocess.Popen[str], timeout_s: float = 3
         if not (lock.exists() and lock.read_text().strip() == str(proc.pid)):
             return False
         files = [log_dir / name for name in RECORD_FILES]
-        return all(f.exists() for f in files) and (log_dir / "control.bin").stat().st_size > 0
+        return all(f.exists() for f in files) and (log_dir / "control.mcap").stat().st_size > 0
 
     while not ready():
         assert proc.poll() is None, proc.communicate()[1]
@@ -210,14 +210,14 @@ def test_a_second_companion_on_a_log_dir_in_use_refuses_and_moves_nothing(
     first = start_run(logs, heartbeat_timeout_s=60.0)
     try:
         wait_locked(logs, first)
-        header = (logs / "control.bin").read_bytes()  # no autopilot: no rows to come
+        header = (logs / "control.mcap").read_bytes()  # no autopilot: no rows to come
         second = start_run(logs, heartbeat_timeout_s=0.5)
         _, err = second.communicate(timeout=60)
         assert second.returncode == 1, err
         assert f"{logs} is in use by another companion run (pid {first.pid}" in err
         # Untouched: nothing moved away, nothing added (its tlog grows with our heartbeats).
         assert sorted(p.name for p in logs.iterdir()) == sorted([*RECORD_FILES, LOCK_FILE])
-        assert (logs / "control.bin").read_bytes() == header
+        assert (logs / "control.mcap").read_bytes() == header
         assert first.poll() is None
     finally:
         first.send_signal(signal.SIGKILL)  # no tidying up: the OS releases the lock
@@ -228,7 +228,7 @@ def test_a_second_companion_on_a_log_dir_in_use_refuses_and_moves_nothing(
     _, err = third.communicate(timeout=60)
     assert third.returncode == 1, err
     (earlier,) = logs.glob("earlier-*")
-    assert (earlier / "control.bin").read_bytes() == header
+    assert (earlier / "control.mcap").read_bytes() == header
     assert "no HEARTBEAT" in (logs / "events.jsonl").read_text()
     names = sorted(p.name for p in logs.iterdir())
-    assert names == sorted([earlier.name, "events.jsonl", LOCK_FILE])  # no empty control.bin
+    assert names == sorted([earlier.name, "events.jsonl", LOCK_FILE])  # no empty control.mcap

@@ -1,4 +1,4 @@
-"""Flight records: a MAVLink telemetry log (``.tlog``), a binary columnar log and an event log.
+"""Flight records: a MAVLink telemetry log (``.tlog``), the control log (MCAP) and an event log.
 
 The logs are fed from the control path (once per MAVLink message, once per
 control sample, once per event), so appending is a cheap copy into an
@@ -35,7 +35,12 @@ Nothing is overwritten: an earlier run's outputs are moved aside first, and a
 Formats are described in ``docs/logs.md``.
 """
 
-from companion.records.columnar import FORMAT, ColumnarLog, columns, last_row, read_columnar
+from companion.records.control_log import (
+    FORMAT,
+    ControlLog,
+    last_sample_time,
+    read_control_log,
+)
 from companion.records.events import EventLog
 from companion.records.folder import (
     LOCK_FILE,
@@ -45,21 +50,25 @@ from companion.records.folder import (
     prepare_log_dir,
 )
 from companion.records.tlog import TlogWriter
+from companion.records.topics import EVENTS_TOPIC, Topic, columns, topics
 from companion.records.writer import RecordFileStats, RecordWriter
 
 __all__ = [
+    "EVENTS_TOPIC",
     "FORMAT",
     "LOCK_FILE",
     "RECORD_FILES",
-    "ColumnarLog",
+    "ControlLog",
     "EventLog",
     "RecordFileStats",
     "RecordWriter",
     "TlogWriter",
+    "Topic",
     "columns",
-    "last_row",
+    "last_sample_time",
     "lock_log_dir",
     "move_earlier",
     "prepare_log_dir",
-    "read_columnar",
+    "read_control_log",
+    "topics",
 ]

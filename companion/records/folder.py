@@ -20,7 +20,7 @@ from companion.errors import LogDirInUseError
 
 __all__ = ["LOCK_FILE", "RECORD_FILES", "lock_log_dir", "move_earlier", "prepare_log_dir"]
 
-RECORD_FILES = ("flight.tlog", "control.bin", "events.jsonl")
+RECORD_FILES = ("flight.tlog", "control.mcap", "events.jsonl")
 """What ``companion run --log-dir DIR`` writes into DIR."""
 
 LOCK_FILE = "companion.lock"

@@ -17,11 +17,12 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, BinaryIO, TypeVar
+from typing import Any, BinaryIO, Protocol, TypeVar
 
 __all__ = [
     "BufferedLog",
     "Chunk",
+    "Encoder",
     "RecordFileStats",
     "RecordWriter",
     "Sink",
@@ -31,6 +32,22 @@ log = logging.getLogger("companion.records")
 
 Chunk = bytes | bytearray | memoryview
 """Bytes for :meth:`RecordWriter.submit`; ``len()`` must be the size in bytes."""
+
+
+class Encoder(Protocol):
+    """Turns what a log hands on into the bytes of its file, on the writer's thread.
+
+    A file opened with an encoder (:meth:`RecordWriter.open`) may be handed any
+    object whose ``len()`` is its size in bytes; the writer's thread calls
+    :meth:`encode` on each, in submit order, and writes what it returns, then
+    :meth:`finish`'s bytes before it closes the file (unless the file failed).
+    So the formatting a file format needs costs the control path nothing.
+    """
+
+    def encode(self, data: Any) -> bytes: ...
+
+    def finish(self) -> bytes: ...
+
 
 _MIB = 1 << 20
 
@@ -60,6 +77,7 @@ class _File:
         "abandoned_chunks",
         "accepted_bytes",
         "accepted_chunks",
+        "encoder",
         "f",
         "failed",
         "key",
@@ -72,10 +90,11 @@ class _File:
         "written_chunks",
     )
 
-    def __init__(self, key: str, path: Path, f: BinaryIO) -> None:
+    def __init__(self, key: str, path: Path, f: BinaryIO, encoder: Encoder | None) -> None:
         self.key = key
         self.path = path
         self.f = f
+        self.encoder = encoder
         self.failed: OSError | None = None  # set once, by the writer thread
         # submitters, under RecordWriter._submit_lock
         self.accepted_chunks = self.accepted_bytes = 0
@@ -174,11 +193,20 @@ class RecordWriter:
         self._thread.start()
 
     # ------------------------------------------------------------ the caller's side
-    def open(self, file_key: str, path: str | Path, *, header: bytes = b"") -> None:
+    def open(
+        self,
+        file_key: str,
+        path: str | Path,
+        *,
+        header: bytes = b"",
+        encoder: Encoder | None = None,
+    ) -> None:
         """Create ``path`` (replacing a file there), write ``header``, and accept chunks for it.
 
         Synchronous, on the caller's thread (at start-up, before the flight);
-        parent folders are created.
+        parent folders are created. With an ``encoder``, what is submitted for
+        this file is encoded on the writer's thread (:class:`Encoder`), and the
+        encoder's last bytes are written when the writer closes the file.
 
         Raises
         ------
@@ -201,14 +229,17 @@ class RecordWriter:
             with self._submit_lock:
                 if self._closed or file_key in self._files:
                     raise ValueError(f"RecordWriter: cannot open {file_key!r} (closed or taken)")
-                self._files[file_key] = _File(file_key, p, f)
+                self._files[file_key] = _File(file_key, p, f, encoder)
         except BaseException:
             with contextlib.suppress(Exception):
                 f.close()
             raise
 
-    def submit(self, file_key: str, data: Chunk) -> bool:
+    def submit(self, file_key: str, data: Any) -> bool:
         """Queue ``data`` to be appended to ``file_key``'s file. O(1); never blocks.
+
+        ``data`` is a :data:`Chunk`, or, for a file opened with an encoder, what
+        that encoder takes (its ``len()`` counts against the bounds).
 
         Returns False, counting the chunk as dropped, when it does not fit in
         the bounds, when the file has failed, or when the writer is closed. The
@@ -380,7 +411,7 @@ class RecordWriter:
             ok = False
             if t.failed is None and not self._abandon:
                 try:
-                    t.f.write(data)
+                    t.f.write(data if t.encoder is None else t.encoder.encode(data))
                     t.f.flush()
                     ok = True
                 except Exception as exc:  # nothing may end this thread
@@ -407,6 +438,8 @@ class RecordWriter:
         for t in list(self._files.values()):
             if t.failed is None:
                 try:
+                    if t.encoder is not None:
+                        t.f.write(t.encoder.finish())
                     t.f.close()
                 except Exception as exc:
                     self._fail(t, exc)
@@ -428,7 +461,12 @@ class Sink:
     """Where a log's flushed buffers go: a :class:`RecordWriter`, or its own file."""
 
     def __init__(
-        self, path: Path, what: str, writer: RecordWriter | None, header: bytes = b""
+        self,
+        path: Path,
+        what: str,
+        writer: RecordWriter | None,
+        header: bytes = b"",
+        encoder: Encoder | None = None,
     ) -> None:
         self.path = path
         self.what = what
@@ -436,8 +474,9 @@ class Sink:
         self.key = path.name
         self.failed: OSError | None = None
         self._f: BinaryIO | None = None
+        self._encoder = encoder
         if writer is not None:
-            writer.open(self.key, path, header=header)
+            writer.open(self.key, path, header=header, encoder=encoder)
             return
         path.parent.mkdir(parents=True, exist_ok=True)
         f = open(path, "wb")  # noqa: SIM115 (closed in close())
@@ -456,7 +495,7 @@ class Sink:
             return self.writer.failure(self.key)
         return self.failed
 
-    def put(self, data: Chunk) -> bool:
+    def put(self, data: Any) -> bool:
         """Hand ``data`` on; False once this file has stopped recording (``failed``)."""
         w = self.writer
         if w is not None:
@@ -470,7 +509,7 @@ class Sink:
         if f is None:
             return False
         try:
-            f.write(data)
+            f.write(data if self._encoder is None else self._encoder.encode(data))
             f.flush()
         except OSError as exc:
             log.error("%s: cannot write the %s, recording stops: %s", self.path, self.what, exc)
@@ -486,7 +525,11 @@ class Sink:
         f, self._f = self._f, None
         if f is not None:
             try:
-                f.close()
+                try:
+                    if self._encoder is not None:
+                        f.write(self._encoder.finish())
+                finally:
+                    f.close()
             except OSError as exc:
                 log.error("%s: closing the %s failed: %s", self.path, self.what, exc)
                 self.failed = exc

@@ -4,7 +4,7 @@
 seed, wind, IMU and link, the pilot's clock starting at arming) and ``companion run
 --engage auto``, waits for the companion to finish its flight, stops the
 SITL, and merges the two logs into a :class:`~sitl.lab.simulate.FlightRecord`:
-the controller's view per sample from the companion's ``control.bin``, the
+the controller's view per sample from the companion's ``control.mcap``, the
 truth (rates, altitude, on the ground or not) from the SITL's log at the same
 simulation times.
 """
@@ -85,7 +85,7 @@ class FlightProcesses:
 
     @property
     def control_log(self) -> Path:
-        return self.out_dir / "companion" / "control.bin"
+        return self.out_dir / "companion" / "control.mcap"
 
     @property
     def sitl_log(self) -> Path:
@@ -139,7 +139,7 @@ def fly_mavlink(
     scenario
         Scenario name or file (pilot, seed, wind, IMU).
     out_dir
-        Where ``sitl.npz``, its events, ``companion/`` (tlog, control.bin,
+        Where ``sitl.npz``, its events, ``companion/`` (tlog, control.mcap,
         events) and both processes' stderr go (:data:`FLIGHT_FILES`; an earlier
         flight's are moved into ``earlier-<UTC time>/`` in it first).
     controller_path, output
@@ -281,16 +281,16 @@ def fly_mavlink(
 
 def _progress(events_path: Path, duration_s: float) -> float:
     """A rough fraction done, from the companion's last logged sample time."""
-    from companion.records import last_row
+    from companion.records import last_sample_time
 
     events = _read_jsonl(events_path)
     t_eng = next((e["t_s"] for e in events if e.get("kind") == "engaged"), None)
     if t_eng is None:
         return 0.0
-    row = last_row(events_path.parent / "control.bin")
-    if row is None:
+    t = last_sample_time(events_path.parent / "control.mcap")
+    if t is None:
         return 0.0
-    return max(0.0, min(1.0, (row[0] - float(t_eng)) / duration_s))
+    return max(0.0, min(1.0, (t - float(t_eng)) / duration_s))
 
 
 def merge_logs(flight: FlightProcesses, *, meta: dict[str, Any] | None = None) -> FlightRecord:
@@ -299,10 +299,10 @@ def merge_logs(flight: FlightProcesses, *, meta: dict[str, Any] | None = None) -
     Samples are those logged while engaged; the truth is the SITL state at
     the physics step of each sample's timestamp.
     """
-    from companion.records import read_columnar
+    from companion.records import read_control_log
     from sitl.flight_log import read_log
 
-    cols, cmeta = read_columnar(flight.control_log)
+    cols, cmeta = read_control_log(flight.control_log)
     eng = cols["engaged"] > 0.5
     t = cols["t_s"][eng]
     log = read_log(flight.sitl_log)

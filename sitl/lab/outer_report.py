@@ -77,12 +77,12 @@ def segment_distances(points: np.ndarray, plan: np.ndarray) -> tuple[np.ndarray,
 def _backoff(flight: FlightProcesses) -> dict[str, float | None]:
     """The outer gains' backoff while engaged, from the companion's control log
     (None where the log or its column is missing)."""
-    from companion.records import read_columnar
+    from companion.records import read_control_log
 
     none: dict[str, float | None] = {"gain_scale_min": None, "backed_off_s": None}
     if not flight.control_log.exists():
         return none
-    cols, _ = read_columnar(flight.control_log)
+    cols, _ = read_control_log(flight.control_log)
     scale = cols.get("outer_gain_scale")
     if scale is None:
         return none

@@ -18,7 +18,7 @@ from click.testing import CliRunner
 from companion.cli import cli
 from companion.control.attitude import DEFAULT_ATTITUDE_GAINS
 from companion.errors import EXIT_BAD_INPUT, EXIT_ERROR
-from companion.records import read_columnar
+from companion.records import read_control_log
 from tests.app.fakes import (
     CMD_ARM,
     CMD_DO_SET_MODE,
@@ -222,7 +222,7 @@ async def test_the_control_log_holds_the_angle_asked_and_the_estimate(
         await settle(2)
     f.companion._stop.set()
     assert await f.finish() == 0
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     last = {k: float(v[-1]) for k, v in cols.items()}
     assert last["sp_roll_rad"] == pytest.approx(35.0 * DEG)
     assert last["sp_pitch_rad"] == 0.0 and math.isnan(last["sp_yaw_rad"])

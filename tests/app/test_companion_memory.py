@@ -24,7 +24,7 @@ from click.testing import CliRunner
 
 from companion.app import Companion, RunOptions
 from companion.cli import cli
-from companion.records import read_columnar
+from companion.records import read_control_log
 from companion.reference import ReferenceScript
 from tests.app.fakes import (
     APM_ALT_HOLD,
@@ -146,7 +146,7 @@ async def test_records_hold_every_frame_and_one_row_per_sample(
 ) -> None:
     from pymavlink import mavutil
 
-    from companion.records import read_columnar
+    from companion.records import read_control_log
 
     f = await start(engage="auto", output="actuator", log_dir=tmp_path)
     await engage_px4_auto(f)
@@ -172,8 +172,8 @@ async def test_records_hold_every_frame_and_one_row_per_sample(
     assert [m.time_usec for m in seen["HIGHRES_IMU"]] == fake.imu_sent
     assert setpoint_times(seen["SET_ACTUATOR_CONTROL_TARGET"]) == setpoint_times(fake.setpoints())
 
-    # The columnar log: one row per processed sample, the latency measured to the send.
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    # The control log: one row per processed sample, the latency measured to the send.
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     assert len(cols["t_s"]) == f.companion.counters["imu_samples"] == len(fake.imu_sent)
     assert [round(t * 1e6) for t in cols["t_s"]] == fake.imu_sent
     engaged = cols["engaged"] > 0.5
@@ -456,7 +456,7 @@ async def test_rates_output_sends_the_reference_files_thrust_and_logs_the_rates(
     assert {round(m.thrust, 5) for m in new} == {0.62}  # the script's, not the stick's
     f.companion._stop.set()
     assert await f.finish() == 0
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     sent = cols["engaged"] == 1.0
     assert sent.sum() >= 20
     # What went out is in the log, as sent (float32 on the wire).
@@ -731,7 +731,7 @@ def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log
 ) -> None:
     logs = tmp_path / "logs"
     logs.mkdir()
-    (logs / "control.bin").write_bytes(b"the last flight")
+    (logs / "control.mcap").write_bytes(b"the last flight")
     (logs / "events.jsonl").write_text('{"kind": "failsafe_link_lost"}\n')
     port = held_udp.getsockname()[1]
     # A config error first: nothing moved, nothing sent.
@@ -740,7 +740,7 @@ def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log
               "--engage", "none", "--log-dir", str(logs), "--autopilot-compid", "1"],
     )  # fmt: skip
     assert res.exit_code == 2, res.output
-    assert (logs / "control.bin").read_bytes() == b"the last flight"
+    assert (logs / "control.mcap").read_bytes() == b"the last flight"
     # A run that starts: the earlier records are moved, untouched, not overwritten.
     res = CliRunner().invoke(
         cli, ["run", "--connect", "udpin:127.0.0.1:0", "--profile", str(PROFILE_PATH),
@@ -748,7 +748,7 @@ def test_cli_run_moves_an_earlier_runs_records_aside_and_refuses_an_unusable_log
     )  # fmt: skip
     assert res.exit_code == 1, res.output  # no autopilot: a link error, after the move
     (earlier,) = logs.glob("earlier-*")
-    assert (earlier / "control.bin").read_bytes() == b"the last flight"
+    assert (earlier / "control.mcap").read_bytes() == b"the last flight"
     assert "failsafe_link_lost" in (earlier / "events.jsonl").read_text()
     events = (logs / "events.jsonl").read_text()  # this run's own
     assert f"moved to {earlier}" in events
@@ -798,7 +798,7 @@ def test_cli_run_logs_absolute_paths_so_replay_works_from_anywhere(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # The run's options, as the command line gives them: _open_records writes these
-    # paths into control.bin's header (a run that never started keeps no control.bin).
+    # paths into control.mcap's header (a run that never started keeps no control.mcap).
     given: list[RunOptions] = []
 
     async def run(self: Companion) -> int:

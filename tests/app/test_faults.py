@@ -127,7 +127,7 @@ async def test_an_rc_glitch_holds_the_last_valid_sticks_never_idle_thrust(start:
 def full_disk(log_dir: Path, monkeypatch: pytest.MonkeyPatch, *names: str) -> Path:
     """A log folder whose records ``names`` (default: the MAVLink log and the events
     file) are written to /dev/full: every write to them fails with ENOSPC (the
-    columnar log's header, written at start-up, goes to a real file, so the disk
+    control log's header, written at start-up, goes to a real file, so the disk
     fills in flight). The records' writer opens them through its opener: files put
     in the folder beforehand would be moved aside as an earlier run's."""
     full = names or ("flight.tlog", "events.jsonl")
@@ -712,7 +712,7 @@ async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
 async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sent(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    log_dir = full_disk(tmp_path / "r", monkeypatch, "control.bin")  # no room for its header
+    log_dir = full_disk(tmp_path / "r", monkeypatch, "control.mcap")  # no room for its header
     ours, _theirs = MemoryTransport.pair()
     opts = RunOptions(connect="memory", profile=PROFILE, controller=CONTROLLER, log_dir=log_dir)
     assert await asyncio.wait_for(Companion(opts, transport=ours).run(), 2.0) == 1

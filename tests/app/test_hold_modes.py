@@ -16,7 +16,7 @@ import pytest
 from companion.control.mfc import LEGS_HOLD_QUIET_S
 from companion.errors import EXIT_ERROR
 from companion.mission import Mission, Waypoint
-from companion.records import read_columnar
+from companion.records import read_control_log
 from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import Flight, Start, streams_requested
 
@@ -256,7 +256,7 @@ async def test_the_control_log_holds_the_setpoints_and_the_estimates_flown(
         await settle(2)
     f.companion._stop.set()
     assert await f.finish() == 0
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     last = {k: float(v[-1]) for k, v in cols.items()}
     assert (last["est_roll_rad"], last["est_pitch_rad"], last["est_yaw_rad"]) == pytest.approx(
         (0.1, 0.0, 0.0), abs=1e-9
@@ -281,7 +281,7 @@ async def test_in_rates_mode_the_outer_columns_are_nan(start: Start, tmp_path: P
         await settle(2)
     f.companion._stop.set()
     await f.finish()
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     assert len(cols["t_s"]) >= 10
     outer = [k for k in cols if k.startswith(("sp_", "est_", "outer_"))]
     assert len(outer) == 13
@@ -335,7 +335,7 @@ async def test_the_outer_gains_back_off_only_when_our_own_rate_loop_saturates(
     scale = outer.gain_scale
     f.companion._stop.set()
     await f.finish()
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     logged = cols["outer_gain_scale"][cols["engaged"] > 0.5]
     assert logged[-1] == scale  # the log says how far the gains backed off
     assert (logged.min() < 1.0) == (output == "actuator")

@@ -4,7 +4,7 @@ The fake autopilot keeps its own clock, ``AP_AHEAD_S`` ahead of the
 companion's (perf_counter), answers TIMESYNC with it (as PX4 and ArduPilot
 do) and stamps its IMU samples on it, each ``STALE_S`` before it sends it.
 The companion knows neither: it must find the offset from the answers, and
-date each sample with it (``control.bin``'s ``sample_age_ms``).
+date each sample with it (``control.mcap``'s ``sample_age_ms``).
 
 An answer stamped anywhere between the request's sending and the answer's
 arrival gives an offset within half the round trip of the true one: the
@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import companion.app as app_module
-from companion.records import read_columnar
+from companion.records import read_control_log
 from tests.app.fakes import CMD_ARM, PX4_OFFBOARD, FakeAutopilot, settle
 from tests.app.flight import Flight, Start, engage_px4_auto, streams_requested
 
@@ -177,7 +177,7 @@ async def test_answers_date_every_sample_in_control_bin(start: Start, tmp_path: 
     f.companion._stop.set()
     assert await f.finish() == 0
 
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     engaged = cols["engaged"] > 0.5
     assert engaged.sum() >= 60
     rtt_ms = cols["link_rtt_ms"][engaged]
@@ -207,7 +207,7 @@ async def test_without_answers_the_columns_stay_nan(start: Start, tmp_path: Path
     assert figures["rtt_median_ms"] is None and figures["sample_age_p50_ms"] is None
     f.companion._stop.set()
     assert await f.finish() == 0
-    cols, _ = read_columnar(tmp_path / "control.bin")
+    cols, _ = read_control_log(tmp_path / "control.mcap")
     assert len(cols["t_s"]) >= 20
     assert np.isnan(cols["link_rtt_ms"]).all() and np.isnan(cols["sample_age_ms"]).all()
     assert "imu_samples" in counted(f)

@@ -13,7 +13,7 @@ import pytest
 
 from companion.app import EXIT_ERROR, Companion, RunOptions
 from companion.link.transport import MemoryTransport
-from companion.records import LOCK_FILE, read_columnar
+from companion.records import LOCK_FILE, read_control_log
 from tests.app.fakes import settle
 from tests.app.flight import ARDUPILOT, CONTROLLER, PROFILE, Start, streams_requested
 
@@ -45,7 +45,7 @@ async def test_a_second_run_on_a_log_dir_in_use_refuses_and_touches_nothing(
     # The live run's records, where they were, as they were (its tlog may have grown).
     now = files(tmp_path)
     assert sorted(now) == sorted(live)
-    assert all(now[n] == live[n] for n in ("control.bin", "events.jsonl", LOCK_FILE))
+    assert all(now[n] == live[n] for n in ("control.mcap", "events.jsonl", LOCK_FILE))
     assert now["flight.tlog"].startswith(live["flight.tlog"])
 
     # The first run flies on into its own files, then ends and lets the folder go.
@@ -54,14 +54,14 @@ async def test_a_second_run_on_a_log_dir_in_use_refuses_and_touches_nothing(
         await settle()
     first.companion._stop.set()
     assert await first.finish() == 0
-    rows = read_columnar(tmp_path / "control.bin")[0]["t_s"].size
+    rows = read_control_log(tmp_path / "control.mcap")[0]["t_s"].size
     assert rows == first.companion.counters["imu_samples"] == 40
     first_records = files(tmp_path)
 
     third = await start(engage="rc-switch", output="actuator", log_dir=tmp_path)
     await streams_requested(third)  # it started: the lock was free
     (earlier,) = tmp_path.glob("earlier-*")
-    for name in ("control.bin", "flight.tlog", "events.jsonl"):
+    for name in ("control.mcap", "flight.tlog", "events.jsonl"):
         assert (earlier / name).read_bytes() == first_records[name], name
     assert (tmp_path / LOCK_FILE).read_text() == f"{os.getpid()}\n"
 
@@ -72,7 +72,7 @@ async def test_no_autopilot_leaves_only_the_events_that_say_why(
     f = await start(heartbeat=False, log_dir=tmp_path, heartbeat_timeout_s=0.3)
     assert await f.finish() == EXIT_ERROR
     assert "no HEARTBEAT" in (tmp_path / "events.jsonl").read_text()
-    # Our own heartbeats went out, but nothing of a flight came in: no tlog, no control.bin.
+    # Our own heartbeats went out, but nothing of a flight came in: no tlog, no control.mcap.
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["events.jsonl", LOCK_FILE])
 
 
@@ -83,4 +83,4 @@ async def test_a_refused_stack_keeps_what_the_autopilot_said_and_no_empty_contro
     assert await f.finish() == EXIT_ERROR
     assert "accepts no actuator setpoints" in (tmp_path / "events.jsonl").read_text()
     assert (tmp_path / "flight.tlog").stat().st_size > 0  # its heartbeat: why it was refused
-    assert not (tmp_path / "control.bin").exists()
+    assert not (tmp_path / "control.mcap").exists()

@@ -16,7 +16,7 @@ import numpy as np
 
 from companion.cli import REPLAY_TOLERANCE
 from companion.config import RATES_CONTROLLER, load_controller
-from companion.records import read_columnar
+from companion.records import read_control_log
 from companion.replay import compare, replay
 from tests.app.fakes import APM_ALT_HOLD, APM_GUIDED_NOGPS, CMD_ARM, settle
 from tests.app.flight import ARDUPILOT, MSG_ATTITUDE, PROFILE, Flight, Start, streams_requested
@@ -69,7 +69,7 @@ async def test_the_setpoints_respect_ardupilots_shaping_and_replay_reproduces_th
     f.companion._stop.set()
     await f.finish()
 
-    cols, meta = read_columnar(tmp_path / "control.bin")
+    cols, meta = read_control_log(tmp_path / "control.mcap")
     engaged = cols["engaged"] > 0.5
     law = cols["law_ref_roll_rad_s"][engaged]
     pilot = cols["ref_roll_rad_s"][engaged]

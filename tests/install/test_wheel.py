@@ -290,7 +290,7 @@ def test_the_quickstart_flight_runs_from_the_venv(installed: Installed, tmp_path
     events = installed.empty / "runs" / "quickstart" / "events.jsonl"
     kinds = [json.loads(x)["kind"] for x in events.read_text().splitlines()]
     assert {"connected", "engaged", "duration", "handed_back"} <= set(kinds), kinds
-    replay = installed.run("companion", "replay", "runs/quickstart/control.bin")
+    replay = installed.run("companion", "replay", "runs/quickstart/control.mcap")
     assert replay.returncode == 0, replay.stdout[-2000:] + replay.stderr[-2000:]
     installed.times_s["quickstart"] = time.perf_counter() - t0
 

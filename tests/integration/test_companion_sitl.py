@@ -173,9 +173,9 @@ def test_shadow_mode_sends_nothing(tmp_path: Path) -> None:
     assert "engaged" not in kinds(flight.companion_events)
     assert kinds(flight.companion_events)[-1] == "duration"
     assert flight.companion_rc == 0
-    from companion.records import read_columnar
+    from companion.records import read_control_log
 
-    cols, _ = read_columnar(flight.control_log)
+    cols, _ = read_control_log(flight.control_log)
     assert len(cols["t_s"]) > 500  # it computed (and logged) a control update per sample
     assert np.all(cols["engaged"] == 0)
 

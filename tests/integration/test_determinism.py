@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.records import read_columnar
+from companion.records import read_control_log
 from sitl.flight_log import read_log
 from sitl.lab.fly import fly_mavlink, merge_logs
 from sitl.lab.report import compute_metrics
@@ -56,7 +56,7 @@ def test_two_lockstep_flights_of_one_seed_are_the_same(
         waits = [float(t) for t in re.findall(r"no setpoint within .* at t=([0-9.]+) s",
                                               f.text("sitl.stderr"))]  # fmt: skip
         assert all(t >= end_s for t in waits), (end_s, f.text("sitl.stderr"))
-    cols = [read_columnar(f.out_dir / "companion" / "control.bin")[0] for f in flights]
+    cols = [read_control_log(f.out_dir / "companion" / "control.mcap")[0] for f in flights]
     engaged = [np.asarray(c["engaged"]).astype(bool) for c in cols]
     assert engaged[0].sum() == engaged[1].sum() == duration_s * 250  # the F450's IMU rate
     for key in cols[0]:

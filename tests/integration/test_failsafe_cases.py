@@ -39,7 +39,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.records import read_columnar
+from companion.records import read_control_log
 from sitl.faults import IMU_RANGE_GYRO_RAD_S
 from sitl.flight_log import read_log
 from sitl.lab.fly import FlightProcesses, fly_mavlink
@@ -403,7 +403,7 @@ def test_out_of_range_gyro_is_failsafe_invalid_imu(tmp_path: Path) -> None:
     assert np.abs(read_log(flight.sitl_log)["rate_frd_rad_s"]).max() < GYRO_LIMIT_RAD_S
 
     # The law held its last output on every invalid sample until the failsafe.
-    cols, _ = read_columnar(flight.control_log)
+    cols, _ = read_control_log(flight.control_log)
     t = cols["t_s"]
     bad = (t >= t_fault - 1e-9) & (t <= fs["t_s"] + 1e-9)
     assert bad.sum() >= invalid_imu_s * 250  # every sample of the invalid stretch
@@ -451,7 +451,7 @@ def test_tracking_error_beyond_the_envelope_is_failsafe_envelope(tmp_path: Path)
 
     # The failsafe fired on the averaged error, at the sample where it crossed
     # the limit: recomputed from the log, it stays below before and is above there.
-    cols, _ = read_columnar(flight.control_log)
+    cols, _ = read_control_log(flight.control_log)
     eng = np.flatnonzero(cols["engaged"] > 0.5)
     k = int(np.flatnonzero(np.abs(cols["t_s"] - fs["t_s"]) < 1e-6)[0])  # the failsafe's sample
     rows = np.arange(eng[0], k + 1)

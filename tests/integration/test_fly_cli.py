@@ -45,7 +45,7 @@ def test_a_short_fly_writes_its_report_and_the_numbers_hold(tmp_path: Path) -> N
     proc = companion_fly(out, "--duration", "10")
     assert proc.returncode == 0, proc.stderr[-2000:]
     for name in ("metrics.json", "report.md", "rates.png", "motors_and_estimate.png",
-                 "flight.npz", "sitl.npz", "companion/control.bin"):  # fmt: skip
+                 "flight.npz", "sitl.npz", "companion/control.mcap"):  # fmt: skip
         assert (out / name).stat().st_size > 0, name
     for png in out.glob("*.png"):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -100,7 +100,7 @@ def test_ardupilot_rates_passthrough_is_the_shaped_loops_as_on_the_real_stack(
     report = (out / "report.md").read_text(encoding="utf-8")
     pt_row = " | ".join(f"{pt['mae_deg_s'][a]:.1f}" for a in AXES)
     assert f"| pass-through | {pt_row} |" in report
-    assert (out / "passthrough" / "companion" / "control.bin").stat().st_size > 0
+    assert (out / "passthrough" / "companion" / "control.mcap").stat().st_size > 0
     assert "pass-through: MAE roll" in proc.stdout
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.records import read_columnar
+from companion.records import read_control_log
 from sitl.lab.fly import FlightProcesses, fly_mavlink
 from sitl.link_model import LINK_PROFILES, parse_link
 
@@ -28,7 +28,7 @@ _TIMEOUT = re.compile(r"lockstep: no setpoint within [\d.]+ s at t=([\d.]+) s")
 
 
 def _engaged(flight: FlightProcesses) -> dict[str, np.ndarray]:
-    cols = read_columnar(flight.control_log)[0]
+    cols = read_control_log(flight.control_log)[0]
     eng = np.asarray(cols["engaged"]) > 0.5
     return {k: np.asarray(v)[eng] for k, v in cols.items()}
 

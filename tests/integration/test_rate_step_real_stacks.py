@@ -4,7 +4,7 @@ Measured on the real PX4 v1.16 SIH and ArduCopter 4.5.6 SITL (../shared/stacks) 
 ``python -m sitl.lab.realstack.ratestep STACK AXIS OUT`` on 2026-11-29: the companion's
 pass-through (``companion run --output rates --rates-passthrough --engage rc-switch``)
 forwarding ``sitl.pilot``'s step maneuvers (90, 180, 360 deg/s up from rest on roll and
-pitch, 90, 180, 270 on yaw) to the stack's own rate loop, read from ``control.bin``
+pitch, 90, 180, 270 on yaw) to the stack's own rate loop, read from ``control.mcap``
 (``sent`` and ``meas``) by :func:`sitl.lab.realstack.ratestep.step_metrics`: the mean,
 over the steps, of the measured rate as a fraction of the step at 40, 80, 120, 250 and
 500 ms, and the mean time to 90 % (ms). Here the same maneuver flies through the same

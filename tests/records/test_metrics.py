@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from companion.control import AXES
-from companion.records import ColumnarLog, columns
+from companion.records import ControlLog, columns
 from sitl.lab.fly import FlightProcesses, merge_logs
 from sitl.lab.report import compute_metrics, write_report
 
@@ -26,10 +26,10 @@ HELD_FINITE_ROW = 60
 
 
 def write_flight(out: Path, *, held_rows: Any = ()) -> FlightProcesses:
-    """A 100-sample engaged, airborne flight: ``out/companion/control.bin`` and ``out/sitl.npz``."""
+    """A 100-sample engaged, airborne flight: ``out/companion/control.mcap``, ``out/sitl.npz``."""
     t = 10.0 + 0.004 * np.arange(N)
     names = columns(4)
-    with ColumnarLog(out / "companion" / "control.bin", names, meta={"profile": "f450"}) as log:
+    with ControlLog(out / "companion" / "control.mcap", names, meta={"profile": "f450"}) as log:
         for i, t_s in enumerate(t):
             row = dict.fromkeys(names, 0.0)
             row.update(t_s=t_s, wall_s=t_s, engaged=1.0)

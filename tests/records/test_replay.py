@@ -1,4 +1,4 @@
-"""Replay a columnar log recorded from an in-process flight."""
+"""Replay a control log recorded from an in-process flight."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from companion.config import (
 )
 from companion.control.mfc import ControlOutput
 from companion.profile import VehicleProfile, load_profile
-from companion.records import ColumnarLog, columns, read_columnar
+from companion.records import ControlLog, columns, read_control_log
 from companion.replay import compare, output_columns, replay
 from sitl.scenario import load_scenario
 
@@ -67,7 +67,7 @@ def write_log(
     """Rows in the columns() layout from a FlightRecord and the outputs it flew with."""
     n = len(cols["t_s"])
     eng = np.ones(n) if engaged is None else engaged
-    with ColumnarLog(path, columns(n_motors), meta={"profile": "f450"}) as log:
+    with ControlLog(path, columns(n_motors), meta={"profile": "f450"}) as log:
         for i in range(n):
             o = outputs[i]
             # The record and the captured outputs are the same flight.
@@ -103,7 +103,7 @@ def test_replay_reproduces_the_flight(
     cols, outputs = fly(monkeypatch, cfg, f450, 3.0)
     path = tmp_path / "flight.csv"
     write_log(path, cols, outputs, f450.n_motors)
-    recorded, _ = read_columnar(path)
+    recorded, _ = read_control_log(path)
 
     replayed = replay(path, cfg, f450)
     assert set(output_columns(f450.n_motors)) <= set(replayed)
@@ -133,7 +133,7 @@ def test_another_config_gives_other_outputs(
     cols, outputs = fly(monkeypatch, cfg, f450, 2.0)
     path = tmp_path / "flight.csv"
     write_log(path, cols, outputs, f450.n_motors)
-    recorded, _ = read_columnar(path)
+    recorded, _ = read_control_log(path)
 
     data = cfg.model_dump()
     data["axes"]["roll"]["kp"] = 2.0 * data["axes"]["roll"]["kp"]
@@ -159,7 +159,7 @@ def test_disengaged_rows_reset_the_controller(
     engaged[k - 50 : k] = 0.0
     path = tmp_path / "flight.csv"
     write_log(path, cols, outputs, f450.n_motors, engaged)
-    recorded, _ = read_columnar(path)
+    recorded, _ = read_control_log(path)
     replayed = replay(path, cfg, f450)
 
     # before the gap: the flight itself
@@ -178,7 +178,7 @@ def test_disengaged_rows_reset_the_controller(
 
 def test_missing_columns_are_named(tmp_path: Path, f450: VehicleProfile) -> None:
     path = tmp_path / "x.csv"
-    with ColumnarLog(path, ["t_s", "thrust"]) as log:
+    with ControlLog(path, ["t_s", "thrust"]) as log:
         log.append((0.0, 0.5))
     with pytest.raises(ValueError, match="meas_roll_rad_s"):
         replay(path, load_controller(DEFAULT_CONTROLLER), f450)

@@ -26,12 +26,13 @@ import pytest
 from pymavlink import mavutil
 
 from companion.records import (
-    ColumnarLog,
+    FORMAT,
+    ControlLog,
     EventLog,
     RecordWriter,
     TlogWriter,
     columns,
-    read_columnar,
+    read_control_log,
 )
 from tests.records.test_tlog import frames
 
@@ -152,7 +153,7 @@ def test_round_trip_through_the_thread(tmp_path: Path, writers: list[RecordWrite
     rows = np.random.default_rng(5).standard_normal((300, len(cols)))
     # flush_interval_s=0: every call hands a chunk to the thread, so order matters
     tlog = TlogWriter(tmp_path / "run" / "flight.tlog", flush_interval_s=0.0, writer=w)
-    clog = ColumnarLog(tmp_path / "run" / "control.bin", cols, meta={"profile": "f450"}, writer=w)
+    clog = ControlLog(tmp_path / "run" / "control.mcap", cols, meta={"profile": "f450"}, writer=w)
     events = EventLog(tmp_path / "run" / "events.jsonl", writer=w, flush_interval_s=0.0)
     with tlog, clog, events:
         for t, raw, outgoing, _ in data:
@@ -166,7 +167,7 @@ def test_round_trip_through_the_thread(tmp_path: Path, writers: list[RecordWrite
     assert w.closed and w.failed == {} and w.poll_failures() == []
     assert w.counters["dropped_chunks"] == 0 and w.counters["pending_bytes"] == 0
     assert w.stats("flight.tlog").written_chunks == len(data)
-    assert w.stats("control.bin").written_chunks > 1
+    assert w.stats("control.mcap").written_chunks > 1
 
     got = read_tlog(tmp_path / "run" / "flight.tlog")
     assert [g.get_type() for g in got] == [typ for _, _, _, typ in data]
@@ -175,7 +176,7 @@ def test_round_trip_through_the_thread(tmp_path: Path, writers: list[RecordWrite
         assert g._timestamp == pytest.approx(t, abs=1e-6)
     assert (tlog.written_in, tlog.written_out, tlog.dropped, tlog.failed) == (6, 5, 0, None)
 
-    cols_got, meta = read_columnar(tmp_path / "run" / "control.bin")
+    cols_got, meta = read_control_log(tmp_path / "run" / "control.mcap")
     assert meta["profile"] == "f450"
     for j, c in enumerate(cols):
         np.testing.assert_array_equal(cols_got[c], rows[:, j])
@@ -189,11 +190,11 @@ def test_round_trip_through_the_thread(tmp_path: Path, writers: list[RecordWrite
 def test_without_a_writer_logs_stay_synchronous(tmp_path: Path) -> None:
     """Offline tools (replay): no thread, the bytes are in the file when flush returns."""
     before = threading.active_count()
-    with ColumnarLog(tmp_path / "c.bin", ["a", "b"], flush_interval_s=3600.0) as clog:
+    with ControlLog(tmp_path / "c.mcap", ["t_s", "u_roll"], flush_interval_s=3600.0) as clog:
         clog.append((1.0, 2.0))
         clog.flush()
-        got, _ = read_columnar(tmp_path / "c.bin")
-        assert got["a"].tolist() == [1.0]
+        got, _ = read_control_log(tmp_path / "c.mcap")
+        assert got["u_roll"].tolist() == [2.0]
     with EventLog(tmp_path / "e.jsonl", flush_interval_s=3600.0) as ev:
         ev.append({"kind": "a"})  # the first event goes at once
         assert (tmp_path / "e.jsonl").read_text() == '{"kind": "a"}\n'
@@ -224,7 +225,7 @@ def test_a_full_disk_stops_that_file_only(tmp_path: Path, writers: list[RecordWr
     w = RecordWriter()
     writers.append(w)
     bad = TlogWriter(DEV_FULL, flush_interval_s=0.0, writer=w)  # file key "full"
-    good = ColumnarLog(tmp_path / "control.bin", ["t_s", "x"], flush_interval_s=0.0, writer=w)
+    good = ControlLog(tmp_path / "control.mcap", ["t_s", "u_roll"], flush_interval_s=0.0, writer=w)
     events = EventLog(tmp_path / "events.jsonl", writer=w, flush_interval_s=0.0)
     data = frames()
 
@@ -255,11 +256,11 @@ def test_a_full_disk_stops_that_file_only(tmp_path: Path, writers: list[RecordWr
     events.close()
 
     # The other files were written, whole and in order.
-    got, _ = read_columnar(tmp_path / "control.bin")
-    assert got["x"].tolist() == [float(k) for k in range(100)]
+    got, _ = read_control_log(tmp_path / "control.mcap")
+    assert got["u_roll"].tolist() == [float(k) for k in range(100)]
     lines = (tmp_path / "events.jsonl").read_text().splitlines()
     assert [json.loads(s)["k"] for s in lines] == list(range(100))
-    assert w.stats("control.bin").dropped_chunks == 0
+    assert w.stats("control.mcap").dropped_chunks == 0
     assert w.counters["failed_files"] == 1
 
 
@@ -281,13 +282,13 @@ def test_a_full_disk_without_a_writer_still_never_raises(tmp_path: Path) -> None
     ev.close()
 
 
-def test_a_columnar_log_reflects_the_writers_failure(
+def test_a_control_log_reflects_the_writers_failure(
     tmp_path: Path, writers: list[RecordWriter]
 ) -> None:
     enospc = OSError(errno.ENOSPC, "No space left on device")
-    w = RecordWriter(opener=opener_with({"control.bin": lambda p: FailingFile(p, enospc)}))
+    w = RecordWriter(opener=opener_with({"control.mcap": lambda p: FailingFile(p, enospc)}))
     writers.append(w)
-    clog = ColumnarLog(tmp_path / "control.bin", ["a"], flush_interval_s=0.0, writer=w)
+    clog = ControlLog(tmp_path / "control.mcap", ["t_s"], flush_interval_s=0.0, writer=w)
     clog.append((1.0,))  # the header went through; this row fails in the thread
     wait_until(lambda: clog.failed is not None, "the failure")
     assert clog.failed is enospc
@@ -295,8 +296,8 @@ def test_a_columnar_log_reflects_the_writers_failure(
     clog.append((3.0,))
     assert (clog.rows, clog.dropped) == (2, 1)  # as before: a dropped row is not in rows
     clog.close()
-    _, meta = read_columnar(tmp_path / "control.bin")  # the header is there
-    assert meta["format"].startswith("companion-columnar")
+    _, meta = read_control_log(tmp_path / "control.mcap")  # the header is there
+    assert meta["format"] == FORMAT and meta["cut_short"] == "true"
 
 
 def test_a_bug_in_a_write_stops_that_file_not_the_thread(

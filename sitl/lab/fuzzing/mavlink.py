@@ -1043,17 +1043,17 @@ def _percentile(x: np.ndarray, q: float) -> float | None:
 
 def _flight_metrics(out: Path, flight: Any) -> dict[str, Any]:
     """MAE (sitl.lab.report's definition, on the samples the law really measured)
-    and the loop's real-time budget, from control.bin and the SITL's log."""
-    from companion.records import read_columnar
+    and the loop's real-time budget, from control.mcap and the SITL's log."""
+    from companion.records import read_control_log
     from sitl.lab.fly import merge_logs
     from sitl.lab.report import compute_metrics
     from sitl.lab.simulate import FlightRecord
 
     res: dict[str, Any] = {}
     try:
-        cols, _ = read_columnar(flight.control_log)
+        cols, _ = read_control_log(flight.control_log)
     except (OSError, ValueError) as exc:
-        return {"error": f"control.bin: {exc}"}
+        return {"error": f"control.mcap: {exc}"}
     eng = cols["engaged"] > 0.5
     meas = np.stack([cols[f"meas_{a}_rad_s"] for a in ("roll", "pitch", "yaw")], axis=1)
     finite = np.isfinite(meas).all(axis=1)

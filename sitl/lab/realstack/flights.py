@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.records import read_columnar
+from companion.records import read_control_log
 from companion.stacks import ARDUPILOT, PX4, FlightStack
 from sitl.lab import children
 from sitl.lab.realstack.gcs import GroundStation, Telemetry
@@ -163,7 +163,7 @@ class CompanionRun:
         return self.stderr_path.read_text(encoding="utf-8", errors="replace")
 
     def control(self) -> dict[str, np.ndarray]:
-        cols, _ = read_columnar(self.log_dir / "control.bin")
+        cols, _ = read_control_log(self.log_dir / "control.mcap")
         return cols
 
 

@@ -5,7 +5,7 @@ checked against the real PX4 v1.16 SIH and ArduCopter 4.5.6 on the same vehicle:
 ``companion run --output rates --rates-passthrough --engage rc-switch`` forwards the
 pilot's rate steps (``sitl.pilot`` maneuvers ``step-roll`` / ``step-pitch`` /
 ``step-yaw``: doublets of 90, 180, 360 deg/s on roll and pitch, 90, 180, 270 on
-yaw) to the autopilot's rate loop, and ``control.bin`` records what it sent
+yaw) to the autopilot's rate loop, and ``control.mcap`` records what it sent
 (``sent_<axis>_rad_s``) and the gyro it saw (``meas_<axis>_rad_s``).
 :func:`step_metrics` reads each step up from rest: the measured rate 40, 80 and
 120 ms after the step as a fraction of the step, and the time to reach 90 %.
@@ -149,9 +149,9 @@ def fly_bundled(stack: str, axis: str, workdir: Path) -> dict[str, Any]:
     )  # fmt: skip
     if flight.companion_rc != 0:
         raise RuntimeError(flight.text("companion.stderr")[-2000:])
-    from companion.records import read_columnar
+    from companion.records import read_control_log
 
-    cols, _ = read_columnar(flight.control_log)
+    cols, _ = read_control_log(flight.control_log)
     out = step_metrics(cols, axis)
     out["stack"] = f"bundled {stack}"
     return out
