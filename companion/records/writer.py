@@ -137,7 +137,7 @@ class RecordWriter:
     ----------
     max_pending_bytes
         Bytes queued or being written, at most. The default, 32 MiB, holds
-        about a minute of a 1 kHz flight's records (the columnar log and the
+        about a minute of a 1 kHz flight's records (the control log's rows and the
         tlog take ~0.45 MB/s together) while the disk stalls.
     max_pending_chunks
         Chunks queued or being written, at most (default 4096): bounds the
