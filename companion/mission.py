@@ -1,8 +1,9 @@
-"""A mission: waypoints flown in position mode (``companion run --mode position --mission FILE``).
+r"""A mission: waypoints flown in position mode (``companion run --mode position --mission FILE``).
 
 The file (YAML)::
 
     speed_m_s: 2.0                 # default speed along a leg, m/s
+    accel_m_s2: 2.5                # speeding up and slowing down on a leg, m/s^2
     waypoints:                     # from where the mission starts: north, east, up (m)
       - {north_m: 0, east_m: 0, up_m: 5, hold_s: 2}
       - {north_m: 10, east_m: 0, up_m: 5}
@@ -13,13 +14,18 @@ position estimate as it engages), so a file flies the same anywhere. The first
 leg goes from there to the first waypoint.
 
 The path (:class:`MissionPath`) moves the position setpoint along each leg in a
-straight line at the leg's speed, the velocity as feedforward, and holds it at a
-waypoint for its ``hold_s``; a climb and a descent are no faster than the
-position mode's stick limits (the autopilot's: PX4 3 and 1.5 m/s by default,
-ArduCopter 2.5 m/s), the leg taking longer if need be. After the last
-waypoint the setpoint stays there: the vehicle holds until the pilot hands back
-(the engage switch, as any run). The clock of the path is the caller's (the app
-runs it only while the vehicle is in the air).
+straight line, the velocity and acceleration as feedforward: from rest at
+``accel_m_s2`` up to the leg's speed, on at that speed, and down to rest at the
+waypoint (a leg too short to reach its speed peaks at
+:math:`\sqrt{a L}`), as the autopilots' own missions slow for a corner (PX4's
+``MPC_ACC_HOR``, 3 m/s^2; ArduCopter's ``WPNAV_ACCEL``, 2.5 m/s^2, by default). A
+leg of length :math:`L` at speed :math:`v` takes :math:`L/v + v/a`. The setpoint
+holds at a waypoint for its ``hold_s``; a climb and a descent are no faster than
+the position mode's stick limits (the autopilot's: PX4 3 and 1.5 m/s by default,
+ArduCopter 2.5 m/s), the leg slower if need be. After the last waypoint the
+setpoint stays there: the vehicle holds until the pilot hands back (the engage
+switch, as any run). The clock of the path is the caller's (the app runs it only
+while the vehicle is in the air).
 
 No I/O beyond :func:`load_mission`; no clock.
 """
@@ -48,6 +54,9 @@ MAX_SPEED_M_S = DEFAULT_HORIZONTAL_GAINS.speed_max_m_s
 """A leg's speed at most the horizontal loop's bound (12 m/s): a faster leg would
 leave the vehicle behind its setpoint."""
 
+MAX_ACCEL_M_S2 = 10.0
+"""A leg's acceleration at most about 45 deg of tilt."""
+
 Vec3 = tuple[float, float, float]
 
 
@@ -70,6 +79,9 @@ class Mission(StrictModel):
 
     speed_m_s: Annotated[float, Field(gt=0.0, le=MAX_SPEED_M_S)] = Field(
         2.0, description="speed along a leg, m/s"
+    )
+    accel_m_s2: Annotated[float, Field(gt=0.0, le=MAX_ACCEL_M_S2)] = Field(
+        2.5, description="speeding up from and slowing down to rest at each waypoint, m/s^2"
     )
     waypoints: Annotated[list[Waypoint], Field(min_length=1, max_length=MAX_WAYPOINTS)]
 
@@ -104,33 +116,30 @@ class MissionPath:
         points = [o] + [
             (o[0] + w.north_m, o[1] + w.east_m, o[2] - w.up_m) for w in mission.waypoints
         ]
-        # Per segment: start time, start point, velocity (moving) or zero (holding).
-        self._t: list[float] = []
-        self._p: list[Vec3] = []
-        self._v: list[Vec3] = []
+        accel = mission.accel_m_s2
+        self._legs: list[_Leg] = []
+        """In time order; a hold at a waypoint is a leg of length 0."""
         self.arrivals_s: list[float] = []
         """When the setpoint reaches each waypoint, s from the start."""
         t = 0.0
         for a, b, w in zip(points, points[1:], mission.waypoints, strict=False):
             d = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
             length = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-            speed = w.speed_m_s if w.speed_m_s is not None else mission.speed_m_s
-            up = -d[2]
-            duration = max(
-                length / speed,
-                up / climb.up_max_m_s if up > 0.0 else -up / climb.down_max_m_s,
-            )
-            if duration > 0.0:
-                self._t.append(t)
-                self._p.append(a)
-                self._v.append((d[0] / duration, d[1] / duration, d[2] / duration))
-                t += duration
+            if length > 0.0:
+                speed = w.speed_m_s if w.speed_m_s is not None else mission.speed_m_s
+                up = -d[2]
+                # The climb and descent limits slow the whole leg.
+                vertical = up / climb.up_max_m_s if up > 0.0 else -up / climb.down_max_m_s
+                speed = min(speed, length / vertical) if vertical > 0.0 else speed
+                unit = (d[0] / length, d[1] / length, d[2] / length)
+                leg = _Leg(t, a, unit, length, speed, accel)
+                self._legs.append(leg)
+                t += leg.duration_s
             self.arrivals_s.append(t)
             if w.hold_s > 0.0:
-                self._t.append(t)
-                self._p.append(b)
-                self._v.append((0.0, 0.0, 0.0))
+                self._legs.append(_Leg(t, b, (0.0, 0.0, 0.0), 0.0, 1.0, accel, w.hold_s))
                 t += w.hold_s
+        self._starts = [leg.t_start_s for leg in self._legs]
         self._end = points[-1]
         self._targets = points[1:]
         self.duration_s = t
@@ -139,16 +148,14 @@ class MissionPath:
     def at(self, t_s: float) -> OuterSetpoint:
         """The setpoint ``t_s`` seconds into the mission (held at the last waypoint
         after its end, at the start before 0)."""
-        if not t_s < self.duration_s or not self._t:
-            p, v = self._end, (0.0, 0.0, 0.0)
+        if not t_s < self.duration_s or not self._legs:
+            p, v, acc = self._end, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
         else:
-            i = max(0, bisect.bisect_right(self._t, t_s) - 1)
-            dt = max(0.0, t_s - self._t[i])
-            a, v = self._p[i], self._v[i]
-            p = (a[0] + v[0] * dt, a[1] + v[1] * dt, a[2] + v[2] * dt)
+            i = max(0, bisect.bisect_right(self._starts, t_s) - 1)
+            p, v, acc = self._legs[i].at(t_s)
         return OuterSetpoint(
-            HorizontalSetpoint((v[0], v[1]), (p[0], p[1])),
-            VerticalSetpoint(-v[2], -p[2]),
+            HorizontalSetpoint((v[0], v[1]), (p[0], p[1]), (acc[0], acc[1])),
+            VerticalSetpoint(-v[2], -p[2], -acc[2]),
         )
 
     def target_at(self, t_s: float) -> Vec3:
@@ -159,3 +166,42 @@ class MissionPath:
     def waypoints_reached(self, t_s: float) -> int:
         """How many waypoints the setpoint has reached by ``t_s``."""
         return bisect.bisect_right(self.arrivals_s, t_s)
+
+
+class _Leg:
+    r"""A straight leg from rest to rest: from ``start`` along ``unit`` for
+    ``length_m``, speeding up at ``accel_m_s2`` to ``speed_m_s`` (to
+    :math:`\sqrt{a L}` if the leg is too short for it) and slowing down the same
+    way. A hold is a leg of length 0 lasting ``hold_s``."""
+
+    def __init__(
+        self, t_start_s: float, start: Vec3, unit: Vec3, length_m: float, speed_m_s: float,
+        accel_m_s2: float, hold_s: float = 0.0,
+    ) -> None:  # fmt: skip
+        self.t_start_s = t_start_s
+        self.start, self.unit, self.length_m, self.accel = start, unit, length_m, accel_m_s2
+        self.peak_m_s = min(speed_m_s, math.sqrt(accel_m_s2 * length_m))
+        self.ramp_s = self.peak_m_s / accel_m_s2
+        ramp_m = 0.5 * self.peak_m_s * self.ramp_s
+        cruise_s = (length_m - 2.0 * ramp_m) / self.peak_m_s if length_m > 0.0 else 0.0
+        self.duration_s = hold_s if length_m == 0.0 else 2.0 * self.ramp_s + max(0.0, cruise_s)
+
+    def at(self, t_s: float) -> tuple[Vec3, Vec3, Vec3]:
+        """Position, velocity and acceleration (NED) ``t_s`` into the mission."""
+        if self.length_m == 0.0:
+            return self.start, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+        tau = min(max(0.0, t_s - self.t_start_s), self.duration_s)
+        a, v = self.accel, self.peak_m_s
+        left = self.duration_s - tau
+        if tau < self.ramp_s:
+            s, sd, sdd = 0.5 * a * tau * tau, a * tau, a
+        elif left < self.ramp_s:
+            s, sd, sdd = self.length_m - 0.5 * a * left * left, a * left, -a
+        else:
+            s, sd, sdd = 0.5 * v * self.ramp_s + v * (tau - self.ramp_s), v, 0.0
+        u, o = self.unit, self.start
+        return (
+            (o[0] + s * u[0], o[1] + s * u[1], o[2] + s * u[2]),
+            (sd * u[0], sd * u[1], sd * u[2]),
+            (sdd * u[0], sdd * u[1], sdd * u[2]),
+        )

@@ -134,8 +134,9 @@ async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start)
     assert f.details("mission_waypoint") == ["1 of 1: holding there"]
     hold = f.companion.hold
     assert hold is not None and f.companion.mission_path is not None
-    # 1 m at 2 m/s: reached after 0.5 s of IMU time flown in the air.
-    assert f.companion._mission_t == pytest.approx(0.5, abs=0.005)
+    # 1 m from rest to rest at 2.5 m/s^2, too short for 2 m/s: reached after
+    # 2 sqrt(1 / 2.5) s of IMU time flown in the air.
+    assert f.companion._mission_t == pytest.approx(2.0 * (1.0 / 2.5) ** 0.5, abs=0.005)
     assert hold.setpoint.horizontal.position_ne_m == pytest.approx((1.0, 0.0), abs=0.01)
     assert hold.setpoint.vertical.up_m == pytest.approx(5.0)
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from companion.control.stick_limits import ClimbLimits
@@ -14,9 +16,10 @@ CLIMB = ClimbLimits(0.1, 0.6, 3.0, 1.5, 4.0, 3.0)
 """PX4's defaults: a climb at most 3 m/s, a descent 1.5 m/s."""
 
 
-def square(**first: float) -> Mission:
+def square(accel_m_s2: float = 2.0, **first: float) -> Mission:
     return Mission(
         speed_m_s=2.0,
+        accel_m_s2=accel_m_s2,
         waypoints=[
             Waypoint(north_m=0, east_m=0, up_m=5, **first),
             Waypoint(north_m=10, east_m=0, up_m=5),
@@ -26,28 +29,51 @@ def square(**first: float) -> Mission:
     )
 
 
-def test_the_setpoint_moves_along_each_leg_at_its_speed_and_holds_at_waypoints() -> None:
-    # From N 100, E 200, 3 m up.
+def test_the_setpoint_moves_along_each_leg_from_rest_to_rest_and_holds_at_waypoints() -> None:
+    # From N 100, E 200, 3 m up; 2 m/s^2.
     path = MissionPath(square(hold_s=1.0), (100.0, 200.0, -3.0), CLIMB)
-    # Climb 5 m at 2 m/s: 2.5 s (under the 3 m/s climb limit).
-    sp = path.at(1.25)
+    # Climb 5 m at 2 m/s (under the 3 m/s climb limit): 1 s speeding up over 1 m,
+    # 1.5 s at 2 m/s, 1 s slowing down: 3.5 s.
+    sp = path.at(0.5)
     assert sp.horizontal.position_ne_m == pytest.approx((100.0, 200.0))
-    assert sp.vertical.up_m == pytest.approx(3.0 + 2.5)
-    assert sp.vertical.climb_m_s == pytest.approx(2.0)
+    assert sp.vertical == pytest.approx((1.0, 3.0 + 0.25, 2.0))
+    assert path.at(2.0).vertical == pytest.approx((2.0, 3.0 + 3.0, 0.0))
+    assert path.at(3.25).vertical == pytest.approx((0.5, 8.0 - 0.0625, -2.0))
     # Held at the first waypoint for 1 s: no velocity.
-    sp = path.at(3.0)
+    sp = path.at(4.0)
     assert sp.vertical == (0.0, pytest.approx(8.0), 0.0)
     assert sp.horizontal.velocity_ne_m_s == (0.0, 0.0)
-    # 10 m north at 2 m/s from t = 3.5: half way at 6.0 s.
-    sp = path.at(6.0)
+    # 10 m north at 2 m/s from t = 4.5: 6 s, half way at 7.5 s.
+    sp = path.at(7.5)
     assert sp.horizontal.position_ne_m == pytest.approx((105.0, 200.0))
     assert sp.horizontal.velocity_ne_m_s == pytest.approx((2.0, 0.0))
-    # 10 m east at 5 m/s: 2 s; then down 6 m at 5 m/s, slowed to 1.5 m/s: 4 s.
-    assert path.arrivals_s == pytest.approx([2.5, 8.5, 10.5, 14.5])
-    sp = path.at(12.5)
-    assert sp.vertical.climb_m_s == pytest.approx(-1.5)
-    assert sp.vertical.up_m == pytest.approx(8.0 - 3.0)
-    assert path.duration_s == pytest.approx(14.5)
+    assert sp.horizontal.accel_ne_m_s2 == pytest.approx((0.0, 0.0))
+    # 10 m east at 5 m/s: too short to reach it: at most sqrt(2 * 10) m/s, 2 sqrt(10 / 2) s.
+    t3 = 10.5 + 2.0 * math.sqrt(5.0)
+    sp = path.at(10.5 + math.sqrt(5.0))
+    assert sp.horizontal.velocity_ne_m_s == pytest.approx((0.0, math.sqrt(20.0)))
+    assert sp.horizontal.position_ne_m == pytest.approx((110.0, 205.0))
+    # Then down 6 m at 5 m/s, slowed to the 1.5 m/s descent limit: 6 / 1.5 + 1.5 / 2 s.
+    assert path.arrivals_s == pytest.approx([3.5, 10.5, t3, t3 + 4.75])
+    sp = path.at(t3 + 2.0)
+    assert sp.vertical == pytest.approx((-1.5, 8.0 - 0.5625 - 1.5 * 1.25, 0.0))
+    assert path.duration_s == pytest.approx(t3 + 4.75)
+
+
+@pytest.mark.parametrize("accel_m_s2", [0.5, 2.5, 10.0])
+def test_the_setpoint_is_continuous_and_never_faster_than_the_leg(accel_m_s2: float) -> None:
+    path = MissionPath(square(accel_m_s2, hold_s=0.5), (0.0, 0.0, 0.0), CLIMB)
+    ts = np.linspace(-0.5, path.duration_s + 0.5, 4001)
+    pos = np.array([(*path.at(t).horizontal.position_ne_m, path.at(t).vertical.up_m) for t in ts])
+    vel = np.array([(*path.at(t).horizontal.velocity_ne_m_s, path.at(t).vertical.climb_m_s)
+                    for t in ts])  # fmt: skip
+    step = float(ts[1] - ts[0])
+    assert np.max(np.linalg.norm(np.diff(pos, axis=0), axis=1)) <= 5.0 * step + 1e-9
+    assert np.max(np.linalg.norm(vel, axis=1)) <= 5.0 + 1e-9
+    # From rest and to rest at each waypoint.
+    for t in (0.0, *path.arrivals_s):
+        sp = path.at(t)
+        assert np.linalg.norm((*sp.horizontal.velocity_ne_m_s, sp.vertical.climb_m_s)) < 1e-9
 
 
 def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
@@ -56,9 +82,10 @@ def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
         sp = path.at(t)
         assert sp.horizontal == ((0.0, 0.0), pytest.approx((10.0, 10.0)), (0.0, 0.0))
         assert sp.vertical == (0.0, pytest.approx(-1.0), 0.0)
-    assert [path.waypoints_reached(t) for t in (0.0, 2.5, 9.0, 100.0)] == [0, 1, 2, 4]
+    # Arrivals at 3.5, 9.5, 9.5 + 2 sqrt(5) and 4.75 s after it (2 m/s^2).
+    assert [path.waypoints_reached(t) for t in (0.0, 3.5, 11.0, 100.0)] == [0, 1, 2, 4]
     assert path.target_at(0.0) == pytest.approx((0.0, 0.0, -5.0))
-    assert path.target_at(9.0) == pytest.approx((10.0, 10.0, -5.0))
+    assert path.target_at(11.0) == pytest.approx((10.0, 10.0, -5.0))
     assert path.at(-1.0).vertical.up_m == pytest.approx(0.0)  # before the start: the start
 
 
