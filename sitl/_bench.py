@@ -1,8 +1,8 @@
 """Speed of the plant: how many simulated seconds per wall-clock second.
 
 ``python -c "from sitl._bench import bench_sitl; print(bench_sitl())"``. Reference
-figures for this machine class are in facts.md section 9 (plain-float RK4 ~30x real
-time at 1 kHz; RotorPy 0.86x).
+figures measured for this project on a 2-core machine (plain-float RK4 ~30x real
+time at 1 kHz; RotorPy 0.86x) are in ``docs/research/profiles.md#plant-speed``.
 """
 
 from __future__ import annotations

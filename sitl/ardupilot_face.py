@@ -81,7 +81,8 @@ class ArduStreams(MessageStreams):
     The interval is kept in whole milliseconds (``interval_us / 1000``, below 1 ms
     -> 1 ms); one faster than 0.8 x the main-loop rate
     (``interval_ms * 800 < loop_period_us``, ``cap_message_interval``) is
-    DENIED (facts.md 10: what ArduCopter 4.7-dev answers); an unknown message or
+    DENIED (what a real ArduCopter 4.7.0-dev answered:
+    ``docs/research/ardupilot.md#observed-4-7-dev``); an unknown message or
     a reset-to-default of one without a default is FAILED.
     """
 
@@ -153,7 +154,8 @@ so a client should also take PARAM_FLOAT without BYTEWISE, or autopilot 3, as
 C-cast."""
 
 ARDUPILOT_DEFAULT_FIRMWARE = FirmwareVersion(4, 7, 0, 0)
-"""ArduCopter 4.7.0-dev (``FIRMWARE_VERSION_TYPE_DEV``), the SITL checked in facts.md 10."""
+"""ArduCopter 4.7.0-dev (``FIRMWARE_VERSION_TYPE_DEV``): the version of the real ArduCopter
+SITL whose answers this personality copies (``docs/research/ardupilot.md#observed-4-7-dev``)."""
 ARDUPILOT_SW_VERSION = ARDUPILOT_DEFAULT_FIRMWARE.flight_sw_version
 
 _ONE_SHOT = ONE_SHOT | {ID_RAW_IMU, ID_SCALED_IMU}

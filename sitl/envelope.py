@@ -1,8 +1,8 @@
 r"""The vehicle envelope: physically consistent quad-X profiles from a few scalars.
 
-The issue asks for quadrotors of mass 0.25-5 kg, thrust-to-weight 1.8-10 and
-motor time constant 5-60 ms, with arm length and inertia consistent with those,
-plus damage inside that envelope. :func:`derive` turns four scalars (mass,
+The envelope this project targets: quadrotors of mass 0.25-5 kg, thrust-to-weight
+1.8-10 and motor time constant 5-60 ms, with arm length and inertia consistent with
+those, plus damage inside that envelope. :func:`derive` turns four scalars (mass,
 thrust-to-weight, motor time constant, optionally the arm) into an
 :class:`EnvelopeVehicle` whose :meth:`~EnvelopeVehicle.profile` is a complete,
 validated :class:`~companion.profile.VehicleProfile`; :func:`sample_envelope`
@@ -10,7 +10,8 @@ fills the envelope with a seeded Latin hypercube, :func:`corners` names its
 extremes and :func:`damage_variants` damages any vehicle in three stated ways.
 
 Every scaling law below is anchored on the DJI F450 of
-``vehicle_profiles/f450.yaml`` (RflySim model, ``facts.md`` section 8): fed the
+``vehicle_profiles/f450.yaml`` (RflySim's F450 model,
+``docs/research/profiles.md#f450``): fed the
 F450's own scalars (1.5 kg, arm 0.225 m, T/W 2.569, 21 ms) the generator
 returns its inertia, ``kf``, ``km``, ``w_max``, rotor inertia and drag exactly.
 
@@ -58,13 +59,13 @@ Rigid body
 ----------
 .. math::  I_{xx} = c_x m L^2, \quad I_{yy} = c_y m L^2, \quad I_{zz} = c_z m L^2,
 
-with :math:`(c_x, c_y, c_z) = (0.278, 0.288, 0.482)` from the F450. Across
-``facts.md`` section 8 :math:`c_x` runs from 0.18 (X500, Tarot) to 0.30 (Iris),
-so the F450 sits at the heavy-arm end; the anchor is kept because its inertia
-is measured, the others partly estimated. Motors sit in the PX4 quad-X order of
-the bundled profiles, the prop plane :math:`0.18 L` above the CG (the F450
-cut-prop profile's 4 cm; it is what lets an imbalanced prop shake roll and
-pitch, not only yaw). Drag (linear, quadratic, angular) scales with frontal
+with :math:`(c_x, c_y, c_z) = (0.278, 0.288, 0.482)` from the F450. Across the
+reference vehicles (``docs/research/profiles.md``) :math:`c_x` runs from 0.18
+(X500, Tarot) to 0.30 (Iris), so the F450 sits at the heavy-arm end; the anchor
+is kept because its inertia is measured, the others partly estimated. Motors sit
+in the PX4 quad-X order of the bundled profiles, the prop plane :math:`0.18 L`
+above the CG (the F450 cut-prop profile's 4 cm; it is what lets an imbalanced
+prop shake roll and pitch, not only yaw). Drag (linear, quadratic, angular) scales with frontal
 area, :math:`(L/L_0)^2` times the F450's figures. Motor lag is symmetric,
 ``motor_tau_up_s = motor_tau_down_s = motor_tau_s`` (as RflySim's F450), so the
 sampled scalar is the lag. Limits and IMU are the F450's (scenarios override
@@ -130,7 +131,7 @@ __all__ = [
     "write_profile_yaml",
 ]
 
-# --- Anchor: DJI F450, vehicle_profiles/f450.yaml (RflySim model, facts.md 8) ---
+# --- Anchor: DJI F450, vehicle_profiles/f450.yaml (docs/research/profiles.md#f450) ---
 _F450_MASS_KG = 1.5
 _F450_ARM_M = 0.225
 _F450_PROP_RADIUS_M = 0.127  # 10-inch prop

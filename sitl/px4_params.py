@@ -152,8 +152,10 @@ PX4_SITL_RC_MAP: tuple[tuple[str, float], ...] = (
     ("RC_MAP_THROTTLE", 3),
     ("RC_MAP_YAW", 4),
 )
-"""The SITL radio's calibration: AETR (facts.md 3), as QGroundControl's radio setup
-would store it (PX4's defaults are 0, unassigned)."""
+"""The SITL radio's calibration: AETR, ArduPilot's default channel order (``RCMAP_ROLL`` 1,
+``RCMAP_PITCH`` 2, ``RCMAP_THROTTLE`` 3, ``RCMAP_YAW`` 4 in
+``libraries/AP_RCMapper/AP_RCMapper.cpp``), as QGroundControl's radio setup would store
+it (PX4's ``RC_MAP_*`` defaults are 0, unassigned)."""
 
 
 def px4_sitl_airframe(imu_rate_hz: float) -> tuple[tuple[str, float], ...]:

@@ -12,7 +12,9 @@ Rate curves, with :math:`x \in [-1, 1]` the normalised deflection:
 * Betaflight: :math:`x' = x |x|^3 e + x (1 - e)`,
   :math:`\omega = 200\, r\, x' / \mathrm{clamp}(1 - |x| s, 0.01, 1)`
   deg/s, capped at 1998 deg/s, with rc-rate ``r``, super-rate ``s`` and
-  expo ``e`` (facts.md 7).
+  expo ``e``: Betaflight's ``applyBetaflightRates`` and its
+  ``SETPOINT_RATE_LIMIT_MAX`` (``src/main/fc/rc.c``), for ``r`` up to 2 (above
+  2 Betaflight steepens ``r``, which this mapping does not).
 
 A channel value that is not finite or lies outside ``valid_range_us``
 (missing channel, 65535 "unused", failsafe 0) is invalid: the caller decides
