@@ -133,7 +133,8 @@ def _inertia_times(k: float) -> Callable[[Data], None]:
 PLUS = ((0.225, 0.0, 0.0), (0.0, 0.225, 0.0), (-0.225, 0.0, 0.0), (0.0, -0.225, 0.0))
 
 MISTAKES: list[tuple[str, Callable[[Data], None], str, tuple[str, ...]]] = [
-    # The list.
+    # The required cases, each named by the check: rates and gyro range in rad/s,
+    # positions in mm, an absurd kf, a quad-X with six motors.
     ("rates-in-rad-s", _rates_in_rad_s, "limits.rate_max_deg_s", ("18.85 looks like rad/s",)),
     ("gyro-range-in-rad-s", _gyro_range_in_rad_s, "physics.imu.gyro_range_deg_s", ("rad/s",)),
     ("positions-in-mm", scale_positions(1000.0), "frame.motors.0.position_frd_m", ("millimetres",)),

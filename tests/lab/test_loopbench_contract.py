@@ -1,6 +1,6 @@
 """``run_loop_bench``'s result keys (what ``scripts/bench.py loop --json`` prints).
 
-The issue's benchmark contract: at least ``latency_us_p50``, ``latency_us_p99``,
+The loop benchmark's contract: at least ``latency_us_p50``, ``latency_us_p99``,
 ``floor_us_p50``, ``floor_us_p99``, their ratio and ``missed_at_<rate>``; the
 harness also reports late answers and the sample count. A short run at 250 Hz
 against the real companion and the floor server; no timing target is asserted
