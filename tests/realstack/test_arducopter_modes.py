@@ -1,6 +1,8 @@
 """The companion's angle, altitude and position modes beside ArduCopter's own on the
 real ArduCopter 4.5.6 SITL: STABILIZE, ALT_HOLD and LOITER flown with the same
-sticks (``sitl/lab/realstack/modes.py``), judged by ``tests/realstack/mode_checks.py``.
+sticks (``sitl/lab/realstack/modes.py``), and ``--mission`` beside ArduCopter's
+AUTO flying the same waypoints at the same leg speed
+(``sitl/lab/realstack/missions.py``), judged by ``tests/realstack/mode_checks.py``.
 
 The companion engages in GUIDED_NOGPS (``--output rates``, ``GUID_OPTIONS`` 8) and
 reads ArduCopter's own stick limits (``ANGLE_MAX``, ``PILOT_*``, ``LOIT_*``,
@@ -17,7 +19,7 @@ import pytest
 
 from sitl.lab.realstack.flights import Session
 from tests.realstack.conftest import ROOT, boot
-from tests.realstack.mode_checks import failures, fly_both
+from tests.realstack.mode_checks import failures, fly_both, fly_missions, mission_failures
 
 PROFILE = str(ROOT / "vehicle_profiles" / "arducopter_sitl_quad.yaml")
 RATES = ("--output", "rates", "--profile", PROFILE)
@@ -38,3 +40,11 @@ def test_each_mode_flies_as_arducopters_own_under_the_same_sticks(
     assert "ArduCopter's LOITER" in limits
     bad = failures(mode, ours, theirs)
     assert not bad, (bad, ours, theirs, limits)
+
+
+def test_the_mission_flies_as_arducopters_own_mission(
+    arducopter: Session, figures: list[dict[str, Any]]
+) -> None:
+    ours, theirs = fly_missions(arducopter, RATES, figures)
+    bad = mission_failures(ours, theirs)
+    assert not bad, (bad, ours, theirs)

@@ -1,6 +1,8 @@
 """The companion's angle, altitude and position modes beside PX4's own on the real PX4
 v1.16 SIH: STABILIZED, ALTCTL and POSCTL flown with the same sticks
-(``sitl/lab/realstack/modes.py``), judged by ``tests/realstack/mode_checks.py``.
+(``sitl/lab/realstack/modes.py``), and ``--mission`` beside PX4's AUTO.MISSION
+flying the same waypoints at the same leg speed (``sitl/lab/realstack/missions.py``),
+judged by ``tests/realstack/mode_checks.py``.
 
 PX4 streams what its Position mode asks (POSITION_TARGET_LOCAL_NED): the same
 acceleration-based shaping of the stick the companion now flies from PX4's own
@@ -23,7 +25,7 @@ import pytest
 from sitl.lab.realstack.flights import Session
 from sitl.lab.realstack.modes import watch_targets
 from tests.realstack.conftest import ROOT, boot
-from tests.realstack.mode_checks import failures, fly_both
+from tests.realstack.mode_checks import failures, fly_both, fly_missions, mission_failures
 
 PROFILE = str(ROOT / "vehicle_profiles" / "px4_sih_quadx.yaml")
 RATES = ("--output", "rates", "--profile", PROFILE)
@@ -51,3 +53,9 @@ def test_each_mode_flies_as_px4s_own_under_the_same_sticks(
         tilt_max = got[0]
     bad = failures(mode, ours, theirs, speed_asked=mode == "position", tilt_max_deg=tilt_max)
     assert not bad, (bad, ours, theirs, limits)
+
+
+def test_the_mission_flies_as_px4s_own_mission(px4: Session, figures: list[dict[str, Any]]) -> None:
+    ours, theirs = fly_missions(px4, RATES, figures)
+    bad = mission_failures(ours, theirs)
+    assert not bad, (bad, ours, theirs)
