@@ -17,10 +17,11 @@ measured the same way; these are the bounds:
 A mission (``sitl/lab/realstack/missions.py``: the same waypoints flown by
 ``--mission`` and by the stack's own mission mode, at the same leg speed): both
 complete it, and the companion's path error (RMS distance from above to the
-straight legs) is no more than twice the stack's plus 0.1 m. Measured: against
-PX4's AUTO.MISSION 0.46-0.49 m where PX4 flew 0.30-0.32 m; against ArduCopter's
-AUTO 0.15-0.16 m where it flew 0.20-0.21 m. Legs flown at constant speed into each
-corner (no slowing down) measured 0.96 and 0.78 m: the bound catches that.
+straight legs) is no more than twice the stack's plus 0.2 m, the spread of one
+flight. Measured: against PX4's AUTO.MISSION 0.46-0.65 m over three flights where
+PX4 flew 0.30-0.32 m; against ArduCopter's AUTO 0.15-0.16 m where it flew
+0.20-0.21 m. Legs flown at constant speed into each corner (no slowing down)
+measured 0.96 and 0.78 m, beyond the bounds (0.80-0.84 and 0.60-0.62 m).
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ SAME_STICK = 0.2
 HOLD_FACTOR = 1.5
 HOLD_NOISE_M = 0.1
 MISSION_PATH_FACTOR = 2.0
-MISSION_PATH_NOISE_M = 0.1
+MISSION_PATH_NOISE_M = 0.2
 _STACK_MISSION = {"px4": "AUTO.MISSION", "ardupilot": "AUTO"}
 
 
