@@ -19,8 +19,15 @@ key                  shape        meaning
 ``motor_cmd``        (N, n)       normalised motor commands applied over the step
 ``custom_mode``      (N,)         PX4 custom_mode (main << 16 | sub << 24)
 ``armed``            (N,)         bool
+``imu_t_s``          (M,)         each IMU sample's time stamp (what HIGHRES_IMU and
+                                  ATTITUDE carry), s: the autopilot's clock
+``imu_gyro_rad_s``   (M, 3)       its gyro reading (FRD, filtered and noisy, as sent)
 ``summary``          ()           JSON string: status, seed, clock, counters, timing
 ==================== ============ ===============================================
+
+The IMU samples are what an autopilot's own log keeps of its sensors (PX4's
+``sensor_combined``): a companion's control log, stamped with the samples' times,
+lines up with them on one time axis.
 
 and, while running, ``FILE`` with the suffix replaced by ``.events.jsonl``: one
 JSON object per line (``{"t_s": ..., "kind": "mode", ...}``), flushed as each
@@ -64,6 +71,7 @@ class LogWriter:
         self._blocks: list[np.ndarray] = []
         self._buf = np.empty((self._BLOCK, self.width))
         self._i = 0
+        self._imu: list[tuple[float, float, float, float]] = []
         self.path = path
         self._events = None
         if path is not None:
@@ -86,6 +94,11 @@ class LogWriter:
         self._buf[self._i] = row
         self._i += 1
 
+    def imu(self, t_s: float, gyro_rad_s: tuple[float, float, float]) -> None:
+        """An IMU sample the autopilot took (stamped ``t_s``)."""
+        if self.path is not None:
+            self._imu.append((t_s, *gyro_rad_s))
+
     def event(self, ev: Event) -> None:
         if self._events is not None:
             # The event's own time and kind win over any same-named detail key.
@@ -105,6 +118,7 @@ class LogWriter:
         data = np.concatenate([*self._blocks, self._buf[: self._i]], axis=0)
         n = self.n
         c = 14
+        imu = np.array(self._imu, dtype=float).reshape(-1, 4)
         # Write beside the target and rename: a reader never sees half a log, and
         # a signal during the write leaves the previous state, not a corrupt file.
         tmp = self.path.with_name(self.path.name + ".part.npz")
@@ -119,6 +133,8 @@ class LogWriter:
             motor_cmd=data[:, c + n : c + 2 * n],
             custom_mode=data[:, c + 2 * n].astype(np.uint32),
             armed=data[:, c + 2 * n + 1].astype(bool),
+            imu_t_s=imu[:, 0],
+            imu_gyro_rad_s=imu[:, 1:4],
             summary=np.array(json.dumps(summary)),
         )
         os.replace(tmp, self.path)

@@ -746,6 +746,7 @@ class Runner:
                 snap.imu_t_s = sample.time_s
                 snap.gyro_frd_rad_s = sample.gyro_frd_rad_s
                 snap.accel_frd_m_s2 = sample.accel_frd_m_s2
+                log.imu(sample.time_s, sample.gyro_frd_rad_s)
             imu_sent = face.publish(t, imu_sample=sample is not None, wall_s=monotonic())
 
             if not client_active and face.setpoints_arrived != sp_at_timeout:
