@@ -204,6 +204,8 @@ class RunOptions:
     MFC-on-top is compared with); the law still runs and is logged."""
     log_dir: Path | None = None
     mqtt_url: str | None = None
+    live: tuple[str, int] | None = None
+    """Serve the control log's topics live here, ``(host, port)`` (:mod:`companion.live`)."""
     signing_key: Path | None = None
     duration_s: float | None = None
     reference: ReferenceScript | None = None
@@ -283,6 +285,7 @@ class Companion(SamplePath):
         self._events_file = EventLog(ring_size=_EVENTS_KEPT)
         self._telemetry: Any = None
         self._writer: Any = None  # companion.records.RecordWriter, with --log-dir
+        self._live: Any = None  # companion.live.LiveView, with --live
         self._log_dir_lock: int | None = None  # its lock file's descriptor, held till the end
 
     @property
@@ -323,6 +326,8 @@ class Companion(SamplePath):
         telemetry_counters = getattr(self._telemetry, "counters", None)
         if isinstance(telemetry_counters, dict):
             c.update({f"telemetry.{k}": v for k, v in telemetry_counters.items() if v})
+        if self._live is not None:
+            c.update({f"live.{k}": v for k, v in self._live.counters.items() if v})
         figures = self.link_figures()
         if figures["n"]:
             c.update({f"timesync.{k}": v for k, v in figures.items() if v is not None})
@@ -343,6 +348,8 @@ class Companion(SamplePath):
             self._events_file.append(ev)  # memory, and a buffer the writer thread empties
             if self._log_rows is not None:
                 self._log_rows.event(ev)  # the control log's /events, with its next rows
+            if self._live is not None:
+                self._live.event(ev)
             if self._telemetry is not None:
                 self._telemetry.publish_event(kind, detail, t)
                 if kind != "counters":  # bookkeeping: the retained status keeps what matters
@@ -620,6 +627,26 @@ class Companion(SamplePath):
             _log.warning("--log-dir %s: an earlier run's records moved to %s", d, moved)
             self._event("records_moved", f"an earlier run's records moved to {moved}")
 
+    def _open_live(self) -> None:
+        """With ``live``: serve the control log's rows and the events to viewers
+        (:class:`companion.live.LiveView`); the loop hands it the row it builds.
+
+        Raises
+        ------
+        OSError
+            If it cannot listen there.
+        """
+        if self.opts.live is None:
+            return
+        from companion.live import LiveView, tee
+        from companion.records import columns
+
+        host, port = self.opts.live
+        self._live = live = LiveView(columns(self.opts.profile.n_motors), host=host, port=port)
+        live.start()
+        appends = [a for a in (self._log_append, live.append) if a is not None]
+        self._log_append = tee(*appends)
+
     def _close_records(self) -> None:
         """Hand the last buffers to the writer, let it drain (bounded), remove the
         records that hold nothing of a flight, then release the log folder."""
@@ -661,6 +688,12 @@ class Companion(SamplePath):
             return EXIT_ERROR
         except (OSError, ValueError) as exc:
             _log.error("cannot open the records in %s: %s", opts.log_dir, exc)
+            self._close_records()
+            return EXIT_ERROR
+        try:
+            self._open_live()
+        except OSError as exc:
+            _log.error("%s", exc)
             self._close_records()
             return EXIT_ERROR
         if opts.failsafe.bounds_lifted:
@@ -744,6 +777,8 @@ class Companion(SamplePath):
                 await self.link.close()
             self._final_counters()  # if an error or a signal ended the run early
             self._close_records()
+            if self._live is not None:
+                self._live.close()
             gc.unfreeze()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 with contextlib.suppress(NotImplementedError, RuntimeError):

@@ -34,6 +34,7 @@ from companion.options import (
     controller_opt,
     fail_config,
     keep_earlier,
+    live_opt,
     load_inputs,
     mode_opt,
     output_opt,
@@ -458,6 +459,7 @@ def preflight(
     "into earlier-<UTC time>/ in it first; a folder another run is using is refused (exit 1).",
 )
 @click.option("--mqtt", "mqtt_url", default=None, help="mqtt://HOST[:PORT]/PREFIX telemetry.")
+@live_opt
 @signing_key_opt("MAVLink 2 signing key file (see docs/signing.md).")
 @click.option(
     "--duration",
@@ -626,6 +628,7 @@ def run(
     rate_hz: float,
     log_dir: Path | None,
     mqtt_url: str | None,
+    live: tuple[str, int] | None,
     signing_key: Path | None,
     duration: float | None,
     on_failsafe: str,
@@ -743,6 +746,7 @@ def run(
         rates_lead_s=rates_lead_s,
         log_dir=log_dir,
         mqtt_url=mqtt_url,
+        live=live,
         signing_key=signing_key,
         duration_s=duration,
         heartbeat_timeout_s=heartbeat_timeout_s,

@@ -39,6 +39,7 @@ __all__ = [
     "controller_opt",
     "fail_config",
     "keep_earlier",
+    "live_opt",
     "load_inputs",
     "out_dir_problem",
     "output_opt",
@@ -262,3 +263,32 @@ def signing_key_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., 
         default=None,
         help=help_,
     )
+
+
+def _live_address(
+    ctx: click.Context, param: click.Parameter, value: str | None
+) -> tuple[str, int] | None:
+    """``--live [HOST:]PORT`` as ``(host, port)``, once the SDK is known to be installed."""
+    if value is None:
+        return None
+    from companion.live import parse_live_address, sdk_problem
+
+    try:
+        address = parse_live_address(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), ctx, param) from None
+    problem = sdk_problem()
+    if problem is not None:
+        raise click.BadParameter(problem, ctx, param)
+    return address
+
+
+live_opt = click.option(
+    "--live",
+    metavar="[HOST:]PORT",
+    callback=_live_address,
+    default=None,
+    help="Serve the control log's topics live over the Foxglove WebSocket protocol "
+    "(open ws://HOST:PORT in Foxglove; needs the live extra). HOST defaults to 127.0.0.1, "
+    "this computer only; 0.0.0.0 serves every network it is on, the vehicle's too.",
+)

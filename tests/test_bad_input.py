@@ -14,6 +14,7 @@ import json
 import math
 import re
 import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -478,3 +479,48 @@ def test_a_stick_script_out_of_range_names_the_key(
     assert lines, info.value.problems
     for w in words:
         assert w in lines[0], lines[0]
+
+
+@pytest.mark.parametrize(
+    ("value", "words"),
+    [
+        ("0", ("1..65535",)),
+        ("70000", ("1..65535",)),
+        ("-1", ("1..65535",)),
+        ("nan", ("not an integer",)),
+        ("eight", ("not an integer",)),
+        (":8765", ("the host is empty",)),
+        ("", ("not an integer",)),
+    ],
+)
+@pytest.mark.parametrize("command", ["run", "fly"])
+def test_run_and_fly_refuse_a_live_address(
+    tmp_path: Path, command: str, value: str, words: tuple[str, ...]
+) -> None:
+    args = (
+        ["--connect", "udpin:127.0.0.1:0"] if command == "run" else ["--out", str(tmp_path / "o")]
+    )
+    refused(companion(command, *args, "--live", value), "--live", *words)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("command", ["run", "fly"])
+def test_live_without_its_extra_names_the_extra_and_starts_nothing(
+    tmp_path: Path, command: str
+) -> None:
+    """An install without the foxglove-sdk package (sys.modules: its import fails)."""
+    args = (
+        ["--connect", "udpin:127.0.0.1:0"] if command == "run" else ["--out", str(tmp_path / "o")]
+    )
+    code = (
+        "import sys; sys.modules['foxglove'] = None\n"
+        "from companion.cli import main; sys.argv = ['companion', *sys.argv[1:]]; main()"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, command, *args, "--live", "8765"],
+        cwd=ROOT, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert proc.returncode == EXIT_BAD_INPUT, proc.stderr
+    assert "pip install 'mfc-companion[live]'" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()

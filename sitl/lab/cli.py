@@ -37,6 +37,7 @@ from companion.options import (
     fail_config,
     find_profile,
     keep_earlier,
+    live_opt,
     load_inputs,
     mode_opt,
     output_opt,
@@ -428,6 +429,7 @@ def _simulate_outer(
     "gives the path error against its plan.",
 )
 @_link_opt
+@live_opt
 @_progress_opt
 @_oracle_opt
 def fly(
@@ -444,6 +446,7 @@ def fly(
     flight_mode: str,
     mission_path: Path | None,
     link: LinkSpec | None,
+    live: tuple[str, int] | None,
     progress: bool,
     oracle: bool,
 ) -> None:
@@ -489,6 +492,9 @@ def fly(
     mode_args: tuple[str, ...] = () if flight_mode == "rates" else ("--mode", flight_mode)
     if mission_path is not None:
         mode_args += ("--mission", str(mission_path))
+    if live is not None:
+        host, port = live
+        mode_args += ("--live", f"[{host}]:{port}" if ":" in host else f"{host}:{port}")
     if link is not None:
         sc = sc.model_copy(update={"link": link})
     meta = {"scenario": sc.name, "seed": sc.seed if seed is None else seed,

@@ -1,0 +1,420 @@
+"""The live view: the control log's topics served over the Foxglove WebSocket protocol.
+
+``companion run --live [HOST:]PORT`` serves what ``control.mcap`` records, the
+same topics with the same fields and JSON schemas
+(:func:`companion.records.topics`, ``/events``), to any Foxglove app that
+connects, as the flight goes. The server is the ``foxglove-sdk`` package's
+(the ``live`` extra: ``pip install 'mfc-companion[live]'``); it runs on its own
+native threads.
+
+Off the control path. The loop's only work is :meth:`LiveView.append`: the row
+it already built for the control log copied into an ``array('d')``, and every
+``flush_interval_s`` that buffer handed to a bounded queue in one
+non-blocking put. A thread of its own formats the messages (JSON, one per
+topic per sample) and hands them to the SDK, in slices that let go of the
+interpreter often, so the loop's thread never waits long for it; topics
+nobody subscribed to are not formatted at all. Nothing in it waits on a
+viewer: the SDK keeps each viewer's messages in a backlog of its own
+(``_BACKLOG`` messages) and drops the oldest when a viewer does not read them.
+
+What is lost is counted (:attr:`LiveView.counters`, in the run's ``counters``
+events as ``live.*``): ``dropped_rows`` and ``dropped_events``, rows and events
+the publishing thread was too far behind to take (exact);
+``viewer_overflows``, the times a viewer's backlog filled, after which the SDK
+drops that viewer's oldest messages (the SDK says when, not how many; a viewer
+counts once per connection).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import threading
+import time
+from array import array
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
+
+__all__ = [
+    "DEFAULT_HOST",
+    "INSTALL_HINT",
+    "LiveView",
+    "parse_live_address",
+    "sdk_problem",
+    "tee",
+]
+
+log = logging.getLogger("companion.live")
+
+DEFAULT_HOST = "127.0.0.1"
+"""Where the live view listens unless told: this computer only. ``0.0.0.0``
+serves every network the companion computer is on (the vehicle's)."""
+
+INSTALL_HINT = "pip install 'mfc-companion[live]'"
+
+_BACKLOG = 4096
+"""Messages the SDK holds for each viewer (about 0.6 s of a 1 kHz flight's seven
+topics): a viewer behind by more loses its oldest ones."""
+_MAX_PENDING_ROWS = 5000
+"""Rows waiting for the publishing thread, at most (5 s at 1 kHz); more are dropped."""
+_MAX_PENDING_EVENTS = 1000
+_SLICE_S = 200e-6
+"""The publishing thread formats for at most this long before it lets go of the
+interpreter for ``_PAUSE_S``: a thread that holds it keeps the loop's thread
+waiting up to the switch interval (5 ms) otherwise."""
+_PAUSE_S = 50e-6
+_LINGER_S = 0.25
+"""At the end, how long the server stays up after the last messages are handed to
+it: they are still on their way to the viewers (the run's last counters)."""
+_LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
+"""The SDK's logger that says a viewer's backlog is full."""
+
+
+def parse_live_address(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` as ``(host, port)``; the host defaults to :data:`DEFAULT_HOST`.
+
+    Raises
+    ------
+    ValueError
+        Naming what is wrong: an empty host, a port that is not an integer in
+        1..65535.
+    """
+    s = text.strip()
+    host, sep, port_text = s.rpartition(":")
+    if not sep:
+        host = DEFAULT_HOST
+    elif not host:
+        raise ValueError(f"expected [HOST:]PORT, got {text!r} (the host is empty)")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]  # [::1]:8765
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise ValueError(
+            f"expected [HOST:]PORT, got {text!r} (the port is not an integer)"
+        ) from None
+    if not 1 <= port <= 65535:
+        raise ValueError(f"expected [HOST:]PORT with PORT in 1..65535, got {text!r}")
+    return host, port
+
+
+def sdk_problem() -> str | None:
+    """Why the live view cannot run in this install (the SDK is missing), or None."""
+    try:
+        import foxglove  # noqa: F401
+    except ImportError as exc:
+        return f"the live view needs the foxglove-sdk package ({exc}): {INSTALL_HINT}"
+    return None
+
+
+def tee(*appends: Callable[[Sequence[float]], None]) -> Callable[[Sequence[float]], None]:
+    """One ``append(row)`` that calls each of ``appends`` with the same row."""
+    if len(appends) == 1:
+        return appends[0]
+
+    def append(row: Sequence[float]) -> None:
+        for a in appends:
+            a(row)
+
+    return append
+
+
+class _OverflowCounter(logging.Handler):
+    """Counts the SDK's "outbox for client ... full" records."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.INFO)
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "full" in record.getMessage():
+            self.count += 1
+
+
+_sdk_logging_lock = threading.Lock()
+_sdk_logging_on = False
+
+
+def _sdk_logging() -> None:
+    """The SDK's log records into :mod:`logging` (once per process): its INFO lines
+    say when a viewer connects, leaves, or falls behind."""
+    global _sdk_logging_on
+    import foxglove
+
+    with _sdk_logging_lock:
+        if not _sdk_logging_on:
+            # The viewer's backlog records are INFO: let them through to our counter
+            # whatever the run's own log level.
+            logging.getLogger(_LOSSY_LOGGER).setLevel(logging.INFO)
+            foxglove.set_log_level("INFO")
+            _sdk_logging_on = True
+
+
+def _ns(t_s: float) -> int:
+    """Seconds as whole nanoseconds (the log time); 0 for NaN or negative."""
+    if not (math.isfinite(t_s) and t_s >= 0.0):
+        return 0
+    return round(min(t_s, 1.8e10) * 1e9)
+
+
+class _Formatter:
+    """One topic's messages from its columns: JSON objects, ``null`` for non-finite."""
+
+    def __init__(self, tp: Topic) -> None:
+        self.topic = tp
+        self.full = "{" + ",".join(f'"{f}":%.17g' for f in tp.fields) + "}"
+
+    def messages(self, data: np.ndarray) -> list[str | None]:
+        vals = data[:, self.topic.columns]
+        finite = np.isfinite(vals)
+        rows = vals.tolist()
+        whole = finite.all(axis=1).tolist()
+        some = finite.any(axis=1).tolist()
+        out: list[str | None] = []
+        fields = self.topic.fields
+        for r, row in enumerate(rows):
+            if whole[r]:
+                out.append(self.full % tuple(row))
+            elif self.topic.sparse and not some[r]:
+                out.append(None)  # nothing to say on this topic for this sample
+            else:
+                out.append(
+                    "{"
+                    + ",".join(
+                        f'"{f}":{v!r}' if math.isfinite(v) else f'"{f}":null'
+                        for f, v in zip(fields, row, strict=True)
+                    )
+                    + "}"
+                )
+        return out
+
+
+class LiveView:
+    """The control log's topics served live over the Foxglove WebSocket protocol.
+
+    Parameters
+    ----------
+    columns
+        The control log's columns, in row order (:func:`companion.records.columns`).
+    host, port
+        Where to listen (``port`` 0: any free port, :attr:`port` says which).
+    flush_interval_s
+        Rows are handed to the publishing thread at the first :meth:`append` at
+        least this long after the last hand-over: a viewer sees the flight this
+        much late at most, plus its own link.
+
+    Nothing is started until :meth:`start`; :meth:`close` stops it all.
+    """
+
+    def __init__(
+        self,
+        columns: Sequence[str],
+        *,
+        host: str = DEFAULT_HOST,
+        port: int = 8765,
+        flush_interval_s: float = 0.05,
+    ) -> None:
+        cols = list(columns)
+        self._topics = topics(cols)  # raises on an unknown column
+        if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+            raise ValueError(f"port must be an integer in 0..65535, got {port!r}")
+        if not (math.isfinite(flush_interval_s) and 0.0 <= flush_interval_s <= 1.0):
+            raise ValueError(f"flush_interval_s must be in [0, 1], got {flush_interval_s!r}")
+        self.host = host
+        self._port = port
+        self.n_columns = len(cols)
+        self._t = cols.index("t_s") if "t_s" in cols else None
+        self._interval = flush_interval_s
+        self._next_flush = 0.0
+        self._buf = array("d")
+        self._events: list[dict[str, Any]] = []
+        self._queue: queue.SimpleQueue[tuple[array[float], list[dict[str, Any]]] | None] = (
+            queue.SimpleQueue()
+        )
+        # Pending = in - out; "in" written by the loop's thread only, "out" by the
+        # publishing thread only.
+        self._in_rows = self._out_rows = 0
+        self._in_events = self._out_events = 0
+        self.dropped_rows = 0
+        self.dropped_events = 0
+        self.published = 0
+        """Messages handed to the SDK (each goes to every viewer subscribed to its topic)."""
+        self.publish_errors = 0
+        self._overflows = _OverflowCounter()
+        self._server: Any = None
+        self._thread: threading.Thread | None = None
+        self._open = False
+
+    # ------------------------------------------------------------ the loop's side
+    def start(self) -> None:
+        """Listen and start the publishing thread.
+
+        Raises
+        ------
+        OSError
+            If the SDK cannot listen there (the port is taken, the host unknown).
+        ImportError
+            If the SDK is not installed (:func:`sdk_problem` says so first).
+        """
+        import foxglove
+
+        _sdk_logging()
+        # Kept: the channels are bound to the context only as long as it lives.
+        self._context = ctx = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(
+                name="mfc-companion",
+                host=self.host,
+                port=self._port,
+                context=ctx,
+                message_backlog_size=_BACKLOG,
+            )
+        except RuntimeError as exc:  # the SDK's FoxgloveError
+            raise OSError(f"cannot serve the live view on {self.host}:{self._port}: {exc}") from exc
+        self._channels = []
+        for tp in self._topics:
+            schema = foxglove.Schema(name=tp.schema_name, encoding="jsonschema", data=tp.schema())
+            ch = foxglove.Channel(tp.name, schema=schema, message_encoding="json", context=ctx)
+            self._channels.append((ch, _Formatter(tp)))
+        schema = foxglove.Schema(name="mfc.event", encoding="jsonschema", data=event_schema())
+        self._events_channel = foxglove.Channel(
+            EVENTS_TOPIC, schema=schema, message_encoding="json", context=ctx
+        )
+        logging.getLogger(_LOSSY_LOGGER).addHandler(self._overflows)
+        self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
+        self._thread.start()
+        self._open = True
+        self._next_flush = time.monotonic() + self._interval
+        log.info("live view: ws://%s:%d (Foxglove WebSocket)", self.host, self.port)
+
+    @property
+    def port(self) -> int:
+        """The port listened on (the one chosen, with ``port=0``)."""
+        return int(self._server.port) if self._server is not None else self._port
+
+    def append(self, row: Sequence[float]) -> None:
+        """Take one row (the control log's, in column order). O(1), never blocks."""
+        if not self._open:
+            return
+        n = len(self._buf)
+        try:
+            self._buf.extend(row)
+        except TypeError:
+            del self._buf[n:]  # the control log says why; here the row is skipped
+            return
+        if time.monotonic() >= self._next_flush:
+            self.flush()
+
+    def event(self, event: dict[str, Any]) -> None:
+        """Take an event for ``/events``, published with the next rows."""
+        if self._open:
+            self._events.append(event)
+
+    def flush(self) -> None:
+        """Hand what is buffered to the publishing thread now; never blocks.
+
+        What does not fit in its bounds is dropped and counted."""
+        self._next_flush = time.monotonic() + self._interval
+        if not self._open or not (self._buf or self._events):
+            return
+        buf, self._buf = self._buf, array("d")
+        events, self._events = self._events, []
+        n_rows = len(buf) // self.n_columns if self.n_columns else 0
+        if (
+            self._in_rows - self._out_rows + n_rows > _MAX_PENDING_ROWS
+            or self._in_events - self._out_events + len(events) > _MAX_PENDING_EVENTS
+        ):
+            self.dropped_rows += n_rows
+            self.dropped_events += len(events)
+            return
+        self._in_rows += n_rows
+        self._in_events += len(events)
+        self._queue.put((buf, events))
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """``published``, ``dropped_rows``, ``dropped_events``, ``viewer_overflows``
+        and ``publish_errors`` so far."""
+        return {
+            "published": self.published,
+            "dropped_rows": self.dropped_rows,
+            "dropped_events": self.dropped_events,
+            "viewer_overflows": self._overflows.count,
+            "publish_errors": self.publish_errors,
+        }
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Publish what is buffered (waiting at most ``timeout_s``), then stop serving.
+
+        Closing twice, or a view never started, is harmless."""
+        if not self._open:
+            return
+        self.flush()
+        self._open = False
+        self._queue.put(None)
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        if self._server is not None:
+            time.sleep(_LINGER_S)
+            self._server.stop()
+        logging.getLogger(_LOSSY_LOGGER).removeHandler(self._overflows)
+
+    def __enter__(self) -> LiveView:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ the publishing thread
+    def _run(self) -> None:
+        get = self._queue.get
+        while True:
+            item = get()
+            if item is None:
+                return
+            buf, events = item
+            n_rows = len(buf) // self.n_columns
+            try:
+                self._publish(buf, n_rows, events)
+            except Exception:  # nothing may end this thread
+                self.publish_errors += 1
+                if self.publish_errors == 1:
+                    log.exception("live view: publishing failed (logged once, counted after)")
+            finally:
+                self._out_rows += n_rows
+                self._out_events += len(events)
+
+    def _publish(self, buf: array[float], n: int, events: list[dict[str, Any]]) -> None:
+        data = np.frombuffer(buf, dtype=np.float64)[: n * self.n_columns].reshape(n, self.n_columns)
+        t_ns = [_ns(t) for t in data[:, self._t].tolist()] if self._t is not None else [0] * n
+        clock = time.perf_counter
+        deadline = clock() + _SLICE_S
+        published = 0
+        for ch, fmt in self._channels:
+            if not ch.has_sinks():
+                continue  # nobody subscribed: not even formatted
+            for msg, lt in zip(fmt.messages(data), t_ns, strict=True):
+                if msg is not None:
+                    ch.log(msg, log_time=lt)
+                    published += 1
+                if clock() >= deadline:
+                    time.sleep(_PAUSE_S)
+                    deadline = clock() + _SLICE_S
+        ch = self._events_channel
+        if events and ch.has_sinks():
+            for ev in events:
+                t = ev.get("t_s")
+                lt = _ns(float(t)) if isinstance(t, int | float) else (t_ns[-1] if n else 0)
+                safe = {
+                    k: None if isinstance(v, float) and not math.isfinite(v) else v
+                    for k, v in ev.items()
+                }
+                ch.log(json.dumps(safe, default=str), log_time=lt)
+                published += 1
+        self.published += published
