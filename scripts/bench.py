@@ -30,6 +30,13 @@
     itself descheduled past them; see ``sitl.lab.loopbench``) and
     ``ended_early``/``floor_ended_early`` (a server that exited before the end,
     e.g. on a failsafe, misses everything after).
+    ``--viewer``: a third target in the same blocks, the companion with
+    ``--live`` and a Foxglove WebSocket client (``sitl.lab.live_viewer``, its
+    own process) subscribed to every topic: ``viewer_latency_us_p50``/``p99``,
+    ``viewer_ratio_p50``/``p99`` against the floor (the same targets),
+    ``viewer_over_plain_p50``/``p99`` against the companion without a viewer,
+    ``viewer_missed_at_1khz``, ``viewer_messages`` (what the client received) and
+    ``viewer_targets_met``.
 ``sitl``
     ``physics_rt_factor`` (simulated seconds per wall second, 1 kHz physics,
     one vehicle, no MAVLink), ``batch_vehicle_steps_per_s`` (N = 1000) and,
@@ -161,13 +168,13 @@ def bench_sitl() -> dict[str, Any]:
     return dict(run())
 
 
-def bench_loop(quick: bool) -> dict[str, Any]:
+def bench_loop(quick: bool, viewer: bool = False) -> dict[str, Any]:
     from sitl.lab.loopbench import run_loop_bench
 
     # This checkout's profile: the one beside the imported package is missing when
     # the package is installed from a wheel (e.g. a compiled build).
     f450 = Path(__file__).resolve().parents[1] / "vehicle_profiles" / "f450.yaml"
-    return run_loop_bench(seconds=5.0 if quick else 60.0, profile=f450)
+    return run_loop_bench(seconds=5.0 if quick else 60.0, profile=f450, viewer=viewer)
 
 
 def _campaign_grid(quick: bool) -> tuple[list[Any], float]:
@@ -292,11 +299,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("which", choices=["control", "sitl", "loop", "campaign"])
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.add_argument("--quick", action="store_true", help="fewer iterations (smoke test)")
+    parser.add_argument(
+        "--viewer",
+        action="store_true",
+        help="loop: also time the companion with --live and a viewer subscribed to everything",
+    )
     args = parser.parse_args(argv)
     if args.which == "control":
         result = bench_control(20_000 if args.quick else 200_000)
     elif args.which == "loop":
-        result = bench_loop(args.quick)
+        result = bench_loop(args.quick, args.viewer)
     elif args.which == "campaign":
         result = bench_campaign(args.quick)
     else:

@@ -69,6 +69,7 @@ os.environ.setdefault("MAVLINK20", "1")
 import asyncio
 import contextlib
 import gc
+import json
 import math
 import select
 import signal
@@ -336,27 +337,52 @@ def _free_ports(n: int) -> list[int]:
             s.close()
 
 
+def _free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
 def run_loop_bench(
-    *, seconds: float = 60.0, rate_hz: float = 1000.0, profile: Path | None = None
+    *,
+    seconds: float = 60.0,
+    rate_hz: float = 1000.0,
+    profile: Path | None = None,
+    viewer: bool = False,
 ) -> dict[str, Any]:
     """Companion (logging on) and floor, served alternately by one harness in one run.
 
     ``profile``: the vehicle profile the companion is given (default: the source
-    tree's F450, for a run from a checkout).
+    tree's F450, for a run from a checkout). ``viewer``: a third target, the
+    companion with ``--live`` and a viewer (:mod:`sitl.lab.live_viewer`, its own
+    process) subscribed to every topic and reading all it is sent; its figures
+    are the ``viewer_*`` keys, its ratios against the floor and against the
+    companion without a viewer, all three measured in the same blocks.
     """
     py = sys.executable
     profile = profile or ROOT / "vehicle_profiles" / "f450.yaml"
-    fport, cport = _free_ports(2)
+    fport, cport, vport = _free_ports(3)
+    wport = _free_tcp_port()
+
+    def companion(port: int, logs: str, *extra: str) -> list[str]:
+        return [py, "-m", "companion", "run", "--connect", f"udpin:127.0.0.1:{port}",
+                "--profile", str(profile), "--engage", "auto",
+                "--rate-hz", str(rate_hz), "--log-dir", logs,
+                # The harness serves the other targets most of the time: gaps of
+                # one block per other target are expected here (4 s of three), more
+                # when the harness is descheduled on a loaded machine.
+                "--stale-imu-s", "10", "--beyond-bounds", "--stale-imu-s",
+                "--link-timeout-s", "10", *extra]  # fmt: skip
+
     with tempfile.TemporaryDirectory() as logs:
         cmds = [
             [py, "-c", f"from sitl.lab.loopbench import echo_server; echo_server({fport})"],
-            [py, "-m", "companion", "run", "--connect", f"udpin:127.0.0.1:{cport}",
-             "--profile", str(profile), "--engage", "auto",
-             "--rate-hz", str(rate_hz), "--log-dir", logs,
-             # The harness serves the floor half the time: gaps are expected here.
-             "--stale-imu-s", "5", "--beyond-bounds", "--stale-imu-s",
-             "--link-timeout-s", "10"],
-        ]  # fmt: skip
+            companion(cport, str(Path(logs) / "plain")),
+        ]
+        if viewer:
+            cmds.append(
+                companion(vport, str(Path(logs) / "viewed"), "--live", f"127.0.0.1:{wport}")
+            )
         # stderr to files, not pipes: a pipe nobody reads fills up at 64 KiB and
         # blocks the writer in the middle of the measurement.
         errs = [Path(logs) / f"server{i}.stderr" for i in range(len(cmds))]
@@ -364,13 +390,24 @@ def run_loop_bench(
         for c, e in zip(cmds, errs, strict=True):
             with e.open("wb") as f:
                 procs.append(children.start(c, stdout=subprocess.DEVNULL, stderr=f))
+        watcher = None
         try:
             time.sleep(1.5)  # imports and socket set-up
             for p, e in zip(procs, errs, strict=True):
                 if p.poll() is not None:
                     err = e.read_text(errors="replace")
                     raise RuntimeError(f"a benchmark server exited: {err}")
-            floor, comp = run_harness([fport, cport], rate_hz=rate_hz, seconds_each=seconds)
+            if viewer:
+                # Subscribed before the first sample; reads until the server goes.
+                watch_cmd = [py, "-m", "sitl.lab.live_viewer", f"ws://127.0.0.1:{wport}",
+                             str(4.0 * seconds + 60.0)]  # fmt: skip
+                watcher = children.start(
+                    watch_cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL
+                )
+                time.sleep(1.0)
+            ports = [fport, cport, vport] if viewer else [fport, cport]
+            timed = run_harness(ports, rate_hz=rate_hz, seconds_each=seconds)
+            floor, comp = timed[0], timed[1]
             # A server that ended by itself (a failsafe) missed everything after: say so.
             ended_early = [p.poll() is not None for p in procs]
         finally:
@@ -410,4 +447,38 @@ def run_loop_bench(
     out["targets_met"] = bool(
         out["ratio_p50"] <= 1.3 and out["ratio_p99"] <= 1.5 and comp["missed"] == 0
     )
+    if viewer:
+        seen: dict[str, Any] = {}
+        if watcher is not None:
+            try:
+                text, _ = watcher.communicate(timeout=30)
+                seen = json.loads(text.decode().strip().splitlines()[-1])
+            except (subprocess.TimeoutExpired, ValueError, IndexError):
+                watcher.kill()
+                watcher.wait()
+        v = timed[2]
+        out.update(
+            viewer=True,
+            viewer_latency_us_p50=round(v.get("p50_us", nan), 1),
+            viewer_latency_us_p99=round(v.get("p99_us", nan), 1),
+            viewer_latency_us_max=round(v.get("max_us", nan), 1),
+            viewer_samples=v["samples"],
+            viewer_late=v["late"],
+            viewer_skipped=v["skipped"],
+            viewer_ended_early=ended_early[2],
+            viewer_topics=len(seen.get("topics", [])),
+            viewer_messages=sum(seen.get("counts", {}).values()),
+        )
+        out[f"viewer_{missed_key}"] = v["missed"]
+        out["viewer_ratio_p50"] = round(out["viewer_latency_us_p50"] / out["floor_us_p50"], 3)
+        out["viewer_ratio_p99"] = round(out["viewer_latency_us_p99"] / out["floor_us_p99"], 3)
+        out["viewer_over_plain_p50"] = round(
+            out["viewer_latency_us_p50"] / out["latency_us_p50"], 3
+        )
+        out["viewer_over_plain_p99"] = round(
+            out["viewer_latency_us_p99"] / out["latency_us_p99"], 3
+        )
+        out["viewer_targets_met"] = bool(
+            out["viewer_ratio_p50"] <= 1.3 and out["viewer_ratio_p99"] <= 1.5 and v["missed"] == 0
+        )
     return out
