@@ -85,8 +85,9 @@ async def watch(
     keep
         Keep every message decoded (else only count them).
     stop_reading_after_s
-        After this long, stop reading, the connection left open: a viewer that
-        stalls (its socket fills up, then the server's backlog for it).
+        This long after the first message, stop reading, the connection left
+        open: a viewer that stalls (its socket fills up, then the server's
+        backlog for it).
     rcvbuf_bytes
         The socket's receive buffer (``SO_RCVBUF``): small, a viewer on a slow
         link, whose socket fills up soon.
@@ -101,7 +102,7 @@ async def watch(
     seen = Seen(connected_s=time.monotonic() - t0)
     subs: dict[int, str] = {}
     end = time.monotonic() + seconds
-    stall_at = None if stop_reading_after_s is None else time.monotonic() + stop_reading_after_s
+    stall_at: float | None = None  # set at the first message, with stop_reading_after_s
     try:
         next_id = 1
         while True:
@@ -129,6 +130,8 @@ async def watch(
                 if topic is None:
                     continue
                 seen.counts[topic] = seen.counts.get(topic, 0) + 1
+                if stop_reading_after_s is not None and stall_at is None:
+                    stall_at = time.monotonic() + stop_reading_after_s
                 if keep:
                     body = json.loads(frame[_HEADER.size :])
                     seen.messages.setdefault(topic, []).append((log_time, body))
@@ -147,7 +150,7 @@ async def watch(
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
     finally:
         # The close handshake of a viewer that stopped reading would wait for it.
-        ws.transport.abort() if stall_at is not None else await ws.close()
+        ws.transport.abort() if stop_reading_after_s is not None else await ws.close()
     return seen
 
 

@@ -113,7 +113,8 @@ def test_a_viewer_sees_every_topic_of_a_flight_as_it_flies(tmp_path: Path) -> No
 
 
 def test_a_viewer_that_stops_reading_costs_the_flight_nothing(tmp_path: Path) -> None:
-    """A viewer subscribed to everything that stops reading after half a second:
+    """A viewer subscribed to everything that stops reading half a second after its
+    first message:
     the flight is the same flight, sample for sample, as one with nobody watching
     (lockstep flights of one seed are identical), and the messages the SDK dropped
     for the viewer are counted in the run's counters."""
