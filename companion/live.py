@@ -7,8 +7,9 @@ connects, as the flight goes. The server is the ``foxglove-sdk`` package's
 (the ``live`` extra: ``pip install 'mfc-companion[live]'``); it runs on its own
 native threads.
 
-Off the control path. The loop's only work is :meth:`LiveView.append`: the row
-it already built for the control log copied into an ``array('d')``, and every
+Off the control path. The loop's only work is :meth:`LiveView.append`: at most
+:data:`RATE_HZ` samples a second (the control log keeps them all), each row it
+already built for the control log copied into an ``array('d')``, and every
 ``flush_interval_s`` that buffer handed to a bounded queue in one
 non-blocking put. A thread of its own formats the messages (JSON, one per
 topic per sample) and hands them to the SDK, in slices that let go of the
@@ -44,6 +45,7 @@ from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
 __all__ = [
     "DEFAULT_HOST",
     "INSTALL_HINT",
+    "RATE_HZ",
     "LiveView",
     "parse_live_address",
     "sdk_problem",
@@ -59,8 +61,12 @@ serves every network the companion computer is on (the vehicle's)."""
 INSTALL_HINT = "pip install 'mfc-companion[live]'"
 
 _BACKLOG = 4096
-"""Messages the SDK holds for each viewer (about 0.6 s of a 1 kHz flight's seven
-topics): a viewer behind by more loses its oldest ones."""
+"""Messages the SDK holds for each viewer (about 3 s of seven topics at
+:data:`RATE_HZ`): a viewer behind by more loses its oldest ones."""
+RATE_HZ = 200.0
+"""Samples per second the live view sends at most, whatever the IMU's rate (the
+control log keeps every one): a plot on a screen shows no more, and each sample
+costs a JSON object per topic on the companion's computer."""
 _MAX_PENDING_ROWS = 5000
 """Rows waiting for the publishing thread, at most (5 s at 1 kHz); more are dropped."""
 _MAX_PENDING_EVENTS = 1000
@@ -208,6 +214,9 @@ class LiveView:
         Rows are handed to the publishing thread at the first :meth:`append` at
         least this long after the last hand-over: a viewer sees the flight this
         much late at most, plus its own link.
+    max_rate_hz
+        At most this many samples a second are sent (by their ``t_s``); the rest
+        are skipped where they come, before any copy.
 
     Nothing is started until :meth:`start`; :meth:`close` stops it all.
     """
@@ -219,6 +228,7 @@ class LiveView:
         host: str = DEFAULT_HOST,
         port: int = 8765,
         flush_interval_s: float = 0.05,
+        max_rate_hz: float = RATE_HZ,
     ) -> None:
         cols = list(columns)
         self._topics = topics(cols)  # raises on an unknown column
@@ -230,6 +240,12 @@ class LiveView:
         self._port = port
         self.n_columns = len(cols)
         self._t = cols.index("t_s") if "t_s" in cols else None
+        if not (math.isfinite(max_rate_hz) and 1.0 <= max_rate_hz <= 10_000.0):
+            raise ValueError(f"max_rate_hz must be in [1, 10000], got {max_rate_hz!r}")
+        self._min_dt = 1.0 / max_rate_hz
+        self._due = -math.inf
+        """The stamp from which the next row is taken: one slot of ``1 / max_rate_hz``
+        after the last, so a 250 Hz stream gives 200 a second, four in five."""
         self._interval = flush_interval_s
         self._next_flush = 0.0
         self._buf = array("d")
@@ -299,9 +315,21 @@ class LiveView:
         return int(self._server.port) if self._server is not None else self._port
 
     def append(self, row: Sequence[float]) -> None:
-        """Take one row (the control log's, in column order). O(1), never blocks."""
+        """Take one row (the control log's, in column order). O(1), never blocks.
+
+        Rows come at most ``max_rate_hz`` a second on average (by ``t_s``); the
+        others are skipped here."""
         if not self._open:
             return
+        if self._t is not None:
+            t = row[self._t]
+            if t < self._due - 1.0:  # the stamps went back (an autopilot's reboot)
+                self._due = t
+            if t < self._due:
+                return
+            # The next slot: kept in phase while the stream comes, restarted after a gap.
+            late = t >= self._due + self._min_dt
+            self._due = t + self._min_dt if late else self._due + self._min_dt
         n = len(self._buf)
         try:
             self._buf.extend(row)
