@@ -73,7 +73,6 @@ def fly_safe_mode_case(
         "--engage", "rc-switch", *args, "--safe-mode", case.safe_mode, name=f"handback-{case.id}"
     )
     pilot = session.pilot
-    time.sleep(2.0)
     pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
     pilot.engage(g.clock())
     engaged = session.wait_engaged(run, 5.0)
@@ -134,7 +133,6 @@ def fly_failsafe_case(session: Session, kind: str, args: tuple[str, ...]) -> dic
             connect_url=f"udpin:127.0.0.1:{q}",
         )  # fmt: skip
         pilot = session.pilot
-        time.sleep(2.0)
         pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
         pilot.engage(g.clock())
         engaged = session.wait_engaged(run, 5.0)

@@ -116,6 +116,12 @@ class SwitchPilot:
         return (s.roll_us, s.pitch_us, s.throttle_us, s.yaw_us, *tail)
 
 
+READY_TIMEOUT_S = 20.0
+"""How long :meth:`Session.start_companion` waits for the companion to stream the IMU."""
+_PILOT_SEEN_S = 0.3
+"""Then this long for the pilot's input (50 Hz) to reach it: the switch seen low."""
+
+
 @dataclass
 class CompanionRun:
     """``companion run`` as a process, its records in ``log_dir``."""
@@ -344,7 +350,7 @@ class Session:
         duration_s: float,
         name: str | None = None,
         settle_s: float = 4.0,
-        start_s: float = 3.0,
+        start_s: float = 1.0,
     ) -> CompanionRun:
         """``companion run --engage rc-switch *args`` from the hold: the switch low for
         ``start_s``, then high with ``pilot`` (or the sticks held at ``sticks_us``)
@@ -427,7 +433,11 @@ class Session:
         self, *args: str, name: str | None = None, connect_url: str | None = None
     ) -> CompanionRun:
         """``companion run --connect <the stack> --log-dir <a new folder> *args``
-        (``connect_url``: another way to the stack, e.g. through a relay)."""
+        (``connect_url``: another way to the stack, e.g. through a relay), returned
+        once it streams the IMU and has had the pilot's input a moment
+        (:data:`READY_TIMEOUT_S` at most): a switch flipped high before it saw it low
+        would not engage it (the companion's rule), and a loaded machine starts it
+        in well over a second."""
         self._runs += 1
         log_dir = self.workdir / (name or f"companion-{self._runs}")
         log_dir.mkdir(parents=True, exist_ok=True)
@@ -438,7 +448,14 @@ class Session:
         env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
         with stderr_path.open("wb") as err:
             proc = children.start(cmd, cwd=_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
-        return CompanionRun(proc, log_dir, stderr_path)
+        run = CompanionRun(proc, log_dir, stderr_path)
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline and proc.poll() is None:
+            if "imu_stream" in run.kinds():
+                time.sleep(_PILOT_SEEN_S)
+                break
+            time.sleep(0.05)
+        return run
 
     def wait_engaged(self, run: CompanionRun, timeout_s: float = 10.0) -> bool:
         deadline = time.monotonic() + timeout_s

@@ -97,7 +97,7 @@ def fly_and_kill(
     axis: int = 0,
     within_s: float = 10.0,
     fly_on_s: float = 8.0,
-    start_s: float = 3.0,
+    start_s: float = 1.0,
     name: str | None = None,
 ) -> tuple[CompanionRun, RealKill]:
     """Engage ``companion run --engage rc-switch *args`` with ``pilot`` and kill it
