@@ -226,7 +226,8 @@ def sitl_from_the_venv(installed: Installed, tmp_path: Path) -> Iterator[int]:
     cmd = [
         str(installed.venv / "bin" / "sitl"), "run", "--profile", str(profile),
         "--mavlink", f"udpout:127.0.0.1:{port}", "--pilot", str(sticks), "--no-auto-arm",
-        "--duration", "120",
+        # COM_OF_LOSS_T as docs/failsafes.md says to set it (PX4's 1 s fails preflight).
+        "--offboard-timeout", "0.3", "--duration", "120",
     ]  # fmt: skip
     err = tmp_path / "sitl.stderr"
     with err.open("wb") as f:
