@@ -47,7 +47,9 @@ from sitl.lab.realstack.modes import (
     start_mode_companion,
 )
 
-ENGAGE_TILT_MAX_DEG = 5.0
+ENGAGE_TILT_MAX_DEG = 7.0
+"""No jolt on engaging: the jolt this guards against tilted PX4's vehicle 14-17 deg;
+PX4's own switch into STABILIZED measured up to 5.5 deg, the companion's up to 5.3."""
 ENGAGE_SAG_MAX_M = 0.2
 SAME_STICK = 0.2
 HOLD_FACTOR = 1.5
