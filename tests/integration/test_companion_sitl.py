@@ -61,8 +61,12 @@ def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profi
     flight = fly_mavlink(PROFILES / f"{profile}.yaml", "paper-acro", tmp_path, duration_s=20.0)
     assert flight.companion_rc == 0, flight.text("companion.stderr")
     # The run's end hands back (valid RC from the SITL's pilot, a position: POSCTL)
-    # and the watch sees it held.
-    assert kinds(flight.companion_events)[-2:] == ["handed_back", "safe_mode_held"]
+    # and the watch sees it held. (After the hand-back the lockstep SITL no longer
+    # waits for the companion, and a loaded machine may pause its stream meanwhile:
+    # an imu_gap there says so and is not part of the hand-back.)
+    ended = [k for k in kinds(flight.companion_events) if k != "imu_gap"]
+    assert ended[-2:] == ["handed_back", "safe_mode_held"], ended[-6:]
+    assert not [k for k in ended if k.startswith("failsafe")], ended
     m = compute_metrics(merge_logs(flight))
     assert not m["crashed"]
     assert m["airborne_time_s"] > 15.0
