@@ -77,10 +77,7 @@ def fly_safe_mode_case(
         "--engage", "rc-switch", *args, "--safe-mode", case.safe_mode, name=f"handback-{case.id}"
     )
     pilot = session.pilot
-    pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
-    pilot.engage(g.clock())
-    engaged = session.wait_engaged(run, 5.0)
-    time.sleep(1.5)
+    engaged = _engage_hovering(session, run, 1.5)
     t0 = g.clock()
     alt0 = _altitude(session)
     if case.pilot_present:
@@ -104,6 +101,18 @@ def fly_safe_mode_case(
     session.restore_pilot()
     pilot.pilot = None
     return out
+
+
+def _engage_hovering(session: Session, run: Any, hover_s: float) -> bool:
+    """The pilot flips the switch high with a hovering pilot; whether the companion
+    engaged within 5 s; then ``hover_s`` of hover."""
+    g = session.gcs
+    assert g is not None
+    session.pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
+    session.pilot.engage(g.clock())
+    engaged = session.wait_engaged(run, 5.0)
+    time.sleep(hover_s)
+    return engaged
 
 
 def _altitude(session: Session) -> float:
@@ -137,10 +146,7 @@ def fly_failsafe_case(session: Session, kind: str, args: tuple[str, ...]) -> dic
             connect_url=f"udpin:127.0.0.1:{q}",
         )  # fmt: skip
         pilot = session.pilot
-        pilot.pilot = make_pilot("hover", rng=np.random.default_rng(0))
-        pilot.engage(g.clock())
-        engaged = session.wait_engaged(run, 5.0)
-        time.sleep(2.0)
+        engaged = _engage_hovering(session, run, 2.0)
         t0 = g.clock()
         alt0 = _altitude(session)
         if kind == "link-cut":
