@@ -27,10 +27,10 @@ from sitl.lab.oracle import (
     fly_oracle,
     oracle_flight,
 )
+from sitl.lab.paper.analysis import motion_limits
 from sitl.lab.report import compute_metrics
 from sitl.lab.simulate import FlightRecord, simulate_flight
 from sitl.scenario import Scenario, load_scenario
-from tests.file_module import load_file_module
 
 ROOT = Path(__file__).resolve().parents[2]
 SLICE_S = 17.0
@@ -41,9 +41,6 @@ tracker's on the same reference through the same filter. The ideal tracker has n
 noise, no coupling between the axes, no spread shared by roll and pitch and one lag;
 on this slice the oracle is 1 % (roll) and 10 % (pitch) above it, on the full flight
 6 % and 5 %."""
-
-
-rp = load_file_module(ROOT / "scripts" / "reproduce_paper.py")
 
 
 def _profile(name: str) -> VehicleProfile:
@@ -78,7 +75,7 @@ def test_the_oracle_reaches_the_offline_ideal_tracker_on_roll_and_pitch() -> Non
     m = compute_metrics(rec)
     assert not m["crashed"]
     weight = _slice().imu_model(profile).first_stage_filter_weight
-    ideal = rp.motion_limits(rec, profile, weight)["ideal_tracker_measured_deg_s"]
+    ideal = motion_limits(rec, profile, weight)["ideal_tracker_measured_deg_s"]
     for axis in AXES[:2]:
         ratio = m["mae_deg_s"][axis] / ideal[axis]
         assert abs(ratio - 1.0) <= IDEAL_TOLERANCE, (axis, m["mae_deg_s"], ideal)
