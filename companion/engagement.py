@@ -1,29 +1,30 @@
 """Engagement and hand-back: taking the vehicle, and giving it back to a mode it
 can fly on its own.
 
-A part of :class:`companion.app.Companion` (it is mixed in): engaging streams
-setpoints, switches to the stack's engage mode and arms (with ``--engage
-auto``, once the stack is ready, tried again while it refuses, within
-``arm_timeout_s``); releasing stops the commands at once, in the caller's
-callback; a failsafe releases and then hands back, trying the safe modes in the
-order :mod:`companion.handback` gives and watching that the autopilot keeps the
-one it accepted and does not fail safe in it.
+The asyncio side of the run's decisions, held by the shell
+(:class:`companion.app.Companion`) beside the flight core
+(:class:`companion.core.FlightCore`), whose state it reads and moves: engaging
+streams setpoints, switches to the stack's engage mode and arms (with
+``--engage auto``, once the stack is ready, tried again while it refuses,
+within ``arm_timeout_s``); the core releases at once, in the call that finds a
+reason; a hand-back then tries the safe modes in the order
+:mod:`companion.handback` gives and watches that the autopilot keeps the one it
+accepted and does not fail safe in it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import time
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable
+from typing import Any
 
-from companion.control import RateController
+from companion.core import FlightCore
 from companion.errors import EXIT_ERROR, EXIT_FAILSAFE, EngageError, LinkError
-from companion.handback import Conditions, adoptable, failsafe_state, judge, next_kind, pick
-from companion.stacks import FlightStack, SafeMode, said_why
-
-if TYPE_CHECKING:
-    from companion.app import RunOptions
-    from companion.records import EventLog
+from companion.handback import adoptable, failsafe_state, judge, next_kind, pick
+from companion.records import EventLog
+from companion.run_options import RunOptions
+from companion.stacks import SafeMode, said_why
 
 __all__ = ["Engagement"]
 
@@ -32,9 +33,6 @@ _CMD_DO_SET_MODE = 176
 _CMD_ARM_DISARM = 400
 _RESULT_ACCEPTED = 0
 _MODE_FLAG_CUSTOM = 1
-_POSITION_TIMEOUT_S = 1.0
-"""A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
-ArduPilot only while their estimate is valid) is younger than this."""
 _WATCH_POLL_S = 0.05
 _SYS_STATUS_WAIT_S = 0.3
 """How long a hand-back that adopts the autopilot's failsafe waits for its next
@@ -50,56 +48,66 @@ _PILOT_TRIES = 10
 """``--engage rc-switch``: the engage mode is tried this often, ``_REASON_WAIT_S``
 apart (the pilot is waiting), before the engagement is given up."""
 _READY_POLL_S = 0.05
+_HAND_BACK_RETRY_S = 15.0
+"""How long the run's end goes on asking for a safe mode the autopilot did not
+answer (a cut link), unless the autopilot shows it left the engage mode."""
+_HAND_BACK_RETRY_PERIOD_S = 0.1
+_LINK_QUIET_S = 1.5
+"""No autopilot heartbeat for this long (1 Hz) after an unanswered hand-back: the
+link is down, and the hand-back waits for it."""
 
 
 class Engagement:
-    """Engaging, releasing, failing safe and handing back (mixed into the app)."""
+    """Engaging and handing back, for one run: the shell's, beside its core.
 
-    # What the app holds and these methods use.
-    opts: RunOptions
-    link: Any
-    controller: RateController
-    stack: FlightStack | None
-    engaged: bool
-    commanding: bool
-    _stop: asyncio.Event
-    _exit_code: int
-    _events_file: EventLog
-    _engage_task: asyncio.Task[None] | None
-    _tasks: set[asyncio.Task[Any]]
-    _handing_back: bool
-    _hand_back_accepted: bool
-    _hand_back_owed: bool
-    _hand_back_idle: asyncio.Event
-    _in_failsafe: bool
-    _safe_modes: tuple[SafeMode, ...]
-    _ap_mode: int | None
-    _ap_armed: bool
-    _ap_status: int | None
-    _prearm_ready: bool | None
-    _ap_heartbeats: int
-    _rc_wall: float | None
-    _pos_wall: float | None
-    _rc_receiver_healthy: bool
-    n_sys_status: int
+    Parameters
+    ----------
+    core
+        The run's flight core: the state engaged, commanding and the
+        autopilot's, which this reads and moves.
+    opts
+        The run's options.
+    events
+        The run's event log, as it is now (what the autopilot said since a
+        command was sent).
+    event
+        Records an event.
+    end_run
+        Ends the run with an exit code.
+    stopping
+        Whether the run is ending.
+    tasks
+        The run's tasks (an engagement is one, cancelled at the run's end).
+    """
 
-    if TYPE_CHECKING:  # the app's
-
-        def _event(self, kind: str, detail: str) -> None: ...
-
-        def _spawn(self, coro: Any, name: str) -> asyncio.Task[Any]: ...
-
-        def _reset_laws(self) -> None: ...
-
-        def _not_ready_to_engage(self) -> str | None: ...
-
-        def position_fresh(self) -> bool: ...
-
-        def _setpoints_now_flown(self) -> None: ...
-
-    needs_position: bool
-    setpoints_flown: bool
-    mode_before_engaging: int | None
+    def __init__(
+        self,
+        core: FlightCore,
+        opts: RunOptions,
+        *,
+        events: Callable[[], EventLog],
+        event: Callable[[str, str], None],
+        end_run: Callable[[int], None],
+        stopping: Callable[[], bool],
+        tasks: set[asyncio.Task[Any]],
+    ) -> None:
+        self.core = core
+        self.opts = opts
+        self.link: Any = None
+        """The MAVLink link, once the shell has opened it."""
+        self.events_log = events
+        self.event = event
+        self.end_run = end_run
+        self.stopping = stopping
+        self.tasks = tasks
+        self.safe_modes: tuple[SafeMode, ...] = ()
+        self._task: asyncio.Task[None] | None = None
+        self.hand_back_accepted = False
+        """The last hand-back's mode switch was ACKed."""
+        self.hand_back_owed = False
+        """A hand-back failed or went unanswered: the run's end tries again."""
+        self.idle = asyncio.Event()
+        self.idle.set()
 
     async def _engage_offboard(self, *, arm: bool) -> None:
         """Stream setpoints, switch to the stack's engage mode, arm if asked.
@@ -116,29 +124,25 @@ class Engagement:
         ``rc-switch`` (the pilot waits) the engage mode is tried
         ``_PILOT_TRIES`` times.
         """
-        assert self.stack is not None
-        stack = self.stack
+        assert self.core.stack is not None
+        stack = self.core.stack
         # The estimates a flight mode needs may still be on their way (asked for
         # at start-up, an --engage auto run engages at once): wait for them a while.
-        why = self._not_ready_to_engage()
+        why = self.core.not_ready_to_engage(time.perf_counter())
         # An --engage auto run starts with the autopilot, maybe before its estimator
         # or the pilot's input is up: it waits as long as it waits to arm.
         wait_s = self.opts.arm_timeout_s if self.opts.engage == "auto" else _ESTIMATES_WAIT_S
         estimates_by = time.monotonic() + max(wait_s, _ESTIMATES_WAIT_S)
-        while why is not None and time.monotonic() < estimates_by and not self._stop.is_set():
+        while why is not None and time.monotonic() < estimates_by and not self.stopping():
             # (The pilot's switch going low meanwhile cancels this task: _on_rc.)
             await asyncio.sleep(0.02)
-            why = self._not_ready_to_engage()
+            why = self.core.not_ready_to_engage(time.perf_counter())
         if why is not None:
-            self._event("engage_failed", why)
+            self.event("engage_failed", why)
             if self.opts.engage == "auto":
-                self._exit_code = EXIT_ERROR
-                self._stop.set()
+                self.end_run(EXIT_ERROR)
             return
-        self.mode_before_engaging = self._ap_mode
-        self.setpoints_flown = False
-        self.commanding = True
-        self._reset_laws()
+        self.core.begin_commanding()
         auto = self.opts.engage == "auto"
         deadline = time.monotonic() + self.opts.arm_timeout_s if auto else None
         await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
@@ -163,13 +167,12 @@ class Engagement:
                 when_ready=True,
             ):
                 return
-            self._setpoints_now_flown()
+            self.core.setpoints_now_flown()
         except (EngageError, LinkError) as exc:
-            self.commanding = False
-            self._event("engage_failed", str(exc))
+            self.core.commanding = False
+            self.event("engage_failed", str(exc))
             if self.opts.engage == "auto":
-                self._exit_code = EXIT_ERROR
-                self._stop.set()
+                self.end_run(EXIT_ERROR)
 
     async def _until_accepted(
         self,
@@ -198,23 +201,23 @@ class Engagement:
         EngageError
             When the tries run out, naming the last reason.
         """
-        assert self.stack is not None
-        name = self.stack.name
+        assert self.core.stack is not None
+        name = self.core.stack.name
         t0 = time.monotonic()
         attempt = 0
         while True:
             if when_ready and deadline is not None:
                 await self._wait_ready_to_arm(deadline)
-            if not self.commanding:
+            if not self.core.commanding:
                 return False
             attempt += 1
-            mark = self._events_file.count
+            mark = self.events_log().count
             res = await self.link.command_long(command, *params, timeout_s=0.5)
             if res == _RESULT_ACCEPTED:
                 return True
             await asyncio.sleep(_REASON_WAIT_S)  # a STATUSTEXT with the reason may follow the ACK
             reason = said_why(self._said_since(mark), refusals) or "it said no reason"
-            self._event(kind, f"try {attempt}: MAV_RESULT {res}: {reason}")
+            self.event(kind, f"try {attempt}: MAV_RESULT {res}: {reason}")
             if deadline is None:
                 more = attempt < _PILOT_TRIES
             else:
@@ -225,7 +228,7 @@ class Engagement:
                     f"{name} refused {what} (MAV_RESULT {res}), {tries} in "
                     f"{time.monotonic() - t0:.1f} s: {reason}"
                 )
-            if not self.commanding:
+            if not self.core.commanding:
                 return False
             if deadline is not None:
                 await asyncio.sleep(_RETRY_S)
@@ -235,85 +238,79 @@ class Engagement:
         its pre-arm checks fail (``_prearm_ready`` False; None, not reported: at
         once). At the deadline the arming is tried all the same: its refusal
         says why in the stack's own words."""
-        if self._prearm_ready is not False or not self.commanding:
+        if self.core.ap.prearm_ready is not False or not self.core.commanding:
             return
         t0 = time.monotonic()
-        self._event(
+        self.event(
             "arm_waiting",
             f"the autopilot's pre-arm checks do not pass yet (SYS_STATUS): waiting up to "
             f"{max(0.0, deadline - t0):.0f} s",
         )
-        while self._prearm_ready is False and self.commanding and time.monotonic() < deadline:
+        ap = self.core.ap
+        while ap.prearm_ready is False and self.core.commanding and time.monotonic() < deadline:
             await asyncio.sleep(_READY_POLL_S)
-        if self._prearm_ready:
-            self._event("arm_ready", f"pre-arm checks pass after {time.monotonic() - t0:.1f} s")
+        if self.core.ap.prearm_ready:
+            self.event("arm_ready", f"pre-arm checks pass after {time.monotonic() - t0:.1f} s")
 
     def _said_since(self, mark: int) -> list[str]:
         """What the autopilot said (its STATUSTEXTs, each recorded as an
         ``autopilot_says`` event) since the run had recorded ``mark`` events."""
-        log = self._events_file
+        log = self.events_log()
         new = min(log.count - mark, len(log.recent))
         if new <= 0:
             return []
         recent = list(log.recent)[-new:]
         return [str(e["detail"]) for e in recent if e["kind"] == "autopilot_says"]
 
-    def _release(self) -> bool:
-        """Stop commanding now, in the caller's callback; return whether we were.
-
-        Called the moment a failsafe or the pilot's switch says so, so no later
-        sample (even one in the same datagram) gets a command, and an engagement
-        still in flight is abandoned rather than switching the autopilot back.
-        """
-        was = self.commanding
-        self.commanding = False
-        self.engaged = False
-        self.setpoints_flown = False
-        task = self._engage_task
-        if task is not None and not task.done():
-            task.cancel()
-        return was
-
-    def _start_engage(self, *, arm: bool) -> None:
-        old = self._engage_task
+    def start(self, *, arm: bool) -> None:
+        """Start engaging (a task); an engagement under way is cancelled first."""
+        old = self._task
         if old is not None and not old.done():
             old.cancel()
-        self._engage_task = asyncio.get_running_loop().create_task(
+        self._task = asyncio.get_running_loop().create_task(
             self._engage_offboard(arm=arm), name="engage"
         )
-        self._tasks.add(self._engage_task)
-        self._engage_task.add_done_callback(self._tasks.discard)
+        self.tasks.add(self._task)
+        self._task.add_done_callback(self.tasks.discard)
 
-    async def _hand_back(
+    def cancel(self) -> bool:
+        """Abandon an engagement under way; whether there was one."""
+        task = self._task
+        if task is None or task.done():
+            return False
+        task.cancel()
+        return True
+
+    async def hand_back(
         self, reason: str, *, was_commanding: bool | None = None, kind: str = ""
     ) -> None:
         """Stop commanding and switch the autopilot to a safe mode it can fly.
 
-        ``was_commanding`` comes from :meth:`_release` when the caller already
+        ``was_commanding`` comes from :meth:`FlightCore.release` when the caller already
         stopped the commands; otherwise the current state decides. ``kind`` is
         the failsafe's, if one: after RC loss no manual mode is chosen.
         """
-        if self._handing_back:
+        if self.core.handing_back:
             # One is under way (a failsafe's, the pilot's switch): stop any
             # engagement that waits behind it, and let it finish rather than be
             # cancelled with the run's tasks (its commands time out within ~1 s).
-            self._release()
-            await self._hand_back_idle.wait()
-            if self._hand_back_accepted or not self._autopilot_in_engage_mode():
+            self.core.release()
+            await self.idle.wait()
+            if self.hand_back_accepted or not self.core.in_engage_mode():
                 return
             # It ended unanswered with the autopilot still in OFFBOARD: try again.
             was_commanding = True
-        self._handing_back = True
-        self._hand_back_accepted = False
-        self._hand_back_idle.clear()
+        self.core.handing_back = True
+        self.hand_back_accepted = False
+        self.idle.clear()
         try:
-            released = self._release()
+            released = self.core.release()
             was_commanding = released if was_commanding is None else was_commanding
             if (
                 not was_commanding
                 or self.link is None
                 or self.link.target is None
-                or self.stack is None
+                or self.core.stack is None
             ):
                 return
             await self._switch_to_safe_mode(
@@ -322,25 +319,8 @@ class Engagement:
                 adopt=kind == "failsafe_autopilot_took_over",
             )
         finally:
-            self._handing_back = False
-            self._hand_back_idle.set()
-
-    def _conditions(self, *, rc_failsafe: bool) -> Conditions:
-        now = time.perf_counter()
-        rc, pos = self._rc_wall, self._pos_wall
-        position = pos is not None and now - pos <= _POSITION_TIMEOUT_S
-        if self.needs_position:  # the modes that fly on it judge it themselves
-            position = position and self.position_fresh()
-        return Conditions(
-            # Frames that came while the receiver was healthy, and it still is (ArduPilot
-            # streams a lost radio's last pulses; its SYS_STATUS says it is lost).
-            rc_valid=rc is not None
-            and now - rc <= self.opts.failsafe.rc_timeout_s
-            and self._rc_receiver_healthy,
-            position_valid=position,
-            rc_failsafe=rc_failsafe,
-            autopilot_failsafe=failsafe_state(self._ap_status),
-        )
+            self.core.handing_back = False
+            self.idle.set()
 
     async def _switch_to_safe_mode(self, reason: str, *, rc_failsafe: bool, adopt: bool) -> None:
         """Try the safe modes in order (companion.handback) until one holds.
@@ -353,21 +333,21 @@ class Engagement:
         it leave OFFBOARD by itself), a mode it can fly there is kept: the
         companion does not override the autopilot's failsafe or the pilot's
         mode switch."""
-        assert self.stack is not None
-        stack, modes = self.stack, self._safe_modes
-        if adopt and failsafe_state(self._ap_status) and self.n_sys_status:
+        assert self.core.stack is not None
+        stack, modes = self.core.stack, self.safe_modes
+        if adopt and failsafe_state(self.core.ap.status) and self.core.ap.n_sys_status:
             # The autopilot announces its failsafe's mode at once, in a HEARTBEAT; what
             # failed (its RC receiver) comes in its next SYS_STATUS: judge on that.
-            seen = self.n_sys_status
+            seen = self.core.ap.n_sys_status
             wait_by = time.monotonic() + _SYS_STATUS_WAIT_S
-            while self.n_sys_status == seen and time.monotonic() < wait_by:
+            while self.core.ap.n_sys_status == seen and time.monotonic() < wait_by:
                 await asyncio.sleep(0.01)
-        ap_mode = self._ap_mode
-        cond = self._conditions(rc_failsafe=rc_failsafe)
+        ap_mode = self.core.ap.mode
+        cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
         if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):
             # The autopilot (its failsafe) or the pilot already chose a mode: keep it.
-            self._hand_back_accepted = True
-            self._event(
+            self.hand_back_accepted = True
+            self.event(
                 "handed_back",
                 f"{reason}; {cond.describe()} -> {stack.mode_label(ap_mode)} kept "
                 "(the autopilot's mode)",
@@ -379,11 +359,13 @@ class Engagement:
             mode = choice.mode
             skipped = f" ({choice.why_skipped()})" if choice.skipped else ""
             if mode is None:
-                self._event("hand_back_failed", f"{reason}; no safe mode left{skipped}")
+                self.event("hand_back_failed", f"{reason}; no safe mode left{skipped}")
                 return
             name = mode.name.upper()
             why = f"{reason}; {cond.describe()}{skipped} -> {name}"
-            before = self._ap_mode  # as shown before the switch (a heartbeat may follow the ACK)
+            before = (
+                self.core.ap.mode
+            )  # as shown before the switch (a heartbeat may follow the ACK)
             try:
                 res = await self.link.command_long(
                     _CMD_DO_SET_MODE,
@@ -394,25 +376,25 @@ class Engagement:
                     retries=2,
                 )
             except LinkError as exc:
-                self._hand_back_accepted = False
-                self._hand_back_owed = True
-                self._event("handed_back", f"{why}: mode switch unanswered ({exc})")
+                self.hand_back_accepted = False
+                self.hand_back_owed = True
+                self.event("handed_back", f"{why}: mode switch unanswered ({exc})")
                 return
             if res != _RESULT_ACCEPTED:
-                self._event("handed_back", f"{why} refused ({res})")
+                self.event("handed_back", f"{why} refused ({res})")
                 reason, start = f"{name} refused", choice.index + 1
-                cond = self._conditions(rc_failsafe=rc_failsafe)
+                cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
                 continue
-            self._hand_back_accepted = True
-            self._hand_back_owed = False
-            self._event("handed_back", f"{why} accepted")
+            self.hand_back_accepted = True
+            self.hand_back_owed = False
+            self.event("handed_back", f"{why} accepted")
             failed = await self._watch_safe_mode(modes, choice.index, before)
             if failed is None:
                 return
-            self._hand_back_accepted = False
-            self._event("safe_mode_lost", failed)
+            self.hand_back_accepted = False
+            self.event("safe_mode_lost", failed)
             reason, start = failed, next_kind(modes, choice.index)
-            cond = self._conditions(rc_failsafe=rc_failsafe)
+            cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
 
     async def _watch_safe_mode(
         self, modes: tuple[SafeMode, ...], index: int, before: int | None
@@ -436,23 +418,23 @@ class Engagement:
         they go on to ends the watch as theirs. A new engagement (the pilot's
         switch) or a disarm ends the watch. With no heartbeat at all meanwhile
         (a lost link) there is nothing to judge by: the mode stays."""
-        assert self.stack is not None
-        stack = self.stack
+        assert self.core.stack is not None
+        stack = self.core.stack
         target = stack.custom_mode(modes[index])
         watch_s = self.opts.failsafe.hand_back_watch_s
         if watch_s <= 0.0:
             return None  # not watched: the ACK is all there is
         t0 = time.perf_counter()
-        heartbeats0 = self._ap_heartbeats
+        heartbeats0 = self.core.ap.heartbeats
         seen = False
         pilots = False  # the pilot (or the autopilot) put it in another mode flown from the sticks
         while True:
             elapsed = time.perf_counter() - t0
-            if self.commanding:
+            if self.core.commanding:
                 return None  # engaged again meanwhile: the pilot's call
-            mode = self._ap_mode
-            if not self._ap_armed and mode is not None and (seen or mode != target):
-                self._event("safe_mode_held", f"disarmed after {elapsed:.1f} s")
+            mode = self.core.ap.mode
+            if not self.core.ap.armed and mode is not None and (seen or mode != target):
+                self.event("safe_mode_held", f"disarmed after {elapsed:.1f} s")
                 return None
             if mode == target:
                 seen = True
@@ -460,20 +442,26 @@ class Engagement:
                 label = stack.mode_label(mode)
                 sticks = stack.needs_rc(mode)
                 if pilots and not sticks and not stack.is_engage_mode(mode):
-                    self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
+                    self.event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
                     return None  # from a mode of their own, the pilot's next one is theirs too
                 # Judged on RC as it is now: a pilot with the radio back may take it.
-                failed = judge(stack, modes, index, mode, self._conditions(rc_failsafe=False))
+                failed = judge(
+                    stack,
+                    modes,
+                    index,
+                    mode,
+                    self.core.conditions(time.perf_counter(), rc_failsafe=False),
+                )
                 if failed is not None:
                     return f"{failed} after {elapsed:.1f} s"
                 if mode != target:
                     if not sticks:
-                        self._event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
+                        self.event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
                         return None
                     pilots = True
             if elapsed >= watch_s:
-                if self._ap_heartbeats == heartbeats0:
-                    self._event(
+                if self.core.ap.heartbeats == heartbeats0:
+                    self.event(
                         "safe_mode_unconfirmed",
                         f"no heartbeat for {watch_s:g} s after the switch to "
                         f"{modes[index].name.upper()}: left as it is",
@@ -485,41 +473,50 @@ class Engagement:
                         f"within {watch_s:g} s"
                     )
                 if mode == target:
-                    self._event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
+                    self.event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
                 else:
                     label = "its mode" if mode is None else stack.mode_label(mode)
-                    self._event("safe_mode_held", f"{label} kept for {watch_s:g} s")
+                    self.event("safe_mode_held", f"{label} kept for {watch_s:g} s")
                 return None
             await asyncio.sleep(_WATCH_POLL_S)
 
-    def _autopilot_in_engage_mode(self) -> bool:
-        """The autopilot's last heartbeat showed the mode we engage in (OFFBOARD, GUIDED_NOGPS)."""
-        return (
-            self.stack is not None
-            and self._ap_mode is not None
-            and self.stack.is_engage_mode(self._ap_mode)
-        )
-
-    def _failsafe(self, kind: str, detail: str) -> None:
-        """Stop commanding now and hand back; record it afterwards, best effort.
-
-        Nothing here waits on or can be stopped by I/O: the commands stop in
-        this call, the hand-back task is started before the event is recorded,
-        and recording never raises (:meth:`_event`)."""
-        if self._stop.is_set() or self._in_failsafe:
-            return  # one failsafe at a time: the first reason is the one logged
-        self._in_failsafe = True
-        was = self._release()
-        self._spawn(self._after_failsafe(kind, detail, was), "failsafe")
-        self._event(kind, detail)
-
-    async def _after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
+    async def after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
+        """Hand back after the core's failsafe; then end the run (``on_failsafe =
+        exit``, or ``--engage auto``) or wait to be engaged again."""
         try:
-            await self._hand_back(detail, was_commanding=was_commanding, kind=kind)
+            await self.hand_back(detail, was_commanding=was_commanding, kind=kind)
         finally:
-            self._in_failsafe = False
+            self.core.failsafe_over()
             if self.opts.failsafe.on_failsafe == "exit" or self.opts.engage == "auto":
-                self._exit_code = EXIT_FAILSAFE
-                self._stop.set()
+                self.end_run(EXIT_FAILSAFE)
         # "wait": an rc-switch run re-engages on the next low-to-high edge; a
         # switch still high stays "high" until the pilot moves it low first.
+
+    async def hand_back_once_the_link_is_back(self) -> None:
+        """A hand-back that went unanswered (the link cut while engaged) is tried
+        again until the autopilot answers, shows it left the engage mode by itself,
+        or ``_HAND_BACK_RETRY_S`` has passed. An autopilot with no offboard-loss
+        failsafe of its own (ArduCopter: after GUID_TIMEOUT it levels and stays in
+        GUIDED_NOGPS) would otherwise be left in the companion's mode with nobody
+        flying it (measured on the real ArduCopter 4.5.6: a link cut for 3 s)."""
+        deadline = time.monotonic() + _HAND_BACK_RETRY_S
+        while self.hand_back_owed and time.monotonic() < deadline:
+            # Only across a silent link: an autopilot whose heartbeats come but which
+            # ignores the switch has had its answer (the run's own try, above).
+            heard = self.link.last_heartbeat_monotonic_s
+            if heard is not None and time.monotonic() - heard < _LINK_QUIET_S:
+                return
+            beats = self.core.ap.heartbeats
+            while self.core.ap.heartbeats == beats and time.monotonic() < deadline:
+                await asyncio.sleep(_HAND_BACK_RETRY_PERIOD_S)  # until it is heard again
+            if self.core.ap.heartbeats == beats:
+                return
+            left = self.core.ap.mode is not None and not self.core.in_engage_mode()
+            if self.core.stack is not None and self.core.ap.mode is not None and left:
+                self.event(
+                    "hand_back_dropped",
+                    f"the link is back; the autopilot left {self.core.stack.engage_label} by "
+                    f"itself for {self.core.stack.mode_label(self.core.ap.mode)}",
+                )
+                return
+            await self.hand_back("link back", was_commanding=True)

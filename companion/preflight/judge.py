@@ -20,7 +20,7 @@ _CAP_SET_ATTITUDE_TARGET = 64  # MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
 _CAP_SET_ACTUATOR_TARGET = 1024  # ..._SET_ACTUATOR_TARGET (RESERVED3 in today's common.xml)
 _LANDED_STATES = {0: "undefined", 1: "on ground", 2: "in air", 3: "taking off", 4: "landing"}
 _SWITCH_HIGH_US = (1700, 2200)
-"""The engage switch counts as high in this range (companion.samples)."""
+"""The engage switch counts as high in this range (companion.pilot.EngageSwitch)."""
 _SWITCH_LOW_BELOW_US = 1300
 _CORE_WARN_SHARE = 0.25
 """The law's update may take this share of the loop period before it is a warning:

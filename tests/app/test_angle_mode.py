@@ -143,7 +143,7 @@ async def test_an_invalid_estimate_is_counted_and_not_flown(start: Start) -> Non
 async def test_on_the_ground_the_attitude_loop_asks_for_nothing(start: Start) -> None:
     f = await engaged_in_angle_mode(start, rolled(10.0))
     f.fake.extended_sys_state(1)  # MAV_LANDED_STATE_ON_GROUND
-    await f.fake.wait_until(lambda: f.companion.controller.on_ground, 1.0)
+    await f.fake.wait_until(lambda: f.companion.core.controller.on_ground, 1.0)
     n = len(body_rates(f))
     for _ in range(5):
         estimate_and_imu(f, rolled(10.0))
@@ -230,5 +230,5 @@ async def test_the_control_log_holds_the_angle_asked_and_the_estimate(
     # Angle mode holds no position and asks for none.
     assert all(math.isnan(last[k]) for k in ("sp_north_m", "sp_up_m", "est_north_m", "est_up_m"))
     # The gain's backoff, logged as the mode keeps it.
-    angle = f.companion.angle
+    angle = f.companion.core.modes.angle
     assert angle is not None and last["outer_gain_scale"] == angle.backoff.scale

@@ -112,15 +112,15 @@ async def test_the_autopilots_landed_state_stops_identification_on_the_ground(
     """EXTENDED_SYS_STATE ON_GROUND stops the identifiers whatever the collective; an
     engagement (which resets the controller) keeps it; IN_AIR lets them learn again."""
     f = await start(engage="auto", output="actuator")
-    assert not f.companion.controller.on_ground  # nothing said yet: the collective decides
+    assert not f.companion.core.controller.on_ground  # nothing said yet: the collective decides
     f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_ON_GROUND)
-    await f.fake.wait_until(lambda: f.companion.controller.on_ground, 1.0)
+    await f.fake.wait_until(lambda: f.companion.core.controller.on_ground, 1.0)
     await engage_px4_auto(f)
     asked = {int(m.param1): m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL)}
     assert asked[MSG_EXTENDED_SYS_STATE] == pytest.approx(250_000.0)  # 4 Hz
-    assert f.companion.controller.on_ground
+    assert f.companion.core.controller.on_ground
     f.fake.extended_sys_state(mavlink2.MAV_LANDED_STATE_IN_AIR)
-    await f.fake.wait_until(lambda: not f.companion.controller.on_ground, 1.0)
+    await f.fake.wait_until(lambda: not f.companion.core.controller.on_ground, 1.0)
     assert f.details("landed_state") == ["on the ground", "in the air (2)"]
     f.companion._stop.set()
     assert await f.finish() == 0
@@ -136,7 +136,7 @@ async def test_a_refused_landed_state_stream_is_logged_and_flying_goes_on(start:
         "EXTENDED_SYS_STATE at 4 Hz refused (MAV_RESULT 2): identification is gated by the "
         "collective alone unless the autopilot sends it"
     ]
-    assert not f.companion.controller.on_ground
+    assert not f.companion.core.controller.on_ground
     f.companion._stop.set()
     assert await f.finish() == 0
 
@@ -401,7 +401,7 @@ async def test_ardupilot_rates_engage_guided_nogps_and_send_attitude_targets(
                     output="rates", params={"GUID_OPTIONS": 8.0})  # fmt: skip
     fake = f.fake
     await streams_requested(f, MSG_ATTITUDE)
-    assert f.companion.imu_rate_hz == 250.0
+    assert f.companion.core.modes.imu_rate_hz == 250.0
     fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(lambda: fake.commands(CMD_ARM), send=f.att, what="ARM")
     i_mode = index_of(fake, lambda m: is_mode(m, 20.0))
@@ -478,7 +478,7 @@ async def test_ardupilot_denied_400_hz_falls_back_to_333_hz(start: Start) -> Non
     await streams_requested(f, MSG_ATTITUDE)
     imu_reqs = [m.param2 for m in f.fake.commands(CMD_SET_MESSAGE_INTERVAL) if m.param1 == 30]
     assert imu_reqs == [pytest.approx(1e6 / 400.0), pytest.approx(1e6 / 333.0)]
-    assert f.companion.imu_rate_hz == 333.0
+    assert f.companion.core.modes.imu_rate_hz == 333.0
     assert f.details("imu_rate_denied") == ["message 30 at 400 Hz denied"]
     f.companion._stop.set()
     assert await f.finish() == 0
@@ -569,7 +569,7 @@ async def test_a_signal_during_a_failsafe_hand_back_lets_it_finish(start: Start)
     f = await start(engage="auto", output="actuator",
                     results={CMD_DO_SET_MODE: first_mode_switch_lost})  # fmt: skip
     await engage_px4_auto(f)
-    f.companion._failsafe("failsafe_envelope", "test")
+    f.companion.core.failsafe("failsafe_envelope", "test")
     await settle()
     f.companion._on_signal(signal.SIGTERM)  # while the first try waits for its ACK
     assert await f.finish(timeout_s=3.0) == 3  # the failsafe came first
@@ -653,7 +653,7 @@ async def test_a_heartbeat_between_the_signal_and_the_hand_back_does_not_engage(
     assert f.companion.commanding and not f.companion.engaged
     f.companion._on_signal(signal.SIGTERM)
     # The heartbeat handled before the run's task wakes from its stop event.
-    f.companion._on_heartbeat(
+    f.companion.core.on_heartbeat(
         SimpleNamespace(
             custom_mode=PX4_OFFBOARD, base_mode=mavlink2.MAV_MODE_FLAG_SAFETY_ARMED, system_status=4
         )
@@ -677,7 +677,7 @@ async def test_an_unanswered_hand_back_is_tried_again_by_the_runs_own(start: Sta
 
     f = await start(engage="auto", output="actuator", results={CMD_DO_SET_MODE: posctl_lost})
     await engage_px4_auto(f)
-    f.companion._failsafe("failsafe_envelope", "test")
+    f.companion.core.failsafe("failsafe_envelope", "test")
     await settle()
     f.companion._on_signal(signal.SIGTERM)
     assert await f.finish(timeout_s=5.0) == 3

@@ -60,8 +60,8 @@ def commands_after_hand_back(f: Flight) -> list[Any]:
 
 def change_output(f: Flight, monkeypatch: pytest.MonkeyPatch, change: Callable[[Any], Any]) -> None:
     """From now on the law's output passes through ``change`` (a fault in the law)."""
-    update = f.companion.controller.update
-    monkeypatch.setattr(f.companion.controller, "update", lambda *a: change(update(*a)))
+    update = f.companion.core.controller.update
+    monkeypatch.setattr(f.companion.core.controller, "update", lambda *a: change(update(*a)))
 
 
 async def engaged_by_switch(start: Start) -> Flight:
@@ -224,7 +224,7 @@ async def test_a_law_that_keeps_raising_is_a_failsafe_after_three_samples(
     def broken(*_: Any) -> None:
         raise ZeroDivisionError("a law with a bug")
 
-    monkeypatch.setattr(f.companion.controller, "update", broken)
+    monkeypatch.setattr(f.companion.core.controller, "update", broken)
     f.imu()
     f.imu()
     await settle()
@@ -244,7 +244,7 @@ async def test_an_occasional_error_is_counted_and_flying_goes_on(
 ) -> None:
     f = await start(engage="auto", output="actuator")
     await engage_px4_auto(f)
-    update = f.companion.controller.update
+    update = f.companion.core.controller.update
     calls = [0]
 
     def flaky(*args: Any) -> Any:
@@ -253,7 +253,7 @@ async def test_an_occasional_error_is_counted_and_flying_goes_on(
             raise ValueError("one in three")
         return update(*args)
 
-    monkeypatch.setattr(f.companion.controller, "update", flaky)
+    monkeypatch.setattr(f.companion.core.controller, "update", flaky)
     await fly(f, 30)
     assert f.companion.engaged
     assert f.companion.counters["sample_errors"] == 10
@@ -279,7 +279,7 @@ async def test_a_non_finite_law_output_never_reaches_the_wire(
     for m in sent:
         r, p, y, t = m.controls[:4]
         assert (r, p, y) == (0.0, 1.0, -1.0)
-        assert t == pytest.approx(f.companion._thrust)  # the pilot's collective
+        assert t == pytest.approx(f.companion.core.pilot.thrust)  # the pilot's collective
     assert f.companion.counters["commands_gated"] == 10  # two NaN fields per command
     assert f.kinds().count("command_gated") == 1
 
@@ -294,7 +294,7 @@ async def test_rates_output_gates_nan_to_the_pilots_rate(
     await settle()
     n0 = len(f.fake.setpoints())
     await fly(f, 3)
-    pilot = f.companion._ref
+    pilot = f.companion.core.pilot.rate_rad_s
     assert pilot[0] > 0.1
     for m in f.fake.setpoints()[n0:]:
         assert m.body_roll_rate == pytest.approx(pilot[0], rel=1e-6)
@@ -339,21 +339,21 @@ async def test_an_autopilot_reboot_while_engaged_fails_safe_then_flies_on_its_ne
 
 async def test_a_reboot_while_idle_is_logged_and_the_new_clock_taken(start: Start) -> None:
     f = await start(engage="none", output="actuator", failsafe=LOOSE)
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.core.stack is not None, 2.0)
     await fly(f, 10)
     f.t_us = 1_000
     await fly(f, 10)
     assert "imu_clock_reset" in f.kinds()
     assert not [k for k in f.kinds() if k.startswith("failsafe")]
-    assert f.companion._t_prev == pytest.approx(f.t_us * 1e-6)
+    assert f.companion.core.time.t_prev == pytest.approx(f.t_us * 1e-6)
     # Shadow mode's duration goes on counting on the new clock: 9 sample periods
     # before the jump, 7 after the sample that confirmed it; the jump adds nothing.
-    assert f.companion._t_prev - f.companion._t_first == pytest.approx(16 * 0.004)
+    assert f.companion.core.time.t_prev - f.companion.core.time.t_first == pytest.approx(16 * 0.004)
 
 
 async def test_a_gap_the_wall_clock_also_took_is_a_gap_not_a_new_clock(start: Start) -> None:
     f = await start(engage="none", output="actuator", failsafe=LOOSE)
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.core.stack is not None, 2.0)
     await fly(f, 10)
     await asyncio.sleep(1.5)  # the stream pauses (a busy link, a loaded autopilot) ...
     f.t_us += 1_500_000  # ... and its clock ran on meanwhile
@@ -547,7 +547,7 @@ async def test_a_crashed_supervisor_is_a_failsafe_and_ends_the_run(
 
 async def test_a_crashed_background_task_while_idle_is_an_event(start: Start) -> None:
     f = await start(engage="none", output="actuator")
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.core.stack is not None, 2.0)
 
     async def boom() -> None:
         raise RuntimeError("telemetry bug")
@@ -564,7 +564,7 @@ async def test_a_task_that_ignores_its_cancellation_does_not_keep_the_run_from_e
     # On Python 3.11 asyncio.wait_for (in aiomqtt's publish) can lose a
     # cancellation; a task that then carries on must not hang the run's end.
     f = await start(engage="none", output="actuator")
-    await f.fake.wait_until(lambda: f.companion.stack is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.core.stack is not None, 2.0)
     release = asyncio.Event()
 
     async def deaf() -> None:
@@ -705,7 +705,7 @@ async def test_motors_at_both_ends_a_third_of_the_time_is_a_normal_flight(
         await fly(f, 500)
         f.fake.rc(1000)
     assert f.companion.engaged
-    assert f.companion.watch.pinned_fraction == pytest.approx(1 / 3, abs=0.05)
+    assert f.companion.core.watch.pinned_fraction == pytest.approx(1 / 3, abs=0.05)
 
 
 @pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs Linux /dev/full")
@@ -723,7 +723,7 @@ async def test_records_that_cannot_be_opened_stop_the_run_before_anything_is_sen
 async def test_a_heartbeat_that_comes_back_gets_the_streams_asked_for_again(start: Start) -> None:
     fs = replace(LOOSE, stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=0.3)
     f = await start(engage="rc-switch", output="actuator", failsafe=fs)
-    await f.fake.wait_until(lambda: f.companion.imu_rate_hz is not None, 2.0)
+    await f.fake.wait_until(lambda: f.companion.core.modes.imu_rate_hz is not None, 2.0)
     asked = len(f.fake.commands(CMD_SET_MESSAGE_INTERVAL))
     if f.fake._hb_task is not None:
         f.fake._hb_task.cancel()  # the autopilot goes quiet (a reboot) ...
@@ -743,8 +743,8 @@ async def test_a_companion_held_off_the_cpu_reads_what_waits_before_calling_the_
     f = await start(engage="auto", output="actuator")
     await engage_px4_auto(f)
     c = f.companion
-    c._last_imu_wall = time.perf_counter() - 1.0  # as if held off the CPU for a second
+    c.core.time.last_arrival = time.perf_counter() - 1.0  # as if held off the CPU for a second
     f.imu()  # a sample came meanwhile: it waits to be read
     assert await c._still_stale(0.25) is False
-    c._last_imu_wall = time.perf_counter() - 1.0  # and with nothing waiting, it is stale
+    c.core.time.last_arrival = time.perf_counter() - 1.0  # and with nothing waiting, it is stale
     assert await c._still_stale(0.25) is True

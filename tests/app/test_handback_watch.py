@@ -120,7 +120,8 @@ async def stopped_without_rc(f: Flight, *, imu: int = MSG_HIGHRES_IMU) -> None:
     send = f.imu if imu == MSG_HIGHRES_IMU else f.att
     f.fake.rc(1000)
     await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=send, what="ARM")
-    f.companion._rc_wall = f.companion._rc_radio_wall = None  # the radio is gone
+    pilot = f.companion.core.pilot
+    pilot.last_valid = pilot.last_radio = None  # the radio is gone
     f.companion._stop.set()  # the run ends: nothing engages after this
     f.fake.set_state(armed=True)
 
@@ -383,8 +384,8 @@ async def test_the_autopilot_leaving_offboard_for_manual_without_rc_is_not_kept(
     # No valid RC and the autopilot in MANUAL, in one step: with anything in
     # between, the supervisor would call the missing RC an RC-lost failsafe.
     f.fake.custom_mode = PX4_MANUAL  # its later heartbeats say the same
-    f.companion._rc_wall = None
-    f.companion._on_heartbeat(
+    f.companion.core.pilot.last_valid = None
+    f.companion.core.on_heartbeat(
         SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED, system_status=4)
     )
     assert await f.finish() == 3
@@ -428,8 +429,8 @@ async def test_a_heartbeat_from_before_the_switch_is_not_the_autopilot_leaving_i
     ref.append(f)
     await engage_px4_auto(f)
     f.fake.custom_mode = PX4_MANUAL  # the fake's background heartbeats show it from now on
-    f.companion._rc_wall = None
-    f.companion._on_heartbeat(
+    f.companion.core.pilot.last_valid = None
+    f.companion.core.on_heartbeat(
         SimpleNamespace(custom_mode=PX4_MANUAL, base_mode=ARMED, system_status=4)
     )
     assert await f.finish(timeout_s=3.0) == 3
@@ -456,7 +457,7 @@ async def test_an_unanswered_failsafe_hand_back_is_tried_again_at_the_runs_end(
     f = await start(engage="auto", output="actuator", failsafe=WATCHED,
                     results={CMD_DO_SET_MODE: first_three_lost})  # fmt: skip
     await engage_px4_auto(f)
-    f.companion._failsafe("failsafe_envelope", "a test's failsafe")
+    f.companion.core.failsafe("failsafe_envelope", "a test's failsafe")
     assert await f.finish(timeout_s=5.0) == 3
     assert len(tries) == 4
     details = f.details("handed_back")
@@ -680,7 +681,7 @@ async def test_a_hand_back_unanswered_across_a_cut_link_is_tried_again_once_it_i
     task = f.fake._hb_task
     assert task is not None
     task.cancel()  # nothing comes from the autopilot any more
-    f.companion._failsafe("failsafe_stale_imu", "a test's cut link")
+    f.companion.core.failsafe("failsafe_stale_imu", "a test's cut link")
     await asyncio.sleep(3.0)
     assert not f.task.done()  # waiting for the link
     cut = False  # the link is back

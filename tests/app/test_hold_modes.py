@@ -66,7 +66,7 @@ async def test_the_hold_takes_over_at_the_pilots_collective_and_pushes_up_below_
     start: Start, mode: str
 ) -> None:
     f = await engaged(start, mode)
-    hold = f.companion.hold
+    hold = f.companion.core.modes.hold
     assert hold is not None
     n = len(f.fake.of_type("SET_ATTITUDE_TARGET"))
     for _ in range(5):
@@ -132,11 +132,11 @@ async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start)
     )
     assert f.details("mission_started")[0].startswith("1 waypoints from N 0.00 E 0.00 D -5.00 m")
     assert f.details("mission_waypoint") == ["1 of 1: holding there"]
-    hold = f.companion.hold
-    assert hold is not None and f.companion.mission_path is not None
+    hold = f.companion.core.modes.hold
+    assert hold is not None and f.companion.core.modes.mission_path is not None
     # 1 m from rest to rest at 2.5 m/s^2, too short for 2 m/s: reached after
     # 2 sqrt(1 / 2.5) s of IMU time flown in the air.
-    assert f.companion._mission_t == pytest.approx(2.0 * (1.0 / 2.5) ** 0.5, abs=0.005)
+    assert f.companion.core.modes.mission_t == pytest.approx(2.0 * (1.0 / 2.5) ** 0.5, abs=0.005)
     assert hold.setpoint.horizontal.position_ne_m == pytest.approx((1.0, 0.0), abs=0.01)
     assert hold.setpoint.vertical.up_m == pytest.approx(5.0)
 
@@ -147,7 +147,7 @@ async def test_from_a_mode_that_holds_altitude_the_hold_takes_over_at_its_hover_
     """PX4's ALTCTL centres the throttle stick whatever the vehicle needs: the stick is
     no collective to take over at (found in review); the autopilot's hover thrust is."""
     f = await engaged(start, "altitude", custom_mode=2 << 16, params={"MPC_THR_HOVER": 0.42})
-    hold = f.companion.hold
+    hold = f.companion.core.modes.hold
     assert hold is not None
     n = len(f.fake.of_type("SET_ATTITUDE_TARGET"))
     for _ in range(3):
@@ -196,8 +196,8 @@ async def test_the_engaged_edge_does_not_start_the_laws_again(start: Start) -> N
     for _ in range(3):
         estimates_and_imu(f)
         await settle(2)
-    assert f.companion.setpoints_flown and not f.companion.engaged
-    hold = f.companion.hold
+    assert f.companion.core.setpoints_flown and not f.companion.engaged
+    hold = f.companion.core.modes.hold
     assert hold is not None
     held_at = hold.setpoint.vertical.up_m
     for _ in range(80):  # half a metre below the hold: the collective rises
@@ -222,8 +222,8 @@ async def test_the_sticks_limits_are_the_autopilots_own(start: Start) -> None:
         params={"MPC_VEL_MANUAL": 5.0, "MPC_MAN_TILT_MAX": 20.0, "MPC_Z_VEL_MAX_UP": 2.0},
     )  # fmt: skip
     await streams_requested(f)
-    await f.fake.wait_until(lambda: f.companion.hold is not None, 2.0)
-    hold = f.companion.hold
+    await f.fake.wait_until(lambda: f.companion.core.modes.hold is not None, 2.0)
+    hold = f.companion.core.modes.hold
     assert hold is not None
     limits = hold.limits
     assert limits.tilt_max_deg == 20.0 and limits.climb.up_max_m_s == 2.0
@@ -238,8 +238,8 @@ async def test_an_autopilot_with_unusable_limits_flies_its_defaults(start: Start
     f = await start(engage="auto", output="rates", mode="altitude", position=False,
                     params={"MPC_Z_VEL_MAX_UP": -1.0})  # fmt: skip
     await streams_requested(f)
-    await f.fake.wait_until(lambda: f.companion.hold is not None, 2.0)
-    hold = f.companion.hold
+    await f.fake.wait_until(lambda: f.companion.core.modes.hold is not None, 2.0)
+    hold = f.companion.core.modes.hold
     assert hold is not None and hold.limits.climb.up_max_m_s == 3.0
     assert any("no usable limits" in d for d in f.details("stick_limits_assumed"))
 
@@ -267,7 +267,7 @@ async def test_the_control_log_holds_the_setpoints_and_the_estimates_flown(
     assert (last["sp_north_m"], last["sp_east_m"], last["sp_up_m"]) == (0.0, 0.0, 5.0)
     assert math.isnan(last["sp_yaw_rad"])
     # Pushed back north-west of the hold: the setpoint tilts against the error.
-    hold = f.companion.hold
+    hold = f.companion.core.modes.hold
     assert hold is not None and hold.attitude_setpoint is not None
     assert last["sp_roll_rad"] == hold.attitude_setpoint.roll_rad
     assert last["sp_pitch_rad"] == hold.attitude_setpoint.pitch_rad
@@ -299,16 +299,17 @@ async def test_on_the_ground_the_rate_law_forgets_what_it_learnt_in_the_air(
     air = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
     assert abs(air.body_roll_rate) > 0.05
     f.fake.extended_sys_state(1)  # MAV_LANDED_STATE_ON_GROUND
-    await f.feed_until(lambda: f.companion.controller.on_ground, send=lambda: estimates_and_imu(f))
+    controller = f.companion.core.controller
+    await f.feed_until(lambda: controller.on_ground, send=lambda: estimates_and_imu(f))
     for _ in range(5):  # just down: the legs may not hold it yet (a bounce is flown)
         estimates_and_imu(f)
         await settle(2)
-    assert not f.companion.controller.held_on_ground
+    assert not controller.held_on_ground
     assert abs(f.fake.of_type("SET_ATTITUDE_TARGET")[-1].body_roll_rate) > 0.05
     for _ in range(round(LEGS_HOLD_QUIET_S / 0.004)):  # quiet on the legs: nothing held
         estimates_and_imu(f)
         await settle(2)
-    assert f.companion.controller.held_on_ground
+    assert controller.held_on_ground
     ground = f.fake.of_type("SET_ATTITUDE_TARGET")[-1]
     assert abs(ground.body_roll_rate) < 1e-3
 
@@ -321,7 +322,7 @@ async def test_the_outer_gains_back_off_only_when_our_own_rate_loop_saturates(
     # actuator output our mixer saturates and the outer gains back off; with the
     # rates output the autopilot's mixer is not seen, and they stay as they are.
     f = await engaged(start, "position", output_override=output, log_dir=tmp_path)
-    hold = f.companion.hold
+    hold = f.companion.core.modes.hold
     assert hold is not None
     for _ in range(150):
         estimates_and_imu(f, gyro=(8.0, -8.0, 0.0))

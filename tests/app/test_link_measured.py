@@ -146,7 +146,7 @@ async def test_requests_go_out_every_quarter_second_and_the_figures_to_telemetry
     gaps = np.diff(ts1_s)
     assert (gaps >= 0.249).all() and (gaps < 0.6).all(), gaps
     assert 0.249 <= float(np.median(gaps)) < 0.3, gaps
-    assert f.companion.link_clock.n_requests == len(asked)
+    assert f.companion.core.link_clock.n_requests == len(asked)
 
     # Telemetry is offered the figures (about once a second), as MQTT sends them.
     figures = tel.links[0]
@@ -168,9 +168,9 @@ async def test_answers_date_every_sample_in_control_bin(start: Start, tmp_path: 
     f.fake.timesync_clock = ap_clock  # answered at once
     send = StampedImu(f.fake)
     await engage_stamped(f, send)
-    n0 = f.companion.n_imu
-    await f.feed_until(lambda: f.companion.n_imu >= n0 + 60, send=send, what="60 samples")
-    clock = f.companion.link_clock
+    n0 = f.companion.core.n_imu
+    await f.feed_until(lambda: f.companion.core.n_imu >= n0 + 60, send=send, what="60 samples")
+    clock = f.companion.core.link_clock
     assert clock.n_replies >= 1 and clock.n_unmatched == 0
     # The offset found is the fake's, within half the quickest round trip.
     assert abs(clock.offset_s - AP_AHEAD_S) <= 0.5 * clock.stats().rtt_min_ms * 1e-3 + 1e-6
@@ -219,7 +219,7 @@ async def test_the_autopilots_own_request_is_not_an_answer(start: Start) -> None
     await f.fake.wait_until(lambda: bool(requests(f)), 2.0)
     ours = requests(f)[0]
     assert ours.tc1 == 0
-    clock = f.companion.link_clock
+    clock = f.companion.core.link_clock
     # The autopilot asks us the time (tc1 = 0), even with the ts1 we wait on.
     f.fake.timesync(0, ours.ts1)
     f.fake.timesync(0, round(time.perf_counter() * 1e9))
@@ -258,7 +258,7 @@ async def test_a_slow_link_is_one_link_slow_event_and_one_link_ok_after(
     # Quick again: once the window's median is under 0.8 x 20 ms, link_ok, once.
     f.fake.timesync_delay_s = 0.0
     await f.fake.wait_until(lambda: "link_ok" in f.kinds(), 5.0)
-    assert f.companion.link_clock.stats().rtt_median_ms < 16.0
+    assert f.companion.core.link_clock.stats().rtt_median_ms < 16.0
     n = len(tel.links)
     await f.fake.wait_until(lambda: len(tel.links) >= n + 3, 3.0)
     assert f.kinds().count("link_slow") == 1 and f.kinds().count("link_ok") == 1

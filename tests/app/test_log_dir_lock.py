@@ -30,7 +30,7 @@ async def test_a_second_run_on_a_log_dir_in_use_refuses_and_touches_nothing(
     for _ in range(20):
         first.imu()
         await settle()
-    for record in (first.companion._log_rows, first.companion._tlog):
+    for record in (first.companion.records.rows, first.companion.records.tlog):
         record.flush()
     await asyncio.sleep(0.1)  # the writer thread has written what it was handed
     live = files(tmp_path)

@@ -81,10 +81,10 @@ async def test_a_joystick_engages_and_flies_where_the_autopilot_has_no_radio(
     f.fake.manual_control(1000, sticks=(0, 500, 500, 0))
     await f.fake.wait_until(lambda: f.fake.commands(CMD_DO_SET_MODE), 2.0)
     assert f.details("rc_switch") == ["ch5 high (2000 us): engaging"]
-    roll, pitch, yaw = f.companion._ref
+    roll, pitch, yaw = f.companion.core.pilot.rate_rad_s
     assert roll == pytest.approx(math.radians(360.0))  # half of 720 deg/s
     assert (pitch, yaw) == (0.0, 0.0)
-    assert f.companion._thrust == pytest.approx(0.5)
+    assert f.companion.core.pilot.thrust == pytest.approx(0.5)
 
 
 async def test_a_joystick_without_its_switches_engages_nothing(start: Start) -> None:
@@ -96,7 +96,7 @@ async def test_a_joystick_without_its_switches_engages_nothing(start: Start) -> 
         f.fake.manual_control(1000, aux_present=False)  # aux1 not sent: centred
         await settle()
     assert not f.fake.commands(CMD_DO_SET_MODE)
-    assert f.companion._rc_wall is not None  # its sticks are valid all the same
+    assert f.companion.core.pilot.last_valid is not None  # its sticks are valid all the same
 
 
 async def test_a_radio_is_the_pilot_while_it_is_there(start: Start) -> None:
@@ -109,7 +109,7 @@ async def test_a_radio_is_the_pilot_while_it_is_there(start: Start) -> None:
         f.fake.manual_control(1000, sticks=(0, 1000, 500, 0))  # a joystick says high
         await settle()
     assert not f.fake.commands(CMD_DO_SET_MODE)
-    assert f.companion._ref == (0.0, 0.0, 0.0)  # the radio's centred sticks
+    assert f.companion.core.pilot.rate_rad_s == (0.0, 0.0, 0.0)  # the radio's centred sticks
 
 
 # ----------------------------------------------- the autopilot's own RC verdict
@@ -140,7 +140,7 @@ async def test_an_rc_receiver_the_autopilot_calls_lost_is_rc_lost(start: Start) 
         send=lambda: (f.fake.rc(1000), f.imu()),
         what="the RC-lost failsafe",
     )
-    assert f.companion.n_rc_unhealthy > 0
+    assert f.companion.core.pilot.n_unhealthy > 0
     await f.fake.wait_until(lambda: bool(f.details("handed_back")), 2.0)
     (handed,) = f.details("handed_back")
     assert "RC lost" in handed and "POSCTL" not in handed.split("->")[-1]

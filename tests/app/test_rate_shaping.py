@@ -36,7 +36,7 @@ async def _engaged(start: Start, params: dict[str, float | None], **opts: Any) -
     f = await start(autopilot=ARDUPILOT, custom_mode=APM_ALT_HOLD, engage="auto",
                     output="rates", params=params, controller=RATES, **opts)  # fmt: skip
     # Unreadable parameters take their read timeouts (3 tries of 0.5 s) first.
-    await f.fake.wait_until(lambda: f.companion.imu_rate_hz is not None, 5.0)
+    await f.fake.wait_until(lambda: f.companion.core.modes.imu_rate_hz is not None, 5.0)
     await streams_requested(f, MSG_ATTITUDE)
     f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
     await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=f.att, what="ARM")
@@ -94,13 +94,13 @@ async def test_shaping_parameters_that_cannot_be_read_are_assumed_and_said(
     f = await _engaged(start, unanswered)
     (said,) = f.details("rate_shaping_assumed")
     assert "ATC_RATE_FF_ENAB" in said and "defaults assumed" in said
-    assert f.companion.step.shaper is not None
-    assert f.companion.step.shaper.accel_max_rad_s2 == tuple(
+    assert f.companion.core.step.shaper is not None
+    assert f.companion.core.step.shaper.accel_max_rad_s2 == tuple(
         math.radians(a) for a in (1100.0, 1100.0, 270.0)
     )
 
 
 async def test_shaping_switched_off_is_not_modelled(start: Start) -> None:
     f = await _engaged(start, {**SHAPING, "ATC_RATE_FF_ENAB": 0.0})
-    assert f.companion.step.shaper is None
+    assert f.companion.core.step.shaper is None
     assert f.details("rate_shaping") == ["ATC_RATE_FF_ENAB = 0: rate setpoints not shaped"]
