@@ -13,16 +13,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
+from sitl.ardupilot_config import ArduCopterConfig
 from sitl.ardupilot_control import ApRatePid, AttitudeControl, MotorsMatrix, thrust_to_actuator
 from sitl.ardupilot_modes import CopterMode
 from sitl.ardupilot_params import ArduParams
 from sitl.frames import euler_to_quat
 from sitl.personality import Personality, clip, stick_unit, throttle_unit
-
-if TYPE_CHECKING:
-    from sitl.ardupilot import ArduCopterConfig
 
 __all__ = ["AngleTarget", "CopterLaws"]
 
