@@ -53,6 +53,7 @@ from companion.config import MfcConfig, PidConfig
 from companion.control import AXES
 from companion.profile import MotorDamage, VehicleProfile
 from sitl.lab.campaign_report import CAMPAIGN_FILES, plot_mae, summary_markdown, write_outputs
+from sitl.lab.campaign_spec import FlightSpec
 from sitl.scenario import Scenario
 
 if TYPE_CHECKING:
@@ -75,20 +76,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class FlightSpec:
-    """One flight of a campaign: what flies, how damaged, in which air, which seed."""
-
-    profile_name: str
-    profile: VehicleProfile
-    damage: float
-    gust_sigma_m_s: float
-    seed: int
-    controller_name: str
-    controller: MfcConfig | PidConfig
-    scenario: Scenario
 
 
 def damaged_profile(profile: VehicleProfile, efficiency: float, motor: int = 0) -> VehicleProfile:

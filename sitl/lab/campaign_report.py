@@ -235,7 +235,7 @@ def write_outputs(
     ``records`` are :func:`sitl.lab.campaign.run_campaign`'s; ``meta`` gains
     ``versions`` (:func:`_versions`).
     """
-    from sitl.lab.campaign_store import write_json_atomic
+    from sitl.lab.atomic import write_json_atomic
     from sitl.lab.table import read_table, to_records, to_table, write_table
 
     out = Path(out_dir)

@@ -37,20 +37,19 @@ flown again by the next run.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import hashlib
 import json
 import logging
-import os
-import uuid
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from sitl.lab.atomic import replacing, write_json_atomic
+
 if TYPE_CHECKING:
-    from sitl.lab.campaign import FlightSpec
+    from sitl.lab.campaign_spec import FlightSpec
 
 __all__ = [
     "FLIGHTS_DIR",
@@ -79,27 +78,6 @@ RUN_FILES = (MANIFEST, FLIGHTS_DIR, ORACLE_DIR, LIMIT_DIR)
 """What a run keeps in its folder besides the final outputs."""
 FINISHED_MARK = "campaign.json"
 """The final output written last: present, the run is finished."""
-
-
-@contextlib.contextmanager
-def replacing(path: Path) -> Iterator[Path]:
-    """A temporary path beside ``path`` to write; it replaces ``path`` (``os.replace``)
-    when the block ends without error, and is removed otherwise: ``path`` is whole
-    or absent, never half written."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}-{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-
-
-def write_json_atomic(path: Path, obj: Any) -> None:
-    """``obj`` as indented JSON at ``path``, whole or not at all (:func:`replacing`)."""
-    with replacing(path) as tmp:
-        tmp.write_text(json.dumps(obj, indent=1) + "\n", encoding="utf-8")
 
 
 def _digest(obj: Any) -> str:

@@ -64,6 +64,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from companion.control import AXES
+from sitl.lab.atomic import replacing
 
 __all__ = [
     "ENVELOPE_SCHEMA",
@@ -257,8 +258,6 @@ def outer_sweep_table(
 
 def write_table(table: pa.Table, path: str | Path) -> Path:
     """Write ``table`` as Parquet at ``path``, whole or not at all."""
-    from sitl.lab.campaign_store import replacing
-
     with replacing(Path(path)) as tmp:
         pq.write_table(table, tmp)
     return Path(path)
