@@ -115,16 +115,6 @@ _MSG_MANUAL_CONTROL = 69
 _MSG_HIGHRES_IMU = 105
 _RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
 _JOYSTICK_FIELDS = ("x", "y", "z", "r", "enabled_extensions", *(f"aux{i}" for i in range(1, 7)))
-_MODE_TEXT = {
-    "angle": "angle: sticks to roll and pitch angles up to the autopilot's own limit and a "
-    "yaw rate, on the autopilot's ATTITUDE_QUATERNION",
-    "altitude": "altitude: sticks to roll and pitch angles, a climb rate (the altitude held "
-    "at mid-stick) and a yaw rate, within the autopilot's own limits, on "
-    "ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
-    "position": "position: sticks to a horizontal velocity and a climb rate (the position "
-    "and altitude held at mid-stick) and a yaw rate, shaped as the autopilot's own Position "
-    "mode shapes them, on ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
-}
 
 
 class Companion:
@@ -162,7 +152,7 @@ class Companion:
         self.n_record_failures = 0
         self._counted_final = False
         self._rc_lost_logged = False
-        self._telemetry: Any = None
+        self._mqtt: Any = None
 
     # ------------------------------------------------------- the core's shell
     @property
@@ -198,6 +188,16 @@ class Companion:
     def _end_run(self, code: int) -> None:
         self._exit_code = code
         self._stop.set()
+
+    @property
+    def _telemetry(self) -> Any:
+        """MQTT telemetry (companion.telemetry.MqttTelemetry), with --mqtt."""
+        return self._mqtt
+
+    @_telemetry.setter
+    def _telemetry(self, telemetry: Any) -> None:
+        self._mqtt = telemetry
+        self.core.publish_sample = None if telemetry is None else telemetry.publish_sample
 
     # ------------------------------------------------------------ the run's state
     @property
@@ -572,8 +572,9 @@ class Companion:
             )
         if opts.fly_check_event is not None:
             self.event(*opts.fly_check_event)
-        if opts.mode != "rates":
-            self.event("mode", _MODE_TEXT[opts.mode])
+        mode = self.core.modes.mode
+        if mode.needs_attitude:
+            self.event("mode", mode.description)
         on_raw = records.tlog.write if records.tlog is not None else None
         self.link = MavlinkLink(
             transport,

@@ -663,6 +663,7 @@ def run(
     from companion.app import Companion, RunOptions
     from companion.link.signing import load_signing_key
     from companion.link.transport import open_transport
+    from companion.modes import FLIGHT_MODES
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, output)
     _warn_profile(profile, profile_path)
@@ -670,16 +671,18 @@ def run(
     reference = None
     mission = None
     try:
+        mode = FLIGHT_MODES[flight_mode]
         if mission_path is not None:
-            if flight_mode != "position":
-                raise ValueError(f"--mission: needs --mode position (got --mode {flight_mode})")
+            if not mode.flies_missions:
+                fly = " or ".join(m.name for m in FLIGHT_MODES.values() if m.flies_missions)
+                raise ValueError(f"--mission: needs --mode {fly} (got --mode {flight_mode})")
             from companion.mission import load_mission
 
             mission = load_mission(mission_path)
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
         if reference_path is not None:
-            if flight_mode != "rates":
+            if mode.needs_attitude:
                 raise ValueError(
                     "--reference: scripts body rates, needs --mode rates "
                     f"(got --mode {flight_mode})"

@@ -31,11 +31,12 @@ from typing import Any, Protocol
 
 from companion.autopilot_state import AutopilotState
 from companion.config import build_controller, build_stick_map
+from companion.control import RateController
 from companion.failsafe import SampleWatch
 from companion.handback import Conditions, failsafe_state
 from companion.imu_time import NEW_CLOCK, ImuTimeline
 from companion.link.timesync import LinkClock
-from companion.modes import ModeLaws
+from companion.modes import FLIGHT_MODES, ModeLaws
 from companion.pilot import EngageSwitch, PilotInput
 from companion.run_options import RunOptions
 from companion.stacks import FlightStack
@@ -108,13 +109,25 @@ class FlightCore:
         What runs the core.
     clock
         The shell's clock, s (read when a command leaves and a frame arrives).
+    controller
+        The rate law to fly instead of the one ``opts.controller`` builds (the
+        lab's oracle).
     """
 
-    def __init__(self, opts: RunOptions, shell: Shell, clock: Callable[[], float]) -> None:
+    def __init__(
+        self,
+        opts: RunOptions,
+        shell: Shell,
+        clock: Callable[[], float],
+        *,
+        controller: RateController | None = None,
+    ) -> None:
         self.opts = opts
         self.shell = shell
         self.clock = clock
-        self.controller = build_controller(opts.controller, opts.profile)
+        self.controller = (
+            build_controller(opts.controller, opts.profile) if controller is None else controller
+        )
         self.pilot = PilotInput(build_stick_map(opts.controller), opts.failsafe.rc_timeout_s)
         # The range gate, the law and the command gate: the lab's flights use the same.
         self.step = SampleStep(
@@ -133,7 +146,7 @@ class FlightCore:
             actuator=opts.output == "actuator",
         )
         self.modes = ModeLaws(
-            opts.mode,
+            FLIGHT_MODES[opts.mode],
             opts.mission,
             stale_estimate_s=opts.failsafe.stale_estimate_s,
             stale_position_s=opts.failsafe.stale_position_s,
@@ -340,7 +353,7 @@ class FlightCore:
             self.last_statustext = text.rstrip("\x00")
             self.shell.event("autopilot_says", self.last_statustext)
         elif mid == _MSG_EXTENDED_SYS_STATE:
-            self._on_landed_state(int(msg.landed_state))
+            self.on_landed_state(int(msg.landed_state))
         elif mid == _MSG_LOCAL_POSITION_NED:
             # A hand-back without RC holds with a valid position: a finite one.
             if self.modes.on_local_position(msg):
@@ -370,7 +383,7 @@ class FlightCore:
                 "are the last pulses it had, not the pilot's",
             )
 
-    def _on_landed_state(self, state: int) -> None:
+    def on_landed_state(self, state: int) -> None:
         """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
 
         An autopilot that never sends it (or sends UNDEFINED) leaves the

@@ -46,6 +46,8 @@ No I/O; the time is the caller's (``now``, the arrival of a message).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from companion.control.angle_mode import AngleMode
@@ -54,7 +56,7 @@ from companion.control.stick_limits import StickLimits
 from companion.failsafe import Verdict
 from companion.mission import Mission, MissionPath
 
-__all__ = ["NO_OUTER_LOG", "ModeLaws"]
+__all__ = ["FLIGHT_MODES", "NO_OUTER_LOG", "FlightMode", "ModeLaws"]
 
 Vec3 = tuple[float, float, float]
 
@@ -68,13 +70,64 @@ _AUTOPILOT_THRUST_TAU_S = 0.3
 """... and averaged over this (its collective, streamed at 20 Hz, moves each message)."""
 
 
+@dataclass(frozen=True)
+class FlightMode:
+    """One ``--mode``: what the sticks ask, and what it flies on."""
+
+    name: str
+    description: str
+    """What the sticks fly, for the run's ``mode`` event."""
+    law: Callable[[StickLimits], AngleMode | HoldMode] | None = None
+    """Its outer law, given the stack's stick limits (None: the sticks are the
+    rate loop's reference)."""
+    needs_position: bool = False
+    flies_missions: bool = False
+    """``--mission`` flies its waypoints in this mode."""
+
+    @property
+    def needs_attitude(self) -> bool:
+        return self.law is not None
+
+
+FLIGHT_MODES: dict[str, FlightMode] = {
+    m.name: m
+    for m in (
+        FlightMode("rates", "rates: sticks to body rates, the rate loop's reference"),
+        FlightMode(
+            "angle",
+            "angle: sticks to roll and pitch angles up to the autopilot's own limit and a "
+            "yaw rate, on the autopilot's ATTITUDE_QUATERNION",
+            law=lambda limits: AngleMode(limits.tilt_max_deg),
+        ),
+        FlightMode(
+            "altitude",
+            "altitude: sticks to roll and pitch angles, a climb rate (the altitude held "
+            "at mid-stick) and a yaw rate, within the autopilot's own limits, on "
+            "ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
+            law=lambda limits: HoldMode(position=False, limits=limits),
+            needs_position=True,
+        ),
+        FlightMode(
+            "position",
+            "position: sticks to a horizontal velocity and a climb rate (the position "
+            "and altitude held at mid-stick) and a yaw rate, shaped as the autopilot's own "
+            "Position mode shapes them, on ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
+            law=lambda limits: HoldMode(position=True, limits=limits),
+            needs_position=True,
+            flies_missions=True,
+        ),
+    )
+}
+"""Every ``--mode``, by name."""
+
+
 class ModeLaws:
     """The flight mode's law and the estimates it flies on.
 
     Parameters
     ----------
     mode
-        ``"rates"``, ``"angle"``, ``"altitude"`` or ``"position"``.
+        The flight mode (:data:`FLIGHT_MODES`).
     mission
         With ``"position"``: the waypoints flown from where an engagement starts.
     stale_estimate_s, stale_position_s
@@ -83,15 +136,15 @@ class ModeLaws:
 
     def __init__(
         self,
-        mode: str,
+        mode: FlightMode,
         mission: Mission | None,
         *,
         stale_estimate_s: float,
         stale_position_s: float,
     ) -> None:
-        self.flight_mode = mode
-        self.needs_attitude = mode != "rates"
-        self.needs_position = mode in ("altitude", "position")
+        self.mode = mode
+        self.needs_attitude = mode.needs_attitude
+        self.needs_position = mode.needs_position
         self.angle: AngleMode | None = None
         self.hold: HoldMode | None = None
         """The flight mode's law, built once the stack's stick limits are known."""
@@ -127,12 +180,13 @@ class ModeLaws:
         """The flight mode's law, with the stack's stick limits and hover thrust."""
         self.stick_limits = limits
         self.hover_thrust_prior = hover_thrust
-        if self.flight_mode == "angle":
-            self.angle = AngleMode(limits.tilt_max_deg)
-        elif self.needs_position:
-            self.hold = HoldMode(position=self.flight_mode == "position", limits=limits)
-            self.hold.on_ground = on_ground
-            self.hold.reset(hover_thrust=hover_thrust)
+        law = None if self.mode.law is None else self.mode.law(limits)
+        if isinstance(law, AngleMode):
+            self.angle = law
+        elif law is not None:
+            self.hold = law
+            law.on_ground = on_ground
+            law.reset(hover_thrust=hover_thrust)
 
     @property
     def built(self) -> bool:
@@ -228,14 +282,14 @@ class ModeLaws:
 
     def not_ready(self) -> str | None:
         """Why this mode cannot be engaged now (its limits, its estimates), or None."""
-        mode = self.flight_mode
+        mode = self.mode.name
         if self.needs_attitude and not self.built:
             return f"--mode {mode}: the autopilot's stick limits not read yet"
         return None
 
     def estimates_missing(self) -> str | None:
         """Which estimate the mode flies on is missing, or None."""
-        mode = self.flight_mode
+        mode = self.mode.name
         if self.needs_attitude and not self.landed_state_seen:
             return (
                 f"no landed state (EXTENDED_SYS_STATE) yet: --mode {mode} holds "

@@ -239,8 +239,10 @@ output_opt = click.option(
 )
 
 
-FLIGHT_MODES = ("rates", "angle", "altitude", "position")
-"""``--mode``: what the pilot's sticks ask (docs/flying.md)."""
+FLIGHT_MODE_NAMES = ("rates", "angle", "altitude", "position")
+"""``--mode``: what the pilot's sticks ask (docs/flying.md); each is a
+:class:`companion.modes.FlightMode` (kept here as names: the command line is
+read before the laws are imported)."""
 
 
 def mode_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
@@ -248,7 +250,7 @@ def mode_opt(help_: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
     return click.option(
         "--mode",
         "flight_mode",
-        type=click.Choice(FLIGHT_MODES),
+        type=click.Choice(FLIGHT_MODE_NAMES),
         default="rates",
         show_default=True,
         help=help_,

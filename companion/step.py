@@ -92,6 +92,7 @@ class SampleStep:
         "last_rates_sent",
         "last_thrust_sent",
         "law_ref",
+        "out",
         "passthrough",
         "rate_fs_rad_s",
         "rate_max_rad_s",
@@ -132,6 +133,8 @@ class SampleStep:
         """The reference the law was given on the last sample (the pilot's, or
         shaped as the autopilot shapes it)."""
         self.last_rates_sent: tuple[float, float, float] | None = None
+        self.out: Any = None
+        """The law's output on the last sample (None before the first)."""
         self.set_rate_shaping(rate_accel_max_rad_s2)
 
     def set_rate_shaping(self, accel_max_rad_s2: tuple[float, float, float] | None) -> None:
@@ -176,7 +179,8 @@ class SampleStep:
         if shaper is not None:
             ref = shaper.reference(dt, ref)
         self.law_ref = ref
-        return self.controller.update(dt, gyro, ref, thrust)
+        out = self.out = self.controller.update(dt, gyro, ref, thrust)
+        return out
 
     def actuator_command(
         self, out: Any, thrust: float
