@@ -13,7 +13,8 @@ simulated).
 
 Conventions, matching the live loop and :func:`sitl.lab.simulate.simulate_flight`:
 
-* ``dt`` is the difference of consecutive ``t_s``; the first row, and the first
+* ``dt`` is the difference of consecutive ``t_s`` in whole microseconds, as the
+  flight core takes it; the first row, and the first
   engaged row after disengaged ones, get ``dt = 0`` (the controller clamps it
   to ``dt_min_s`` and primes its filters).
 * Rows with ``engaged == 0``: the controller was not flying then; it is reset
@@ -38,10 +39,13 @@ import numpy as np
 
 from companion.control import AXES
 from companion.records import read_control_log
+from companion.step import whole_us
 
 __all__ = ["OUTPUT_PREFIXES", "compare", "output_columns", "replay"]
 
 OUTPUT_PREFIXES = ("err", "f_hat", "u", "torque", "sat")
+_JUMP_S = 1.0
+"""A step between two rows beyond this is a new clock: the law starts over."""
 _AXIS_OUT = (("err", "err_{}_rad_s"), ("f_hat", "f_hat_{}"), ("u", "u_{}"),
              ("torque", "torque_{}"), ("sat", "sat_{}"))  # fmt: skip
 
@@ -145,7 +149,10 @@ def replay(
                 controller.reset()
                 fresh = True
             continue
-        dt = 0.0 if fresh else t[i] - prev_t
+        step = t[i] - prev_t
+        # As the core takes it (companion.imu_time): in whole microseconds; a jump
+        # beyond a second starts over.
+        dt = 0.0 if fresh or step > _JUMP_S else whole_us(step)
         fresh = False
         prev_t = t[i]
         controller.on_ground = ground[i]

@@ -1,10 +1,12 @@
 """Fly a rate controller against the bundled plant in one process, without MAVLink.
 
-The loop is the companion's, minus MAVLink: every IMU sample goes through the
-same step as ``companion run`` (:class:`companion.step.SampleStep`: the gyro
-range gate, the law, the command gate; ``dt`` from the sample stamps, which
-here are exact), pilot sticks arrive as RC frames at the scenario's RC rate, and
-the gated actuator controls, mixed, are held until the next sample. Through the
+The loop is the companion's, minus MAVLink: every IMU sample goes to the
+product's flight core (:class:`companion.core.FlightCore`, engaged as on a PX4:
+:mod:`sitl.lab.inprocess`), as ``companion run`` gives it each sample off the
+link: the same timestamp checks (``dt`` from the sample stamps, in whole
+microseconds), the gyro range gate, the law, the command gate and the
+per-sample failsafes. Pilot sticks arrive as RC frames at the scenario's RC
+rate, and the gated actuator controls, mixed, are held until the next sample. Through the
 scenario's companion link (:mod:`sitl.link_model`) the samples, the RC frames and
 the landed state reach the companion late (or twice, or never), the companion
 drops samples not newer than the last, and each command acts at the autopilot's
@@ -29,11 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import MfcConfig, PidConfig, build_controller, build_stick_map
+from companion.config import MfcConfig, PidConfig
+from companion.failsafe import FailsafeConfig
 from companion.profile import VehicleProfile
-from companion.step import LANDED_STATE_RATE_HZ, SampleStep
+from companion.run_options import RunOptions
+from companion.step import LANDED_STATE_RATE_HZ
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
+from sitl.lab.inprocess import LabShell, engaged_core, rc_frame
 from sitl.link_model import (
     DOWN,
     ID_EXTENDED_SYS_STATE,
@@ -51,6 +56,8 @@ from sitl.scenario import Scenario
 from sitl.wind import Wind
 
 __all__ = ["FlightRecord", "scenario_streams", "simulate_flight"]
+
+_ON_GROUND, _IN_AIR = 1, 2  # MAV_LANDED_STATE
 
 
 @dataclass
@@ -89,6 +96,7 @@ def simulate_flight(
     seed: int | None = None,
     progress: Callable[[float], None] | None = None,
     law: Any | None = None,
+    failsafe: FailsafeConfig | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -115,6 +123,10 @@ def simulate_flight(
         loop calls it with the :class:`~sitl.physics.Quadrotor` (to read, never
         to change) just before each ``update``. The shipped laws have none, so
         their flights are untouched.
+    failsafe
+        The per-sample failsafes' thresholds (``companion run``'s defaults). A
+        failsafe stops the commands, as in the product; the plant's autopilot
+        holds the last one (``meta["failsafes"]`` says which fired).
     """
     rngs = scenario_streams(scenario.seed if seed is None else seed)
     dt = scenario.physics_dt_s
@@ -125,12 +137,19 @@ def simulate_flight(
     imu = Imu(scenario.imu_model(plant), rng=rngs["imu"], dt_s=dt)
     pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
     duration = scenario.duration_s or pilot.duration_s
-    controller = (
-        build_controller(controller_cfg, controller_profile or plant) if law is None else law
+    opts = RunOptions(
+        connect="in-process",
+        profile=controller_profile or plant,
+        controller=controller_cfg,
+        output="actuator",
+        engage="auto",
+        failsafe=FailsafeConfig() if failsafe is None else failsafe,
     )
+    shell = LabShell()
+    now = [0.0]  # the lab's clock: the plant's time
+    core = engaged_core(opts, shell, lambda: now[0], controller=law)
+    controller, step, pilot_in = core.controller, core.step, core.pilot
     see_plant = getattr(controller, "see_plant", None)
-    step = SampleStep(controller, controller_profile or plant, output="actuator")
-    sticks_map = build_stick_map(controller_cfg)
     autopilot_mix = ControlAllocator.from_profile(plant).mix
     # The pilot's hover collective in PX4's units (0 the motors' armed idle, 1 full).
     hover = thrust_for_command(hover_motor_command(plant), plant.limits.motor_idle)
@@ -141,12 +160,10 @@ def simulate_flight(
     # one message at each period (the first at the start), read on its physics step.
     landed_period = 1.0 / LANDED_STATE_RATE_HZ
     next_landed = 0.0
-    controller.on_ground = quad.state.landed
     rc_period = 1.0 / scenario.rc_rate_hz
     next_rc = 0.0
     channels: tuple[int, ...] = (1500, 1500, 1000, 1500)
     motors: tuple[float, ...] = (0.0,) * n_motors
-    prev_sample_t: float | None = None
 
     cols: dict[str, list[Any]] = {
         k: []
@@ -162,31 +179,38 @@ def simulate_flight(
     uplink: list[tuple[float, int, int, Any]] = []
     downlink: list[tuple[float, int, tuple[float, ...]]] = []
     order = itertools.count()
-    seen_channels = channels
     last_sample_t = -math.inf
 
-    def on_sample(sample_t: float, gyro: tuple[float, float, float]) -> tuple[float, ...]:
-        """The companion's step for one sample it received; the motors it commands."""
-        nonlocal prev_sample_t
-        cmd = sticks_map.map(seen_channels)
-        # The first sample has no interval before it: the controller clamps
-        # dt = 0 to its minimum and primes its filters.
-        sample_dt = sample_t - prev_sample_t if prev_sample_t is not None else 0.0
-        prev_sample_t = sample_t
+    def on_landed(landed: bool) -> None:
+        core.on_landed_state(_ON_GROUND if landed else _IN_AIR)
+
+    def on_sample(
+        sample_t: float, gyro: tuple[float, float, float], arrival: float
+    ) -> tuple[float, ...]:
+        """The core's step for one sample it received; the motors the autopilot
+        makes of the last command it has."""
         if see_plant is not None:
             see_plant(quad)
-        out = step.sample(sample_dt, gyro, cmd.rate_rad_s, cmd.thrust)
-        (c_roll, c_pitch, c_yaw, c_thrust), _ = step.actuator_command(out, cmd.thrust)
+        n = core.n_imu
+        core.on_imu(sample_t, gyro, arrival)
+        if core.n_sample_errors:
+            raise RuntimeError(f"the flight core's step raised at t={sample_t:.6f} s")
+        if core.n_imu == n:
+            return motors  # not flown (the core's timestamp checks)
+        controls = shell.controls
+        if controls is None:
+            return motors
         # The autopilot allocates the controls it is sent (PX4's allocation, as the
         # SITL's PX4 personality does), whatever the law's own mix was.
+        c_roll, c_pitch, c_yaw, c_thrust = controls[:4]
         sent = autopilot_mix(c_thrust, c_roll, c_pitch, c_yaw)
-        step.learn()
+        out = step.out
         st = quad.state
         cols["t_s"].append(sample_t)
-        cols["ref_rad_s"].append(cmd.rate_rad_s)
+        cols["ref_rad_s"].append(step.law_ref)
         cols["meas_rad_s"].append(gyro)
         cols["true_rad_s"].append(st.rate_frd_rad_s)
-        cols["thrust"].append(cmd.thrust)
+        cols["thrust"].append(pilot_in.thrust)
         cols["torque"].append(out.torque)
         cols["u"].append(out.u)
         cols["f_hat"].append(out.f_hat)
@@ -202,7 +226,7 @@ def simulate_flight(
     crashed_at: float | None = None
     report_every = max(1, n_steps // 100)
     for k in range(n_steps):
-        t = quad.t_s
+        t = now[0] = quad.t_s
         if t >= next_rc - 1e-12:
             st = quad.state
             roll, pitch, yaw = quat_to_euler_rad(st.q_wxyz)
@@ -219,7 +243,7 @@ def simulate_flight(
             channels = pilot.sticks(view).channels()
             next_rc += rc_period
             if ideal:
-                seen_channels = channels
+                core.on_rc(rc_frame(channels), t)
             else:
                 for a in link.arrivals(UP, ID_RC_CHANNELS, t):
                     heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
@@ -228,10 +252,10 @@ def simulate_flight(
             # The landed state goes out on its step, ahead of that step's IMU sample
             # (the SITL streams it after arming, every period, as the link branch).
             if t >= next_landed - 1e-12:
-                controller.on_ground = quad.state.landed
+                on_landed(quad.state.landed)
                 next_landed += landed_period
             if sample is not None:
-                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s)
+                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s, t)
         else:
             if t >= next_landed - 1e-12:
                 next_landed += landed_period
@@ -246,12 +270,12 @@ def simulate_flight(
             while uplink and uplink[0][0] <= t + 1e-12:
                 arrived, _, what, payload = heapq.heappop(uplink)
                 if what == ID_RC_CHANNELS:
-                    seen_channels = payload
+                    core.on_rc(rc_frame(payload), arrived)
                 elif what == ID_EXTENDED_SYS_STATE:
-                    controller.on_ground = payload
+                    on_landed(payload)
                 elif payload[0] > last_sample_t:  # the companion drops duplicates and late samples
                     last_sample_t = payload[0]
-                    sent = on_sample(payload[0], payload[1])
+                    sent = on_sample(payload[0], payload[1], arrived)
                     for a in link.arrivals(DOWN, down_stream, arrived):
                         heapq.heappush(downlink, (a, next(order), sent))
             # The autopilot acts on the newest command at its next IMU sample (its
@@ -288,5 +312,6 @@ def simulate_flight(
         "link_counts": link.counts(),
         "n_motors": n_motors,
         "hover_throttle": hover,
+        "failsafes": [f"{kind}: {detail}" for kind, detail in shell.failsafes],
     }
     return FlightRecord(columns, meta)

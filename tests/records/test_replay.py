@@ -45,13 +45,9 @@ def fly(
     monkeypatch: pytest.MonkeyPatch, cfg: Any, profile: VehicleProfile, duration_s: float
 ) -> tuple[dict[str, np.ndarray], list[ControlOutput]]:
     outputs: list[ControlOutput] = []
-    real = build_controller  # what sitl.lab.simulate imported
-    monkeypatch.setattr(
-        simulate_mod, "build_controller", lambda c, p: _Recording(real(c, p), outputs)
-    )
+    law = _Recording(build_controller(cfg, profile), outputs)
     sc = load_scenario("step-response").model_copy(update={"duration_s": duration_s})
-    rec = simulate_mod.simulate_flight(profile, cfg, sc)
-    monkeypatch.setattr(simulate_mod, "build_controller", real)
+    rec = simulate_mod.simulate_flight(profile, cfg, sc, law=law)
     assert not rec.meta["crashed"]
     assert len(outputs) == len(rec.columns["t_s"])
     return rec.columns, outputs
