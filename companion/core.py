@@ -621,6 +621,7 @@ class FlightCore:
             u = out.u
             sat = out.saturated_axes
             g0, g1, g2 = gyro
+            alpha, lag, delay = self.controller.identified()
             # The layout of companion.records.columns.
             append(
                 [
@@ -631,6 +632,7 @@ class FlightCore:
                     thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
                     self.link_clock.rtt_s * 1e3, age * 1e3, *modes.log_columns(),
                     *(step.law_ref if step.shaper is not None else NO_RATES),
+                    *alpha, *lag, *delay,
                 ]
             )  # fmt: skip
         if self.publish_sample is not None:

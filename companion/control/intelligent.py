@@ -225,6 +225,11 @@ class IntelligentController:
         """The actuator lag in use, s."""
         return self._tau if self._ident is None else self._ident.tau
 
+    @property
+    def delay_s(self) -> float:
+        """The loop's delay in use, s (0: none identified)."""
+        return 0.0 if self._ident is None else self._ident.delay
+
     def reset(self) -> None:
         self._est.reset()
         if self._ident is not None:

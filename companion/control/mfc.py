@@ -114,6 +114,7 @@ def _hold_output(last: ControlOutput | None, mixer: Mixer) -> ControlOutput:
     return last._replace(held=True)
 
 
+_NAN3: Vec3 = (math.nan, math.nan, math.nan)
 _new_tuple = tuple.__new__  # see companion.control.mixer: cheaper than NamedTuple(...)
 _isfinite = math.isfinite
 
@@ -169,6 +170,11 @@ class RateController(Protocol):
 
     def teach_applied(self, torque: Vec3) -> None:
         """What of the last output was really applied, when not what the mixer achieved."""
+        ...
+
+    def identified(self) -> tuple[Vec3, Vec3, Vec3]:
+        """Per axis, the model the law flies now: its input gain alpha, the
+        actuator lag (s) and the loop's delay (s); NaN where it has none."""
         ...
 
 
@@ -250,6 +256,16 @@ class MfcController:
         was not what the mixer achieved: the estimators learn from it at the next
         update (an autopilot that slews a rate setpoint, companion.control.shaping)."""
         self._applied = torque
+
+    def identified(self) -> tuple[Vec3, Vec3, Vec3]:
+        """Per axis: alpha (rad/s^m per command unit), the actuator lag and the
+        loop's delay (s), as configured or identified."""
+        a0, a1, a2 = self._axes
+        return (
+            (a0.alpha, a1.alpha, a2.alpha),
+            (a0.tau_s, a1.tau_s, a2.tau_s),
+            (a0.delay_s, a1.delay_s, a2.delay_s),
+        )
 
     @property
     def reference_rate_dot(self) -> Vec3:
@@ -384,6 +400,10 @@ class PidController:
     def teach_applied(self, torque: Vec3) -> None:
         """Nothing to teach: the PID learns only its integral (same interface as
         :meth:`MfcController.teach_applied`)."""
+
+    def identified(self) -> tuple[Vec3, Vec3, Vec3]:
+        """No model: NaN (same interface as :meth:`MfcController.identified`)."""
+        return (_NAN3, _NAN3, _NAN3)
 
     @property
     def reference_rate_dot(self) -> Vec3:

@@ -50,7 +50,11 @@ def columns(n_motors: int) -> list[str]:
     1 as shipped, down to the backoff's floor). Last, ``law_ref_<axis>_rad_s``:
     the reference the law flew when it was not the pilot's rate (rates output to
     an autopilot that shapes its setpoints: the pilot's rate so shaped,
-    :mod:`companion.control.shaping`), NaN otherwise.
+    :mod:`companion.control.shaping`), NaN otherwise. Then the model the law
+    flies, per axis, as configured or identified online: ``alpha_<axis>`` (its
+    input gain, rad/s^m per command unit), ``lag_<axis>_s`` (the actuator lag)
+    and ``delay_<axis>_s`` (the loop's delay); NaN for a law with no model (the
+    PID).
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -73,7 +77,13 @@ def columns(n_motors: int) -> list[str]:
     cols += [f"{w}_{d}_m" for w in ("sp", "est") for d in ("north", "east", "up")]
     cols += ["outer_gain_scale"]
     cols += [f"law_ref_{a}_rad_s" for a in AXES]
+    cols += [f"{q}_{a}{unit}" for q, unit in _MODEL for a in AXES]
     return cols
+
+
+_MODEL = (("alpha", ""), ("lag", "_s"), ("delay", "_s"))
+"""The model the law flies, per axis: ``alpha_<axis>``, ``lag_<axis>_s``,
+``delay_<axis>_s`` (:meth:`companion.control.RateController.identified`)."""
 
 
 _AX = "|".join(AXES)
@@ -91,6 +101,9 @@ _PLACES: tuple[tuple[str, str, str], ...] = (
     (rf"u_(?P<a>{_AX})", "/law/{a}", "u"),
     (rf"torque_(?P<a>{_AX})", "/law/{a}", "torque"),
     (rf"sat_(?P<a>{_AX})", "/law/{a}", "saturated"),
+    (rf"alpha_(?P<a>{_AX})", "/law/{a}", "alpha"),
+    (rf"lag_(?P<a>{_AX})_s", "/law/{a}", "lag_s"),
+    (rf"delay_(?P<a>{_AX})_s", "/law/{a}", "delay_s"),
     (r"(?P<f>thrust|thrust_out|motor_[1-9][0-9]*|engaged|held|on_ground)", "/mixer", "{f}"),
     (rf"(?P<f>(sp|est)_({_AX})_rad|(sp|est)_(north|east|up)_m|outer_gain_scale)", "/outer", "{f}"),
 )
@@ -102,8 +115,9 @@ _DESCRIPTIONS = {
     "/rates": "Body rates per axis (rad/s): the pilot's reference, the gyro as the law saw "
     "it, the rates sent with rates output, and the law's shaped reference (NaN: none).",
     "/law": "The model-free law on one axis: tracking error (rad/s), the estimate of F, the "
-    "law's output u before mixing, the torque the mixer realised ([-1, 1]) and whether "
-    "the mixer saturated the axis (0/1).",
+    "law's output u before mixing, the torque the mixer realised ([-1, 1]), whether "
+    "the mixer saturated the axis (0/1), and the model it flies: alpha (its input gain, "
+    "rad/s^m per command unit), the actuator lag and the loop's delay (s); NaN for the PID.",
     "/mixer": "The mixer and the gates: the pilot's collective and the realised one (0..1), "
     "the motor commands ([idle, 1]), engaged, held (a non-finite input repeated the last "
     "output) and on_ground (the autopilot said ON_GROUND: nothing learnt), all 0/1.",

@@ -260,6 +260,11 @@ class OracleController:
     def learn(self) -> None:
         """Nothing to learn: the oracle knows the plant."""
 
+    def identified(self) -> tuple[tuple[float, float, float], ...]:
+        """No model identified: it reads the plant (NaN, as the PID's)."""
+        nan3 = (math.nan, math.nan, math.nan)
+        return (nan3, nan3, nan3)
+
     def update(
         self,
         dt_s: float,

@@ -123,3 +123,23 @@ def test_each_flight_mode_says_what_it_flies_on(name: str) -> None:
     assert core.needs_attitude == mode.needs_attitude
     why = core.not_ready_to_engage(0.0)
     assert (why is None) == (name == "rates")
+
+
+def test_each_row_carries_the_model_the_law_flies() -> None:
+    """alpha, the lag and the delay, per axis, as the law has them at that sample."""
+    from companion.records import columns
+
+    shell, clock = LabShell(), Clock()
+    core = engaged_core(options(output="actuator"), shell, clock)
+    rows: list[list[float]] = []
+    core.log_append = rows.append
+    core.on_rc(rc_frame(CENTRED), clock.t)
+    for k in range(3):
+        core.on_imu(10.0 + 0.004 * k, (0.0, 0.0, 0.0), clock.t + 0.004 * k)
+    names = columns(PROFILE.n_motors)
+    assert all(len(r) == len(names) for r in rows) and len(rows) == 3
+    alpha, lag, delay = core.controller.identified()
+    for i, axis in enumerate(("roll", "pitch", "yaw")):
+        assert rows[-1][names.index(f"alpha_{axis}")] == alpha[i] > 0.0
+        assert rows[-1][names.index(f"lag_{axis}_s")] == lag[i] >= 0.0
+        assert rows[-1][names.index(f"delay_{axis}_s")] == delay[i] >= 0.0

@@ -42,18 +42,22 @@ def test_columns_layout() -> None:
         "torque_roll", "sat_roll",
     ]  # fmt: skip
     assert cols[12] == "ref_pitch_rad_s" and cols[19] == "ref_yaw_rad_s"
-    assert cols[-29:-16] == [
+    assert cols[-38:-25] == [
         "sat_yaw", "thrust", "thrust_out", "motor_1", "motor_2", "motor_3", "motor_4",
         "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s", "on_ground",
         "link_rtt_ms", "sample_age_ms",
     ]  # fmt: skip
-    assert cols[-16:-3] == [
+    assert cols[-25:-12] == [
         "sp_roll_rad", "sp_pitch_rad", "sp_yaw_rad", "est_roll_rad", "est_pitch_rad",
         "est_yaw_rad", "sp_north_m", "sp_east_m", "sp_up_m", "est_north_m", "est_east_m",
         "est_up_m", "outer_gain_scale",
     ]  # fmt: skip
-    assert cols[-3:] == ["law_ref_roll_rad_s", "law_ref_pitch_rad_s", "law_ref_yaw_rad_s"]
-    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2 + 13 + 3
+    assert cols[-12:-9] == ["law_ref_roll_rad_s", "law_ref_pitch_rad_s", "law_ref_yaw_rad_s"]
+    assert cols[-9:] == [
+        "alpha_roll", "alpha_pitch", "alpha_yaw", "lag_roll_s", "lag_pitch_s", "lag_yaw_s",
+        "delay_roll_s", "delay_pitch_s", "delay_yaw_s",
+    ]  # fmt: skip
+    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2 + 13 + 3 + 9
     assert len(columns(6)) == len(cols) + 2
     with pytest.raises(ValueError):
         columns(0)
@@ -66,7 +70,9 @@ def test_every_column_has_one_topic_and_field() -> None:
     placed = sorted(j for t in tps for j in t.columns)
     assert placed == list(range(len(cols)))
     law = {t.name: t.fields for t in tps}
-    assert law["/law/pitch"] == ("err_rad_s", "f_hat", "u", "torque", "saturated")
+    assert law["/law/pitch"] == (
+        "err_rad_s", "f_hat", "u", "torque", "saturated", "alpha", "lag_s", "delay_s",
+    )  # fmt: skip
     assert cols[tps[2].columns[1]] == "f_hat_pitch"
     assert law["/link"] == ("t_s", "wall_s", "latency_us", "rtt_ms", "sample_age_ms")
     assert "motor_6" in law["/mixer"] and "engaged" in law["/mixer"]

@@ -83,6 +83,7 @@ def write_log(
             row += [np.nan, np.nan]  # link_rtt_ms, sample_age_ms: no TIMESYNC answer
             row += [np.nan] * 13  # the outer loops': --mode rates
             row += [np.nan] * 3  # law_ref: the pilot's rates flown unshaped
+            row += [np.nan] * 9  # the law's model: not compared by replay
             log.append(row)
 
 
