@@ -1,4 +1,4 @@
-"""Judging each decoded message (is it the autopilot's?) and handing it on.
+"""Judging each decoded message: is it the autopilot's? Who the autopilot is.
 
 Only the autopilot's messages reach ``on_message``: the autopilot is pinned
 (``target_system``/``target_component``) or learned from the first HEARTBEAT
@@ -8,24 +8,28 @@ a GCS or an onboard controller. Everything else is counted and dropped. On
 its ids from any other address are ignored (a HEARTBEAT from a new address
 is taken once the old one has been silent for ``peer_silence_s``) and
 reported through ``on_anomaly``.
+
+:class:`Acceptor` keeps the answer (the target, its last HEARTBEAT, its
+address confirmed or not); the receiver (:mod:`companion.link.receive`) asks it
+about each decoded frame and hands on what it accepts.
 """
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from companion.errors import LinkError
 from companion.link.frames import MAGIC_V1, MAGIC_V2
 from companion.link.signing import SignatureChecker, SigningConfig
 from companion.link.transport import Transport
 
-__all__ = ["Acceptor", "FastHandler", "OnAnomaly", "OnMessage", "OnRaw"]
+__all__ = ["Acceptor", "FastHandler", "OnAnomaly", "OnMessage", "OnRaw", "callback_failed"]
 
 logger = logging.getLogger("companion.link.mavlink")
 
@@ -40,66 +44,86 @@ _ANOMALY_PERIOD_S = 1.0
 """``on_anomaly`` is called at most once per this period for each kind."""
 
 
+def callback_failed(counters: dict[str, int], what: str) -> None:
+    """Count a callback that raised (``callback_errors``); log the first one."""
+    counters["callback_errors"] += 1
+    if counters["callback_errors"] == 1:
+        logger.exception("%s raised (logged once, counted after)", what)
+
+
 class Acceptor:
-    """The accepting side of :class:`~companion.link.mavlink.MavlinkLink` (a base of it)."""
+    """Judges each decoded frame (is it the autopilot's?) and keeps who the autopilot is.
 
-    transport: Transport
-    target: tuple[int, int] | None
-    counters: dict[str, int]
-    signing: SigningConfig | None
-    mav: Any
-    on_message: OnMessage | None
-    on_anomaly: OnAnomaly | None
-    peer_silence_s: float
-    last_heartbeat: Any | None
-    last_heartbeat_monotonic_s: float | None
-    _want_system: int | None
-    _want_component: int | None
-    _target_v2: bool
-    _checker: SignatureChecker | None
-    _fast: dict[int, tuple[Callable[[Any], tuple[Any, ...]], FastHandler]]
-    _anomaly_next_s: dict[str, float]
-    _heartbeat_waiters: list[asyncio.Future[Any]]
+    Parameters
+    ----------
+    transport
+        The frames' transport: ``rx_from_peer`` / ``rx_address`` say where the
+        frame being judged came from, ``confirm_peer`` is told of the
+        autopilot's HEARTBEATs.
+    counters
+        The link's counters; the rejections are counted in them.
+    target_system, target_component
+        The pins (checked by the link); ``None`` learns from the first HEARTBEAT.
+    signing
+        Check the signature of each frame (``None``: no checks).
+    signing_state
+        pymavlink's signing state of the link's encoder (``mav.signing``): its
+        ``timestamp`` is the replay floor, and follows the newest valid one.
+    peer_silence_s, on_anomaly
+        As :class:`~companion.link.mavlink.MavlinkLink`'s.
+    """
 
-    if TYPE_CHECKING:  # defined in Requester
+    def __init__(
+        self,
+        transport: Transport,
+        counters: dict[str, int],
+        *,
+        target_system: int | None,
+        target_component: int | None,
+        signing: SigningConfig | None,
+        signing_state: Any,
+        peer_silence_s: float,
+        on_anomaly: OnAnomaly | None,
+    ) -> None:
+        self._transport = transport
+        self._counters = counters
+        self._want_system = target_system
+        self._want_component = target_component
+        self.target: tuple[int, int] | None = (
+            (target_system, target_component)
+            if target_system is not None and target_component is not None
+            else None
+        )
+        """The autopilot's ``(system, component)``: pinned, learned, or ``None`` yet."""
+        self.last_heartbeat: Any | None = None
+        self.last_heartbeat_monotonic_s: float | None = None
+        self.peer_silence_s = peer_silence_s
+        self.on_anomaly = on_anomaly
+        self._target_v2 = False
+        """The autopilot's heartbeat came as MAVLink 2: it does not fall back to 1."""
+        self._checker = SignatureChecker(signing.key) if signing is not None else None
+        self._allow_unsigned = signing is not None and signing.allow_unsigned
+        self._signing_state = signing_state
+        self._anomaly_next_s: dict[str, float] = {}
 
-        def _on_command_ack(self, ack: Any) -> None: ...
-        def _on_param_value(self, msg: Any) -> None: ...
+    def require_target(self) -> tuple[int, int]:
+        """The target, for a message to it.
 
-    def _deliver(self, msg: Any, t_rx: float, on_raw: OnRaw | None) -> None:
-        """Judge one decoded frame and hand it on if it is the autopilot's."""
-        counters = self.counters
-        mtype = msg._type
-        counters["received"] += 1
-        if self._accept(msg, mtype, self._checker, counters):
-            counters["accepted"] += 1
-            if mtype == "HEARTBEAT":
-                self._on_heartbeat(msg)
-            elif mtype == "COMMAND_ACK":
-                self._on_command_ack(msg)
-            elif mtype == "PARAM_VALUE":
-                self._on_param_value(msg)
-            fast = self._fast
-            registered = fast.get(msg.get_msgId()) if fast else None
-            try:
-                if registered is not None:
-                    getter, handler = registered
-                    handler(getter(msg))
-                elif self.on_message is not None:
-                    self.on_message(msg)
-            except Exception:
-                self._callback_failed("on_message")
-        if on_raw is not None:
-            on_raw(t_rx, bytes(msg._msgbuf), False)
+        Raises
+        ------
+        LinkError
+            If it is not known yet.
+        """
+        if self.target is None:
+            raise LinkError(
+                f"{self._transport.description}: autopilot not known yet (no HEARTBEAT from one)"
+            )
+        return self.target
 
-    def _callback_failed(self, what: str) -> None:
-        counters = self.counters
-        counters["callback_errors"] += 1
-        if counters["callback_errors"] == 1:
-            logger.exception("%s raised (logged once, counted after)", what)
-
-    def _accept(self, msg: Any, mtype: str, checker: Any, counters: dict[str, int]) -> bool:
+    def accept(self, msg: Any, mtype: str) -> bool:
         """Signature, dialect, sender and sender-address checks; counts what it rejects."""
+        counters = self._counters
+        checker = self._checker
         if checker is not None and not self._signature_ok(checker, msg):
             return False
         if msg.__class__ is _Unknown:  # an id outside the dialect (pymavlink skips its CRC)
@@ -111,7 +135,7 @@ class Acceptor:
                 return True
             counters["foreign_ignored"] += 1
             return False
-        if not self.transport.rx_from_peer and not self._autopilot_moved(mtype):
+        if not self._transport.rx_from_peer and not self._autopilot_moved(mtype):
             counters["spoofed_ignored"] += 1
             self._anomaly(
                 "spoofed",
@@ -131,11 +155,20 @@ class Acceptor:
             return False
         return True
 
+    def on_heartbeat(self, hb: Any) -> None:
+        """The autopilot's own HEARTBEAT, accepted (right sender, right signature):
+        replies go where it came from."""
+        self._transport.confirm_peer()
+        if hb._msgbuf[0] == MAGIC_V2:
+            self._target_v2 = True
+        self.last_heartbeat = hb
+        self.last_heartbeat_monotonic_s = time.monotonic()
+
     def _autopilot_moved(self, mtype: str) -> bool:
         """A frame with the autopilot's ids came from a new address: is it the
         autopilot, moved (restarted on a new source port)? Yes for a HEARTBEAT once
         its confirmed address has sent none for ``peer_silence_s``; the HEARTBEAT,
-        accepted, then moves the transport's peer (:meth:`_on_heartbeat`)."""
+        accepted, then moves the transport's peer (:meth:`on_heartbeat`)."""
         last = self.last_heartbeat_monotonic_s
         if mtype != "HEARTBEAT" or last is None:
             return False
@@ -153,7 +186,7 @@ class Acceptor:
         return True
 
     def _rx_from(self) -> str:
-        addr = self.transport.rx_address
+        addr = self._transport.rx_address
         return f"{addr[0]}:{addr[1]}" if addr else "an unknown address"
 
     def _anomaly(self, kind: str, fmt: str, *args: object) -> None:
@@ -171,25 +204,24 @@ class Acceptor:
         try:
             callback(kind, detail)
         except Exception:
-            self._callback_failed("on_anomaly")
+            callback_failed(self._counters, "on_anomaly")
 
     def _signature_ok(self, checker: SignatureChecker, msg: Any) -> bool:
-        signing = self.mav.signing
+        signing = self._signing_state
         verdict, timestamp = checker.check(msg._msgbuf, signing.timestamp)
         if verdict == SignatureChecker.OK:
             if timestamp > signing.timestamp:  # spec: follow the newest valid timestamp
                 signing.timestamp = timestamp
             return True
         if verdict == SignatureChecker.UNSIGNED:
-            assert self.signing is not None
-            if self.signing.allow_unsigned:
-                self.counters["unsigned_accepted"] += 1
+            if self._allow_unsigned:
+                self._counters["unsigned_accepted"] += 1
                 return True
-            self.counters["unsigned_rejected"] += 1
+            self._counters["unsigned_rejected"] += 1
         elif verdict == SignatureChecker.BAD_SIGNATURE:
-            self.counters["bad_signature_rejected"] += 1
+            self._counters["bad_signature_rejected"] += 1
         else:
-            self.counters["replay_rejected"] += 1
+            self._counters["replay_rejected"] += 1
         return False
 
     def _learn_target(self, hb: Any) -> bool:
@@ -206,18 +238,3 @@ class Acceptor:
             "autopilot is %d/%d (autopilot=%d type=%d)", sysid, compid, hb.autopilot, hb.type
         )
         return True
-
-    def _on_heartbeat(self, hb: Any) -> None:
-        # The autopilot's own heartbeat (accepted: right sender, right signature):
-        # replies go where it came from.
-        self.transport.confirm_peer()
-        if hb._msgbuf[0] == MAGIC_V2:
-            self._target_v2 = True
-        self.last_heartbeat = hb
-        self.last_heartbeat_monotonic_s = time.monotonic()
-        waiters = self._heartbeat_waiters
-        if waiters:
-            self._heartbeat_waiters = []
-            for fut in waiters:
-                if not fut.done():
-                    fut.set_result(hb)

@@ -8,11 +8,12 @@
         await link.request_message_interval(mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 4000)
         link.send(link.mav.set_actuator_control_target_encode(...))
 
-:class:`MavlinkLink` here holds the set-up, the lifecycle and the sending; its
-bases hold the receiving (:mod:`companion.link.receive`: the frames in the
-bytes, the fast road of :meth:`MavlinkLink.add_fast_handler`), the judging of
-what arrives (:mod:`companion.link.accept`) and the requests
-(:mod:`companion.link.requests`). The wire format is in
+:class:`MavlinkLink` here holds the set-up, the lifecycle and the sending, and
+owns three parts it calls: a :class:`~companion.link.receive.Receiver` (the
+frames in the bytes, the fast road of :meth:`MavlinkLink.add_fast_handler`), an
+:class:`~companion.link.accept.Acceptor` (which frames are the autopilot's, and
+who the autopilot is) and a :class:`~companion.link.requests.Requester` (the
+requests and the waits for their replies). The wire format is in
 :mod:`companion.link.frames`.
 
 Counters (``link.counters``): ``received`` (frames decoded, before any check),
@@ -40,10 +41,8 @@ import asyncio
 import contextlib
 import logging
 import math
-import operator
-import struct
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
@@ -57,11 +56,10 @@ from companion.link.frames import (
     ID_ACTUATOR,
     ID_ATTITUDE_TARGET,
     crc16,
-    fast_layout,
 )
-from companion.link.receive import MAX_CHECKS, Receiver
+from companion.link.receive import Receiver
 from companion.link.requests import Requester
-from companion.link.signing import SignatureChecker, SigningConfig, signing_timestamp_now
+from companion.link.signing import SigningConfig, signing_timestamp_now
 from companion.link.transport import Transport
 
 __all__ = ["MavlinkLink", "mavlink2"]
@@ -88,7 +86,7 @@ class _Sink:
         self._link._write_frame(buf)
 
 
-class MavlinkLink(Receiver, Acceptor, Requester):
+class MavlinkLink:
     """A MAVLink 2 (common dialect) link from the companion to one autopilot.
 
     Parameters
@@ -166,21 +164,7 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         self.source_component = source_component
         self.signing = signing
         self.heartbeat_hz = heartbeat_hz
-        self.on_message = on_message
-        self.on_raw = on_raw
-        self.on_anomaly = on_anomaly
-        self.peer_silence_s = peer_silence_s
-        self._want_system = target_system
-        self._want_component = target_component
-        self.target: tuple[int, int] | None = (
-            (target_system, target_component)
-            if target_system is not None and target_component is not None
-            else None
-        )
-        self.last_heartbeat: Any | None = None
-        self.rx_perf_s = 0.0
-        """``time.perf_counter()`` when the chunk being handled arrived (read it in a handler)."""
-        self.last_heartbeat_monotonic_s: float | None = None
+        self._on_raw = on_raw  # what we send; the receiver has its own for what arrives
         self.counters: dict[str, int] = dict.fromkeys(
             (
                 "received",
@@ -203,32 +187,41 @@ class MavlinkLink(Receiver, Acceptor, Requester):
             ),
             0,
         )
-        self._target_v2 = False
-        """The autopilot's heartbeat came as MAVLink 2: it does not fall back to 1."""
         # Encoder: what callers use (link.mav.xxx_encode / xxx_send); signs when configured.
         self.mav = mavlink2.MAVLink(
             _Sink(self), srcSystem=source_system, srcComponent=source_component
         )
-        # Parser: separate and keyless, so pymavlink does not judge signatures (we do).
-        self._parser = mavlink2.MAVLink(
-            None, srcSystem=source_system, srcComponent=source_component
+        self._acceptor = Acceptor(
+            transport,
+            self.counters,
+            target_system=target_system,
+            target_component=target_component,
+            signing=signing,
+            signing_state=self.mav.signing,
+            peer_silence_s=peer_silence_s,
+            on_anomaly=on_anomaly,
         )
-        # The link finds the frames (companion.link.receive); pymavlink only decodes them.
-        self._datagrams = transport.datagrams
-        self._pending = b""  # a byte stream: the start of a frame, waiting for the rest
-        self._checks_left = MAX_CHECKS  # per chunk, see receive.MAX_CHECKS
-        self._anomaly_next_s: dict[str, float] = {}
-        self._checker = SignatureChecker(signing.key) if signing is not None else None
-        # msg id -> (getter of the values from a pymavlink message, handler)
-        self._fast: dict[int, tuple[Callable[[Any], tuple[Any, ...]], FastHandler]] = {}
-        # msg id -> (layout, crc extra byte, full payload length, handler); only
-        # without signing (signed frames are judged by the checker, on pymavlink's road)
-        self._fast_wire: dict[int, tuple[struct.Struct, bytes, int, FastHandler]] = {}
+        self._requester = Requester(
+            transport,
+            self._acceptor,
+            self.mav,
+            source_system=source_system,
+            source_component=source_component,
+        )
+        # The receiver finds the frames; pymavlink only decodes them, with a parser
+        # of its own, separate and keyless, so it does not judge signatures (the
+        # acceptor does).
+        self._receiver = Receiver(
+            transport,
+            self.counters,
+            mavlink2.MAVLink(None, srcSystem=source_system, srcComponent=source_component),
+            self._acceptor,
+            self._requester,
+            short_road=signing is None,
+            on_message=on_message,
+            on_raw=on_raw,
+        )
         self._heartbeat_task: asyncio.Task[None] | None = None
-        self._heartbeat_waiters: list[asyncio.Future[Any]] = []
-        self._ack_waiters: dict[int, asyncio.Future[Any]] = {}
-        self._param_waiters: dict[str, list[asyncio.Future[Any]]] = {}
-        self._command_locks: dict[int, asyncio.Lock] = {}
         self._started = False
         self._closed = False
 
@@ -248,21 +241,71 @@ class MavlinkLink(Receiver, Acceptor, Requester):
             For an unknown message id or field, a non-scalar field, or fields
             out of wire order.
         """
-        layout, full_len = fast_layout(msg_id, fields)
-        names = tuple(fields)
-        getter: Callable[[Any], tuple[Any, ...]]
-        if len(names) == 1:
-            name = names[0]
+        self._receiver.add_fast_handler(msg_id, fields, handler)
 
-            def getter(msg: Any) -> tuple[Any, ...]:
-                return (getattr(msg, name),)
+    # ------------------------------------------------------- what the parts keep
 
-        else:
-            getter = operator.attrgetter(*names)
-        self._fast[msg_id] = (getter, handler)
-        if self.signing is None:
-            crc_extra = mavlink2.mavlink_map[msg_id].crc_extra
-            self._fast_wire[msg_id] = (layout, bytes((crc_extra,)), full_len, handler)
+    @property
+    def target(self) -> tuple[int, int] | None:
+        """The autopilot's ``(system, component)``: pinned, learned from its first
+        HEARTBEAT, or ``None`` yet. Set, it takes that sender for the autopilot."""
+        return self._acceptor.target
+
+    @target.setter
+    def target(self, target: tuple[int, int] | None) -> None:
+        self._acceptor.target = target
+
+    @property
+    def last_heartbeat(self) -> Any | None:
+        """The autopilot's last HEARTBEAT, ``None`` before the first."""
+        return self._acceptor.last_heartbeat
+
+    @property
+    def last_heartbeat_monotonic_s(self) -> float | None:
+        """``time.monotonic()`` when :attr:`last_heartbeat` arrived."""
+        return self._acceptor.last_heartbeat_monotonic_s
+
+    @property
+    def rx_perf_s(self) -> float:
+        """``time.perf_counter()`` when the chunk being handled arrived (read it in a handler)."""
+        return self._receiver.rx_perf_s
+
+    @property
+    def on_message(self) -> OnMessage | None:
+        """See the class; may be replaced at any time."""
+        return self._receiver.on_message
+
+    @on_message.setter
+    def on_message(self, on_message: OnMessage | None) -> None:
+        self._receiver.on_message = on_message
+
+    @property
+    def on_raw(self) -> OnRaw | None:
+        """See the class; may be replaced at any time (for both directions)."""
+        return self._on_raw
+
+    @on_raw.setter
+    def on_raw(self, on_raw: OnRaw | None) -> None:
+        self._on_raw = on_raw
+        self._receiver.on_raw = on_raw
+
+    @property
+    def on_anomaly(self) -> OnAnomaly | None:
+        """See the class; may be replaced at any time."""
+        return self._acceptor.on_anomaly
+
+    @on_anomaly.setter
+    def on_anomaly(self, on_anomaly: OnAnomaly | None) -> None:
+        self._acceptor.on_anomaly = on_anomaly
+
+    @property
+    def peer_silence_s(self) -> float:
+        """See the class; may be changed at any time."""
+        return self._acceptor.peer_silence_s
+
+    @peer_silence_s.setter
+    def peer_silence_s(self, peer_silence_s: float) -> None:
+        self._acceptor.peer_silence_s = peer_silence_s
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -282,9 +325,10 @@ class MavlinkLink(Receiver, Acceptor, Requester):
             s.link_id = self.signing.link_id
             s.sign_outgoing = True
             s.timestamp = max(s.timestamp, signing_timestamp_now())
-        await self.transport.open(self._on_bytes)
+        await self.transport.open(self._receiver.on_bytes)
         self._started = True
         self._closed = False
+        self._requester.opened()
         if self.heartbeat_hz > 0:
             task = asyncio.get_running_loop().create_task(
                 self._heartbeat_loop(1.0 / self.heartbeat_hz), name="mavlink-heartbeat"
@@ -309,17 +353,13 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         if self._closed:
             return
         self._closed = True
+        self._requester.closing()
         task, self._heartbeat_task = self._heartbeat_task, None
         if task is not None:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        err = LinkError(f"{self.transport.description}: link closed")
-        for fut in [*self._heartbeat_waiters, *self._ack_waiters.values()]:
-            if not fut.done():
-                fut.set_exception(err)
-        self._heartbeat_waiters.clear()
-        self._ack_waiters.clear()
+        self._requester.fail_waits(LinkError(f"{self.transport.description}: link closed"))
         await self.transport.close()
 
     async def __aenter__(self) -> MavlinkLink:
@@ -352,6 +392,84 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         if not task.cancelled() and task.exception() is not None:
             logger.error("heartbeat task died", exc_info=task.exception())
 
+    # ------------------------------------------------------------------ requests
+
+    async def wait_heartbeat(self, timeout_s: float, *, new: bool = False) -> Any:
+        """The autopilot's HEARTBEAT (the target is learned from it).
+
+        Parameters
+        ----------
+        timeout_s
+            How long to wait, s.
+        new
+            Wait for the next one even if one was already received.
+
+        Raises
+        ------
+        LinkError
+            If none arrives within ``timeout_s``.
+        """
+        return await self._requester.wait_heartbeat(timeout_s, new=new)
+
+    async def command_long(
+        self,
+        command: int,
+        *params: float,
+        timeout_s: float = 0.5,
+        retries: int = 3,
+        in_progress_timeout_s: float = 5.0,
+    ) -> int:
+        """Send COMMAND_LONG to the autopilot and return the MAV_RESULT of its COMMAND_ACK.
+
+        Sends up to ``1 + retries`` times, ``timeout_s`` apart, with the
+        ``confirmation`` field counting the retransmissions (0, 1, ...). After an
+        ack ``MAV_RESULT_IN_PROGRESS`` the command is not resent (that would restart
+        it): the final ack is awaited for up to ``in_progress_timeout_s``, renewed by
+        each further progress ack. Concurrent calls with the same command id are
+        serialised (acks carry only the id).
+
+        Raises
+        ------
+        LinkError
+            If the target is unknown, or no ack came after all attempts.
+        ValueError
+            For more than 7 parameters.
+        """
+        return await self._requester.command_long(
+            command,
+            *params,
+            timeout_s=timeout_s,
+            retries=retries,
+            in_progress_timeout_s=in_progress_timeout_s,
+        )
+
+    async def param_read(self, name: str, *, timeout_s: float = 0.5, retries: int = 3) -> float:
+        """Read one parameter (PARAM_REQUEST_READ by name, PARAM_VALUE back).
+
+        Raises
+        ------
+        LinkError
+            If the target is unknown or no PARAM_VALUE for ``name`` came after all attempts.
+        """
+        return await self._requester.param_read(name, timeout_s=timeout_s, retries=retries)
+
+    async def param_set(
+        self, name: str, value: float, *, timeout_s: float = 0.5, retries: int = 3
+    ) -> float:
+        """Set one parameter (PARAM_SET) and return the value the autopilot reports back."""
+        return await self._requester.param_set(name, value, timeout_s=timeout_s, retries=retries)
+
+    async def request_message_interval(
+        self, message_id: int, interval_us: float, *, timeout_s: float = 0.5, retries: int = 3
+    ) -> int:
+        """``MAV_CMD_SET_MESSAGE_INTERVAL``: stream ``message_id`` every ``interval_us``.
+
+        ``interval_us`` -1 stops the stream, 0 restores the default. Returns the MAV_RESULT.
+        """
+        return await self._requester.request_message_interval(
+            message_id, interval_us, timeout_s=timeout_s, retries=retries
+        )
+
     # ------------------------------------------------------------------- sending
 
     def send(self, msg: Any) -> None:
@@ -369,7 +487,7 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         message object and generic packer (bytes identical, tested); with
         signing it takes pymavlink's path, which signs.
         """
-        sysid, compid = self._require_target()
+        sysid, compid = self._acceptor.require_target()
         if self.signing is not None:
             self.send(
                 self.mav.set_actuator_control_target_encode(
@@ -390,7 +508,7 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         """SET_ATTITUDE_TARGET with body rates and thrust (``type_mask`` 128:
         ignore the attitude quaternion). Same fast path as
         :meth:`send_actuator_controls`."""
-        sysid, compid = self._require_target()
+        sysid, compid = self._acceptor.require_target()
         r0, r1, r2 = rates_frd_rad_s
         if self.signing is not None:
             self.send(
@@ -431,7 +549,7 @@ class MavlinkLink(Receiver, Acceptor, Requester):
     def _write_frame(self, buf: bytes) -> None:
         self.transport.write(buf)
         self.counters["sent"] += 1
-        on_raw = self.on_raw
+        on_raw = self._on_raw
         if on_raw is not None:
             on_raw(time.time(), bytes(buf), True)
 
@@ -449,7 +567,7 @@ class MavlinkLink(Receiver, Acceptor, Requester):
         """
         if len(key) != 32:
             raise ValueError("signing key must be exactly 32 bytes")
-        sysid, compid = self._require_target()
+        sysid, compid = self._acceptor.require_target()
         ts = signing_timestamp_now() if initial_timestamp is None else initial_timestamp
         msg = self.mav.setup_signing_encode(sysid, compid, list(key), ts)
         buf = msg.pack(self.mav)

@@ -31,22 +31,26 @@ and ``on_raw`` see both roads alike.
 from __future__ import annotations
 
 import logging
+import operator
 import struct
 import time
-from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.link import frames
-from companion.link.accept import FastHandler, OnRaw
+from companion.link.accept import Acceptor, FastHandler, OnMessage, OnRaw, callback_failed
 from companion.link.frames import (
     MAGIC_V1,
     MAGIC_V2,
     crc16,
     crc_ok,
+    fast_layout,
     next_start,
     read_header,
 )
+from companion.link.requests import Requester
 from companion.link.transport import Transport
 
 __all__ = ["MAX_CHECKS", "Receiver"]
@@ -76,31 +80,90 @@ start byte every few bytes) costs a bounded amount of work."""
 
 
 class Receiver:
-    """The receiving side of :class:`~companion.link.mavlink.MavlinkLink` (a base of it)."""
+    """Finds the frames in each chunk from the transport, has each decoded and
+    judged, and hands the autopilot's on: to a fast handler or ``on_message``,
+    and its replies to the requester.
 
-    transport: Transport
-    target: tuple[int, int] | None
-    counters: dict[str, int]
-    on_raw: OnRaw | None
-    rx_perf_s: float
-    _datagrams: bool
-    _pending: bytes
-    _checks_left: int
-    _parser: Any
-    _fast_wire: dict[int, tuple[struct.Struct, bytes, int, FastHandler]]
+    Parameters
+    ----------
+    transport
+        Whose chunks these are: ``datagrams`` (each chunk whole frames) or a byte
+        stream; ``rx_from_peer`` (the chunk came from the autopilot's confirmed
+        address); ``description`` (for the log).
+    counters
+        The link's counters.
+    parser
+        A pymavlink ``MAVLink`` without a key, used only to decode the frames
+        found (signatures are judged by the acceptor).
+    acceptor
+        Judges each decoded frame; its ``target`` is the only sender the short
+        road takes.
+    requester
+        Is handed the autopilot's HEARTBEAT, COMMAND_ACK and PARAM_VALUE.
+    short_road
+        Whether registered messages may be decoded straight from the chunk: not
+        with signing (signed frames are judged by the acceptor's checker).
+    on_message, on_raw
+        As :class:`~companion.link.mavlink.MavlinkLink`'s; either may be replaced
+        at any time.
+    """
 
-    if TYPE_CHECKING:  # defined in Acceptor
+    def __init__(
+        self,
+        transport: Transport,
+        counters: dict[str, int],
+        parser: Any,
+        acceptor: Acceptor,
+        requester: Requester,
+        *,
+        short_road: bool,
+        on_message: OnMessage | None,
+        on_raw: OnRaw | None,
+    ) -> None:
+        self._transport = transport
+        self._counters = counters
+        self._parser = parser
+        self._acceptor = acceptor
+        self._requester = requester
+        self._short_road = short_road
+        self.on_message = on_message
+        self.on_raw = on_raw
+        self.rx_perf_s = 0.0
+        """``time.perf_counter()`` when the chunk being handled arrived."""
+        self._datagrams = transport.datagrams
+        self._pending = b""  # a byte stream: the start of a frame, waiting for the rest
+        self._checks_left = MAX_CHECKS  # per chunk
+        # msg id -> (getter of the values from a pymavlink message, handler)
+        self._fast: dict[int, tuple[Callable[[Any], tuple[Any, ...]], FastHandler]] = {}
+        # msg id -> (layout, crc extra byte, full payload length, handler); the short road
+        self._fast_wire: dict[int, tuple[struct.Struct, bytes, int, FastHandler]] = {}
 
-        def _deliver(self, msg: Any, t_rx: float, on_raw: OnRaw | None) -> None: ...
-        def _callback_failed(self, what: str) -> None: ...
+    def add_fast_handler(self, msg_id: int, fields: Sequence[str], handler: FastHandler) -> None:
+        """See :meth:`companion.link.mavlink.MavlinkLink.add_fast_handler`."""
+        layout, full_len = fast_layout(msg_id, fields)
+        names = tuple(fields)
+        getter: Callable[[Any], tuple[Any, ...]]
+        if len(names) == 1:
+            name = names[0]
 
-    def _on_bytes(self, chunk: bytes) -> None:
+            def getter(msg: Any) -> tuple[Any, ...]:
+                return (getattr(msg, name),)
+
+        else:
+            getter = operator.attrgetter(*names)
+        self._fast[msg_id] = (getter, handler)
+        if self._short_road:
+            crc_extra = mavlink2.mavlink_map[msg_id].crc_extra
+            self._fast_wire[msg_id] = (layout, bytes((crc_extra,)), full_len, handler)
+
+    def on_bytes(self, chunk: bytes) -> None:
+        """One chunk from the transport (its ``on_bytes``)."""
         self.rx_perf_s = time.perf_counter()
         on_raw = self.on_raw
         # Stamped on arrival, recorded after the callback: the tlog entry of an IMU
         # sample is written after the command it caused has left.
         t_rx = time.time() if on_raw is not None else 0.0
-        counters = self.counters
+        counters = self._counters
         n = len(chunk)
         if n > _MAX_DATAGRAM_BYTES and self._datagrams:  # see _MAX_DATAGRAM_BYTES
             counters["oversize_dropped"] += 1
@@ -108,7 +171,7 @@ class Receiver:
                 logger.warning(
                     "%s: dropped a %d-byte datagram unread (over %d bytes; logged once, "
                     "counted in oversize_dropped)",
-                    self.transport.description,
+                    self._transport.description,
                     n,
                     _MAX_DATAGRAM_BYTES,
                 )
@@ -121,7 +184,7 @@ class Receiver:
             # address than the autopilot's confirmed one (udpin) matches no target
             # here: the long road judges it.
             i = 0
-            target = self.target if self.transport.rx_from_peer else None
+            target = self._acceptor.target if self._transport.rx_from_peer else None
             while i + 12 <= n:
                 magic, plen, incompat, _c, _s, sysid, compid, id_lo, id_hi = _HEADER.unpack_from(
                     chunk, i
@@ -150,7 +213,7 @@ class Receiver:
                 try:
                     handler(values)
                 except Exception:
-                    self._callback_failed("a fast handler")
+                    callback_failed(counters, "a fast handler")
                 if on_raw is not None:
                     on_raw(t_rx, chunk if end == n and i == 0 else chunk[i:end], False)
                 i = end
@@ -171,7 +234,7 @@ class Receiver:
         that many bytes, the good frame behind with them, and carried a frame cut
         at the end of one datagram into the next.
         """
-        counters = self.counters
+        counters = self._counters
         if self._pending:
             data = self._pending + data
             self._pending = b""
@@ -212,6 +275,33 @@ class Receiver:
             self._deliver(msg, t_rx, on_raw)
             i = end
             after_reject = False
+
+    def _deliver(self, msg: Any, t_rx: float, on_raw: OnRaw | None) -> None:
+        """Have one decoded frame judged and hand it on if it is the autopilot's."""
+        counters = self._counters
+        mtype = msg._type
+        counters["received"] += 1
+        if self._acceptor.accept(msg, mtype):
+            counters["accepted"] += 1
+            if mtype == "HEARTBEAT":
+                self._acceptor.on_heartbeat(msg)
+                self._requester.on_heartbeat(msg)
+            elif mtype == "COMMAND_ACK":
+                self._requester.on_command_ack(msg)
+            elif mtype == "PARAM_VALUE":
+                self._requester.on_param_value(msg)
+            fast = self._fast
+            registered = fast.get(msg.get_msgId()) if fast else None
+            try:
+                if registered is not None:
+                    getter, handler = registered
+                    handler(getter(msg))
+                elif self.on_message is not None:
+                    self.on_message(msg)
+            except Exception:
+                callback_failed(counters, "on_message")
+        if on_raw is not None:
+            on_raw(t_rx, bytes(msg._msgbuf), False)
 
     def _frame_at(self, data: bytes, j: int) -> tuple[int, str]:
         """Whether a frame starts at the start byte ``data[j]``.

@@ -1,15 +1,21 @@
-"""Requests to the autopilot and their replies: HEARTBEAT, COMMAND_LONG, parameters."""
+"""Requests to the autopilot and their replies: HEARTBEAT, COMMAND_LONG, parameters.
+
+:class:`Requester` keeps the waits (futures) and sends the requests through the
+link's encoder; the receiver (:mod:`companion.link.receive`) hands it the
+replies the acceptor (:mod:`companion.link.accept`) took as the autopilot's.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import logging
 import struct
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.errors import LinkError
+from companion.link.accept import Acceptor
 from companion.link.transport import Transport
 
 __all__ = ["Requester", "param_value"]
@@ -45,59 +51,84 @@ def param_value(msg: Any, *, bytewise: bool) -> float:
 
 
 class Requester:
-    """The request side of :class:`~companion.link.mavlink.MavlinkLink` (a base of it)."""
+    """Requests to the autopilot, and the waits for their replies.
 
-    transport: Transport
-    target: tuple[int, int] | None
-    mav: Any
-    source_system: int
-    source_component: int
-    last_heartbeat: Any | None
-    _started: bool
-    _closed: bool
-    _heartbeat_waiters: list[asyncio.Future[Any]]
-    _ack_waiters: dict[int, asyncio.Future[Any]]
-    _param_waiters: dict[str, list[asyncio.Future[Any]]]
-    _command_locks: dict[int, asyncio.Lock]
+    Parameters
+    ----------
+    transport
+        Named in the errors (its ``description``).
+    autopilot
+        Who the requests go to (``require_target``) and its last HEARTBEAT.
+    mav
+        The link's pymavlink encoder: requests are encoded and sent with it
+        (signed when the link signs).
+    source_system, source_component
+        Our ids: a COMMAND_ACK addressed to anyone else is not ours.
+    """
 
-    if TYPE_CHECKING:  # defined in MavlinkLink
+    def __init__(
+        self,
+        transport: Transport,
+        autopilot: Acceptor,
+        mav: Any,
+        *,
+        source_system: int,
+        source_component: int,
+    ) -> None:
+        self._transport = transport
+        self._autopilot = autopilot
+        self._mav = mav
+        self._source_system = source_system
+        self._source_component = source_component
+        self._started = False
+        self._closed = False
+        self._heartbeat_waiters: list[asyncio.Future[Any]] = []
+        self._ack_waiters: dict[int, asyncio.Future[Any]] = {}
+        self._param_waiters: dict[str, list[asyncio.Future[Any]]] = {}
+        self._command_locks: dict[int, asyncio.Lock] = {}
 
-        def send(self, msg: Any) -> None: ...
+    def opened(self) -> None:
+        """The link is up: waits may begin."""
+        self._started = True
+        self._closed = False
 
-    def _require_target(self) -> tuple[int, int]:
-        if self.target is None:
-            raise LinkError(
-                f"{self.transport.description}: autopilot not known yet (no HEARTBEAT from one)"
-            )
-        return self.target
+    def closing(self) -> None:
+        """The link is closing: a command whose ack is late fails as closed."""
+        self._closed = True
+
+    def fail_waits(self, err: LinkError) -> None:
+        """Fail the pending waits for a HEARTBEAT or a COMMAND_ACK with ``err``."""
+        for fut in [*self._heartbeat_waiters, *self._ack_waiters.values()]:
+            if not fut.done():
+                fut.set_exception(err)
+        self._heartbeat_waiters.clear()
+        self._ack_waiters.clear()
+
+    def on_heartbeat(self, hb: Any) -> None:
+        """The autopilot's HEARTBEAT (accepted): it ends the waits for one."""
+        waiters = self._heartbeat_waiters
+        if waiters:
+            self._heartbeat_waiters = []
+            for fut in waiters:
+                if not fut.done():
+                    fut.set_result(hb)
 
     async def wait_heartbeat(self, timeout_s: float, *, new: bool = False) -> Any:
-        """The autopilot's HEARTBEAT (the target is learned from it).
-
-        Parameters
-        ----------
-        timeout_s
-            How long to wait, s.
-        new
-            Wait for the next one even if one was already received.
-
-        Raises
-        ------
-        LinkError
-            If none arrives within ``timeout_s``.
-        """
-        if not new and self.last_heartbeat is not None:
-            return self.last_heartbeat
+        """See :meth:`companion.link.mavlink.MavlinkLink.wait_heartbeat`."""
+        last = self._autopilot.last_heartbeat
+        if not new and last is not None:
+            return last
         if self._closed or not self._started:
-            raise LinkError(f"{self.transport.description}: link not started")
+            raise LinkError(f"{self._transport.description}: link not started")
         fut: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
         self._heartbeat_waiters.append(fut)
         try:
             return await asyncio.wait_for(fut, timeout_s)
         except asyncio.TimeoutError:
-            who = f"autopilot {self.target}" if self.target else "any autopilot"
+            target = self._autopilot.target
+            who = f"autopilot {target}" if target else "any autopilot"
             raise LinkError(
-                f"{self.transport.description}: no HEARTBEAT from {who} within {timeout_s:g} s"
+                f"{self._transport.description}: no HEARTBEAT from {who} within {timeout_s:g} s"
             ) from None
         finally:
             if fut in self._heartbeat_waiters:
@@ -111,27 +142,12 @@ class Requester:
         retries: int = 3,
         in_progress_timeout_s: float = 5.0,
     ) -> int:
-        """Send COMMAND_LONG to the autopilot and return the MAV_RESULT of its COMMAND_ACK.
-
-        Sends up to ``1 + retries`` times, ``timeout_s`` apart, with the
-        ``confirmation`` field counting the retransmissions (0, 1, ...). After an
-        ack ``MAV_RESULT_IN_PROGRESS`` the command is not resent (that would restart
-        it): the final ack is awaited for up to ``in_progress_timeout_s``, renewed by
-        each further progress ack. Concurrent calls with the same command id are
-        serialised (acks carry only the id).
-
-        Raises
-        ------
-        LinkError
-            If the target is unknown, or no ack came after all attempts.
-        ValueError
-            For more than 7 parameters.
-        """
+        """See :meth:`companion.link.mavlink.MavlinkLink.command_long`."""
         if len(params) > 7:
             raise ValueError(f"COMMAND_LONG takes at most 7 parameters, got {len(params)}")
         if retries < 0 or not timeout_s > 0:
             raise ValueError("retries must be >= 0 and timeout_s > 0")
-        sysid, compid = self._require_target()
+        sysid, compid = self._autopilot.require_target()
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         loop = asyncio.get_running_loop()
         lock = self._command_locks.setdefault(command, asyncio.Lock())
@@ -141,29 +157,29 @@ class Requester:
             fut: asyncio.Future[Any] = loop.create_future()
             self._ack_waiters[command] = fut
             try:
-                self.send(self.mav.command_long_encode(sysid, compid, command, 0, *p))
+                self._mav.send(self._mav.command_long_encode(sysid, compid, command, 0, *p))
                 while True:
                     wait_s = in_progress_timeout_s if in_progress else timeout_s
                     try:
                         ack = await asyncio.wait_for(asyncio.shield(fut), wait_s)
                     except asyncio.TimeoutError:
                         if self._closed:
-                            raise LinkError(f"{self.transport.description}: link closed") from None
+                            raise LinkError(f"{self._transport.description}: link closed") from None
                         if in_progress:
                             raise LinkError(
-                                f"{self.transport.description}: command {command} in progress "
+                                f"{self._transport.description}: command {command} in progress "
                                 f"but no final COMMAND_ACK within {in_progress_timeout_s:g} s"
                             ) from None
                         attempt += 1
                         if attempt > retries:
                             raise LinkError(
-                                f"{self.transport.description}: no COMMAND_ACK for command "
+                                f"{self._transport.description}: no COMMAND_ACK for command "
                                 f"{command} from {sysid}/{compid} after {attempt} attempts "
                                 f"({timeout_s:g} s each)"
                             ) from None
                         logger.debug("command %d: no ack, retry %d", command, attempt)
-                        self.send(
-                            self.mav.command_long_encode(
+                        self._mav.send(
+                            self._mav.command_long_encode(
                                 sysid, compid, command, min(attempt, 255), *p
                             )
                         )
@@ -179,31 +195,26 @@ class Requester:
                 if self._ack_waiters.get(command) is fut:
                     del self._ack_waiters[command]
 
-    def _on_command_ack(self, ack: Any) -> None:
+    def on_command_ack(self, ack: Any) -> None:
+        """A COMMAND_ACK from the autopilot: it ends the wait for its command's ack."""
         fut = self._ack_waiters.get(ack.command)
         if fut is None or fut.done():
             return
         # Extension fields (0 when the autopilot leaves them out): skip acks for others.
-        if ack.target_system not in (0, self.source_system):
+        if ack.target_system not in (0, self._source_system):
             return
-        if ack.target_component not in (0, self.source_component):
+        if ack.target_component not in (0, self._source_component):
             return
         fut.set_result(ack)
 
     async def param_read(self, name: str, *, timeout_s: float = 0.5, retries: int = 3) -> float:
-        """Read one parameter (PARAM_REQUEST_READ by name, PARAM_VALUE back).
-
-        Raises
-        ------
-        LinkError
-            If the target is unknown or no PARAM_VALUE for ``name`` came after all attempts.
-        """
+        """See :meth:`companion.link.mavlink.MavlinkLink.param_read`."""
         return await self._param(name, None, timeout_s=timeout_s, retries=retries)
 
     async def param_set(
         self, name: str, value: float, *, timeout_s: float = 0.5, retries: int = 3
     ) -> float:
-        """Set one parameter (PARAM_SET) and return the value the autopilot reports back."""
+        """See :meth:`companion.link.mavlink.MavlinkLink.param_set`."""
         return await self._param(name, float(value), timeout_s=timeout_s, retries=retries)
 
     async def _param(
@@ -211,17 +222,19 @@ class Requester:
     ) -> float:
         if not 0 < len(name) <= 16:
             raise ValueError(f"parameter names are 1..16 characters, got {name!r}")
-        sysid, compid = self._require_target()
+        sysid, compid = self._autopilot.require_target()
         loop = asyncio.get_running_loop()
         for attempt in range(retries + 1):
             fut: asyncio.Future[Any] = loop.create_future()
             self._param_waiters.setdefault(name, []).append(fut)
             try:
                 if value is None:
-                    self.send(self.mav.param_request_read_encode(sysid, compid, name.encode(), -1))
+                    self._mav.send(
+                        self._mav.param_request_read_encode(sysid, compid, name.encode(), -1)
+                    )
                 else:
-                    self.send(
-                        self.mav.param_set_encode(
+                    self._mav.send(
+                        self._mav.param_set_encode(
                             sysid, compid, name.encode(), value, mavlink2.MAV_PARAM_TYPE_REAL32
                         )
                     )
@@ -234,17 +247,18 @@ class Requester:
                 if fut in waiters:
                     waiters.remove(fut)
         raise LinkError(
-            f"{self.transport.description}: no PARAM_VALUE for {name} from {sysid}/{compid} "
+            f"{self._transport.description}: no PARAM_VALUE for {name} from {sysid}/{compid} "
             f"after {retries + 1} attempts ({timeout_s:g} s each)"
         )
 
     def _params_bytewise(self) -> bool:
         """Whether the autopilot sends integer parameters bytewise: PX4 does (its
         int32's bits in the float field); ArduPilot casts them to float."""
-        hb = self.last_heartbeat
+        hb = self._autopilot.last_heartbeat
         return hb is not None and int(hb.autopilot) == _MAV_AUTOPILOT_PX4
 
-    def _on_param_value(self, msg: Any) -> None:
+    def on_param_value(self, msg: Any) -> None:
+        """A PARAM_VALUE from the autopilot: it ends the waits for that parameter."""
         name = msg.param_id
         if isinstance(name, bytes):
             name = name.decode(errors="replace")
@@ -256,10 +270,7 @@ class Requester:
     async def request_message_interval(
         self, message_id: int, interval_us: float, *, timeout_s: float = 0.5, retries: int = 3
     ) -> int:
-        """``MAV_CMD_SET_MESSAGE_INTERVAL``: stream ``message_id`` every ``interval_us``.
-
-        ``interval_us`` -1 stops the stream, 0 restores the default. Returns the MAV_RESULT.
-        """
+        """See :meth:`companion.link.mavlink.MavlinkLink.request_message_interval`."""
         return await self.command_long(
             mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
             float(message_id),

@@ -67,7 +67,7 @@ class Probe:
 
     def feed(self, *chunks: bytes) -> Probe:
         for c in chunks:
-            self.link._on_bytes(c)
+            self.link._receiver.on_bytes(c)
         return self
 
     def imu_values(self) -> list[tuple[Any, ...]]:

@@ -4,8 +4,8 @@ What a fuzz campaign against the running companion found: garbage in one
 datagram ate the start of the next, huge datagrams held the loop, and a
 heartbeat claiming the autopilot's identity from another address was taken
 for the autopilot's. UDP cases run over real sockets on 127.0.0.1; unit
-cases feed ``MavlinkLink._on_bytes`` directly, as a transport does, on a
-transport that is never opened.
+cases feed the link's receiver (``link._receiver.on_bytes``) directly, as a
+transport does, on a transport that is never opened.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class Probe:
 
     def feed(self, *chunks: bytes) -> Probe:
         for chunk in chunks:
-            self.link._on_bytes(chunk)
+            self.link._receiver.on_bytes(chunk)
         return self
 
     def modes(self) -> list[int]:
@@ -90,7 +90,7 @@ def _count_parser_calls(link: MavlinkLink) -> list[int]:
     """Count every call into the link's pymavlink parser (internal calls included:
     pymavlink calls ``self.parse_char`` and ``self.decode``, found on the instance)."""
     calls = [0]
-    parser = link._parser
+    parser = link._receiver._parser
     for name in ("parse_buffer", "parse_char", "decode"):
         real = getattr(parser, name)
 
@@ -258,7 +258,7 @@ def test_no_garbage_costs_a_stream_the_frames_behind_it(garbage: bytes, cuts: li
     p = Probe(SerialTransport("/dev/ttyNOPE0", 57600))
     p.feed(*(stream[a:b] for a, b in itertools.pairwise(edges)))
     assert p.modes() == list(range(1, 11))
-    assert len(p.link._pending) <= 280  # at most one frame waits for its rest
+    assert len(p.link._receiver._pending) <= 280  # at most one frame waits for its rest
 
 
 @settings(max_examples=300, deadline=None)
