@@ -1,6 +1,6 @@
 """``companion replay LOG`` through the command line, on a log a real flight wrote.
 
-The contract (companion/cli.py ``replay_cmd``, companion/replay.py): re-run a
+The contract (companion/cli/_replay.py ``replay_cmd``, companion/replay.py): re-run a
 controller on the ``control.mcap`` of a flight; with the recorded controller the
 outputs match the log to rounding, with another one they show what it would
 have commanded; it prints the engaged sample count, the largest differences

@@ -300,11 +300,13 @@ def simulate(
         fail_config(exc)
     if link is not None:
         sc = sc.model_copy(update={"link": link})
-    keep_earlier(f"--out {out_dir}", out_dir, REPORT_FILES)
+    keep_earlier(f"--out {out_dir}", out_dir, (*REPORT_FILES, "control.mcap"))
+    out_dir.mkdir(parents=True, exist_ok=True)
     with _percent_bar(f"{sc.name} on {profile.name}", progress) as tick:
         record = simulate_flight(
-            profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick
-        )
+            profile, cfg, sc, controller_profile=ctrl_prof, seed=seed, progress=tick,
+            control_log=out_dir / "control.mcap",
+        )  # fmt: skip
     metrics = write_report(
         record,
         out_dir,
@@ -316,7 +318,8 @@ def simulate(
     click.echo(
         f"{'CRASHED' if metrics['crashed'] else 'flew'} {metrics['sim_time_s']:.1f} s in "
         f"{metrics['wall_time_s']:.1f} s; MAE roll {mae['roll']} pitch {mae['pitch']} "
-        f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}"
+        f"yaw {mae['yaw']} deg/s; report: {out_dir / 'report.md'}; control log: "
+        f"{out_dir / 'control.mcap'}"
     )
     if oracle:
         _add_oracle(metrics, out_dir, profile, sc, seed)

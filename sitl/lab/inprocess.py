@@ -47,9 +47,13 @@ class LabShell:
         """The last body rates and collective sent."""
         self.events: list[tuple[str, str]] = []
         self.failsafes: list[tuple[str, str]] = []
+        self.on_event: Callable[[str, str], None] | None = None
+        """Also called with each event (a control log's ``/events``)."""
 
     def event(self, kind: str, detail: str) -> None:
         self.events.append((kind, detail))
+        if self.on_event is not None:
+            self.on_event(kind, detail)
 
     def send_actuator_controls(self, time_usec: int, controls: tuple[float, ...]) -> None:
         self.controls = controls

@@ -27,6 +27,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -34,6 +35,8 @@ import numpy as np
 from companion.config import MfcConfig, PidConfig
 from companion.failsafe import FailsafeConfig
 from companion.profile import VehicleProfile
+from companion.records import ControlLog
+from companion.records import columns as log_columns
 from companion.run_options import RunOptions
 from companion.step import LANDED_STATE_RATE_HZ
 from sitl.frames import quat_to_euler_rad
@@ -97,6 +100,7 @@ def simulate_flight(
     progress: Callable[[float], None] | None = None,
     law: Any | None = None,
     failsafe: FailsafeConfig | None = None,
+    control_log: Path | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -127,6 +131,11 @@ def simulate_flight(
         The per-sample failsafes' thresholds (``companion run``'s defaults). A
         failsafe stops the commands, as in the product; the plant's autopilot
         holds the last one (``meta["failsafes"]`` says which fired).
+    control_log
+        Write the core's control log here, as ``companion run --log-dir`` writes
+        ``control.mcap`` (same topics, fields and events; the sample times are
+        the plant's, ``wall_s`` the lab's clock), so a simulated flight opens in
+        Foxglove and PlotJuggler as a real one does.
     """
     rngs = scenario_streams(scenario.seed if seed is None else seed)
     dt = scenario.physics_dt_s
@@ -147,7 +156,19 @@ def simulate_flight(
     )
     shell = LabShell()
     now = [0.0]  # the lab's clock: the plant's time
+    log = None
+    if control_log is not None:
+        log = ControlLog(
+            control_log,
+            log_columns(opts.profile.n_motors),
+            meta={"profile": plant.name, "controller": controller_cfg.kind, "in_process": "1"},
+        )
+        shell.on_event = lambda kind, detail: log.event(
+            {"t_s": now[0], "wall": now[0], "kind": kind, "detail": detail}
+        )
     core = engaged_core(opts, shell, lambda: now[0], controller=law)
+    if log is not None:
+        core.log_append = log.append
     controller, step, pilot_in = core.controller, core.step, core.pilot
     see_plant = getattr(controller, "see_plant", None)
     autopilot_mix = ControlAllocator.from_profile(plant).mix
@@ -291,6 +312,8 @@ def simulate_flight(
         if progress is not None and k % report_every == 0:
             progress(k / n_steps)
     wall = time.perf_counter() - wall0
+    if log is not None:
+        log.close()
     if progress is not None:
         progress(1.0)
     columns = {k: np.asarray(v) for k, v in cols.items()}
