@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any
 
 from companion.autopilot_state import AutopilotState
 from companion.config import build_controller, build_stick_map
@@ -39,6 +39,7 @@ from companion.link.timesync import LinkClock
 from companion.modes import FLIGHT_MODES, ModeLaws
 from companion.pilot import EngageSwitch, PilotInput
 from companion.run_options import RunOptions
+from companion.shell import Shell
 from companion.stacks import FlightStack
 from companion.step import NO_RATES, SampleStep
 
@@ -62,40 +63,6 @@ _LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
 _POSITION_TIMEOUT_S = 1.0
 """A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
 ArduPilot only while their estimate is valid) is younger than this."""
-
-
-class Shell(Protocol):
-    """What the core asks of whatever runs it."""
-
-    @property
-    def stopping(self) -> bool:
-        """The run is ending: nothing engages, no second failsafe."""
-
-    def event(self, kind: str, detail: str) -> None:
-        """Record an event (never raises)."""
-
-    def send_actuator_controls(self, time_usec: int, controls: tuple[float, ...]) -> None: ...
-
-    def send_body_rates(self, time_boot_ms: int, rates: Sequence[float], thrust: float) -> None: ...
-
-    def engage(self) -> None:
-        """Start engaging (the pilot's switch went high)."""
-
-    def cancel_engaging(self) -> bool:
-        """Abandon an engagement under way; whether there was one."""
-
-    def hand_back(self, reason: str, *, was_commanding: bool) -> None:
-        """Hand back to a safe mode (the pilot's switch went low)."""
-
-    def after_failsafe(self, kind: str, detail: str, *, was_commanding: bool) -> None:
-        """Hand back after a failsafe, then end the run or wait, as configured;
-        calls :meth:`FlightCore.failsafe_over` when done."""
-
-    def rerequest_streams(self, why: str) -> None:
-        """Ask for the streams again (the autopilot rebooted)."""
-
-    def stop(self, *, hand_back_owed: bool) -> None:
-        """End the run (its duration is over)."""
 
 
 class FlightCore:
@@ -644,38 +611,17 @@ class FlightCore:
         """This sample's rate reference and collective in the flight mode (``ref`` and
         ``thrust``: the pilot's). Without fresh estimates: no rates and the pilot's
         collective (the rate loop holds the attitude it has), and, engaged, a
-        failsafe."""
+        failsafe first."""
         modes = self.modes
-        modes.age_estimates(dt)
-        # The loops learn from the gyro as the rate law does: not beyond its range.
-        lim = self.step.gyro_limit_rad_s
-        g0, g1, g2 = gyro
-        if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
-            nan = float("nan")
-            gyro = (nan, nan, nan)
-        stale = modes.stale()
+        stale = modes.age_estimates(dt)
         if stale is not None:
             if self.engaged or self.commanding:
                 self.failsafe(*stale)
             self._reset_modes(thrust)
             return (0.0, 0.0, 0.0), thrust
-        q = modes.att_q
-        assert q is not None
-        if not modes.built:
-            return (0.0, 0.0, 0.0), thrust  # the stack's limits not read yet: nothing engages
-        controller = self.controller
-        on_ground = bool(controller.on_ground)
-        if controller.held_on_ground:
-            # On its legs the rate law starts afresh (MfcController.on_ground: the MFC
-            # law does it itself; a PID restarts here): its F from the air (a damaged
-            # motor's torque) would hold that torque on the ground, saturate the
-            # mixer and cut the collective, and a vehicle that touched down after a
-            # hop never lifted off. Only while the legs visibly hold it
-            # (MfcController.held_on_ground): the landed state comes late.
-            controller.reset()
-        return modes.reference(
-            dt, q, gyro, ref, thrust, self.pilot.deflection, on_ground=on_ground,
-            mission_flown=self.engaged,
+        return modes.sample_reference(
+            dt, gyro, ref, thrust, self.pilot.deflection, self.controller,
+            gyro_limit_rad_s=self.step.gyro_limit_rad_s, mission_flown=self.engaged,
         )  # fmt: skip
 
     def _send_output(

@@ -50,6 +50,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+from companion.control import RateController
 from companion.control.angle_mode import AngleMode
 from companion.control.hold_modes import HoldMode
 from companion.control.stick_limits import StickLimits
@@ -245,12 +246,13 @@ class ModeLaws:
         """Whether there is a position estimate that came within ``stale_position_s``."""
         return self.pos is not None and self._pos_age_s <= self._stale_position_s
 
-    def age_estimates(self, dt: float) -> None:
+    def age_estimates(self, dt: float) -> Verdict | None:
         """Each sample ages the estimates by its dt, at most two typical periods of
         the IMU stream as it really comes (module docstring). The typical period
         follows the stream slowly (2 % a sample) and a gap moves it at most by
         its own 4 periods' worth: an autopilot that sends 50 Hz when asked 400 Hz
-        is learnt within a second or two, one gap of a second is not."""
+        is learnt within a second or two, one gap of a second is not. Returns the
+        failsafe their ages call for (:meth:`stale`), or None."""
         typ = self._dt_typical
         if typ <= 0.0:
             hz = self.imu_rate_hz
@@ -261,6 +263,7 @@ class ModeLaws:
         step = dt if dt <= 2.0 * typ else 2.0 * typ
         self._att_age_s += step
         self._pos_age_s += step
+        return self.stale()
 
     def stale(self) -> Verdict | None:
         """The failsafe an estimate's age calls for, or None."""
@@ -308,6 +311,43 @@ class ModeLaws:
         return None
 
     # ------------------------------------------------------------------ the laws
+
+    def sample_reference(
+        self,
+        dt: float,
+        gyro: Vec3,
+        ref: Vec3,
+        thrust: float,
+        deflection: Vec3,
+        controller: RateController,
+        *,
+        gyro_limit_rad_s: float,
+        mission_flown: bool,
+    ) -> tuple[Vec3, float]:
+        """This sample's rate reference and collective, on fresh estimates: the
+        loops learn from the gyro as the rate law does (NaN beyond its range), and
+        while the vehicle's legs visibly hold it the rate law starts afresh."""
+        q = self.att_q
+        assert q is not None
+        if not self.built:
+            return _ZERO3, thrust  # the stack's limits not read yet: nothing engages
+        lim = gyro_limit_rad_s
+        g0, g1, g2 = gyro
+        if not (-lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim):
+            gyro = (_NAN, _NAN, _NAN)
+        on_ground = bool(controller.on_ground)
+        if controller.held_on_ground:
+            # On its legs the rate law starts afresh (MfcController.on_ground: the MFC
+            # law does it itself; a PID restarts here): its F from the air (a damaged
+            # motor's torque) would hold that torque on the ground, saturate the
+            # mixer and cut the collective, and a vehicle that touched down after a
+            # hop never lifted off. Only while the legs visibly hold it
+            # (MfcController.held_on_ground): the landed state comes late.
+            controller.reset()
+        return self.reference(
+            dt, q, gyro, ref, thrust, deflection, on_ground=on_ground,
+            mission_flown=mission_flown,
+        )  # fmt: skip
 
     def reference(
         self,
