@@ -4,6 +4,7 @@ The file (YAML)::
 
     speed_m_s: 2.0                 # default speed along a leg, m/s
     accel_m_s2: 2.5                # speeding up and slowing down on a leg, m/s^2
+    jerk_m_s3: 4.0                 # how fast that acceleration comes and goes, m/s^3
     waypoints:                     # from where the mission starts: north, east, up (m)
       - {north_m: 0, east_m: 0, up_m: 5, hold_s: 2}
       - {north_m: 10, east_m: 0, up_m: 5}
@@ -14,12 +15,16 @@ position estimate as it engages), so a file flies the same anywhere. The first
 leg goes from there to the first waypoint.
 
 The path (:class:`MissionPath`) moves the position setpoint along each leg in a
-straight line, the velocity and acceleration as feedforward: from rest at
-``accel_m_s2`` up to the leg's speed, on at that speed, and down to rest at the
-waypoint (a leg too short to reach its speed peaks at
-:math:`\sqrt{a L}`), as the autopilots' own missions slow for a corner (PX4's
-``MPC_ACC_HOR``, 3 m/s^2; ArduCopter's ``WPNAV_ACCEL``, 2.5 m/s^2, by default). A
-leg of length :math:`L` at speed :math:`v` takes :math:`L/v + v/a`. The setpoint
+straight line, the velocity and acceleration as feedforward: from rest up to the
+leg's speed, on at that speed, and down to rest at the waypoint, as the
+autopilots' own missions slow for a corner (PX4's ``MPC_ACC_HOR``, 3 m/s^2;
+ArduCopter's ``WPNAV_ACCEL``, 2.5 m/s^2, by default). The acceleration is
+limited to ``accel_m_s2`` and comes and goes at ``jerk_m_s3`` (an S-curve, as
+both autopilots' missions shape theirs: PX4's ``MPC_JERK_AUTO`` is 4 m/s^3 by
+default): a mission starts without a jolt. A leg too short to reach its speed
+peaks lower; ``jerk_m_s3: null`` steps the acceleration (a leg of length
+:math:`L` at speed :math:`v` then takes :math:`L/v + v/a`; with the jerk
+:math:`j`, :math:`a/j` longer). The setpoint
 holds at a waypoint for its ``hold_s``; a climb and a descent are no faster than
 the position mode's stick limits (the autopilot's: PX4 3 and 1.5 m/s by default,
 ArduCopter 2.5 m/s), the leg slower if need be. After the last waypoint the
@@ -56,6 +61,7 @@ leave the vehicle behind its setpoint."""
 
 MAX_ACCEL_M_S2 = 10.0
 """A leg's acceleration at most about 45 deg of tilt."""
+MAX_JERK_M_S3 = 100.0
 
 Vec3 = tuple[float, float, float]
 
@@ -82,6 +88,9 @@ class Mission(StrictModel):
     )
     accel_m_s2: Annotated[float, Field(gt=0.0, le=MAX_ACCEL_M_S2)] = Field(
         2.5, description="speeding up from and slowing down to rest at each waypoint, m/s^2"
+    )
+    jerk_m_s3: Annotated[float, Field(ge=0.1, le=MAX_JERK_M_S3)] | None = Field(
+        4.0, description="how fast the acceleration comes and goes, m/s^3; null: at once"
     )
     waypoints: Annotated[list[Waypoint], Field(min_length=1, max_length=MAX_WAYPOINTS)]
 
@@ -116,7 +125,7 @@ class MissionPath:
         points = [o] + [
             (o[0] + w.north_m, o[1] + w.east_m, o[2] - w.up_m) for w in mission.waypoints
         ]
-        accel = mission.accel_m_s2
+        accel, jerk = mission.accel_m_s2, mission.jerk_m_s3
         self._legs: list[_Leg] = []
         """In time order; a hold at a waypoint is a leg of length 0."""
         self.arrivals_s: list[float] = []
@@ -132,12 +141,12 @@ class MissionPath:
                 vertical = up / climb.up_max_m_s if up > 0.0 else -up / climb.down_max_m_s
                 speed = min(speed, length / vertical) if vertical > 0.0 else speed
                 unit = (d[0] / length, d[1] / length, d[2] / length)
-                leg = _Leg(t, a, unit, length, speed, accel)
+                leg = _Leg(t, a, unit, length, speed, accel, jerk)
                 self._legs.append(leg)
                 t += leg.duration_s
             self.arrivals_s.append(t)
             if w.hold_s > 0.0:
-                self._legs.append(_Leg(t, b, (0.0, 0.0, 0.0), 0.0, 1.0, accel, w.hold_s))
+                self._legs.append(_Leg(t, b, (0.0, 0.0, 0.0), 0.0, 1.0, accel, None, w.hold_s))
                 t += w.hold_s
         self._starts = [leg.t_start_s for leg in self._legs]
         self._end = points[-1]
@@ -170,20 +179,27 @@ class MissionPath:
 
 class _Leg:
     r"""A straight leg from rest to rest: from ``start`` along ``unit`` for
-    ``length_m``, speeding up at ``accel_m_s2`` to ``speed_m_s`` (to
-    :math:`\sqrt{a L}` if the leg is too short for it) and slowing down the same
-    way. A hold is a leg of length 0 lasting ``hold_s``."""
+    ``length_m``, speeding up to ``speed_m_s`` with the acceleration at most
+    ``accel_m_s2``, reached and left at ``jerk_m_s3`` (None: at once), and
+    slowing down the same way (module docstring). The speed-up is symmetric about
+    half the speed, so it covers :math:`v T / 2` in its time :math:`T`; a leg too
+    short for both at ``speed_m_s`` peaks at the speed whose two ramps fill it. A
+    hold is a leg of length 0 lasting ``hold_s``."""
 
     def __init__(
         self, t_start_s: float, start: Vec3, unit: Vec3, length_m: float, speed_m_s: float,
-        accel_m_s2: float, hold_s: float = 0.0,
+        accel_m_s2: float, jerk_m_s3: float | None, hold_s: float = 0.0,
     ) -> None:  # fmt: skip
         self.t_start_s = t_start_s
-        self.start, self.unit, self.length_m, self.accel = start, unit, length_m, accel_m_s2
-        self.peak_m_s = min(speed_m_s, math.sqrt(accel_m_s2 * length_m))
-        self.ramp_s = self.peak_m_s / accel_m_s2
-        ramp_m = 0.5 * self.peak_m_s * self.ramp_s
-        cruise_s = (length_m - 2.0 * ramp_m) / self.peak_m_s if length_m > 0.0 else 0.0
+        self.start, self.unit, self.length_m = start, unit, length_m
+        a, j = accel_m_s2, (math.inf if jerk_m_s3 is None else jerk_m_s3)
+        v = speed_m_s
+        if v * _ramp_s(v, a, j) > length_m:  # both ramps at this speed do not fit
+            v = _peak_for(length_m, a, j)
+        self.peak_m_s = v
+        self.ramp = _Ramp(v, a, j)
+        self.ramp_s = self.ramp.duration_s
+        cruise_s = (length_m - v * self.ramp_s) / v if length_m > 0.0 else 0.0
         self.duration_s = hold_s if length_m == 0.0 else 2.0 * self.ramp_s + max(0.0, cruise_s)
 
     def at(self, t_s: float) -> tuple[Vec3, Vec3, Vec3]:
@@ -191,12 +207,13 @@ class _Leg:
         if self.length_m == 0.0:
             return self.start, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
         tau = min(max(0.0, t_s - self.t_start_s), self.duration_s)
-        a, v = self.accel, self.peak_m_s
+        v = self.peak_m_s
         left = self.duration_s - tau
         if tau < self.ramp_s:
-            s, sd, sdd = 0.5 * a * tau * tau, a * tau, a
+            s, sd, sdd = self.ramp.at(tau)
         elif left < self.ramp_s:
-            s, sd, sdd = self.length_m - 0.5 * a * left * left, a * left, -a
+            s, sd, sdd = self.ramp.at(left)
+            s, sdd = self.length_m - s, -sdd
         else:
             s, sd, sdd = 0.5 * v * self.ramp_s + v * (tau - self.ramp_s), v, 0.0
         u, o = self.unit, self.start
@@ -204,4 +221,62 @@ class _Leg:
             (o[0] + s * u[0], o[1] + s * u[1], o[2] + s * u[2]),
             (sd * u[0], sd * u[1], sd * u[2]),
             (sdd * u[0], sdd * u[1], sdd * u[2]),
+        )
+
+
+def _ramp_s(v: float, a: float, j: float) -> float:
+    r"""How long speeding up from rest to ``v`` takes, acceleration at most ``a``,
+    jerk at most ``j``: :math:`v/a + a/j`, or :math:`2\sqrt{v/j}` when ``a`` is
+    not reached."""
+    if v >= a * a / j:
+        return v / a + a / j
+    return 2.0 * math.sqrt(v / j)
+
+
+def _peak_for(length_m: float, a: float, j: float) -> float:
+    r"""The speed whose speed-up and slow-down together cover ``length_m``
+    (:math:`v\,T(v) = L`)."""
+    if math.isinf(j):
+        return math.sqrt(a * length_m)
+    v = 0.5 * a * (math.sqrt(a * a / (j * j) + 4.0 * length_m / a) - a / j)
+    if v >= a * a / j:
+        return v
+    return float((0.5 * length_m * math.sqrt(j)) ** (2.0 / 3.0))  # a never reached
+
+
+class _Ramp:
+    """Speeding up from rest to ``v``: jerk ``j`` until the acceleration reaches its
+    peak (``a``, or less when ``v`` is small), that acceleration, then jerk ``-j``
+    down to none at ``v``; :meth:`at` gives distance, speed and acceleration."""
+
+    def __init__(self, v: float, a: float, j: float) -> None:
+        if math.isinf(j):
+            peak, t_j = a, 0.0
+        elif v >= a * a / j:
+            peak, t_j = a, a / j
+        else:
+            peak = math.sqrt(v * j)
+            t_j = peak / j
+        self.peak, self.t_j = peak, t_j
+        self.jerk = 0.0 if t_j == 0.0 else peak / t_j
+        self.t_a = v / peak - t_j
+        self.duration_s = 2.0 * t_j + self.t_a
+        j_ = self.jerk
+        self.v1 = 0.5 * j_ * t_j * t_j
+        self.s1 = j_ * t_j**3 / 6.0
+        self.v2 = self.v1 + peak * self.t_a
+        self.s2 = self.s1 + self.v1 * self.t_a + 0.5 * peak * self.t_a * self.t_a
+
+    def at(self, t: float) -> tuple[float, float, float]:
+        j, peak, t_j = self.jerk, self.peak, self.t_j
+        if t < t_j:
+            return j * t**3 / 6.0, 0.5 * j * t * t, j * t
+        u = t - t_j
+        if u < self.t_a:
+            return self.s1 + self.v1 * u + 0.5 * peak * u * u, self.v1 + peak * u, peak
+        u -= self.t_a
+        return (
+            self.s2 + self.v2 * u + 0.5 * peak * u * u - j * u**3 / 6.0,
+            self.v2 + peak * u - 0.5 * j * u * u,
+            peak - j * u,
         )

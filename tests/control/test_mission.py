@@ -16,10 +16,13 @@ CLIMB = ClimbLimits(0.1, 0.6, 3.0, 1.5, 4.0, 3.0)
 """PX4's defaults: a climb at most 3 m/s, a descent 1.5 m/s."""
 
 
-def square(accel_m_s2: float = 2.0, **first: float) -> Mission:
+def square(accel_m_s2: float = 2.0, jerk_m_s3: float | None = None, **first: float) -> Mission:
+    """The hand-computed answers below are for the acceleration stepped (no jerk
+    limit); the S-curve has its own tests."""
     return Mission(
         speed_m_s=2.0,
         accel_m_s2=accel_m_s2,
+        jerk_m_s3=jerk_m_s3,
         waypoints=[
             Waypoint(north_m=0, east_m=0, up_m=5, **first),
             Waypoint(north_m=10, east_m=0, up_m=5),
@@ -74,6 +77,44 @@ def test_the_setpoint_is_continuous_and_never_faster_than_the_leg(accel_m_s2: fl
     for t in (0.0, *path.arrivals_s):
         sp = path.at(t)
         assert np.linalg.norm((*sp.horizontal.velocity_ne_m_s, sp.vertical.climb_m_s)) < 1e-9
+
+
+@pytest.mark.parametrize("jerk_m_s3", [0.5, 4.0, 50.0])
+@pytest.mark.parametrize("length_m", [0.05, 1.0, 10.0, 60.0])
+def test_the_s_curve_keeps_its_limits_and_starts_without_a_jolt(
+    jerk_m_s3: float, length_m: float
+) -> None:
+    mission = Mission(
+        speed_m_s=5.0, accel_m_s2=2.5, jerk_m_s3=jerk_m_s3,
+        waypoints=[Waypoint(north_m=length_m, east_m=0, up_m=0)],
+    )  # fmt: skip
+    path = MissionPath(mission, (0.0, 0.0, 0.0), CLIMB)
+    ts = np.linspace(0.0, path.duration_s, 20001)
+    dt = float(ts[1] - ts[0])
+    x = np.array([path.at(t).horizontal.position_ne_m[0] for t in ts])
+    v = np.array([path.at(t).horizontal.velocity_ne_m_s[0] for t in ts])
+    a = np.array([path.at(t).horizontal.accel_ne_m_s2[0] for t in ts])
+    assert x[0] == 0.0 and x[-1] == pytest.approx(length_m)
+    assert v[0] == a[0] == 0.0 and abs(v[-1]) < 1e-9 and abs(a[-1]) < 1e-9
+    assert np.max(v) <= 5.0 + 1e-9 and np.max(np.abs(a)) <= 2.5 + 1e-9
+    assert np.max(np.abs(np.diff(a))) / dt <= jerk_m_s3 * (1.0 + 1e-6)  # no step in it
+    # Each is the next one's derivative (trapezoidal rule over the grid; where the
+    # acceleration has a corner the rule is off by up to j dt / 4).
+    np.testing.assert_allclose(np.diff(x) / dt, 0.5 * (v[1:] + v[:-1]), atol=1e-6 * length_m)
+    np.testing.assert_allclose(np.diff(v) / dt, 0.5 * (a[1:] + a[:-1]), atol=0.25 * jerk_m_s3 * dt)
+
+
+def test_the_s_curve_takes_a_over_j_longer_per_leg() -> None:
+    """A 10 m leg at 2 m/s, 2 m/s^2, 4 m/s^3: 10/2 + 2/2 + 2/4 s."""
+    mission = Mission(
+        speed_m_s=2.0, accel_m_s2=2.0, jerk_m_s3=4.0,
+        waypoints=[Waypoint(north_m=10, east_m=0, up_m=0)],
+    )  # fmt: skip
+    path = MissionPath(mission, (0.0, 0.0, 0.0), CLIMB)
+    assert path.duration_s == pytest.approx(6.5)
+    assert path.at(0.25).horizontal.accel_ne_m_s2[0] == pytest.approx(1.0)  # 4 m/s^3 x 0.25 s
+    assert path.at(3.25).horizontal.velocity_ne_m_s[0] == pytest.approx(2.0)
+    assert Mission(waypoints=[Waypoint(north_m=1, east_m=0, up_m=0)]).jerk_m_s3 == 4.0
 
 
 def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:
