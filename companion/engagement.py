@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from companion.core import FlightCore
@@ -78,6 +78,13 @@ class Engagement:
         Whether the run is ending.
     tasks
         The run's tasks (an engagement is one, cancelled at the run's end).
+    clock
+        The clock, s, that the engagement's own waits, retries, deadlines and
+        the safe-mode watch are timed on (monotonic).
+    sleep
+        How it waits that long (``sleep(seconds)``). A test gives both, to time
+        the engagement deterministically; the readings judged against the
+        core's arrival stamps come from the core's own clock.
     """
 
     def __init__(
@@ -90,6 +97,8 @@ class Engagement:
         end_run: Callable[[int], None],
         stopping: Callable[[], bool],
         tasks: set[asyncio.Task[Any]],
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], Awaitable[None]] = asyncio.sleep,
     ) -> None:
         self.core = core
         self.opts = opts
@@ -100,6 +109,8 @@ class Engagement:
         self.end_run = end_run
         self.stopping = stopping
         self.tasks = tasks
+        self.clock = clock
+        self.sleep = sleep
         self.safe_modes: tuple[SafeMode, ...] = ()
         self._task: asyncio.Task[None] | None = None
         self.hand_back_accepted = False
@@ -128,15 +139,15 @@ class Engagement:
         stack = self.core.stack
         # The estimates a flight mode needs may still be on their way (asked for
         # at start-up, an --engage auto run engages at once): wait for them a while.
-        why = self.core.not_ready_to_engage(time.perf_counter())
+        why = self.core.not_ready_to_engage(self.core.clock())
         # An --engage auto run starts with the autopilot, maybe before its estimator
         # or the pilot's input is up: it waits as long as it waits to arm.
         wait_s = self.opts.arm_timeout_s if self.opts.engage == "auto" else _ESTIMATES_WAIT_S
-        estimates_by = time.monotonic() + max(wait_s, _ESTIMATES_WAIT_S)
-        while why is not None and time.monotonic() < estimates_by and not self.stopping():
+        estimates_by = self.clock() + max(wait_s, _ESTIMATES_WAIT_S)
+        while why is not None and self.clock() < estimates_by and not self.stopping():
             # (The pilot's switch going low meanwhile cancels this task: _on_rc.)
-            await asyncio.sleep(0.02)
-            why = self.core.not_ready_to_engage(time.perf_counter())
+            await self.sleep(0.02)
+            why = self.core.not_ready_to_engage(self.core.clock())
         if why is not None:
             self.event("engage_failed", why)
             if self.opts.engage == "auto":
@@ -144,8 +155,8 @@ class Engagement:
             return
         self.core.begin_commanding()
         auto = self.opts.engage == "auto"
-        deadline = time.monotonic() + self.opts.arm_timeout_s if auto else None
-        await asyncio.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
+        deadline = self.clock() + self.opts.arm_timeout_s if auto else None
+        await self.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
         try:
             p2, p3 = stack.engage_mode
             if not await self._until_accepted(
@@ -192,7 +203,7 @@ class Engagement:
         autopilot's reason: what it said since that try began in a STATUSTEXT
         beginning as one of ``refusals`` (:func:`companion.stacks.said_why`),
         never an unrelated text. Tried again ``_RETRY_S`` later while that is
-        before ``deadline`` (monotonic), or, with no deadline, up to
+        before ``deadline`` (the engagement's clock), or, with no deadline, up to
         ``_PILOT_TRIES`` times; ``when_ready``: each try waits first, until the
         deadline, for the stack's pre-arm checks to pass where it reports them.
 
@@ -203,7 +214,7 @@ class Engagement:
         """
         assert self.core.stack is not None
         name = self.core.stack.name
-        t0 = time.monotonic()
+        t0 = self.clock()
         attempt = 0
         while True:
             if when_ready and deadline is not None:
@@ -215,42 +226,42 @@ class Engagement:
             res = await self.link.command_long(command, *params, timeout_s=0.5)
             if res == _RESULT_ACCEPTED:
                 return True
-            await asyncio.sleep(_REASON_WAIT_S)  # a STATUSTEXT with the reason may follow the ACK
+            await self.sleep(_REASON_WAIT_S)  # a STATUSTEXT with the reason may follow the ACK
             reason = said_why(self._said_since(mark), refusals) or "it said no reason"
             self.event(kind, f"try {attempt}: MAV_RESULT {res}: {reason}")
             if deadline is None:
                 more = attempt < _PILOT_TRIES
             else:
-                more = time.monotonic() + _RETRY_S < deadline
+                more = self.clock() + _RETRY_S < deadline
             if not more:
                 tries = "1 try" if attempt == 1 else f"{attempt} tries"
                 raise EngageError(
                     f"{name} refused {what} (MAV_RESULT {res}), {tries} in "
-                    f"{time.monotonic() - t0:.1f} s: {reason}"
+                    f"{self.clock() - t0:.1f} s: {reason}"
                 )
             if not self.core.commanding:
                 return False
             if deadline is not None:
-                await asyncio.sleep(_RETRY_S)
+                await self.sleep(_RETRY_S)
 
     async def _wait_ready_to_arm(self, deadline: float) -> None:
-        """Until ``deadline`` (monotonic): wait while the autopilot's SYS_STATUS says
-        its pre-arm checks fail (``_prearm_ready`` False; None, not reported: at
-        once). At the deadline the arming is tried all the same: its refusal
+        """Until ``deadline`` (the engagement's clock): wait while the autopilot's
+        SYS_STATUS says its pre-arm checks fail (``_prearm_ready`` False; None, not
+        reported: at once). At the deadline the arming is tried all the same: its refusal
         says why in the stack's own words."""
         if self.core.ap.prearm_ready is not False or not self.core.commanding:
             return
-        t0 = time.monotonic()
+        t0 = self.clock()
         self.event(
             "arm_waiting",
             f"the autopilot's pre-arm checks do not pass yet (SYS_STATUS): waiting up to "
             f"{max(0.0, deadline - t0):.0f} s",
         )
         ap = self.core.ap
-        while ap.prearm_ready is False and self.core.commanding and time.monotonic() < deadline:
-            await asyncio.sleep(_READY_POLL_S)
+        while ap.prearm_ready is False and self.core.commanding and self.clock() < deadline:
+            await self.sleep(_READY_POLL_S)
         if self.core.ap.prearm_ready:
-            self.event("arm_ready", f"pre-arm checks pass after {time.monotonic() - t0:.1f} s")
+            self.event("arm_ready", f"pre-arm checks pass after {self.clock() - t0:.1f} s")
 
     def _said_since(self, mark: int) -> list[str]:
         """What the autopilot said (its STATUSTEXTs, each recorded as an
@@ -339,11 +350,11 @@ class Engagement:
             # The autopilot announces its failsafe's mode at once, in a HEARTBEAT; what
             # failed (its RC receiver) comes in its next SYS_STATUS: judge on that.
             seen = self.core.ap.n_sys_status
-            wait_by = time.monotonic() + _SYS_STATUS_WAIT_S
-            while self.core.ap.n_sys_status == seen and time.monotonic() < wait_by:
-                await asyncio.sleep(0.01)
+            wait_by = self.clock() + _SYS_STATUS_WAIT_S
+            while self.core.ap.n_sys_status == seen and self.clock() < wait_by:
+                await self.sleep(0.01)
         ap_mode = self.core.ap.mode
-        cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
+        cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
         if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):
             # The autopilot (its failsafe) or the pilot already chose a mode: keep it.
             self.hand_back_accepted = True
@@ -383,7 +394,7 @@ class Engagement:
             if res != _RESULT_ACCEPTED:
                 self.event("handed_back", f"{why} refused ({res})")
                 reason, start = f"{name} refused", choice.index + 1
-                cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
+                cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
                 continue
             self.hand_back_accepted = True
             self.hand_back_owed = False
@@ -394,7 +405,7 @@ class Engagement:
             self.hand_back_accepted = False
             self.event("safe_mode_lost", failed)
             reason, start = failed, next_kind(modes, choice.index)
-            cond = self.core.conditions(time.perf_counter(), rc_failsafe=rc_failsafe)
+            cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
 
     async def _watch_safe_mode(
         self, modes: tuple[SafeMode, ...], index: int, before: int | None
@@ -424,12 +435,12 @@ class Engagement:
         watch_s = self.opts.failsafe.hand_back_watch_s
         if watch_s <= 0.0:
             return None  # not watched: the ACK is all there is
-        t0 = time.perf_counter()
+        t0 = self.clock()
         heartbeats0 = self.core.ap.heartbeats
         seen = False
         pilots = False  # the pilot (or the autopilot) put it in another mode flown from the sticks
         while True:
-            elapsed = time.perf_counter() - t0
+            elapsed = self.clock() - t0
             if self.core.commanding:
                 return None  # engaged again meanwhile: the pilot's call
             mode = self.core.ap.mode
@@ -450,7 +461,7 @@ class Engagement:
                     modes,
                     index,
                     mode,
-                    self.core.conditions(time.perf_counter(), rc_failsafe=False),
+                    self.core.conditions(self.core.clock(), rc_failsafe=False),
                 )
                 if failed is not None:
                     return f"{failed} after {elapsed:.1f} s"
@@ -478,7 +489,7 @@ class Engagement:
                     label = "its mode" if mode is None else stack.mode_label(mode)
                     self.event("safe_mode_held", f"{label} kept for {watch_s:g} s")
                 return None
-            await asyncio.sleep(_WATCH_POLL_S)
+            await self.sleep(_WATCH_POLL_S)
 
     async def after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
         """Hand back after the core's failsafe; then end the run (``on_failsafe =
@@ -499,16 +510,16 @@ class Engagement:
         failsafe of its own (ArduCopter: after GUID_TIMEOUT it levels and stays in
         GUIDED_NOGPS) would otherwise be left in the companion's mode with nobody
         flying it (measured on the real ArduCopter 4.5.6: a link cut for 3 s)."""
-        deadline = time.monotonic() + _HAND_BACK_RETRY_S
-        while self.hand_back_owed and time.monotonic() < deadline:
+        deadline = self.clock() + _HAND_BACK_RETRY_S
+        while self.hand_back_owed and self.clock() < deadline:
             # Only across a silent link: an autopilot whose heartbeats come but which
             # ignores the switch has had its answer (the run's own try, above).
-            heard = self.link.last_heartbeat_monotonic_s
+            heard = self.link.last_heartbeat_monotonic_s  # stamped on time.monotonic
             if heard is not None and time.monotonic() - heard < _LINK_QUIET_S:
                 return
             beats = self.core.ap.heartbeats
-            while self.core.ap.heartbeats == beats and time.monotonic() < deadline:
-                await asyncio.sleep(_HAND_BACK_RETRY_PERIOD_S)  # until it is heard again
+            while self.core.ap.heartbeats == beats and self.clock() < deadline:
+                await self.sleep(_HAND_BACK_RETRY_PERIOD_S)  # until it is heard again
             if self.core.ap.heartbeats == beats:
                 return
             left = self.core.ap.mode is not None and not self.core.in_engage_mode()

@@ -46,6 +46,7 @@ __all__ = [
     "CMD_ARM",
     "CMD_DO_SET_MODE",
     "CMD_SET_MESSAGE_INTERVAL",
+    "HANG_SLACK",
     "PX4_MANUAL",
     "PX4_OFFBOARD",
     "PX4_POSCTL",
@@ -53,6 +54,12 @@ __all__ = [
     "mavlink2",
     "settle",
 ]
+
+HANG_SLACK = 5.0
+"""A wait's ``timeout_s`` (here and in tests/app/flight.py) only guards against a
+hang: it gives up after this many times as long, for a loaded machine stretches
+every wait. What a test says about time it says on a clock it drives, or in
+samples, never in a wait's bound."""
 
 CMD_DO_SET_MODE = mavlink2.MAV_CMD_DO_SET_MODE  # 176
 CMD_ARM = mavlink2.MAV_CMD_COMPONENT_ARM_DISARM  # 400
@@ -349,7 +356,7 @@ class FakeAutopilot:
     async def wait_until(self, cond: Callable[[], bool], timeout_s: float = 2.0) -> None:
         """Wait until ``cond()`` holds, re-checking on every message received
         (and every 10 ms, for conditions on the companion's state); TimeoutError
-        after ``timeout_s``.
+        after ``timeout_s`` times ``HANG_SLACK``.
 
         A deadline rather than an outer ``wait_for``: before Python 3.12, a
         ``wait_for`` cancelled just as what it awaits completes returns the result
@@ -357,11 +364,11 @@ class FakeAutopilot:
         could swallow the outer one's cancel; the loop went on, and the outer
         ``wait_for`` waited for it for ever (a failing test hung instead of failing)."""
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout_s
+        deadline = loop.time() + HANG_SLACK * timeout_s
         while not cond():
             left = deadline - loop.time()
             if left <= 0.0:
-                raise asyncio.TimeoutError(f"condition not met within {timeout_s} s")
+                raise asyncio.TimeoutError(f"condition not met within {HANG_SLACK * timeout_s} s")
             self._changed.clear()
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), min(0.01, left))

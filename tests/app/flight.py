@@ -9,8 +9,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import math
 from collections.abc import AsyncIterator, Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from tests.app.fakes import (
     CMD_ARM,
     CMD_DO_SET_MODE,
     CMD_SET_MESSAGE_INTERVAL,
+    HANG_SLACK,
     PX4_MANUAL,
     PX4_OFFBOARD,
     FakeAutopilot,
@@ -47,15 +49,42 @@ ACCEPTED = mavlink2.MAV_RESULT_ACCEPTED
 # Watchdogs loose enough that a test's own pauses do not trip them; a test about
 # one failsafe tightens that one.
 LOOSE = FailsafeConfig(stale_imu_s=2.0, rc_timeout_s=5.0, link_timeout_s=5.0, hand_back_watch_s=0.3)
+FEED_PERIOD_S = 0.004
+""":meth:`Flight.feed_until` sends once per this (at most: a loaded machine is slower)."""
+
+
+class StepClock:
+    """The engagement's clock in this tier (its ``clock`` and ``sleep``): time
+    passes only while the engagement waits, and by exactly what it asked to wait,
+    however long a loaded machine took to wake it. Its retries, deadlines and
+    safe-mode watch are so counted in its own waits, the same on any machine.
+
+    Each wait still lasts that long on the wall: what runs on the wall clock (the
+    fake autopilot, the shell's watchdogs) goes on beside it as in flight, and
+    this clock never runs ahead of the wall's (waits that overlap, a hand-back
+    beside an engagement, take it to the later end, not to their sum)."""
+
+    def __init__(self) -> None:
+        self._ns = 0
+
+    def __call__(self) -> float:
+        """Now, s (0 when the run was made)."""
+        return self._ns * 1e-9
+
+    async def sleep(self, dt_s: float) -> None:
+        wake_ns = self._ns + round(dt_s * 1e9)
+        await asyncio.sleep(dt_s)
+        self._ns = max(self._ns, wake_ns)
 
 
 @dataclass
 class Flight:
-    """One running companion and its fake autopilot."""
+    """One running companion and its fake autopilot; ``clock`` is its engagement's."""
 
     companion: Companion
     fake: FakeAutopilot
     task: asyncio.Task[int]
+    clock: StepClock = field(default_factory=StepClock)
     t_us: int = 10_000_000
     t_ms: int = 10_000
 
@@ -79,20 +108,28 @@ class Flight:
         timeout_s: float = 2.0,
         what: str = "condition",
     ) -> None:
-        """Stream samples (as an autopilot does) until ``cond()`` holds."""
+        """Stream samples (as an autopilot does) until ``cond()`` holds.
+
+        Gives up (a guard against a hang) after ``timeout_s`` times ``HANG_SLACK``
+        of samples: that many ``FEED_PERIOD_S`` apart, each send followed by a wait
+        of ``FEED_PERIOD_S``, so at least as long on the wall too, however slowly a
+        loaded machine makes them."""
         send = send or self.imu
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + timeout_s
-        while not cond():
-            if loop.time() > deadline:
-                raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        limit_s = HANG_SLACK * timeout_s
+        for _ in range(math.ceil(limit_s / FEED_PERIOD_S)):
+            if cond():
+                return
             if self.task.done():
                 raise AssertionError(f"run() ended ({self.task.result()}) waiting for {what}")
             send()
-            await asyncio.sleep(0.004)
+            await asyncio.sleep(FEED_PERIOD_S)
+        if not cond():
+            raise AssertionError(f"not within {limit_s:g} s of samples waiting for {what}")
 
     async def finish(self, timeout_s: float = 2.0) -> int:
-        return await asyncio.wait_for(asyncio.shield(self.task), timeout_s)
+        """The run's exit code, once it ends (``asyncio.TimeoutError`` if it has not
+        after ``timeout_s`` times ``HANG_SLACK``: a guard against a hang)."""
+        return await asyncio.wait_for(asyncio.shield(self.task), HANG_SLACK * timeout_s)
 
     def kinds(self) -> list[str]:
         return [e["kind"] for e in self.companion.events]
@@ -168,7 +205,10 @@ async def switch_flicked_high(start: Start) -> Flight:
 
 
 async def flights() -> AsyncIterator[Start]:
-    """Factory: ``await start(autopilot=..., engage=..., **run_options)`` -> Flight."""
+    """Factory: ``await start(autopilot=..., engage=..., **run_options)`` -> Flight.
+
+    The run's engagement is timed on a :class:`StepClock` (``clock``, a new one
+    unless given)."""
     flights: list[Flight] = []
 
     async def _start(
@@ -181,6 +221,7 @@ async def flights() -> AsyncIterator[Start]:
         heartbeat: bool = True,
         position: bool = True,
         follow_modes: bool = True,
+        clock: StepClock | None = None,
         **opts: Any,
     ) -> Flight:
         ours, theirs = MemoryTransport.pair()
@@ -199,8 +240,11 @@ async def flights() -> AsyncIterator[Start]:
         opts.setdefault("controller", CONTROLLER)
         options = RunOptions(connect="memory", profile=PROFILE, **opts)
         companion = Companion(options, transport=ours)
+        clock = clock or StepClock()
+        companion.engagement.clock = clock
+        companion.engagement.sleep = clock.sleep
         task = asyncio.get_running_loop().create_task(companion.run(), name="companion")
-        flight = Flight(companion, fake, task)
+        flight = Flight(companion, fake, task, clock)
         flights.append(flight)
         await fake.wait_until(lambda: ours.is_open, 1.0)
         if heartbeat:

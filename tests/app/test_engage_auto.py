@@ -7,13 +7,15 @@ As ArduCopter 4.5.6 does after boot: "Arm: Need Alt Estimate" for the first
 seconds (its EKF has no altitude yet), "PreArm: Need Position Estimate" for
 40-50 s; PX4 v1.16: "Preflight Fail: ..." naming the check, then "Arming
 denied: ...". The retry period is shortened here (``_RETRY_S``); the bound
-(``arm_timeout_s``) is the option's.
+(``arm_timeout_s``) is the option's. Both are timed on the engagement's own
+clock (``Flight.clock``, tests/app/flight.py), which counts its waits, so the
+times below are exact on any machine, however loaded.
 """
 
 from __future__ import annotations
 
 import asyncio
-import time
+import itertools
 from collections.abc import Callable
 from typing import Any
 
@@ -40,7 +42,6 @@ from tests.app.flight import (
 
 FAILED = mavlink2.MAV_RESULT_FAILED  # ArduCopter's answer to a refused arm
 RETRY_S = 0.1
-MARGIN_S = 0.5  # for anything timed on a shared 2-core machine
 UNRELATED = b"RC7: SaveWaypoint MIDDLE"  # what ArduCopter said next in the flight that failed
 
 
@@ -51,7 +52,8 @@ def quick_retries(monkeypatch: pytest.MonkeyPatch) -> None:
 
 class Refuses:
     """The fake's answer to a command: ``result`` for the first ``times`` tries
-    (each saying ``said`` after its ACK, then an unrelated text), ACCEPTED after."""
+    (each saying ``said`` after its ACK, then an unrelated text), ACCEPTED after;
+    ``at``: when each try came, on the engagement's clock."""
 
     def __init__(
         self, fake_ref: list[Flight], times: int, said: tuple[bytes, ...], result: int = FAILED
@@ -63,7 +65,7 @@ class Refuses:
         self.at: list[float] = []
 
     def __call__(self, m: Any) -> int:
-        self.at.append(time.perf_counter())
+        self.at.append(self.fake_ref[0].clock())
         if len(self.at) > self.times:
             return int(ACCEPTED)
         fake = self.fake_ref[0].fake
@@ -88,6 +90,21 @@ async def ardupilot(start: Start, results: dict[int, Any], **opts: Any) -> Fligh
     return await start(autopilot=ARDUPILOT, custom_mode=APM_STABILIZE, engage="auto",
                        output="rates", params={"GUID_OPTIONS": 8.0}, results=results,
                        **opts)  # fmt: skip
+
+
+def commanding_began(f: Flight, monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """When each engagement begins commanding, on its clock: ``arm_timeout_s``
+    counts from there."""
+    core = f.companion.core
+    begin = core.begin_commanding
+    began: list[float] = []
+
+    def noted() -> None:
+        began.append(f.clock())
+        begin()
+
+    monkeypatch.setattr(core, "begin_commanding", noted)
+    return began
 
 
 def feed(f: Flight) -> Callable[[], None]:
@@ -115,23 +132,28 @@ async def test_ardupilot_refusing_to_arm_after_boot_is_tried_again_until_it_arms
     ]
     assert "engage_failed" not in f.kinds()
     assert not f.task.done()
-    for before, after in zip(arm.at, arm.at[1:]):
-        assert RETRY_S <= after - before < RETRY_S + 0.2 + MARGIN_S  # reason wait + retry
+    for before, after in itertools.pairwise(arm.at):  # the reason's wait, then the retry's
+        assert after - before == pytest.approx(engagement._REASON_WAIT_S + RETRY_S)
 
 
 async def test_an_arm_refused_until_the_bound_exits_1_naming_the_stacks_last_reason(
-    start: Start,
+    start: Start, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     ref: list[Flight] = []
     arm = Refuses(ref, 1000, (b"PreArm: Need Position Estimate",))
     f = await ardupilot(start, {CMD_ARM: arm}, arm_timeout_s=1.0)
     ref.append(f)
+    began = commanding_began(f, monkeypatch)
     await streams_requested(f, MSG_ATTITUDE)
-    t0 = time.perf_counter()
     await f.feed_until(f.task.done, send=feed(f), timeout_s=5.0, what="the run's end")
     assert await f.finish() == 1
+    [bound] = [t + 1.0 for t in began]
     assert len(arm.at) >= 2
-    assert arm.at[-1] - t0 < 1.0 + MARGIN_S  # tried within the bound, then no more
+    period = engagement._REASON_WAIT_S + RETRY_S
+    assert [b - a for a, b in itertools.pairwise(arm.at)] == pytest.approx(
+        [period] * (len(arm.at) - 1)
+    )
+    assert arm.at[-1] < bound <= arm.at[-1] + period  # tried within the bound, then no more
     refused = f.details("arm_refused")
     assert refused == [
         f"try {i}: MAV_RESULT {FAILED}: PreArm: Need Position Estimate"
@@ -193,9 +215,9 @@ async def test_arming_waits_for_the_stacks_pre_arm_checks_to_pass(start: Start) 
     await f.feed_until(
         lambda: "arm_waiting" in f.kinds(), send=sample_and_status, what="the wait to arm"
     )
-    t_wait = time.perf_counter()
+    t_wait = f.clock()
     await f.feed_until(
-        lambda: time.perf_counter() - t_wait > 0.5, send=sample_and_status, what="0.5 s"
+        lambda: f.clock() - t_wait >= 0.5, send=sample_and_status, what="0.5 s of the wait"
     )
     assert not f.fake.commands(CMD_ARM)  # not while the checks fail
     [waiting] = f.details("arm_waiting")
@@ -208,23 +230,26 @@ async def test_arming_waits_for_the_stacks_pre_arm_checks_to_pass(start: Start) 
     assert [d.split(" after ")[0] for d in f.details("arm_ready")] == ["pre-arm checks pass"]
 
 
-async def test_pre_arm_checks_that_never_pass_end_in_one_try_at_the_bound(start: Start) -> None:
+async def test_pre_arm_checks_that_never_pass_end_in_one_try_at_the_bound(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The stack's own words say why: the arming is tried once the bound is reached."""
     ref: list[Flight] = []
     arm = Refuses(ref, 1000, (b"PreArm: Need Position Estimate",))
     f = await ardupilot(start, {CMD_ARM: arm}, arm_timeout_s=1.0)
     ref.append(f)
+    began = commanding_began(f, monkeypatch)
     await streams_requested(f, MSG_ATTITUDE)
 
     def not_ready() -> None:
         feed(f)()
         f.fake.sys_status(prearm=False)
 
-    t0 = time.perf_counter()
     await f.feed_until(f.task.done, send=not_ready, timeout_s=5.0, what="the run's end")
     assert await f.finish() == 1
+    [bound] = [t + 1.0 for t in began]
     assert len(arm.at) == 1
-    assert 1.0 <= arm.at[0] - t0 < 1.0 + MARGIN_S
+    assert bound <= arm.at[0] < bound + engagement._READY_POLL_S  # on the wait's first poll past it
     [failed] = f.details("engage_failed")
     assert failed.endswith(": PreArm: Need Position Estimate")
 

@@ -3,20 +3,22 @@
 For each kind (brought about as it happens in flight: the IMU stops, the gyro
 reads NaN, the rates leave the envelope, RC stops, the autopilot leaves
 OFFBOARD, a signal, the run's end), with and without the pilot's radio, on PX4
-and ArduPilot: the mode asked, and how soon after the failsafe. Without a radio
-the flight is a reference file with its own collective (it needs no RC).
+and ArduPilot: the mode asked, and that it is asked at once: on the engagement's
+own clock (``Flight.clock``, tests/app/flight.py), no wait between the failsafe
+and the mode asked but the one for the autopilot's next SYS_STATUS where it took
+over by itself. Without a radio the flight is a reference file with its own
+collective (it needs no RC).
 """
 
 from __future__ import annotations
 
-import asyncio
 import signal
-import time
 from dataclasses import replace
 from typing import Any
 
 import pytest
 
+from companion import engagement
 from companion.reference import ReferenceScript
 from tests.app.fakes import APM_GUIDED_NOGPS, CMD_ARM, CMD_DO_SET_MODE, PX4_OFFBOARD
 from tests.app.flight import (
@@ -28,6 +30,7 @@ from tests.app.flight import (
     PX4,
     Flight,
     Start,
+    StepClock,
     streams_requested,
 )
 
@@ -35,7 +38,6 @@ HOVER = ReferenceScript(t_s=(0.0,), rates_rad_s=((0.0, 0.0, 0.0),), thrust=(0.5,
 FS = replace(LOOSE, stale_imu_s=0.2, rc_timeout_s=0.3, hand_back_watch_s=0.3)
 PX4_MANUAL_MODE = 1 << 16
 APM_STABILIZE_MODE = 0
-SOON_S = 0.3  # the hand-back starts in the failsafe's own callback; margin for a loaded machine
 
 # DO_SET_MODE (param2, param3)
 POSCTL, HOLD = (3.0, 0.0), (4.0, 3.0)
@@ -54,13 +56,15 @@ CASES = [
 
 
 class Asked:
-    """The fake's DO_SET_MODE answer: ACCEPTED, each asked kept with its time."""
+    """The fake's DO_SET_MODE answer: ACCEPTED, each asked kept with its time on
+    ``clock`` (the engagement's: give it to ``start``)."""
 
     def __init__(self) -> None:
+        self.clock = StepClock()
         self.modes: list[tuple[float, tuple[float, float]]] = []
 
     def __call__(self, m: Any) -> int:
-        self.modes.append((time.perf_counter(), (m.param2, m.param3)))
+        self.modes.append((self.clock(), (m.param2, m.param3)))
         return int(ACCEPTED)
 
 
@@ -87,12 +91,13 @@ async def test_each_failsafe_kind_hands_back_to_a_mode_the_vehicle_can_fly(
         failsafe=FS,
         reference=None if radio else HOVER,
         results={CMD_DO_SET_MODE: asked},
+        clock=asked.clock,
     )
     await engage(f, px4=px4, radio=radio)
     n_engage = len(asked.modes)
 
-    t0 = time.perf_counter()
-    await bring_about(f, kind, px4=px4, radio=radio)
+    t0 = f.clock()  # engaged: nothing waits on the engagement's clock until the failsafe
+    fed_s = await bring_about(f, kind, px4=px4, radio=radio)
     want_exit = 0 if kind in ("signal", "run_end") else 3
     assert await f.finish(timeout_s=3.0) == want_exit
     hand_back = asked.modes[n_engage:]
@@ -102,15 +107,24 @@ async def test_each_failsafe_kind_hands_back_to_a_mode_the_vehicle_can_fly(
         assert f.details("handed_back")[-1].endswith("kept (the autopilot's mode)")
         return
     assert [m for _, m in hand_back] == [want], (kind, f.details("handed_back"))
-    assert hand_back[0][0] - t0 < failsafe_bound_s(kind) + SOON_S
+    assert hand_back[0][0] - t0 <= wait_before_asking_s(kind)
+    if kind in IN_SAMPLE_TIME:  # the failsafe itself, judged on the samples: that soon
+        # (give or take the few samples sent before the companion had read the last)
+        assert fed_s <= IN_SAMPLE_TIME[kind] + 5 * (0.004 if px4 else 0.003), fed_s
     assert f.details("handed_back")[-1].endswith("accepted")
     assert len(f.details("safe_mode_held")) == 1
 
 
-def failsafe_bound_s(kind: str) -> float:
-    """How long after the fault began its failsafe may come (wall, loosely)."""
-    return {"stale_imu": FS.stale_imu_s, "rc_lost": FS.rc_timeout_s,
-            "envelope": FS.envelope_time_s}.get(kind, 0.0) + 0.1  # fmt: skip
+IN_SAMPLE_TIME = {"invalid_imu": FS.invalid_imu_s, "envelope": FS.envelope_time_s}
+"""The failsafes judged on the samples' own time: their bound, s of samples."""
+
+
+def wait_before_asking_s(kind: str) -> float:
+    """How long the hand-back may wait, on the engagement's clock, before it asks
+    for a mode: not at all (it starts in the failsafe's own call), but where the
+    autopilot took over by itself, for its next SYS_STATUS (what failed: its RC
+    receiver?), polled every 10 ms."""
+    return engagement._SYS_STATUS_WAIT_S + 0.01 if kind == "took_over" else 0.0
 
 
 async def engage(f: Flight, *, px4: bool, radio: bool) -> None:
@@ -133,7 +147,15 @@ def sample(f: Flight, px4: bool, gyro: tuple[float, float, float] = (0.0, 0.0, 0
         f.att(gyro)
 
 
-async def bring_about(f: Flight, kind: str, *, px4: bool, radio: bool) -> None:
+async def bring_about(f: Flight, kind: str, *, px4: bool, radio: bool) -> float:
+    """Bring ``kind`` about, then feed the run to its end; how long the samples fed
+    until the failsafe span, s (their own time)."""
+
+    def now_s() -> float:
+        return f.t_us * 1e-6 if px4 else f.t_ms * 1e-3
+
+    t_fault = now_s()
+
     def feed(gyro: tuple[float, float, float] = (0.0, 0.0, 0.0), rc: bool = radio) -> None:
         sample(f, px4, gyro)
         if rc:
@@ -162,8 +184,7 @@ async def bring_about(f: Flight, kind: str, *, px4: bool, radio: bool) -> None:
         assert [k for k in f.kinds() if k.startswith("failsafe")] == [
             "failsafe_autopilot_took_over" if kind == "took_over" else f"failsafe_{kind}"
         ]
+    fed_s = now_s() - t_fault
     # Samples (and RC, with a radio) go on during the hand-back, as in flight.
-    deadline = time.perf_counter() + 2.5
-    while not f.task.done() and time.perf_counter() < deadline:
-        feed()
-        await asyncio.sleep(0.004)
+    await f.feed_until(f.task.done, send=feed, timeout_s=2.5, what="the run's end")
+    return fed_s

@@ -3,21 +3,23 @@ how it watches the autopilot's mode afterwards, and what it tries next.
 
 Each test drives a Companion against the fake autopilot (tests/app/flight.py)
 and checks the DO_SET_MODE sequence (param2, param3), the events, and where the
-rule is about time, when each mode was asked. The choice itself is unit-tested
-in ``test_handback_choice.py``.
+rule is about time, when each mode was asked, on the engagement's own clock
+(``Flight.clock``, tests/app/flight.py: it counts the watch's polls, so these
+times are exact on any machine, however loaded). The choice itself is
+unit-tested in ``test_handback_choice.py``.
 """
 
 from __future__ import annotations
 
 import asyncio
 import itertools
-import time
 from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
+from companion import engagement
 from tests.app.fakes import (
     APM_ALT_HOLD,
     APM_GUIDED_NOGPS,
@@ -38,6 +40,7 @@ from tests.app.flight import (
     MSG_HIGHRES_IMU,
     Flight,
     Start,
+    StepClock,
     engage_px4_auto,
     streams_requested,
 )
@@ -60,22 +63,27 @@ ARMED = mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
 CRITICAL = mavlink2.MAV_STATE_CRITICAL
 FAILING_SAFE = "valid RC, a position estimate, the autopilot failing safe (CRITICAL)"
 
-MARGIN_S = 0.5  # for anything timed on a shared 2-core machine
+POLL_S = engagement._WATCH_POLL_S
+SOON_S = 10 * POLL_S
+"""A mode lost is judged on the watch's next polls (the heartbeat that shows it
+takes a few turns of the loop to reach the core): this soon, not at the watch's end."""
 # A watch that sees at least two of the fake's 0.2 s background heartbeats.
 WATCHED = replace(LOOSE, hand_back_watch_s=0.5)
 
 
 class Modes:
     """The fake's answer to DO_SET_MODE: ACCEPTED, DENIED for ``refuse``; each
-    (param2, param3) asked is kept with the time it arrived."""
+    (param2, param3) asked is kept with the time it arrived on ``clock`` (the
+    engagement's: give it to ``start``)."""
 
     def __init__(self, refuse: tuple[tuple[float, float], ...] = ()) -> None:
         self.refuse = refuse
+        self.clock = StepClock()
         self.asked: list[tuple[float, tuple[float, float]]] = []
 
     def __call__(self, m: Any) -> int:
         mode = (m.param2, m.param3)
-        self.asked.append((time.perf_counter(), mode))
+        self.asked.append((self.clock(), mode))
         return int(DENIED if mode in self.refuse else ACCEPTED)
 
     def at(self, mode: tuple[float, float]) -> float:
@@ -200,7 +208,7 @@ async def test_rc_loss_hands_back_to_hold_never_a_manual_mode(start: Start) -> N
 async def test_a_refused_hold_is_followed_by_land_at_once(start: Start) -> None:
     fs = replace(LOOSE, hand_back_watch_s=1.0)
     modes = Modes(refuse=(HOLD,))
-    f = await start(engage="auto", output="actuator", failsafe=fs,
+    f = await start(engage="auto", output="actuator", failsafe=fs, clock=modes.clock,
                     results={CMD_DO_SET_MODE: modes})  # fmt: skip
     await stopped_without_rc(f)
     assert await f.finish() == 0
@@ -212,8 +220,8 @@ async def test_a_refused_hold_is_followed_by_land_at_once(start: Start) -> None:
     ]
     assert f.details("safe_mode_held") == ["LAND for 1 s"]
     assert "safe_mode_lost" not in f.kinds()
-    # A refusal is not watched: LAND follows at once, not after the 1 s watch.
-    assert modes.at(LAND) - modes.at(HOLD) < MARGIN_S
+    # A refusal is not watched: LAND follows at once (no wait between), not after the 1 s watch.
+    assert modes.at(LAND) == modes.at(HOLD)
 
 
 # ----------------------------------------------- the autopilot after accepting
@@ -227,20 +235,21 @@ async def test_the_autopilots_own_rtl_after_posctl_is_lost_and_hold_follows(
     RC left the next mode is HOLD (a manual one would meet the same failsafe)."""
     fs = replace(LOOSE, rc_timeout_s=0.4, hand_back_watch_s=1.5)
     modes = Modes()
-    f = await start(engage="auto", output="actuator", failsafe=fs,
+    f = await start(engage="auto", output="actuator", failsafe=fs, clock=modes.clock,
                     results={CMD_DO_SET_MODE: modes})  # fmt: skip
     await engage_with_rc(f)
     f.companion._stop.set()  # the RC frames stop with the samples
     await event(f, "handed_back")
     assert f.details("handed_back")[0].endswith("-> POSCTL accepted")
-    await asyncio.sleep(0.4 + 0.25)  # valid RC expires; the watch (1.5 s) goes on
-    t_rtl = time.perf_counter()
+    await asyncio.sleep(0.4 + 0.25)  # valid RC expires (the wall's); the watch (1.5 s) goes on
+    t_rtl = f.clock()
+    assert t_rtl - modes.at(POSCTL) < 1.5 - SOON_S  # (its clock is never ahead of the wall's)
     f.fake.set_state(PX4_RTL)
     lost = await event(f, "safe_mode_lost")
     assert lost.startswith("the autopilot left POSCTL for AUTO.RTL after ")
     assert await f.finish(timeout_s=4.0) == 0
     assert asked(f) == [OFFBOARD, POSCTL, HOLD]
-    assert 0.0 < modes.at(HOLD) - t_rtl < MARGIN_S  # judged on the next poll, not the watch
+    assert 0.0 < modes.at(HOLD) - t_rtl < SOON_S  # judged on the next polls, not the watch's end
     assert f.details("handed_back")[1] == (
         f"{lost}; no valid RC, a position estimate -> HOLD accepted"
     )
@@ -271,7 +280,7 @@ async def test_a_mode_accepted_but_never_shown_is_followed_by_the_next_after_the
     watch_s = 0.5
     modes = Modes()
     f = await start(engage="auto", output="actuator", follow_modes=False, failsafe=WATCHED,
-                    results={CMD_DO_SET_MODE: modes})  # fmt: skip
+                    clock=modes.clock, results={CMD_DO_SET_MODE: modes})  # fmt: skip
     await engage_px4_auto(f)  # the fake stays in OFFBOARD from here on
     f.companion._stop.set()
     assert await f.finish(timeout_s=5.0) == 0
@@ -279,8 +288,8 @@ async def test_a_mode_accepted_but_never_shown_is_followed_by_the_next_after_the
     # POSCTL failed, another manual mode is passed over), then none left.
     assert asked(f) == [OFFBOARD, POSCTL, HOLD, LAND]
     times = [t for t, _ in modes.asked[1:]]
-    for before, after in itertools.pairwise(times):
-        assert watch_s <= after - before < watch_s + MARGIN_S
+    for before, after in itertools.pairwise(times):  # each after the whole watch, to its poll
+        assert watch_s - 1e-9 <= after - before < watch_s + POLL_S + 1e-9
     never = "the autopilot accepted {} but did not show it within 0.5 s"
     lost = [never.format(m) for m in ("POSCTL", "HOLD", "LAND")]
     assert f.details("safe_mode_lost") == lost
@@ -487,7 +496,7 @@ async def test_px4_failing_safe_in_posctl_loses_it_and_hold_follows(start: Start
     HOLD is kept though PX4 still says CRITICAL: holding is what its failsafe does."""
     fs = replace(LOOSE, hand_back_watch_s=1.5)
     modes = Modes()
-    f = await start(engage="auto", output="actuator", failsafe=fs,
+    f = await start(engage="auto", output="actuator", failsafe=fs, clock=modes.clock,
                     results={CMD_DO_SET_MODE: modes})  # fmt: skip
     await engage_px4_auto(f)  # RC sent, LOOSE's 5 s RC timeout: valid all along
     f.companion._stop.set()
@@ -496,7 +505,8 @@ async def test_px4_failing_safe_in_posctl_loses_it_and_hold_follows(start: Start
         f.details("handed_back")[0] == "run ended; valid RC, a position estimate -> POSCTL accepted"
     )
     await asyncio.sleep(0.3)  # POSCTL shows, PX4 not failing safe yet
-    t_failsafe = time.perf_counter()
+    t_failsafe = f.clock()
+    assert t_failsafe - modes.at(POSCTL) < 1.5 - SOON_S  # the watch goes on
     f.fake.system_status = CRITICAL  # its heartbeats say so from now on, POSCTL still shown
     f.fake.statustext(b"Failsafe activated", mavlink2.MAV_SEVERITY_CRITICAL)
     f.fake.heartbeat()
@@ -504,7 +514,7 @@ async def test_px4_failing_safe_in_posctl_loses_it_and_hold_follows(start: Start
     assert lost.startswith("the autopilot is failing safe (CRITICAL) in POSCTL after ")
     assert await f.finish(timeout_s=4.0) == 0
     assert asked(f) == [OFFBOARD, POSCTL, HOLD]
-    assert 0.0 < modes.at(HOLD) - t_failsafe < MARGIN_S  # on the next poll, not the watch's end
+    assert 0.0 < modes.at(HOLD) - t_failsafe < SOON_S  # on the next polls, not the watch's end
     assert f.details("handed_back")[1] == f"{lost}; {FAILING_SAFE} -> HOLD accepted"
     assert f.details("safe_mode_held") == ["HOLD for 1.5 s"]
     assert f.details("autopilot_failsafe") == ["system status CRITICAL"]

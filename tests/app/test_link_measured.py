@@ -8,11 +8,14 @@ date each sample with it (``control.mcap``'s ``sample_age_ms``).
 
 An answer stamped anywhere between the request's sending and the answer's
 arrival gives an offset within half the round trip of the true one: the
-bounds below are that, not tolerances.
+bounds below are that, not tolerances. Round trips and ages are the wall's (a
+loaded machine lengthens them): each is held between what the test itself saw
+on the same clock, never under a fixed figure.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import time
@@ -23,6 +26,7 @@ import numpy as np
 import pytest
 
 import companion.app as app_module
+from companion.link.timesync import LINK_RTT_SHOWN_MS
 from companion.records import read_control_log
 from tests.app.fakes import CMD_ARM, PX4_OFFBOARD, FakeAutopilot, settle
 from tests.app.flight import Flight, Start, engage_px4_auto, streams_requested
@@ -64,17 +68,21 @@ class StampedImu:
 
 
 class TelemetryRecorder:
-    """Stands in for MqttTelemetry: keeps what it is offered."""
+    """Stands in for MqttTelemetry: keeps what it is offered (``offered``: both
+    kinds in the order they came)."""
 
     def __init__(self) -> None:
         self.links: list[dict[str, Any]] = []
         self.events: list[str] = []
+        self.offered: list[dict[str, Any] | str] = []
 
     def publish_link(self, figures: dict[str, Any]) -> None:
         self.links.append(dict(figures))
+        self.offered.append(dict(figures))
 
     def publish_event(self, kind: str, detail: str, t_s: float) -> None:
         self.events.append(kind)
+        self.offered.append(kind)
 
     def publish_status(self, status: dict[str, Any]) -> None:
         pass
@@ -97,6 +105,51 @@ async def engage_stamped(f: Flight, send: StampedImu) -> None:
 
 def requests(f: Flight) -> list[Any]:
     return f.fake.of_type("TIMESYNC")
+
+
+class Exchange:
+    """One answer as the companion took it: our ``ts1`` sent (s), the fake's
+    ``tc1`` (s, its clock), the arrival the companion stamped (s) and when it
+    handled it (s, the same clock)."""
+
+    def __init__(self, ts1_ns: int, tc1_ns: int, arrival_s: float) -> None:
+        self.sent_s = ts1_ns * 1e-9
+        self.answered_s = tc1_ns * 1e-9 - AP_AHEAD_S  # when the fake stamped it, our clock
+        self.arrival_s = arrival_s
+        self.handled_s = time.perf_counter()
+
+    @property
+    def rtt_ms(self) -> float:
+        return (self.arrival_s - self.sent_s) * 1e3
+
+
+def exchanges(f: Flight, monkeypatch: pytest.MonkeyPatch) -> list[Exchange]:
+    """Every answer the companion's link clock is given, as it is given."""
+    clock = f.companion.core.link_clock
+    reply = clock.reply
+    seen: list[Exchange] = []
+
+    def noted(tc1_ns: int, ts1_ns: int, now_s: float) -> bool:
+        seen.append(Exchange(ts1_ns, tc1_ns, now_s))
+        return reply(tc1_ns, ts1_ns, now_s)
+
+    monkeypatch.setattr(clock, "reply", noted)
+    return seen
+
+
+def waits_of(task_name: str, monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """Every wait (s) the task named ``task_name`` asks ``asyncio.sleep`` for."""
+    sleep = asyncio.sleep
+    waits: list[float] = []
+
+    async def noted(delay: float, result: Any = None) -> Any:
+        task = asyncio.current_task()
+        if task is not None and task.get_name() == task_name:
+            waits.append(delay)
+        return await sleep(delay, result)
+
+    monkeypatch.setattr(asyncio, "sleep", noted)
+    return waits
 
 
 def counted(f: Flight) -> dict[str, str]:
@@ -124,10 +177,12 @@ async def quick_shadow(
 
 
 async def test_requests_go_out_every_quarter_second_and_the_figures_to_telemetry(
-    start: Start,
+    start: Start, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    waits = waits_of("timesync", monkeypatch)
     t_before = time.perf_counter()
     f = await start(engage="none", output="actuator")
+    answers = exchanges(f, monkeypatch)
     f.fake.timesync_clock = ap_clock
     f.fake.timesync_delay_s = 0.005  # 5 ms each way: a 10 ms round trip
     tel = TelemetryRecorder()
@@ -137,34 +192,52 @@ async def test_requests_go_out_every_quarter_second_and_the_figures_to_telemetry
     await settle()  # the request sent just after the figures reaches the fake
     t_after = time.perf_counter()
 
-    # Requests: tc1 = 0, ts1 our clock in ns, one every REQUEST_PERIOD_S.
+    # Requests: tc1 = 0, ts1 our clock in ns, one every REQUEST_PERIOD_S: each
+    # followed by a wait of just that (the wall may stretch it, never shorten it).
     asked = requests(f)
-    assert len(asked) >= 4
+    assert len(asked) >= 2
     assert all(m.tc1 == 0 for m in asked)
     ts1_s = np.array([m.ts1 for m in asked]) * 1e-9
     assert t_before <= ts1_s[0] and ts1_s[-1] <= t_after
-    gaps = np.diff(ts1_s)
-    assert (gaps >= 0.249).all() and (gaps < 0.6).all(), gaps
-    assert 0.249 <= float(np.median(gaps)) < 0.3, gaps
-    assert f.companion.core.link_clock.n_requests == len(asked)
+    assert (np.diff(ts1_s) >= app_module.REQUEST_PERIOD_S - 1e-3).all(), np.diff(ts1_s)
+    assert waits == [app_module.REQUEST_PERIOD_S] * len(waits)
+    assert len(waits) - 1 <= len(asked) <= len(waits)  # one request before each wait
+    assert f.companion.core.link_clock.n_requests == len(waits)
 
     # Telemetry is offered the figures (about once a second), as MQTT sends them.
     figures = tel.links[0]
     assert set(figures) == FIGURES
     json.dumps(figures, allow_nan=False)
-    assert figures["n"] >= 3
-    assert figures["rtt_min_ms"] >= 10.0 - 1e-3  # never quicker than the link
-    assert figures["rtt_median_ms"] < 10.0 + 40.0  # plus a loaded machine's scheduling
-    # Samples STALE_S old when sent, then dated within half a round trip.
+    assert figures["n"] >= 1
+    # Each round trip is its own request's, stamped when its answer arrived: after
+    # the fake answered, 5 ms after it was asked, and 5 ms more on the way back;
+    # before the companion handled it. So never quicker than the link.
+    for a in answers:
+        assert a.sent_s + 0.005 - 1e-6 <= a.answered_s
+        assert a.answered_s + 0.005 - 1e-6 <= a.arrival_s <= a.handled_s
+    window = sorted(a.rtt_ms for a in answers[: figures["n"]])  # the figures' window
+    assert figures["rtt_min_ms"] == pytest.approx(window[0], abs=1e-3)
+    assert figures["rtt_max_ms"] == pytest.approx(window[-1], abs=1e-3)
+    assert figures["rtt_min_ms"] >= 10.0 - 1e-3
+    assert window[0] - 1e-3 <= figures["rtt_median_ms"] <= window[-1] + 1e-3
+    # Samples STALE_S old when sent, then dated within half a round trip (and
+    # never older than the whole test).
     age = figures["sample_age_p50_ms"]
-    assert STALE_S * 1e3 - 0.5 * figures["rtt_max_ms"] - 1e-3 <= age < STALE_S * 1e3 + 40.0
+    assert STALE_S * 1e3 - 0.5 * figures["rtt_max_ms"] - 1e-3 <= age
+    assert age <= STALE_S * 1e3 + 0.5 * figures["rtt_max_ms"] + (t_after - t_before) * 1e3
     assert figures["sample_age_p99_ms"] >= age
-    # Nothing was said to be slow: 10 ms is within what the controller is shown to fly.
-    assert "link_slow" not in f.kinds()
+    # Said to be slow exactly when a figure offered says so: a 10 ms round trip is
+    # within what the controller is shown to fly (a loaded machine may stretch it).
+    slow = [x for x in tel.links if x["rtt_median_ms"] > LINK_RTT_SHOWN_MS]
+    assert ("link_slow" in f.kinds()) == bool(slow)
 
 
-async def test_answers_date_every_sample_in_control_bin(start: Start, tmp_path: Path) -> None:
+async def test_answers_date_every_sample_in_control_bin(
+    start: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    t_before = time.perf_counter()
     f = await start(engage="auto", output="actuator", log_dir=tmp_path)
+    answers = exchanges(f, monkeypatch)
     f.fake.timesync_clock = ap_clock  # answered at once
     send = StampedImu(f.fake)
     await engage_stamped(f, send)
@@ -176,6 +249,7 @@ async def test_answers_date_every_sample_in_control_bin(start: Start, tmp_path: 
     assert abs(clock.offset_s - AP_AHEAD_S) <= 0.5 * clock.stats().rtt_min_ms * 1e-3 + 1e-6
     f.companion._stop.set()
     assert await f.finish() == 0
+    run_ms = (time.perf_counter() - t_before) * 1e3
 
     cols, _ = read_control_log(tmp_path / "control.mcap")
     engaged = cols["engaged"] > 0.5
@@ -183,15 +257,24 @@ async def test_answers_date_every_sample_in_control_bin(start: Start, tmp_path: 
     rtt_ms = cols["link_rtt_ms"][engaged]
     age_ms = cols["sample_age_ms"][engaged]
     assert np.isfinite(rtt_ms).all() and np.isfinite(age_ms).all()
-    assert ((rtt_ms >= 0.0) & (rtt_ms < 100.0)).all()
+    # Each row's round trip is one the companion measured, stamped as it arrived:
+    # after the fake answered its own request, before the companion handled it.
+    measured = np.array([a.rtt_ms for a in answers])
+    assert all(np.abs(measured - x).min() < 1e-3 for x in set(rtt_ms.tolist()))
+    for a in answers:
+        assert a.sent_s - 1e-6 <= a.answered_s <= a.arrival_s + 1e-6
+        assert a.arrival_s <= a.handled_s
     # Each sample was STALE_S old when sent, and older still when its command left;
-    # the offset that dates it is within half a round trip of the true one.
+    # the offset that dates it is within half a round trip of the true one (and no
+    # sample is older than the whole run).
     assert (age_ms >= STALE_S * 1e3 - 0.5 * rtt_ms - 1e-3).all(), age_ms.min()
-    assert STALE_S * 1e3 - 1.0 <= float(np.median(age_ms)) < STALE_S * 1e3 + 20.0
+    assert (age_ms <= STALE_S * 1e3 + 0.5 * rtt_ms + run_ms).all(), age_ms.max()
+    assert float(np.median(age_ms)) >= STALE_S * 1e3 - 1.0
     # The run's last counters carry the link's figures.
     last = counted(f)
     assert float(last["timesync.n"]) >= 1
-    assert float(last["timesync.rtt_median_ms"]) == pytest.approx(np.median(rtt_ms), abs=5.0)
+    rtts = [a.rtt_ms for a in answers]
+    assert min(rtts) - 1e-3 <= float(last["timesync.rtt_median_ms"]) <= max(rtts) + 1e-3
     assert float(last["timesync.sample_age_p50_ms"]) >= STALE_S * 1e3 - 1.0
 
 
@@ -258,7 +341,9 @@ async def test_a_slow_link_is_one_link_slow_event_and_one_link_ok_after(
     # Quick again: once the window's median is under 0.8 x 20 ms, link_ok, once.
     f.fake.timesync_delay_s = 0.0
     await f.fake.wait_until(lambda: "link_ok" in f.kinds(), 5.0)
-    assert f.companion.core.link_clock.stats().rtt_median_ms < 16.0
+    ok = tel.offered.index("link_ok")
+    judged = tel.offered[ok - 1]  # the figures offered in the report that said so
+    assert isinstance(judged, dict) and judged["rtt_median_ms"] < 0.8 * LINK_RTT_SHOWN_MS
     n = len(tel.links)
     await f.fake.wait_until(lambda: len(tel.links) >= n + 3, 3.0)
     assert f.kinds().count("link_slow") == 1 and f.kinds().count("link_ok") == 1
