@@ -127,8 +127,14 @@ async def test_a_non_finite_position_is_counted_and_not_flown(start: Start) -> N
 async def test_a_mission_flies_its_waypoints_from_where_it_engaged(start: Start) -> None:
     mission = Mission(speed_m_s=2.0, waypoints=[Waypoint(north_m=1.0, east_m=0.0, up_m=0.0)])
     f = await engaged(start, "position", mission=mission)
+
+    def estimates_imu_and_rc() -> None:  # the radio streams too (25 Hz), however long it takes
+        estimates_and_imu(f)
+        if f.t_us // 4000 % 10 == 0:
+            f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+
     await f.feed_until(
-        lambda: "mission_waypoint" in f.kinds(), send=lambda: estimates_and_imu(f), what="waypoint"
+        lambda: "mission_waypoint" in f.kinds(), send=estimates_imu_and_rc, what="waypoint"
     )
     assert f.details("mission_started")[0].startswith("1 waypoints from N 0.00 E 0.00 D -5.00 m")
     assert f.details("mission_waypoint") == ["1 of 1: holding there"]
