@@ -105,8 +105,11 @@ def fly_both(
     failsafe and read every limit from the stack."""
     program = PROGRAMS[mode]
     run = start_mode_companion(session, mode, *args)
-    theirs = mode_figures(fly_stack_mode(session, mode, program))
-    ours = mode_figures(fly_companion_mode(session, run, mode, program))
+    try:
+        theirs = mode_figures(fly_stack_mode(session, mode, program))
+        ours = mode_figures(fly_companion_mode(session, run, mode, program))
+    finally:
+        run.stop()  # a flight that failed must not leave it on the stack's port
     stack = session.name
     figures.append({
         "test": f"{stack} --mode {mode} against {STACK_MODES[stack][mode][0]}",
@@ -127,8 +130,11 @@ def fly_missions(
     Returns ours and theirs, after checking the run had no failsafe."""
     mission = load_square()
     run = start_mission_companion(session, SQUARE_MISSION, *args)
-    theirs = mission_figures(fly_stack_mission(session, mission))
-    ours = mission_figures(fly_companion_mission(session, run, mission))
+    try:
+        theirs = mission_figures(fly_stack_mission(session, mission))
+        ours = mission_figures(fly_companion_mission(session, run, mission))
+    finally:
+        run.stop()  # a flight that failed must not leave it on the stack's port
     stack = session.name
     figures.append({
         "test": f"{stack} --mission against {_STACK_MISSION[stack]}",

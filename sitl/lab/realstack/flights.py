@@ -224,6 +224,8 @@ class Session:
         self.hover_throttle = 0.5
         self.pilot = SwitchPilot(hover_throttle=self.hover_throttle)
         self._runs = 0
+        self._bound: dict[str, CompanionRun] = {}
+        """The last companion started on each connection URL (one may bind it)."""
 
     # ---------------------------------------------------------------- start-up
     def connect(self, timeout_s: float = 60.0, *, wait_ready: bool = True) -> GroundStation:
@@ -438,17 +440,22 @@ class Session:
         (:data:`READY_TIMEOUT_S` at most): a switch flipped high before it saw it low
         would not engage it (the companion's rule), and a loaded machine starts it
         in well over a second."""
+        url = connect_url or self.stack.companion_url
+        left = self._bound.pop(url, None)
+        if left is not None:
+            # A flight that failed may leave its companion holding the port: the next
+            # one could not bind it (one UDP port, one companion).
+            left.stop()
         self._runs += 1
         log_dir = self.workdir / (name or f"companion-{self._runs}")
         log_dir.mkdir(parents=True, exist_ok=True)
         stderr_path = log_dir.with_suffix(".stderr")
-        url = connect_url or self.stack.companion_url
         cmd = [sys.executable, "-m", "companion", "-v", "run", "--connect",
                url, "--log-dir", str(log_dir), *args]  # fmt: skip
         env = dict(os.environ, MAVLINK20="1", PYTHONUNBUFFERED="1")
         with stderr_path.open("wb") as err:
             proc = children.start(cmd, cwd=_ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
-        run = CompanionRun(proc, log_dir, stderr_path)
+        run = self._bound[url] = CompanionRun(proc, log_dir, stderr_path)
         deadline = time.monotonic() + READY_TIMEOUT_S
         while time.monotonic() < deadline and proc.poll() is None:
             if "imu_stream" in run.kinds():
