@@ -245,15 +245,16 @@ def fly_stack_mode(session: Session, mode: str, program: tuple[Phase, ...] = PRO
     try:
         for _ in range(3):
             pilot = ProgramPilot(program, hold_altitude=mode == "angle", trim_throttle=0.5)
-            t0 = g.clock()
-            # The program on the sticks with the engage switch low (a companion started
-            # for the next flight waits), then the session's own pilot again.
-            g.set_pilot(_SwitchLow(pilot, t0, session.hover_throttle, session.pilot.extra_us))
-            res = g.set_mode(p2, p3)
-            t_eng = g.clock()
+            # The mode first, on the session's centred sticks: a stick that moves while
+            # PX4 still holds is the pilot taking over (COM_RC_OVERRIDE: Position mode).
             # An ACK is matched by its command alone (a late one for the hold's switch
             # would do): the stack's heartbeat must show the mode (PX4's: once a second).
+            res = g.set_mode(p2, p3)
             if res == 0 and g.wait(lambda t: t.mode == want, 1.5):
+                # The program on the sticks from now, the engage switch low (a companion
+                # started for the next flight waits), then the session's own pilot again.
+                t0 = t_eng = g.clock()
+                g.set_pilot(_SwitchLow(pilot, t0, session.hover_throttle, session.pilot.extra_us))
                 break
             session.hold()
         else:
