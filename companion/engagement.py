@@ -42,6 +42,8 @@ _ESTIMATES_WAIT_S = 1.0
 _RETRY_S = 1.0
 """``--engage auto``: the pause after a refused engage mode or arm before the
 next try (each try also waits up to 0.5 s for its ACK and ``_REASON_WAIT_S``)."""
+_ACK_TIMEOUT_S = 0.5
+"""How long each of an engagement command's sends waits for its COMMAND_ACK."""
 _REASON_WAIT_S = 0.2
 """After a refusal: how long the STATUSTEXT saying why may follow the ACK."""
 _PILOT_TRIES = 10
@@ -159,6 +161,7 @@ class Engagement:
         await self.sleep(0.3)  # PX4 wants setpoints already streaming (>= 2 Hz)
         try:
             p2, p3 = stack.engage_mode
+            ap = self.core.ap
             if not await self._until_accepted(
                 "engage_mode_refused",
                 f"its engage mode ({stack.engage_label})",
@@ -166,6 +169,7 @@ class Engagement:
                 _CMD_DO_SET_MODE,
                 (_MODE_FLAG_CUSTOM, p2, p3),
                 deadline=deadline,
+                shows=lambda: ap.mode is not None and stack.is_engage_mode(ap.mode),
             ):
                 return  # released meanwhile (switch back low, failsafe): stop here
             if arm and not await self._until_accepted(
@@ -176,6 +180,7 @@ class Engagement:
                 (1,),
                 deadline=deadline,
                 when_ready=True,
+                shows=lambda: ap.armed,
             ):
                 return
             self.core.setpoints_now_flown()
@@ -194,10 +199,17 @@ class Engagement:
         params: tuple[float, ...],
         *,
         deadline: float | None,
+        shows: Callable[[], bool],
         when_ready: bool = False,
     ) -> bool:
         """Send ``command`` (COMMAND_LONG, with ``params``) until the autopilot
         accepts it: True; False if the companion was released meanwhile.
+
+        An ACK may be lost on the way back while the command took effect: a try
+        no ACK answered counts as accepted when the autopilot's heartbeat
+        ``shows`` the effect (the mode, armed) after ``_REASON_WAIT_S``, or by the
+        next try; otherwise as a refusal ("no COMMAND_ACK"), tried again like one
+        (a mode already set or an arming already done is accepted again).
 
         Each refusal is an event ``kind`` with the try's number and the
         autopilot's reason: what it said since that try began in a STATUSTEXT
@@ -221,22 +233,36 @@ class Engagement:
                 await self._wait_ready_to_arm(deadline)
             if not self.core.commanding:
                 return False
+            if attempt and shows():
+                return True  # the last try took effect, its ACK lost
             attempt += 1
             mark = self.events_log().count
-            res = await self.link.command_long(command, *params, timeout_s=0.5)
+            try:
+                res: int | None = await self.link.command_long(
+                    command, *params, timeout_s=_ACK_TIMEOUT_S
+                )
+            except LinkError as exc:
+                res, unanswered = None, str(exc)
             if res == _RESULT_ACCEPTED:
                 return True
             await self.sleep(_REASON_WAIT_S)  # a STATUSTEXT with the reason may follow the ACK
-            reason = said_why(self._said_since(mark), refusals) or "it said no reason"
-            self.event(kind, f"try {attempt}: MAV_RESULT {res}: {reason}")
+            if res is None:
+                if shows():
+                    return True
+                answer, reason = "no ACK", unanswered
+            else:
+                answer = f"MAV_RESULT {res}"
+                reason = said_why(self._said_since(mark), refusals) or "it said no reason"
+            self.event(kind, f"try {attempt}: {answer}: {reason}")
             if deadline is None:
-                more = attempt < _PILOT_TRIES
+                # The pilot is waiting: an autopilot that does not answer is told at once.
+                more = attempt < _PILOT_TRIES and res is not None
             else:
                 more = self.clock() + _RETRY_S < deadline
             if not more:
                 tries = "1 try" if attempt == 1 else f"{attempt} tries"
                 raise EngageError(
-                    f"{name} refused {what} (MAV_RESULT {res}), {tries} in "
+                    f"{name} refused {what} ({answer}), {tries} in "
                     f"{self.clock() - t0:.1f} s: {reason}"
                 )
             if not self.core.commanding:

@@ -70,7 +70,7 @@ def test_replay_of_a_recorded_flight_reproduces_it_and_writes_the_outputs(tmp_pa
     # control.mcap; the paths in its header are absolute, so replay finds the
     # recorded controller and profile from any working directory.
     flight = fly_mavlink(F450, "paper-acro", tmp_path / "flight", duration_s=5.0, timeout_s=60.0)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     log = flight.control_log
     cols, meta = read_control_log(log)
     n_engaged = int((cols["engaged"] > 0.5).sum())

@@ -95,6 +95,19 @@ class FlightProcesses:
         p = self.out_dir / name
         return p.read_text(encoding="utf-8", errors="replace") if p.exists() else ""
 
+    def why(self, events: int = 8) -> str:
+        """What a failed flight's reader needs first: the companion's exit code,
+        its stderr and its last ``events`` (an engagement that gave up says why
+        only there), and the SITL's summary."""
+        last = "\n".join(
+            f"  {e.get('t_s')} {e.get('kind')}: {e.get('detail', '')}"
+            for e in self.companion_events[-events:]
+        )
+        return (
+            f"companion exit {self.companion_rc}; stderr:\n{self.text('companion.stderr')}"
+            f"its last events:\n{last}\nthe SITL's summary: {self.sitl_summary}"
+        )
+
 
 def _read_jsonl(path: Path) -> list[dict[str, Any]]:
     if not path.exists():

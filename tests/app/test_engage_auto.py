@@ -284,3 +284,57 @@ async def test_ardupilot_refusing_guided_nogps_for_a_while_is_tried_again(start:
     ]
     f.fake.set_state(APM_GUIDED_NOGPS, armed=True)
     await f.feed_until(lambda: f.companion.engaged, send=feed(f), what="engaged")
+
+
+def lost_ack(fake_ref: list[Flight], *, arms: bool) -> Callable[[Any], None]:
+    """ARM: no ACK ever comes back; the vehicle arms all the same when ``arms``
+    (an ACK lost on the way back), or stays disarmed (the command lost)."""
+
+    def answer(m: Any) -> None:
+        if arms:
+            fake_ref[0].fake.set_state(APM_GUIDED_NOGPS, armed=True)
+
+    return answer
+
+
+async def test_an_arm_whose_ack_is_lost_counts_when_the_heartbeat_shows_it_armed(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A loaded lockstep SITL answered the arming late, after the companion's
+    last resend: it had armed, and the companion, taking the missing ACK for
+    the end, left it flying its setpoints' loss failsafe."""
+    monkeypatch.setattr(engagement, "_ACK_TIMEOUT_S", 0.02)
+    ref: list[Flight] = []
+    f = await ardupilot(start, {CMD_ARM: lost_ack(ref, arms=True)})
+    ref.append(f)
+    await streams_requested(f, MSG_ATTITUDE)
+    await f.feed_until(lambda: f.companion.engaged, send=feed(f), timeout_s=5.0, what="engaged")
+    # The link's own resends, none answered, and the heartbeat's word after them:
+    await f.feed_until(
+        lambda: len(f.fake.commands(CMD_ARM)) == 4, send=feed(f), timeout_s=5.0, what="4 ARMs"
+    )
+    fed = itertools.count()
+    await f.feed_until(lambda: next(fed) == 100, send=feed(f), what="100 samples more")
+    assert len(f.fake.commands(CMD_ARM)) == 4
+    assert "arm_refused" not in f.kinds()
+    assert "engage_failed" not in f.kinds()
+    assert not f.task.done()
+
+
+async def test_an_arm_never_answered_is_tried_again_until_the_bound_then_exits_1(
+    start: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(engagement, "_ACK_TIMEOUT_S", 0.02)
+    ref: list[Flight] = []
+    f = await ardupilot(start, {CMD_ARM: lost_ack(ref, arms=False)}, arm_timeout_s=1.0)
+    ref.append(f)
+    await streams_requested(f, MSG_ATTITUDE)
+    await f.feed_until(f.task.done, send=feed(f), timeout_s=5.0, what="the run's end")
+    assert await f.finish() == 1
+    refused = f.details("arm_refused")
+    assert len(refused) >= 2  # tried again, as a refusal is
+    assert all(r.startswith(f"try {i}: no ACK: ") for i, r in enumerate(refused, 1))
+    assert all("no COMMAND_ACK for command 400" in r for r in refused)
+    [failed] = f.details("engage_failed")
+    assert failed.startswith(f"ardupilot refused to arm (no ACK), {len(refused)} tries in ")
+    assert "engaged" not in f.kinds()

@@ -47,7 +47,7 @@ def test_the_sticks_are_angles_and_centred_sticks_level(tmp_path: Path) -> None:
         ROOT / "vehicle_profiles" / "f450.yaml", str(scenario), tmp_path / "flight",
         duration_s=8.5, companion_args=("--mode", "angle"),
     )  # fmt: skip
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     kinds = [e["kind"] for e in flight.companion_events]
     assert "estimate_stream" in kinds and not any(k.startswith("failsafe") for k in kinds)
     t_eng = next(float(e["t_s"]) for e in flight.companion_events if e["kind"] == "engaged")

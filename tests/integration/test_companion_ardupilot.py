@@ -75,7 +75,7 @@ def test_prearm_failure_is_reported_with_the_autopilots_words(tmp_path: Path) ->
 
 def test_a_denied_imu_rate_falls_back_to_the_fastest_accepted(tmp_path: Path) -> None:
     flight = fly(tmp_path, comp=("--rate-hz", "1000"))
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     denied = [e["detail"] for e in flight.companion_events if e["kind"] == "imu_rate_denied"]
     stream = [e["detail"] for e in flight.companion_events if e["kind"] == "imu_stream"]
     assert denied and "400 Hz" in denied[0]  # beyond loop period / 0.8 at 400 Hz
@@ -86,7 +86,7 @@ def test_rates_flight_engages_guided_nogps_and_hands_back_to_alt_hold(tmp_path: 
     # 9 s: at 9.7 s paper-acro's 720 deg/s roll outruns ArduCopter's shaped rate
     # input (ATC_ACCEL_R_MAX) and the envelope failsafe ends the flight.
     flight = fly(tmp_path, duration_s=9.0)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     ks = kinds(flight)
     assert ks.index("engaged") < ks.index("handed_back")
     # Taking off in GUIDED_NOGPS with GUID_OPTIONS 8, ArduCopter 4.5 reports an

@@ -35,7 +35,7 @@ def killed(tmp_path: Path, output: str, loss_s: float) -> tuple[KilledFlight, Ki
     k = fly_killed(
         F450, "paper-acro", tmp_path, KILL, output=output, offboard_timeout_s=loss_s, fly_on_s=4.0
     )
-    assert k.flight.companion_rc == -signal.SIGKILL, k.flight.text("companion.stderr")
+    assert k.flight.companion_rc == -signal.SIGKILL, k.flight.why()
     assert k.figures is not None, k.notes
     f = k.figures
     assert f.t_kill_s == pytest.approx(KILL.after_s, abs=0.005), f

@@ -50,7 +50,7 @@ def test_flight_telemetry_reaches_the_broker(tmp_path: Path) -> None:
             duration_s=8.0,
             companion_args=("--mqtt", f"mqtt://127.0.0.1:{broker.port}/mfc/test"),
         )  # fmt: skip
-        assert flight.companion_rc == 0, flight.text("companion.stderr")
+        assert flight.companion_rc == 0, flight.why()
     finally:
         stop.set()
         broker.kill()

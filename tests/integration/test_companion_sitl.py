@@ -59,7 +59,7 @@ MEASURED_20S = {
 @pytest.mark.parametrize("profile", ["f450", "f450_cut_props", "tarot650", "x500"])
 def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profile: str) -> None:
     flight = fly_mavlink(PROFILES / f"{profile}.yaml", "paper-acro", tmp_path, duration_s=20.0)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     # The run's end hands back (valid RC from the SITL's pilot, a position: POSCTL)
     # and the watch sees it held. (After the hand-back the lockstep SITL no longer
     # waits for the companion, and a loaded machine may pause its stream meanwhile:
@@ -136,7 +136,7 @@ def test_failsafe_ends_in_hand_back(tmp_path: Path, fault: str, expected: set[st
         sitl_args=("--fault", fault, *clock, *loss),
     )  # fmt: skip
     wall = time.monotonic() - t0
-    assert flight.companion_rc == 3, flight.text("companion.stderr")  # EXIT_FAILSAFE
+    assert flight.companion_rc == 3, flight.why()  # EXIT_FAILSAFE
     ev = failsafe(flight)
     assert ev["kind"] in expected, kinds(flight.companion_events)
     if fault.startswith("motor-fail") and ev["kind"] == "failsafe_rc_lost":
@@ -203,7 +203,7 @@ def test_rates_output_wraps_the_autopilot_rate_loop_and_beats_passthrough(tmp_pa
             PROFILES / "f450.yaml", "paper-acro", tmp_path / label, output="rates",
             companion_args=extra, duration_s=30.0,
         )  # fmt: skip
-        assert flight.companion_rc == 0, flight.text("companion.stderr")
+        assert flight.companion_rc == 0, flight.why()
         assert flight.sitl_summary["setpoints_received"] > 5000
         m = compute_metrics(merge_logs(flight))
         assert not m["crashed"] and m["airborne_time_s"] > 25.0
@@ -225,7 +225,7 @@ def test_a_reference_file_replaces_the_sticks(tmp_path: Path) -> None:
         PROFILES / "f450.yaml", "hover-gusts", tmp_path / "flight", duration_s=8.0,
         companion_args=("--reference", str(script)),
     )  # fmt: skip
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     rec = merge_logs(flight).columns
     t = rec["t_s"] - rec["t_s"][0]
     roll_ref = np.degrees(rec["ref_rad_s"][:, 0])

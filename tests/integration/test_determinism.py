@@ -49,7 +49,7 @@ def test_two_lockstep_flights_of_one_seed_are_the_same(
         for i in (1, 2)
     ]  # fmt: skip
     for f in flights:
-        assert f.companion_rc == 0, f.text("companion.stderr")
+        assert f.companion_rc == 0, f.why()
         assert f.sitl_summary["link"].startswith(link)
         # A setpoint the SITL stopped waiting for is a different flight.
         end_s = next(e["t_s"] for e in f.companion_events if e["kind"] == "duration")

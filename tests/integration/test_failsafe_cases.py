@@ -152,7 +152,7 @@ def fly_one_failsafe(
         companion_args=companion_args,
     )  # fmt: skip
     ev = flight.companion_events
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.why()
     assert kinds(failsafes(ev)) == [kind], kinds(ev)
     fs = failsafes(ev)[0]
     t_fault = fault_time(flight.sitl_events, fault.partition("@")[0])
@@ -383,7 +383,7 @@ def test_out_of_range_gyro_is_failsafe_invalid_imu(tmp_path: Path) -> None:
         companion_args=("--invalid-imu-s", str(invalid_imu_s)),
     )  # fmt: skip
     ev = flight.companion_events
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.why()
     assert kinds(failsafes(ev)) == ["failsafe_invalid_imu"], kinds(ev)
     fs = failsafes(ev)[0]
     t_fault = fault_time(flight.sitl_events, "imu-range")
@@ -441,7 +441,7 @@ def test_tracking_error_beyond_the_envelope_is_failsafe_envelope(tmp_path: Path)
                         "--envelope-time-s", str(ENVELOPE_TIME_S)),
     )  # fmt: skip
     ev = flight.companion_events
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.why()
     assert kinds(failsafes(ev)) == ["failsafe_envelope"], kinds(ev)
     fs = failsafes(ev)[0]
     assert "tracking error" in fs["detail"] and "limit 5" in fs["detail"], fs
@@ -490,7 +490,7 @@ def test_sigint_during_a_flight_hands_back_and_exits_zero(tmp_path: Path) -> Non
         on_started=started, progress=progress,
     )  # fmt: skip
     assert "sent" in procs, "the flight never got going"
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     ev = flight.companion_events
     ks = kinds(ev)
     assert not failsafes(ev), ks

@@ -99,7 +99,7 @@ def test_px4_without_radio_hands_back_to_hold(tmp_path: Path) -> None:
     """The case of the report: a scripted flight's end on PX4 must not ask for
     POSCTL (PX4 would refuse or fail safe out of it with no manual control)."""
     flight = fly_without_radio(tmp_path)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     ev = flight.companion_events
     ended = ev[kinds(ev).index("handed_back") - 1]
     back = assert_timely(flight, ended, "HOLD")
@@ -112,7 +112,7 @@ def test_px4_without_radio_or_position_lands_after_a_failsafe(tmp_path: Path) ->
     """The gyro reads beyond its range (invalid IMU, judged in sample time) on a
     vehicle with neither: land."""
     flight = fly_without_radio(tmp_path, sitl_args=("--no-position", "--fault", "imu-range@3"))
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.why()
     ev = flight.companion_events
     fs = only(ev, "failsafe_invalid_imu")
     back = assert_timely(flight, fs, "LAND")
@@ -125,7 +125,7 @@ def test_px4_without_radio_or_position_lands_after_a_failsafe(tmp_path: Path) ->
 
 def test_ardupilot_without_radio_hands_back_to_loiter(tmp_path: Path) -> None:
     flight = fly_without_radio(tmp_path, autopilot="ardupilot")
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     ev = flight.companion_events
     ended = ev[kinds(ev).index("handed_back") - 1]
     assert_timely(flight, ended, "LOITER")
@@ -134,7 +134,7 @@ def test_ardupilot_without_radio_hands_back_to_loiter(tmp_path: Path) -> None:
 
 def test_ardupilot_without_radio_or_position_lands(tmp_path: Path) -> None:
     flight = fly_without_radio(tmp_path, autopilot="ardupilot", sitl_args=("--no-position",))
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     ev = flight.companion_events
     ended = ev[kinds(ev).index("handed_back") - 1]
     assert_timely(flight, ended, "LAND")
@@ -160,7 +160,7 @@ def test_ardupilot_rc_loss_the_radio_failsafe_acts_and_the_companion_hands_back(
         sitl_args=("--fault", "rc-lost@3", "--clock", "realtime"),
         companion_args=("--hand-back-watch-s", "3"),
     )  # fmt: skip
-    assert flight.companion_rc == EXIT_FAILSAFE, flight.text("companion.stderr")
+    assert flight.companion_rc == EXIT_FAILSAFE, flight.why()
     ev = flight.companion_events
     lost = only(ev, "rc_receiver_lost")
     failsafes = [e for e in ev if str(e["kind"]).startswith("failsafe_")]

@@ -58,7 +58,7 @@ def fly_position_mode(
         ROOT / "vehicle_profiles" / "f450.yaml", str(path), tmp_path / "flight",
         duration_s=duration_s, companion_args=("--mode", "position"),
     )  # fmt: skip
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     kinds = [e["kind"] for e in flight.companion_events]
     assert not any(k.startswith("failsafe") for k in kinds), kinds
     return flight, read_log(flight.sitl_log)

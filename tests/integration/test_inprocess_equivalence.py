@@ -47,7 +47,7 @@ def test_same_scenario_same_seed_same_flight_both_ways(tmp_path: Path) -> None:
     # 6 s holds the exact comparison; the MAE bound below is the long-run check.
     duration = 6.0
     flight = fly_mavlink(profile, "paper-acro", tmp_path, duration_s=duration, sitl_args=PATIENT)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     mav_rec = merge_logs(flight)
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration})
     in_rec = simulate_flight(load_profile(profile), load_controller(), sc)
@@ -87,7 +87,7 @@ def test_through_a_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     flight = fly_mavlink(
         profile, "paper-acro", tmp_path, duration_s=duration, link=link, sitl_args=PATIENT
     )
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     mav_rec = merge_logs(flight)
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration, "link": link})
     in_rec = simulate_flight(load_profile(profile), load_controller(), sc)
@@ -120,7 +120,7 @@ def test_through_a_uart_link_the_same_flight_both_ways(tmp_path: Path) -> None:
     flight = fly_mavlink(
         profile, "paper-acro", tmp_path, duration_s=duration, link=link, sitl_args=PATIENT
     )
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     a = merge_logs(flight).columns
     sc = load_scenario("paper-acro").model_copy(update={"duration_s": duration, "link": link})
     b = simulate_flight(load_profile(profile), load_controller(), sc).columns

@@ -45,7 +45,7 @@ def test_a_wifi_link_loses_and_reorders_and_lockstep_never_times_out(tmp_path: P
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path, duration_s=duration_s, link=LINK_PROFILES["wifi"]
     )
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     summary = flight.sitl_summary
     counts = summary["link_counts"]
     assert counts["up_lost"] > 0 and counts["down_lost"] >= 0
@@ -69,7 +69,7 @@ def test_a_5_ms_link_hands_each_command_over_10_ms_after_its_sample(tmp_path: Pa
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path, duration_s=duration_s, link=parse_link("delay_ms=5")
     )
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     summary = flight.sitl_summary
     assert summary["link"] == "custom (5+-0 ms up, 5+-0 ms down)"
     age = summary["setpoint_age_ms"]
@@ -95,7 +95,7 @@ def _fly_realtime(tmp_path: Path, link: str) -> tuple[dict[str, np.ndarray], flo
     flight = fly_mavlink(
         F450, "paper-acro", tmp_path, duration_s=1.0, link=spec, sitl_args=["--clock", "realtime"]
     )
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     assert flight.sitl_summary["clock"] == "realtime"  # fly_mavlink's lockstep, overridden
     assert flight.sitl_summary["link"] == spec.describe()
     assert "link_slow" not in [e["kind"] for e in flight.companion_events]

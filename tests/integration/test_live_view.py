@@ -134,7 +134,7 @@ def test_a_viewer_that_stops_reading_costs_the_flight_nothing(tmp_path: Path) ->
         **kwargs,
     )
     for f in (alone, watched):
-        assert f.companion_rc == 0, f.text("companion.stderr")
+        assert f.companion_rc == 0, f.why()
     seen = viewer.result()
     assert seen.counts.get("/rates", 0) > 0  # it was subscribed and got some first
     metrics = [compute_metrics(merge_logs(f)) for f in (alone, watched)]

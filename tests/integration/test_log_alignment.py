@@ -29,7 +29,7 @@ AXES = ("roll", "pitch", "yaw")
 
 def test_every_logged_sample_is_the_autopilots_at_the_same_time(tmp_path: Path) -> None:
     flight = fly_mavlink(F450, "paper-acro", tmp_path / "flight", duration_s=6.0)
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     sitl = read_log(flight.sitl_log)
     imu_us = np.round(sitl["imu_t_s"] * 1e6).astype(np.int64)
     at = {int(t): i for i, t in enumerate(imu_us)}

@@ -44,7 +44,7 @@ def test_a_shared_key_flies_and_every_frame_is_signed(tmp_path: Path) -> None:
         PROFILE, "paper-acro", tmp_path / "flight", duration_s=5.0,
         sitl_args=("--signing-key", str(key)), companion_args=("--signing-key", str(key)),
     )  # fmt: skip
-    assert flight.companion_rc == 0, flight.text("companion.stderr")
+    assert flight.companion_rc == 0, flight.why()
     assert "engaged" in [e["kind"] for e in flight.companion_events]
     assert flight.sitl_summary["setpoints_received"] > 1000
     frames = tlog_frames(flight.out_dir / "companion" / "flight.tlog")
