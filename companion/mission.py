@@ -3,8 +3,8 @@ r"""A mission: waypoints flown in position mode (``companion run --mode position
 The file (YAML)::
 
     speed_m_s: 2.0                 # default speed along a leg, m/s
-    accel_m_s2: 2.5                # speeding up and slowing down on a leg, m/s^2
-    jerk_m_s3: 4.0                 # how fast that acceleration comes and goes, m/s^3
+    accel_m_s2: 2.5                # speeding up and slowing down on a leg, m/s^2 (optional)
+    jerk_m_s3: 1.0                 # how fast that acceleration comes and goes, m/s^3 (optional)
     waypoints:                     # from where the mission starts: north, east, up (m)
       - {north_m: 0, east_m: 0, up_m: 5, hold_s: 2}
       - {north_m: 10, east_m: 0, up_m: 5}
@@ -17,14 +17,16 @@ leg goes from there to the first waypoint.
 The path (:class:`MissionPath`) moves the position setpoint along each leg in a
 straight line, the velocity and acceleration as feedforward: from rest up to the
 leg's speed, on at that speed, and down to rest at the waypoint, as the
-autopilots' own missions slow for a corner (PX4's ``MPC_ACC_HOR``, 3 m/s^2;
-ArduCopter's ``WPNAV_ACCEL``, 2.5 m/s^2, by default). The acceleration is
-limited to ``accel_m_s2`` and comes and goes at ``jerk_m_s3`` (an S-curve, as
-both autopilots' missions shape theirs: PX4's ``MPC_JERK_AUTO`` is 4 m/s^3 by
-default): a mission starts without a jolt. A leg too short to reach its speed
-peaks lower; ``jerk_m_s3: null`` steps the acceleration (a leg of length
-:math:`L` at speed :math:`v` then takes :math:`L/v + v/a`; with the jerk
-:math:`j`, :math:`a/j` longer). The setpoint
+autopilots' own missions slow for a corner. The acceleration is limited to
+``accel_m_s2`` and comes and goes at ``jerk_m_s3`` (an S-curve, as both
+autopilots' missions shape theirs): a mission starts without a jolt. Where the
+file does not give them, they are the autopilot's own mission's, read from it
+(:class:`~companion.control.stick_limits.MissionLimits`: PX4's ``MPC_ACC_HOR``
+and ``MPC_JERK_AUTO``, 3 m/s^2 and 4 m/s^3 by default; ArduCopter's
+``WPNAV_ACCEL`` and ``WPNAV_JERK``, 2.5 m/s^2 and 1 m/s^3). A leg too short to
+reach its speed peaks lower; ``jerk_m_s3: null`` steps the acceleration (a leg
+of length :math:`L` at speed :math:`v` then takes :math:`L/v + v/a`; with the
+jerk :math:`j`, :math:`a/j` longer). The setpoint
 holds at a waypoint for its ``hold_s``; a climb and a descent are no faster than
 the position mode's stick limits (the autopilot's: PX4 3 and 1.5 m/s by default,
 ArduCopter 2.5 m/s), the leg slower if need be. After the last waypoint the
@@ -46,7 +48,7 @@ from pydantic import Field
 
 from companion.control.horizontal import DEFAULT_HORIZONTAL_GAINS, HorizontalSetpoint
 from companion.control.outer import OuterSetpoint
-from companion.control.stick_limits import ClimbLimits
+from companion.control.stick_limits import StickLimits
 from companion.control.vertical import VerticalSetpoint
 from companion.schema import StrictModel, load_yaml_model
 
@@ -86,11 +88,15 @@ class Mission(StrictModel):
     speed_m_s: Annotated[float, Field(gt=0.0, le=MAX_SPEED_M_S)] = Field(
         2.0, description="speed along a leg, m/s"
     )
-    accel_m_s2: Annotated[float, Field(gt=0.0, le=MAX_ACCEL_M_S2)] = Field(
-        2.5, description="speeding up from and slowing down to rest at each waypoint, m/s^2"
+    accel_m_s2: Annotated[float, Field(gt=0.0, le=MAX_ACCEL_M_S2)] | None = Field(
+        None,
+        description="speeding up from and slowing down to rest at each waypoint, m/s^2; "
+        "absent: the autopilot's own missions'",
     )
     jerk_m_s3: Annotated[float, Field(ge=0.1, le=MAX_JERK_M_S3)] | None = Field(
-        4.0, description="how fast the acceleration comes and goes, m/s^3; null: at once"
+        None,
+        description="how fast the acceleration comes and goes, m/s^3; absent: the "
+        "autopilot's own missions'; null: at once",
     )
     waypoints: Annotated[list[Waypoint], Field(min_length=1, max_length=MAX_WAYPOINTS)]
 
@@ -115,17 +121,25 @@ class MissionPath:
         The waypoints.
     origin_ned_m
         Where the mission starts (the position estimate as it engages), NED, m.
-    climb
-        The stack's climb and descent limits (its sticks'): no leg climbs or
-        descends faster.
+    limits
+        The stack's: no leg climbs or descends faster than its sticks may
+        (``climb``); its own missions' acceleration and jerk (``mission``) where
+        the file gives none.
     """
 
-    def __init__(self, mission: Mission, origin_ned_m: Vec3, climb: ClimbLimits) -> None:
+    def __init__(self, mission: Mission, origin_ned_m: Vec3, limits: StickLimits) -> None:
         o = origin_ned_m
         points = [o] + [
             (o[0] + w.north_m, o[1] + w.east_m, o[2] - w.up_m) for w in mission.waypoints
         ]
-        accel, jerk = mission.accel_m_s2, mission.jerk_m_s3
+        climb = limits.climb
+        accel = limits.mission.accel_m_s2 if mission.accel_m_s2 is None else mission.accel_m_s2
+        given = "jerk_m_s3" in mission.model_fields_set  # null, given: stepped
+        jerk = mission.jerk_m_s3 if given else limits.mission.jerk_m_s3
+        self.accel_m_s2 = accel
+        """The acceleration flown (the file's, or the stack's), m/s^2."""
+        self.jerk_m_s3 = jerk
+        """The jerk flown (the file's, the stack's, or None: stepped), m/s^3."""
         self._legs: list[_Leg] = []
         """In time order; a hold at a waypoint is a leg of length 0."""
         self.arrivals_s: list[float] = []

@@ -393,14 +393,16 @@ class ModeLaws:
         assert hold is not None and mission is not None
         path = self.mission_path
         if path is None:
-            path = self.mission_path = MissionPath(mission, pos, hold.limits.climb)
+            path = self.mission_path = MissionPath(mission, pos, hold.limits)
             self.mission_t = 0.0
             self._mission_reached = 0
             self.events.append((
                 "mission_started",
                 # The lab reads the start back from this text (sitl/lab/outer_report.py).
                 f"{len(mission.waypoints)} waypoints from N {pos[0]:.2f} E {pos[1]:.2f} "
-                f"D {pos[2]:.2f} m, {path.duration_s:.1f} s",
+                f"D {pos[2]:.2f} m, {path.duration_s:.1f} s, accelerating at "
+                f"{path.accel_m_s2:g} m/s^2, jerk "
+                + ("none (stepped)" if path.jerk_m_s3 is None else f"{path.jerk_m_s3:g} m/s^3"),
             ))  # fmt: skip
         if not on_ground:
             self.mission_t += dt

@@ -57,6 +57,7 @@ from companion.control.stick_limits import (
     ClimbLimits,
     HorizontalLimits,
     LoiterStickAcceleration,
+    MissionLimits,
     Px4DirectVelocity,
     Px4StickAcceleration,
     StickLimits,
@@ -156,7 +157,8 @@ def _px4_stick_limits(p: Mapping[str, float]) -> StickLimits:
             dz, p["MPC_XY_MAN_EXPO"], p["MPC_VEL_MANUAL"], p["MPC_ACC_HOR"],
             p["MPC_JERK_MAX"], p["MPC_TILTMAX_AIR"],
         )  # fmt: skip
-    return StickLimits(min(p["MPC_MAN_TILT_MAX"], _TILT_MAX_DEG), climb, horizontal)
+    mission = MissionLimits(p["MPC_ACC_HOR"], p["MPC_JERK_AUTO"])
+    return StickLimits(min(p["MPC_MAN_TILT_MAX"], _TILT_MAX_DEG), climb, horizontal, mission)
 
 
 PX4_STICK_PARAMS = StickParams(
@@ -174,6 +176,7 @@ PX4_STICK_PARAMS = StickParams(
         "MPC_VEL_MANUAL": 10.0,  # m/s
         "MPC_ACC_HOR": 3.0,  # m/s^2 (full stick asks twice this at rest)
         "MPC_JERK_MAX": 8.0,  # m/s^3
+        "MPC_JERK_AUTO": 4.0,  # m/s^3: its missions'
         "MPC_TILTMAX_AIR": 45.0,  # deg
         "MPC_THR_HOVER": 0.5,  # normalised collective
     },
@@ -208,7 +211,8 @@ def _ardupilot_stick_limits(p: Mapping[str, float]) -> StickLimits:
         brake_delay_s=p["LOIT_BRK_DELAY"],
         brake_gain_1_s=0.5 * p["PSC_VELXY_P"],
     )
-    return StickLimits(min(lean_max, _TILT_MAX_DEG), climb, horizontal)
+    mission = MissionLimits(p["WPNAV_ACCEL"] * 0.01, p["WPNAV_JERK"])  # cm/s^2, m/s^3
+    return StickLimits(min(lean_max, _TILT_MAX_DEG), climb, horizontal, mission)
 
 
 ARDUPILOT_STICK_PARAMS = StickParams(
@@ -229,6 +233,8 @@ ARDUPILOT_STICK_PARAMS = StickParams(
         "PILOT_ACCEL_Z": 250.0,  # cm/s^2
         "THR_DZ": 100.0,  # us around mid-throttle
         "RC1_DZ": 20.0,  # us around the roll stick's centre
+        "WPNAV_ACCEL": 250.0,  # cm/s^2: AUTO's
+        "WPNAV_JERK": 1.0,  # m/s^3: AUTO's
         "MOT_THST_HOVER": 0.35,  # normalised throttle (learnt in flight)
     },
     build=_ardupilot_stick_limits,

@@ -132,6 +132,8 @@ PARAM_SPECS: tuple[ParamSpec, ...] = (
     ParamSpec("RCMAP_YAW", 4, PARAM_INT8, 1, 16, "yaw channel"),
     ParamSpec("SCHED_LOOP_RATE", 400, PARAM_INT16, 50, 2000, "main loop, Hz (at boot)"),
     ParamSpec("THR_DZ", 100, PARAM_INT16, 0, 300, "mid-throttle dead zone, us"),
+    ParamSpec("WPNAV_ACCEL", 250.0, PARAM_REAL32, 50.0, 500.0, "AUTO's acceleration, cm/s^2"),
+    ParamSpec("WPNAV_JERK", 1.0, PARAM_REAL32, 1.0, 20.0, "AUTO's jerk, m/s^3"),
     ParamSpec("WPNAV_SPEED_DN", 150.0, PARAM_REAL32, 10, 500, "guided max descent, cm/s"),
     ParamSpec("WPNAV_SPEED_UP", 250.0, PARAM_REAL32, 10, 1000, "guided max climb, cm/s"),
     # AC_AttitudeControl_Multi.h defaults (AC_ATC_MULTI_RATE_*).

@@ -114,6 +114,7 @@ _PX4_SPECS: tuple[ParamSpec, ...] = (
     _f("MPC_ACC_HOR", 3.0, 2.0, 15.0, "m/s^2, Position mode (x2 at full stick)"),
     _f("MPC_ACC_UP_MAX", 4.0, 2.0, 15.0, "m/s^2, climb rate controlled modes' rise"),
     _f("MPC_HOLD_DZ", 0.1, 0.0, 1.0, "stick deadzone of the piloted modes"),
+    _f("MPC_JERK_AUTO", 4.0, 1.0, 80.0, "m/s^3, missions"),
     _f("MPC_JERK_MAX", 8.0, 0.5, 500.0, "m/s^3, Position/Altitude mode"),
     _f("MPC_MAN_TILT_MAX", 35.0, 1.0, 70.0, "deg, Stabilized and Altitude mode"),
     _i("MPC_POS_MODE", 4, 0, 4, "Position mode: 0 direct velocity, 4 acceleration based"),

@@ -319,6 +319,29 @@ HorizontalLimits = Px4StickAcceleration | Px4DirectVelocity | LoiterStickAcceler
 
 
 @dataclass(frozen=True)
+class MissionLimits:
+    """How the stack's own mission speeds up and slows down along a leg: a
+    mission file's defaults (:mod:`companion.mission`).
+
+    Attributes
+    ----------
+    accel_m_s2
+        Horizontal acceleration, m/s^2 (PX4 ``MPC_ACC_HOR``, ArduCopter ``WPNAV_ACCEL``).
+    jerk_m_s3
+        How fast it comes and goes, m/s^3 (PX4 ``MPC_JERK_AUTO``, ArduCopter ``WPNAV_JERK``).
+    """
+
+    accel_m_s2: float
+    jerk_m_s3: float
+
+    def __post_init__(self) -> None:
+        check_positive(self, ("accel_m_s2", "jerk_m_s3"))
+
+    def summary(self) -> str:
+        return f"missions {self.accel_m_s2:g} m/s^2, jerk {self.jerk_m_s3:g} m/s^3"
+
+
+@dataclass(frozen=True)
 class StickLimits:
     """Everything the sticks may ask, one stack's (:mod:`companion.stacks` builds it).
 
@@ -330,11 +353,14 @@ class StickLimits:
         The throttle in the altitude and position modes.
     horizontal
         The roll and pitch sticks in the position mode.
+    mission
+        The stack's own mission's acceleration and jerk (a mission file's defaults).
     """
 
     tilt_max_deg: float
     climb: ClimbLimits
     horizontal: HorizontalLimits
+    mission: MissionLimits
 
     def __post_init__(self) -> None:
         if not (0.0 < self.tilt_max_deg <= 60.0):
@@ -343,7 +369,8 @@ class StickLimits:
     def summary(self) -> str:
         """The limits in a line (the run's ``stick_limits`` event)."""
         return (
-            f"tilt {self.tilt_max_deg:g} deg; {self.climb.summary()}; {self.horizontal.summary()}"
+            f"tilt {self.tilt_max_deg:g} deg; {self.climb.summary()}; "
+            f"{self.horizontal.summary()}; {self.mission.summary()}"
         )
 
 

@@ -11,6 +11,7 @@ from companion.control.hold_modes import TAKE_OVER_STILL_M_S, HoldMode, stick_ne
 from companion.control.quaternion import Vec3, euler_to_quat
 from companion.control.stick_limits import (
     ClimbLimits,
+    MissionLimits,
     Px4DirectVelocity,
     Px4StickAcceleration,
     StickLimits,
@@ -31,11 +32,13 @@ PX4_STICKS = Px4StickAcceleration(
     deadband=0.1, expo=0.6, speed_max_m_s=10.0, accel_m_s2=3.0, jerk_max_m_s3=8.0,
     tilt_max_deg=45.0,
 )  # fmt: skip
-LIMITS = StickLimits(35.0, CLIMB, PX4_STICKS)
+MISSIONS = MissionLimits(accel_m_s2=3.0, jerk_m_s3=4.0)
+LIMITS = StickLimits(35.0, CLIMB, PX4_STICKS, MISSIONS)
 LINEAR = StickLimits(
     35.0,
     ClimbLimits(0.1, 0.0, 3.0, 1.5, 4.0, 3.0),
     Px4DirectVelocity(deadband=0.1, expo=0.0, speed_max_m_s=10.0),
+    MISSIONS,
 )
 """No expo and no shaping: the sticks' answers by hand."""
 

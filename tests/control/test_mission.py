@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.control.stick_limits import ClimbLimits
 from companion.errors import ConfigError
 from companion.mission import Mission, MissionPath, Waypoint, load_mission
+from companion.stacks import ARDUPILOT_STICK_PARAMS, PX4_STICK_PARAMS
 
-CLIMB = ClimbLimits(0.1, 0.6, 3.0, 1.5, 4.0, 3.0)
-"""PX4's defaults: a climb at most 3 m/s, a descent 1.5 m/s."""
+CLIMB = PX4_STICK_PARAMS.limits()
+"""PX4's defaults: a climb at most 3 m/s, a descent 1.5 m/s; its missions 3 m/s^2
+and 4 m/s^3."""
 
 
 def square(accel_m_s2: float = 2.0, jerk_m_s3: float | None = None, **first: float) -> Mission:
@@ -114,7 +115,32 @@ def test_the_s_curve_takes_a_over_j_longer_per_leg() -> None:
     assert path.duration_s == pytest.approx(6.5)
     assert path.at(0.25).horizontal.accel_ne_m_s2[0] == pytest.approx(1.0)  # 4 m/s^3 x 0.25 s
     assert path.at(3.25).horizontal.velocity_ne_m_s[0] == pytest.approx(2.0)
-    assert Mission(waypoints=[Waypoint(north_m=1, east_m=0, up_m=0)]).jerk_m_s3 == 4.0
+
+
+@pytest.mark.parametrize(
+    ("params", "accel", "jerk"),
+    [
+        (PX4_STICK_PARAMS, 3.0, 4.0),  # MPC_ACC_HOR, MPC_JERK_AUTO
+        (ARDUPILOT_STICK_PARAMS, 2.5, 1.0),  # WPNAV_ACCEL (cm/s^2), WPNAV_JERK
+    ],
+)
+def test_a_file_without_acceleration_or_jerk_flies_the_stacks_own_missions(
+    params: object, accel: float, jerk: float
+) -> None:
+    """A 10 m leg at 2 m/s: 10/2 + 2/a + a/j s (the acceleration reached)."""
+    mission = Mission(speed_m_s=2.0, waypoints=[Waypoint(north_m=10, east_m=0, up_m=0)])
+    assert mission.accel_m_s2 is None and mission.jerk_m_s3 is None
+    limits = params.limits()  # type: ignore[attr-defined]
+    path = MissionPath(mission, (0.0, 0.0, 0.0), limits)
+    assert (path.accel_m_s2, path.jerk_m_s3) == (accel, jerk)
+    peak = min(accel, math.sqrt(2.0 * jerk))  # v = a^2 / j at the peak, if short of a
+    assert path.duration_s == pytest.approx(5.0 + 2.0 / peak + peak / jerk)
+    # The stack's own, read from it: the file's, where it gives them.
+    read = params.limits({"MPC_ACC_HOR": 2.0, "MPC_JERK_AUTO": 8.0,  # type: ignore[attr-defined]
+                          "WPNAV_ACCEL": 200.0, "WPNAV_JERK": 8.0})  # fmt: skip
+    assert MissionPath(mission, (0.0, 0.0, 0.0), read).jerk_m_s3 == 8.0
+    given = mission.model_copy(update={"accel_m_s2": 1.0})
+    assert MissionPath(given, (0.0, 0.0, 0.0), read).accel_m_s2 == 1.0
 
 
 def test_after_the_end_it_holds_the_last_waypoint_and_counts_them() -> None:

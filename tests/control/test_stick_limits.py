@@ -10,6 +10,7 @@ from companion.control.stick_limits import (
     ClimbLimits,
     HorizontalShaper,
     LoiterStickAcceleration,
+    MissionLimits,
     Px4DirectVelocity,
     Px4StickAcceleration,
     StickLimits,
@@ -126,7 +127,13 @@ def test_loiter_brakes_harder_after_its_delay_and_stops_at_zero() -> None:
         (lambda: ClimbLimits(1.0, 0.0, 3.0, 1.5, 4.0, 3.0), "deadband"),
         (lambda: ClimbLimits(0.1, 0.0, 0.0, 1.5, 4.0, 3.0), "up_max_m_s"),
         (lambda: Px4StickAcceleration(0.1, 0.6, 10.0, 3.0, 8.0, 90.0), "tilt_max_deg"),
-        (lambda: StickLimits(70.0, ClimbLimits(0.1, 0.0, 3, 1.5, 4, 3), PX4), "tilt_max_deg"),
+        (
+            lambda: StickLimits(
+                70.0, ClimbLimits(0.1, 0.0, 3, 1.5, 4, 3), PX4, MissionLimits(3.0, 4.0)
+            ),
+            "tilt_max_deg",
+        ),
+        (lambda: MissionLimits(3.0, 0.0), "jerk_m_s3"),
         (lambda: LoiterStickAcceleration(0.04, math.nan, 20.0, 0.15, 2.5, 5, 1, 1), "speed"),
     ],
 )
