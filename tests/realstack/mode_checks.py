@@ -16,15 +16,16 @@ measured the same way; these are the bounds:
 
 A mission (``sitl/lab/realstack/missions.py``: the same waypoints flown by
 ``--mission`` and by the stack's own mission mode, at the same leg speed, the
-companion's acceleration and jerk the stack's own, read from it): both
-complete it, the companion engages without a jolt (the bound above: its first
-leg's acceleration stepped tilted ArduCopter's vehicle 20.8 deg, at PX4's jerk
-9.5 deg, where ArduCopter's AUTO tilted it 1.3-1.4 deg), and the companion's path error (RMS distance from above to the
-straight legs) is no more than twice the stack's plus 0.2 m, the spread of one
-flight. Measured: against PX4's AUTO.MISSION 0.46-0.65 m over three flights where
-PX4 flew 0.30-0.32 m; against ArduCopter's AUTO 0.15-0.16 m where it flew
-0.20-0.21 m. Legs flown at constant speed into each corner (no slowing down)
-measured 0.96 and 0.78 m, beyond the bounds (0.80-0.84 and 0.60-0.62 m).
+companion's acceleration and jerk the stack's own, read from it): both complete
+it, the companion engages without a jolt (the bound above: its first leg's
+acceleration stepped tilted ArduCopter's vehicle 20.8 deg, at PX4's jerk 9.5
+deg, where ArduCopter's AUTO tilted it 1.3-1.4 deg), and the companion's path
+error (RMS distance from above to the straight legs) is no more than twice the
+stack's plus 0.2 m, the spread of one flight. Measured: against PX4's
+AUTO.MISSION 0.46-0.65 m over three flights where PX4 flew 0.30-0.32 m; against
+ArduCopter's AUTO 0.15-0.16 m where it flew 0.20-0.21 m. Legs flown at
+constant speed into each corner (no slowing down) measured 0.96 and 0.78 m,
+beyond the bounds (0.80-0.84 and 0.60-0.62 m).
 """
 
 from __future__ import annotations
