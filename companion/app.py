@@ -11,46 +11,24 @@ bounded MQTT queue) and never wait on I/O.
 (:class:`companion.core.FlightCore`, the run's decisions, with no I/O): it
 opens the link and the records, feeds the core what arrives and carries out
 what the core asks (the commands, the events, engaging and handing back:
-:class:`companion.engagement.Engagement`), and keeps the wall-clock watchdogs,
-the background tasks and the signals.
+:class:`companion.engagement.Engagement`), and keeps the background tasks
+(the wall-clock watchdogs and the link's measure:
+:class:`companion.watchdogs.Watchdogs`) and the signals.
 
-Start-up (:class:`companion.startup.StartUp`)
-    Wait for the autopilot's heartbeat; refuse a stack that cannot take the
-    chosen output; request the IMU stream at the loop rate and RC_CHANNELS
-    (ACK-checked) and EXTENDED_SYS_STATE (best effort: its landed state stops
-    identification on the ground); then engage per ``engage``:
+Start-up (:class:`companion.startup.StartUp`): wait for the autopilot's
+heartbeat, refuse a stack that cannot take the chosen output, request the
+streams; then engage per ``engage``: ``auto`` (stream setpoints, switch to the
+stack's engage mode, arm once its pre-arm checks pass), ``rc-switch`` (while an
+RC channel is high) or ``none`` (shadow mode: compute and log, send no
+setpoint, mode or arm command). Engaged means the autopilot's heartbeat shows
+the engage mode and armed; the controller is reset on that edge, so ``F`` is
+learnt only from commands that were really applied.
 
-    ``auto``       stream setpoints, switch to OFFBOARD, arm once the stack's
-                   pre-arm checks pass (ACK-checked, tried again while refused,
-                   within ``arm_timeout_s``);
-    ``rc-switch``  take over while an RC channel is high, hand back when low;
-    ``none``       shadow mode: compute and log; send no setpoint, mode or arm
-                   command (only our heartbeat, the stream-rate requests and
-                   TIMESYNC, which measures the link).
-
-Engaged means the autopilot's heartbeat shows OFFBOARD and armed; the
-controller is reset on that edge, so ``F`` is learnt only from commands that
-were really applied.
-
-Failsafes (each ends in the same hand-back; the table is docs/failsafes.md)
-    stale IMU (no processed sample for ``stale_imu_s``), invalid IMU
-    (non-finite or beyond the gyro range for ``invalid_imu_s``, or in more than
-    ``invalid_fraction_max`` of the samples), an IMU clock that restarts (an
-    autopilot reboot), a per-sample step that keeps raising, lost link (no
-    autopilot heartbeat for ``link_timeout_s``), lost RC (no valid RC for
-    ``rc_timeout_s`` while engaged; a glitch holds the last valid sticks),
-    envelope (a rate beyond the profile's limit for ``envelope_time_s``, or the
-    tracking error averaged over ``envelope_time_s`` beyond
-    ``tracking_error_max_deg_s``), the autopilot leaving OFFBOARD by itself, a
-    background task that dies, a record file that fails (with
-    ``on_record_error = failsafe``), and SIGINT/SIGTERM. Hand-back: stop
-    commanding at once, switch the autopilot to ``safe_mode``, then record why
-    (best effort: no I/O can stop a hand-back), then exit (``on_failsafe =
-    exit``, exit code 3; 0 for a signal) or wait to be engaged again
-    (``wait``).
-
-Every command passes the last gate (companion.control.gate) on its way out:
-no NaN and nothing out of range reaches the wire.
+Every failsafe (the table: docs/failsafes.md) ends in the same hand-back: stop
+commanding at once, switch the autopilot to a safe mode it can fly, record why
+(no I/O can stop a hand-back), then exit or wait to be engaged again. Every
+command passes the last gate (companion.control.gate) on its way out: no NaN
+and nothing out of range reaches the wire.
 """
 
 from __future__ import annotations
@@ -76,22 +54,14 @@ from companion.errors import (
     LinkError,
     LogDirInUseError,
 )
-from companion.link.timesync import LINK_RTT_SHOWN_MS, REQUEST_PERIOD_S
+from companion.fast_path import add_fast_handlers
 from companion.records.run_records import RunRecords
 from companion.run_options import RunOptions
 from companion.startup import StartUp
-
-_COUNTERS_PERIOD_S = 10.0
-"""How often the counters (ours, the link's, the transport's) go to the events."""
+from companion.watchdogs import Watchdogs, link_figures
 
 _TASKS_STOP_S = 2.0
 """How long the run's end waits for its background tasks after cancelling them."""
-
-_DRAIN_TURNS = 16
-"""Turns of the event loop a stale-looking IMU waits for datagrams already there."""
-
-_LINK_REPORT_PERIOD_S = 1.0
-"""How often the link's figures go to telemetry (and are judged slow or not)."""
 
 _WARNING_EVENTS = frozenset({"fly_check_skipped"})
 """Events logged as warnings, as the failsafes are: the pilot should see them."""
@@ -106,15 +76,6 @@ __all__ = [
 ]
 
 _log = logging.getLogger("companion.app")
-
-# MAVLink numbers used here (common.xml).
-_MSG_ATTITUDE = 30
-_MSG_ATTITUDE_QUATERNION = 31
-_MSG_RC_CHANNELS = 65
-_MSG_MANUAL_CONTROL = 69
-_MSG_HIGHRES_IMU = 105
-_RC_FIELDS = (*(f"chan{i}_raw" for i in range(1, 19)), "chancount")
-_JOYSTICK_FIELDS = ("x", "y", "z", "r", "enabled_extensions", *(f"aux{i}" for i in range(1, 7)))
 
 
 class Companion:
@@ -147,11 +108,21 @@ class Companion:
             stopping=self._stop.is_set,
             tasks=self._tasks,
         )
+        self.watchdogs = Watchdogs(
+            core,
+            opts,
+            self.records,
+            event=self.event,
+            end_run=self._end_run,
+            stopped=self._stop.is_set,
+            rerequest_streams=self.rerequest_streams,
+            counters_detail=self.counters_detail,
+            telemetry=lambda: self._telemetry,
+            telemetry_failed=self._telemetry_failed,
+        )
         self.n_event_errors = 0
         self.n_task_failures = 0
-        self.n_record_failures = 0
         self._counted_final = False
-        self._rc_lost_logged = False
         self._mqtt: Any = None
 
     # ------------------------------------------------------- the core's shell
@@ -224,7 +195,7 @@ class Companion:
             "events": self.records.events.count,
             "event_errors": self.n_event_errors,
             "task_failures": self.n_task_failures,
-            "record_failures": self.n_record_failures,
+            "record_failures": self.watchdogs.n_record_failures,
         }
 
     def counters_detail(self) -> str:
@@ -240,7 +211,7 @@ class Companion:
         live = self.records.live
         if live is not None:
             c.update({f"live.{k}": v for k, v in live.counters.items() if v})
-        figures = self.link_figures()
+        figures = link_figures(self.core)
         if figures["n"]:
             c.update({f"timesync.{k}": v for k, v in figures.items() if v is not None})
         return " ".join(f"{k}={v}" for k, v in c.items())
@@ -267,6 +238,11 @@ class Companion:
             self.n_event_errors += 1
             if self.n_event_errors == 1:
                 _log.exception("recording an event failed (logged once, counted after)")
+
+    def _telemetry_failed(self, what: str) -> None:
+        self.n_event_errors += 1
+        if self.n_event_errors == 1:
+            _log.exception("%s (logged once)", what)
 
     def _status(self, last_event: str, t: float) -> dict[str, Any]:
         core = self.core
@@ -319,154 +295,6 @@ class Companion:
             core.failsafe_over()
             self._exit_code = EXIT_FAILSAFE
             self._stop.set()
-
-    async def _supervise(self) -> None:
-        """Wall-clock watchdogs: stale IMU, lost link, lost RC, failed records
-        (invalid IMU samples are judged where they arrive, in :meth:`_on_imu`).
-
-        Watched itself (:meth:`_task_done`): if it raises or ends, that is a
-        failsafe and the end of the run."""
-        fs = self.opts.failsafe
-        core = self.core
-        next_counters = time.perf_counter() + _COUNTERS_PERIOD_S
-        link_lost = False
-        while not self._stop.is_set():
-            await asyncio.sleep(0.05)  # watchdog thresholds are >= 0.1 s
-            now = time.perf_counter()
-            if now >= next_counters:
-                next_counters = now + _COUNTERS_PERIOD_S
-                self.event("counters", self.counters_detail())
-            self.records.events.flush()  # the tail of a burst goes out within a tick
-            self._check_records()
-            hb = self.link.last_heartbeat_monotonic_s
-            if hb is not None and time.monotonic() - hb > fs.link_timeout_s:
-                if not link_lost:
-                    link_lost = True
-                    if core.commanding or core.engaged:
-                        core.failsafe(
-                            "failsafe_link_lost", f"no heartbeat for {fs.link_timeout_s} s"
-                        )
-                    else:
-                        self.event("link_lost", f"no heartbeat for {fs.link_timeout_s} s")
-                        if self.opts.engage != "rc-switch":
-                            self._exit_code = EXIT_FAILSAFE
-                            self._stop.set()
-                continue
-            if link_lost:
-                # Back (a reboot, a cable): streams asked for before are forgotten.
-                link_lost = False
-                self.event("link_restored", "the autopilot's heartbeat is back")
-                self._spawn(self._rerequest_streams("link restored"), "streams")
-            if not core.engaged:
-                continue
-            if core.imu_stale(now, fs.stale_imu_s) and await self._still_stale(fs.stale_imu_s):
-                core.failsafe("failsafe_stale_imu", f"no IMU sample for {fs.stale_imu_s} s")
-            elif not core.pilot.fresh(now):
-                # When all traffic stops (a crash, a cut cable), RC, sent at a lower
-                # rate, can expire first; the IMU's age says whether it was RC alone.
-                last_imu = core.time.last_arrival
-                imu_age = "none yet" if last_imu is None else f"{now - last_imu:.2f} s ago"
-                detail = f"no valid RC for {fs.rc_timeout_s} s (last IMU sample {imu_age})"
-                if core.rc_needed:
-                    core.failsafe("failsafe_rc_lost", detail)
-                elif not self._rc_lost_logged:
-                    # A reference file with its own collective flies without RC: the
-                    # loss only decides the hand-back's mode (no manual one).
-                    self._rc_lost_logged = True
-                    self.event("rc_lost", detail + ": the reference flies on")
-            else:
-                self._rc_lost_logged = False
-
-    async def _still_stale(self, limit_s: float) -> bool:
-        """The IMU looks stale: is it, once what waits in the socket is read?
-
-        A companion held off the CPU (a loaded computer: measured up to 0.15 s
-        with both cores busy) finds the samples that came meanwhile waiting
-        unread, and this watchdog may wake first. The loop reads one datagram a
-        turn: give it a few turns, then judge again."""
-        for _ in range(_DRAIN_TURNS):
-            await asyncio.sleep(0)
-            if not self.core.imu_stale(time.perf_counter(), limit_s):
-                return False
-        return True
-
-    def link_figures(self) -> dict[str, float | int | None]:
-        """The link as measured: TIMESYNC round trips over the last few seconds
-        and the last samples' age when their command left (ms; None: none yet)."""
-        import numpy as np
-
-        core = self.core
-        figures = core.link_clock.stats().as_dict()
-        ages = np.asarray(core.sample_ages_s[: core.n_ages])
-        ages = ages[np.isfinite(ages)]
-        for name, q in (("sample_age_p50_ms", 50), ("sample_age_p99_ms", 99)):
-            figures[name] = round(float(np.percentile(ages, q)) * 1e3, 3) if ages.size else None
-        return figures
-
-    def _link_text(self) -> str:
-        f = self.link_figures()
-        if not f["n"]:
-            return "no TIMESYNC answer yet"
-        text = (
-            f"round trip {f['rtt_median_ms']} ms (min {f['rtt_min_ms']}, max {f['rtt_max_ms']},"
-            f" {f['n']} answers)"
-        )
-        if f["sample_age_p50_ms"] is not None:
-            text += f", sample age {f['sample_age_p50_ms']} ms (p99 {f['sample_age_p99_ms']})"
-        return text
-
-    async def _measure_link(self) -> None:
-        """Ask the autopilot's time every REQUEST_PERIOD_S (the answers arrive in
-        ``_on_message``); every _LINK_REPORT_PERIOD_S publish the figures and judge
-        the round trip against the slowest link the controller is shown to fly.
-
-        Watched (:meth:`_spawn`): if it raises while engaged, that is a failsafe."""
-        clock = self.core.link_clock
-        link = self.link
-        next_report = time.perf_counter() + _LINK_REPORT_PERIOD_S
-        slow = False
-        while not self._stop.is_set():
-            link.send(link.mav.timesync_encode(0, clock.request(time.perf_counter())))
-            await asyncio.sleep(REQUEST_PERIOD_S)
-            now = time.perf_counter()
-            if now < next_report:
-                continue
-            next_report = now + _LINK_REPORT_PERIOD_S
-            figures = self.link_figures()
-            if self._telemetry is not None:
-                try:
-                    self._telemetry.publish_link(figures)
-                except Exception:  # telemetry is never a reason to hand back
-                    self.n_event_errors += 1
-                    if self.n_event_errors == 1:
-                        _log.exception("publishing the link's figures failed (logged once)")
-            median = figures["rtt_median_ms"]
-            if median is None:
-                continue
-            if not slow and median > LINK_RTT_SHOWN_MS:
-                slow = True
-                self.event(
-                    "link_slow",
-                    f"{self._link_text()}: beyond the {LINK_RTT_SHOWN_MS:g} ms the controller"
-                    " is shown to fly (docs/link.md)",
-                )
-            elif slow and median < 0.8 * LINK_RTT_SHOWN_MS:
-                slow = False
-                self.event("link_ok", self._link_text())
-
-    def _check_records(self) -> None:
-        """A record file that stopped being written: an event, a counter, and with
-        ``on_record_error = failsafe`` a failsafe. Flying goes on otherwise."""
-        core = self.core
-        for name, exc in self.records.poll_failures():
-            self.n_record_failures += 1
-            detail = f"{name}: {exc}; that record stops, flying goes on"
-            if self.opts.failsafe.on_record_error == "failsafe" and (
-                core.engaged or core.commanding
-            ):
-                core.failsafe("failsafe_records", detail)
-            else:
-                self.event("records_failed", detail)
 
     async def _rerequest_streams(self, why: str) -> None:
         """Ask for the streams again after the autopilot may have forgotten them."""
@@ -585,8 +413,8 @@ class Companion:
             target_component=opts.autopilot_compid,
             on_anomaly=self._on_link_anomaly,
         )
-        self.engagement.link = link = self.link
-        self._add_fast_handlers(link)
+        self.engagement.link = self.watchdogs.link = link = self.link
+        add_fast_handlers(link, self.core)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError):
@@ -600,8 +428,8 @@ class Companion:
             # of the cyclic collector's reach so its passes stay short.
             gc.collect()
             gc.freeze()
-            self._spawn(self._supervise(), "supervise")
-            self._spawn(self._measure_link(), "timesync")
+            self._spawn(self.watchdogs.supervise(), "supervise")
+            self._spawn(self.watchdogs.measure_link(), "timesync")
             if opts.engage == "auto":
                 self.engagement.start(arm=True)
             await self._stop.wait()
@@ -637,39 +465,6 @@ class Companion:
                 with contextlib.suppress(NotImplementedError, RuntimeError):
                     loop.remove_signal_handler(sig)
         return self._exit_code
-
-    def _add_fast_handlers(self, link: Any) -> None:
-        """The messages on the control path skip pymavlink's generic parser when
-        their frame allows: the IMU sample, the estimates, the pilot's frames."""
-        core = self.core
-
-        def on_highres_imu(v: tuple[Any, ...]) -> None:
-            core.on_highres_imu(v, link.rx_perf_s)
-
-        def on_attitude(v: tuple[Any, ...]) -> None:
-            core.on_attitude(v, link.rx_perf_s)
-
-        def on_rc(v: tuple[Any, ...]) -> None:
-            core.on_rc(v, time.perf_counter())
-
-        def on_manual_control(v: tuple[Any, ...]) -> None:
-            core.on_manual_control(v, time.perf_counter())
-
-        link.add_fast_handler(
-            _MSG_HIGHRES_IMU, ("time_usec", "xgyro", "ygyro", "zgyro"), on_highres_imu
-        )
-        link.add_fast_handler(
-            _MSG_ATTITUDE, ("time_boot_ms", "rollspeed", "pitchspeed", "yawspeed"), on_attitude
-        )
-        if core.needs_attitude:
-            link.add_fast_handler(
-                _MSG_ATTITUDE_QUATERNION,
-                ("time_boot_ms", "q1", "q2", "q3", "q4"),
-                core.modes.on_attitude_quaternion,
-            )
-        # RC_CHANNELS often shares the IMU sample's datagram: keep it short too.
-        link.add_fast_handler(_MSG_RC_CHANNELS, _RC_FIELDS, on_rc)
-        link.add_fast_handler(_MSG_MANUAL_CONTROL, _JOYSTICK_FIELDS, on_manual_control)
 
     def _on_message(self, msg: Any) -> None:
         self.core.on_message(msg, self.link.rx_perf_s)

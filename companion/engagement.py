@@ -21,7 +21,14 @@ from typing import Any
 
 from companion.core import FlightCore
 from companion.errors import EXIT_ERROR, EXIT_FAILSAFE, EngageError, LinkError
-from companion.handback import adoptable, failsafe_state, judge, next_kind, pick
+from companion.handback import (
+    Conditions,
+    SafeModeWatch,
+    adoptable,
+    failsafe_state,
+    next_kind,
+    pick,
+)
 from companion.records import EventLog
 from companion.run_options import RunOptions
 from companion.stacks import SafeMode, said_why
@@ -69,15 +76,11 @@ class Engagement:
         autopilot's, which this reads and moves.
     opts
         The run's options.
-    events
-        The run's event log, as it is now (what the autopilot said since a
-        command was sent).
-    event
-        Records an event.
-    end_run
-        Ends the run with an exit code.
-    stopping
-        Whether the run is ending.
+    events, event
+        The run's event log as it is now (what the autopilot said since a
+        command was sent); what records an event.
+    end_run, stopping
+        What ends the run with an exit code; whether it is ending.
     tasks
         The run's tasks (an engagement is one, cancelled at the run's end).
     clock
@@ -370,17 +373,17 @@ class Engagement:
         it leave OFFBOARD by itself), a mode it can fly there is kept: the
         companion does not override the autopilot's failsafe or the pilot's
         mode switch."""
-        assert self.core.stack is not None
-        stack, modes = self.core.stack, self.safe_modes
-        if adopt and failsafe_state(self.core.ap.status) and self.core.ap.n_sys_status:
+        core, ap = self.core, self.core.ap
+        assert core.stack is not None
+        stack, modes = core.stack, self.safe_modes
+        if adopt and failsafe_state(ap.status) and ap.n_sys_status:
             # The autopilot announces its failsafe's mode at once, in a HEARTBEAT; what
             # failed (its RC receiver) comes in its next SYS_STATUS: judge on that.
-            seen = self.core.ap.n_sys_status
-            wait_by = self.clock() + _SYS_STATUS_WAIT_S
-            while self.core.ap.n_sys_status == seen and self.clock() < wait_by:
+            seen, wait_by = ap.n_sys_status, self.clock() + _SYS_STATUS_WAIT_S
+            while ap.n_sys_status == seen and self.clock() < wait_by:
                 await self.sleep(0.01)
-        ap_mode = self.core.ap.mode
-        cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
+        ap_mode = ap.mode
+        cond = core.conditions(core.clock(), rc_failsafe=rc_failsafe)
         if adopt and ap_mode is not None and adoptable(stack, ap_mode, cond):
             # The autopilot (its failsafe) or the pilot already chose a mode: keep it.
             self.hand_back_accepted = True
@@ -400,18 +403,12 @@ class Engagement:
                 return
             name = mode.name.upper()
             why = f"{reason}; {cond.describe()}{skipped} -> {name}"
-            before = (
-                self.core.ap.mode
-            )  # as shown before the switch (a heartbeat may follow the ACK)
+            before = ap.mode  # as shown before the switch (a heartbeat may follow the ACK)
             try:
                 res = await self.link.command_long(
-                    _CMD_DO_SET_MODE,
-                    _MODE_FLAG_CUSTOM,
-                    mode.param2,
-                    mode.param3,
-                    timeout_s=0.3,
-                    retries=2,
-                )
+                    _CMD_DO_SET_MODE, _MODE_FLAG_CUSTOM, mode.param2, mode.param3,
+                    timeout_s=0.3, retries=2,
+                )  # fmt: skip
             except LinkError as exc:
                 self.hand_back_accepted = False
                 self.hand_back_owed = True
@@ -420,7 +417,7 @@ class Engagement:
             if res != _RESULT_ACCEPTED:
                 self.event("handed_back", f"{why} refused ({res})")
                 reason, start = f"{name} refused", choice.index + 1
-                cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
+                cond = core.conditions(core.clock(), rc_failsafe=rc_failsafe)
                 continue
             self.hand_back_accepted = True
             self.hand_back_owed = False
@@ -431,90 +428,35 @@ class Engagement:
             self.hand_back_accepted = False
             self.event("safe_mode_lost", failed)
             reason, start = failed, next_kind(modes, choice.index)
-            cond = self.core.conditions(self.core.clock(), rc_failsafe=rc_failsafe)
+            cond = core.conditions(core.clock(), rc_failsafe=rc_failsafe)
 
     async def _watch_safe_mode(
         self, modes: tuple[SafeMode, ...], index: int, before: int | None
     ) -> str | None:
         """Watch the autopilot's HEARTBEAT for ``hand_back_watch_s`` after a switch to
-        ``modes[index]`` from ``before`` (the mode shown when the switch was sent):
-        None if the vehicle stays in a mode it can fly, else why not.
-
-        Each heartbeat's mode and failsafe state (its ``system_status``) are judged
-        together (:func:`companion.handback.judge`): leaving the mode, or failing
-        safe in a mode flown from the sticks, loses it. Until the new mode shows,
-        a heartbeat still showing the mode from before the switch (or the engage
-        mode) may have been sent before it: only another mode is judged at once.
-        So the failsafe state judged is the one sent with the new mode or after:
-        a state from before the switch is never held against it, but one that
-        was failing safe before and still is when the new mode shows is failing
-        safe in it. A pilot-free mode kept (the autopilot's own landing) ends the
-        watch; a mode flown from the sticks, ours or one the pilot took, is
-        watched to the end (the autopilot may raise its failsafe in it a moment
-        after it shows it), and once the pilot has taken one, a pilot-free mode
-        they go on to ends the watch as theirs. A new engagement (the pilot's
-        switch) or a disarm ends the watch. With no heartbeat at all meanwhile
-        (a lost link) there is nothing to judge by: the mode stays."""
-        assert self.core.stack is not None
-        stack = self.core.stack
-        target = stack.custom_mode(modes[index])
+        ``modes[index]`` from ``before`` (the mode shown when the switch was sent)
+        (:class:`companion.handback.SafeModeWatch`): None if the vehicle stays in a
+        mode it can fly, else why not."""
+        core = self.core
+        assert core.stack is not None
         watch_s = self.opts.failsafe.hand_back_watch_s
         if watch_s <= 0.0:
             return None  # not watched: the ACK is all there is
+        watch = SafeModeWatch(core.stack, modes, index, before, watch_s, core.ap.heartbeats)
+
+        def conditions() -> Conditions:
+            return core.conditions(core.clock(), rc_failsafe=False)
+
         t0 = self.clock()
-        heartbeats0 = self.core.ap.heartbeats
-        seen = False
-        pilots = False  # the pilot (or the autopilot) put it in another mode flown from the sticks
         while True:
-            elapsed = self.clock() - t0
-            if self.core.commanding:
-                return None  # engaged again meanwhile: the pilot's call
-            mode = self.core.ap.mode
-            if not self.core.ap.armed and mode is not None and (seen or mode != target):
-                self.event("safe_mode_held", f"disarmed after {elapsed:.1f} s")
-                return None
-            if mode == target:
-                seen = True
-            if mode is not None and (seen or (mode != before and not stack.is_engage_mode(mode))):
-                label = stack.mode_label(mode)
-                sticks = stack.needs_rc(mode)
-                if pilots and not sticks and not stack.is_engage_mode(mode):
-                    self.event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
-                    return None  # from a mode of their own, the pilot's next one is theirs too
-                # Judged on RC as it is now: a pilot with the radio back may take it.
-                failed = judge(
-                    stack,
-                    modes,
-                    index,
-                    mode,
-                    self.core.conditions(self.core.clock(), rc_failsafe=False),
-                )
-                if failed is not None:
-                    return f"{failed} after {elapsed:.1f} s"
-                if mode != target:
-                    if not sticks:
-                        self.event("safe_mode_held", f"{label} kept after {elapsed:.1f} s")
-                        return None
-                    pilots = True
-            if elapsed >= watch_s:
-                if self.core.ap.heartbeats == heartbeats0:
-                    self.event(
-                        "safe_mode_unconfirmed",
-                        f"no heartbeat for {watch_s:g} s after the switch to "
-                        f"{modes[index].name.upper()}: left as it is",
-                    )
-                    return None
-                if not seen and not pilots:
-                    return (
-                        f"the autopilot accepted {modes[index].name.upper()} but did not show it "
-                        f"within {watch_s:g} s"
-                    )
-                if mode == target:
-                    self.event("safe_mode_held", f"{modes[index].name.upper()} for {watch_s:g} s")
-                else:
-                    label = "its mode" if mode is None else stack.mode_label(mode)
-                    self.event("safe_mode_held", f"{label} kept for {watch_s:g} s")
-                return None
+            ap = core.ap
+            end = watch.look(
+                self.clock() - t0, ap.mode, ap.armed, ap.heartbeats, core.commanding, conditions
+            )
+            if end is not None:
+                if end.event is not None:
+                    self.event(*end.event)
+                return end.failed
             await self.sleep(_WATCH_POLL_S)
 
     async def after_failsafe(self, kind: str, detail: str, was_commanding: bool) -> None:
@@ -536,6 +478,7 @@ class Engagement:
         failsafe of its own (ArduCopter: after GUID_TIMEOUT it levels and stays in
         GUIDED_NOGPS) would otherwise be left in the companion's mode with nobody
         flying it (measured on the real ArduCopter 4.5.6: a link cut for 3 s)."""
+        core, ap = self.core, self.core.ap
         deadline = self.clock() + _HAND_BACK_RETRY_S
         while self.hand_back_owed and self.clock() < deadline:
             # Only across a silent link: an autopilot whose heartbeats come but which
@@ -543,17 +486,14 @@ class Engagement:
             heard = self.link.last_heartbeat_monotonic_s  # stamped on time.monotonic
             if heard is not None and time.monotonic() - heard < _LINK_QUIET_S:
                 return
-            beats = self.core.ap.heartbeats
-            while self.core.ap.heartbeats == beats and self.clock() < deadline:
+            beats = ap.heartbeats
+            while ap.heartbeats == beats and self.clock() < deadline:
                 await self.sleep(_HAND_BACK_RETRY_PERIOD_S)  # until it is heard again
-            if self.core.ap.heartbeats == beats:
+            if ap.heartbeats == beats:
                 return
-            left = self.core.ap.mode is not None and not self.core.in_engage_mode()
-            if self.core.stack is not None and self.core.ap.mode is not None and left:
-                self.event(
-                    "hand_back_dropped",
-                    f"the link is back; the autopilot left {self.core.stack.engage_label} by "
-                    f"itself for {self.core.stack.mode_label(self.core.ap.mode)}",
-                )
+            stack, mode = core.stack, ap.mode
+            if stack is not None and mode is not None and not core.in_engage_mode():
+                left = f"{stack.engage_label} by itself for {stack.mode_label(mode)}"
+                self.event("hand_back_dropped", f"the link is back; the autopilot left {left}")
                 return
             await self.hand_back("link back", was_commanding=True)

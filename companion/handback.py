@@ -10,7 +10,7 @@ stack's list (a manual mode, a hold, land); with a named mode, that mode and
 then the pilot-free modes after it. :func:`pick` takes the first whose needs
 the vehicle meets now, saying why the ones before it were passed over. After a
 switch the app watches the autopilot's mode and its failsafe state
-(:func:`judge`): a mode refused is followed by the next candidate; one the
+(:class:`SafeModeWatch`, :func:`judge`): a mode refused is followed by the next candidate; one the
 autopilot leaves, never shows, or fails safe in while it is flown from the
 sticks, by the next of a more conservative kind (:func:`next_kind`). No I/O and
 no clock here: the app feeds in what it saw.
@@ -26,6 +26,7 @@ and is kept.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from companion.stacks import FlightStack, SafeMode
@@ -34,6 +35,8 @@ __all__ = [
     "FAILSAFE_STATES",
     "Conditions",
     "Pick",
+    "SafeModeWatch",
+    "WatchEnd",
     "adoptable",
     "candidates",
     "failsafe_state",
@@ -206,3 +209,109 @@ def adoptable(stack: FlightStack, custom_mode: int, cond: Conditions) -> bool:
     if not stack.needs_rc(custom_mode):
         return True
     return cond.rc_valid and not cond.rc_failsafe and cond.autopilot_failsafe is None
+
+
+@dataclass(frozen=True)
+class WatchEnd:
+    """How a :class:`SafeModeWatch` ended: ``failed``, why the vehicle did not stay
+    in a mode it can fly (None: it did, or the watch had to stop); ``event``, what
+    to record of it (``safe_mode_held``, ``safe_mode_unconfirmed``), if anything."""
+
+    failed: str | None = None
+    event: tuple[str, str] | None = None
+
+
+class SafeModeWatch:
+    """The autopilot's HEARTBEATs for ``watch_s`` after a switch to
+    ``modes[index]`` from ``before`` (the mode shown when the switch was sent):
+    does the vehicle stay in a mode it can fly? Fed what the heartbeats say, by
+    :meth:`look`, as often as the caller looks.
+
+    Each heartbeat's mode and failsafe state (its ``system_status``) are judged
+    together (:func:`judge`): leaving the mode, or failing safe in a mode flown
+    from the sticks, loses it. Until the new mode shows, a heartbeat still
+    showing the mode from before the switch (or the engage mode) may have been
+    sent before it: only another mode is judged at once. So the failsafe state
+    judged is the one sent with the new mode or after: a state from before the
+    switch is never held against it, but one that was failing safe before and
+    still is when the new mode shows is failing safe in it. A pilot-free mode
+    kept (the autopilot's own landing) ends the watch; a mode flown from the
+    sticks, ours or one the pilot took, is watched to the end (the autopilot may
+    raise its failsafe in it a moment after it shows it), and once the pilot has
+    taken one, a pilot-free mode they go on to ends the watch as theirs. A new
+    engagement (the pilot's switch) or a disarm ends the watch. With no
+    heartbeat at all meanwhile (a lost link) there is nothing to judge by: the
+    mode stays.
+    """
+
+    def __init__(
+        self,
+        stack: FlightStack,
+        modes: tuple[SafeMode, ...],
+        index: int,
+        before: int | None,
+        watch_s: float,
+        heartbeats: int,
+    ) -> None:
+        self.stack = stack
+        self.modes = modes
+        self.index = index
+        self.before = before
+        self.watch_s = watch_s
+        self.target = stack.custom_mode(modes[index])
+        self._heartbeats0 = heartbeats
+        self._seen = False
+        self._pilots = False
+        """The pilot (or the autopilot) put it in another mode flown from the sticks."""
+
+    def look(
+        self,
+        elapsed: float,
+        mode: int | None,
+        armed: bool,
+        heartbeats: int,
+        commanding: bool,
+        conditions: Callable[[], Conditions],
+    ) -> WatchEnd | None:
+        """``elapsed`` s after the switch, the last heartbeat's ``mode`` and
+        ``armed``, the heartbeats counted so far; ``commanding``: engaged again;
+        ``conditions``: what a mode is judged on, now. None: watch on."""
+        if commanding:
+            return WatchEnd()  # engaged again meanwhile: the pilot's call
+        stack, target, name = self.stack, self.target, self.modes[self.index].name.upper()
+        if not armed and mode is not None and (self._seen or mode != target):
+            return WatchEnd(event=("safe_mode_held", f"disarmed after {elapsed:.1f} s"))
+        if mode == target:
+            self._seen = True
+        if mode is not None and (
+            self._seen or (mode != self.before and not stack.is_engage_mode(mode))
+        ):
+            label = stack.mode_label(mode)
+            sticks = stack.needs_rc(mode)
+            held = WatchEnd(event=("safe_mode_held", f"{label} kept after {elapsed:.1f} s"))
+            if self._pilots and not sticks and not stack.is_engage_mode(mode):
+                return held  # from a mode of their own, the pilot's next one is theirs too
+            # Judged on RC as it is now: a pilot with the radio back may take it.
+            failed = judge(stack, self.modes, self.index, mode, conditions())
+            if failed is not None:
+                return WatchEnd(failed=f"{failed} after {elapsed:.1f} s")
+            if mode != target:
+                if not sticks:
+                    return held
+                self._pilots = True
+        if elapsed < self.watch_s:
+            return None
+        watch_s = self.watch_s
+        if heartbeats == self._heartbeats0:
+            return WatchEnd(event=(
+                "safe_mode_unconfirmed",
+                f"no heartbeat for {watch_s:g} s after the switch to {name}: left as it is",
+            ))  # fmt: skip
+        if not self._seen and not self._pilots:
+            return WatchEnd(
+                failed=f"the autopilot accepted {name} but did not show it within {watch_s:g} s"
+            )
+        if mode == target:
+            return WatchEnd(event=("safe_mode_held", f"{name} for {watch_s:g} s"))
+        label = "its mode" if mode is None else stack.mode_label(mode)
+        return WatchEnd(event=("safe_mode_held", f"{label} kept for {watch_s:g} s"))

@@ -550,7 +550,7 @@ async def test_a_crashed_supervisor_is_a_failsafe_and_ends_the_run(
     def crash() -> None:
         raise RuntimeError("a bug in a watchdog")
 
-    monkeypatch.setattr(f.companion, "_check_records", crash)
+    monkeypatch.setattr(f.companion.watchdogs, "check_records", crash)
     assert await f.finish() == 3  # exits even with on_failsafe=wait: nobody would watch
     assert "failsafe_task_failed" in f.kinds()
     assert "supervise" in f.details("failsafe_task_failed")[0]
@@ -767,6 +767,6 @@ async def test_a_companion_held_off_the_cpu_reads_what_waits_before_calling_the_
     c = f.companion
     c.core.time.last_arrival = time.perf_counter() - 1.0  # as if held off the CPU for a second
     f.imu()  # a sample came meanwhile: it waits to be read
-    assert await c._still_stale(0.25) is False
+    assert await c.watchdogs.still_stale(0.25) is False
     c.core.time.last_arrival = time.perf_counter() - 1.0  # and with nothing waiting, it is stale
-    assert await c._still_stale(0.25) is True
+    assert await c.watchdogs.still_stale(0.25) is True

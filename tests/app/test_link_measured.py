@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-import companion.app as app_module
+import companion.watchdogs as watchdogs_module
 from companion.link.timesync import LINK_RTT_SHOWN_MS
 from companion.records import read_control_log
 from tests.app.fakes import CMD_ARM, PX4_OFFBOARD, FakeAutopilot, settle
@@ -163,8 +163,8 @@ async def quick_shadow(
     """A shadow run whose autopilot answers TIMESYNC ``delay_s`` each way, asked and
     judged quicker than in flight so that the window (16 answers) turns over
     within a test."""
-    monkeypatch.setattr(app_module, "REQUEST_PERIOD_S", 0.02)
-    monkeypatch.setattr(app_module, "_LINK_REPORT_PERIOD_S", 0.1)
+    monkeypatch.setattr(watchdogs_module, "REQUEST_PERIOD_S", 0.02)
+    monkeypatch.setattr(watchdogs_module, "_LINK_REPORT_PERIOD_S", 0.1)
     f = await start(engage="none", output="actuator")
     f.fake.timesync_clock = ap_clock
     f.fake.timesync_delay_s = delay_s
@@ -199,8 +199,8 @@ async def test_requests_go_out_every_quarter_second_and_the_figures_to_telemetry
     assert all(m.tc1 == 0 for m in asked)
     ts1_s = np.array([m.ts1 for m in asked]) * 1e-9
     assert t_before <= ts1_s[0] and ts1_s[-1] <= t_after
-    assert (np.diff(ts1_s) >= app_module.REQUEST_PERIOD_S - 1e-3).all(), np.diff(ts1_s)
-    assert waits == [app_module.REQUEST_PERIOD_S] * len(waits)
+    assert (np.diff(ts1_s) >= watchdogs_module.REQUEST_PERIOD_S - 1e-3).all(), np.diff(ts1_s)
+    assert waits == [watchdogs_module.REQUEST_PERIOD_S] * len(waits)
     assert len(waits) - 1 <= len(asked) <= len(waits)  # one request before each wait
     assert f.companion.core.link_clock.n_requests == len(waits)
 
@@ -285,7 +285,7 @@ async def test_without_answers_the_columns_stay_nan(start: Start, tmp_path: Path
     for _ in range(20):
         f.imu()
         await settle()
-    figures = f.companion.link_figures()
+    figures = watchdogs_module.link_figures(f.companion.core)
     assert figures["n"] == 0
     assert figures["rtt_median_ms"] is None and figures["sample_age_p50_ms"] is None
     f.companion._stop.set()
@@ -366,8 +366,8 @@ async def test_a_link_within_the_shown_round_trip_is_not_slow(
 async def test_telemetry_that_refuses_the_figures_is_no_failsafe(
     start: Start, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(app_module, "REQUEST_PERIOD_S", 0.02)
-    monkeypatch.setattr(app_module, "_LINK_REPORT_PERIOD_S", 0.1)
+    monkeypatch.setattr(watchdogs_module, "REQUEST_PERIOD_S", 0.02)
+    monkeypatch.setattr(watchdogs_module, "_LINK_REPORT_PERIOD_S", 0.1)
     f = await start(engage="auto", output="actuator")
     f.fake.timesync_clock = ap_clock
     send = StampedImu(f.fake)
