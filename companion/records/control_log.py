@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
+from companion.records.sink import BufferedLog, Sink
 from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
-from companion.records.writer import BufferedLog, RecordWriter, Sink
+from companion.records.writer import RecordWriter
 
 __all__ = ["FORMAT", "ControlLog", "last_sample_time", "read_control_log"]
 

@@ -10,7 +10,8 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from companion.records.writer import BufferedLog, RecordWriter, Sink
+from companion.records.sink import BufferedLog, Sink
+from companion.records.writer import RecordWriter
 
 __all__ = ["EventLog"]
 

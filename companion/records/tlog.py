@@ -8,7 +8,8 @@ import struct
 import time
 from pathlib import Path
 
-from companion.records.writer import BufferedLog, RecordWriter, Sink
+from companion.records.sink import BufferedLog, Sink
+from companion.records.writer import RecordWriter
 
 __all__ = ["TlogWriter"]
 
