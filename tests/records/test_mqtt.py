@@ -384,7 +384,7 @@ async def test_a_frozen_broker_costs_what_the_counters_say(broker: Broker) -> No
             broker.thaw()
         await stream(1.0)
         await until(lambda: [kind for kind, _ in outages][-1:] == ["telemetry_restored"])
-        await until(lambda: t._queue.empty() and not t._inflight)
+        await until(lambda: t._queue.empty() and not t._connection._inflight)
         await asyncio.sleep(0.3)  # the last deliveries reach the subscriber
         got = {round(p["t_s"], 6) for p in sub.on("axis/roll")}
 
