@@ -24,7 +24,7 @@ from companion.run_options import RunOptions
 from companion.stacks import RateShapingParams, SafeMode, StickParams, stack_for
 from companion.step import LANDED_STATE_RATE_HZ
 
-__all__ = ["StartUp"]
+__all__ = ["HOLD_POSITION_RATE_HZ", "StartUp"]
 
 # MAVLink numbers used here (common.xml).
 _MSG_SYS_STATUS = 1
@@ -40,7 +40,7 @@ _CMD_SET_MESSAGE_INTERVAL = 511
 _RESULT_ACCEPTED = 0
 _RESULT_DENIED = 2
 _POSITION_RATE_HZ = 4.0
-_HOLD_POSITION_RATE_HZ = 50.0
+HOLD_POSITION_RATE_HZ = 50.0
 """The position estimate's rate the altitude and position modes fly on."""
 _ATTITUDE_TARGET_RATE_HZ = 20.0
 """The autopilot's own collective, which the hold modes take over at."""
@@ -222,7 +222,7 @@ class StartUp:
             )
         if core.needs_position:
             await self._request_for_mode(
-                "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, _HOLD_POSITION_RATE_HZ, event=True
+                "LOCAL_POSITION_NED", _MSG_LOCAL_POSITION_NED, HOLD_POSITION_RATE_HZ, event=True
             )
             await self._request_best_effort(
                 "attitude_target_refused", "ATTITUDE_TARGET", _MSG_ATTITUDE_TARGET,

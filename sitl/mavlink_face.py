@@ -108,6 +108,9 @@ ID_ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
 ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_RC_CHANNELS = mavlink.MAVLINK_MSG_ID_RC_CHANNELS
 ID_LOCAL_POSITION_NED = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+_ESTIMATE_STREAMS = frozenset({ID_ATTITUDE_QUATERNION})
+"""IMU-based streams that carry an estimate: sent ahead of the step's sample
+(unless a client runs its loop on one)."""
 
 
 def as_int(x: float) -> int:
@@ -527,11 +530,16 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         for msg_id in self.extra_streams:
             if st.due(msg_id, t_s):
                 self._send_one(msg_id)
+        # The estimates go out ahead of the IMU sample they come with: a client
+        # flies that sample on them, and at a flight's start (arming, with
+        # pilot_from_arm) on the estimator's first output, whenever that was.
+        self._send_due(ID_LOCAL_POSITION_NED, t_s)
         imu_sent = False
         if imu_sample and not self.imu_stopped:
             # Lockstep follows the fastest body-rate stream: the one the client runs on.
             clock = st.lockstep_stream(self.imu_streams)
-            for msg_id in self.imu_streams:
+            ahead = tuple(m for m in self.imu_streams if m in _ESTIMATE_STREAMS and m != clock)
+            for msg_id in (*ahead, *(m for m in self.imu_streams if m not in ahead)):
                 if st.due(msg_id, t_s):
                     if linked and msg_id == clock:
                         # Tag its frame with the sample's time: flush tells a new one.
@@ -543,19 +551,18 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                         if msg_id == clock:
                             self.given_to_client(self.snapshot.imu_t_s)
                     imu_sent = imu_sent or msg_id == clock
-        for msg_id in (
-            ID_LOCAL_POSITION_NED,
-            ID_SYS_STATUS,
-            ID_EXTENDED_SYS_STATE,
-            ID_HOME_POSITION,
-        ):
-            if self.holds_unsent_slots and not self._has_data(msg_id):
-                continue
-            if st.due(msg_id, t_s):
-                self._send_one(msg_id)
+        for msg_id in (ID_SYS_STATUS, ID_EXTENDED_SYS_STATE, ID_HOME_POSITION):
+            self._send_due(msg_id, t_s)
         if linked:
             return self.flush(t_s) > 0
         return imu_sent
+
+    def _send_due(self, msg_id: int, t_s: float) -> None:
+        """Send ``msg_id`` if its stream is due (and, where slots are held, it has data)."""
+        if self.holds_unsent_slots and not self._has_data(msg_id):
+            return
+        if self.streams.due(msg_id, t_s):
+            self._send_one(msg_id)
 
     def _send_status_texts(self) -> None:
         """Send the STATUSTEXTs the autopilot queued."""

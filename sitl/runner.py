@@ -59,6 +59,8 @@ pilot streams it starts again at the pilot's start (with ``pilot_from_arm``, at
 arming), its first estimates then delivered at once
 (:meth:`~sitl.estimator_model.EstimatorModel.begin`: the vehicle sits still
 until then), so the estimates streamed after arming do not depend on when that was.
+They go out ahead of the IMU sample of their step (LOCAL_POSITION_NED, then
+ATTITUDE_QUATERNION): a client flies that sample on them, the first one too.
 ``estimator=None`` (``sitl run --true-state``) streams the true state at every
 step instead, as before. The autopilot's own angle and climb-rate loops still
 fly on the truth. The log holds the true state.

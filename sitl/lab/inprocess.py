@@ -17,15 +17,27 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from companion.control import RateController
 from companion.core import FlightCore
 from companion.run_options import RunOptions
 from companion.stacks import PX4
+from sitl.px4_params import px4_param_specs
 
-__all__ = ["LabShell", "engaged_core", "rc_frame"]
+__all__ = [
+    "LabShell",
+    "LocalPosition",
+    "attitude_quaternion",
+    "engaged_core",
+    "rc_frame",
+    "start_mode",
+]
 
 _ARMED = 128  # MAV_MODE_FLAG_SAFETY_ARMED
 _STANDBY = 4  # MAV_STATE_ACTIVE
+_ON_GROUND, _IN_AIR = 1, 2  # MAV_LANDED_STATE
+_MSG_LOCAL_POSITION_NED = 32
 
 
 @dataclass(frozen=True)
@@ -86,17 +98,63 @@ def engaged_core(
     clock: Callable[[], float],
     *,
     controller: RateController | None = None,
+    before: Callable[[FlightCore], None] | None = None,
 ) -> FlightCore:
-    """A flight core for ``opts``, engaged as ``companion run`` engages a PX4."""
+    """A flight core for ``opts``, engaged as ``companion run`` engages a PX4:
+    it streams setpoints, then the heartbeat shows OFFBOARD and armed (over
+    MAVLink that heartbeat reaches the core before the arming's ACK reaches the
+    engagement, so the laws start at the engaged edge in every mode).
+    ``before``: what the autopilot told the core before that (start-up's)."""
     core = FlightCore(opts, shell, clock, controller=controller)
     core.stack = PX4
     core.started_up = True
+    if before is not None:
+        before(core)
     core.begin_commanding()
-    core.setpoints_now_flown()
     offboard = PX4.modes.custom_mode(*PX4.engage_mode)
     core.on_heartbeat(_Heartbeat(offboard, _ARMED, _STANDBY))
     assert core.engaged
     return core
+
+
+def start_mode(core: FlightCore, imu_rate_hz: float, *, on_ground: bool) -> None:
+    """What ``companion run``'s start-up gives a flight mode on the bundled SITL's PX4:
+    the IMU rate granted, the landed state, and the law built with the stick limits
+    and hover thrust the SITL's parameters answer."""
+    core.modes.imu_rate_hz = imu_rate_hz
+    core.on_landed_state(_ON_GROUND if on_ground else _IN_AIR)
+    params = PX4.stick_params
+    # As PARAM_VALUE carries them: float32.
+    answered = {
+        s.name: float(np.float32(s.default)) for s in px4_param_specs() if s.name in params.defaults
+    }
+    hover = answered.get(params.hover_thrust, params.defaults[params.hover_thrust])
+    core.modes.build(params.limits(answered), hover, on_ground=bool(core.controller.on_ground))
+
+
+@dataclass(frozen=True)
+class LocalPosition:
+    """LOCAL_POSITION_NED's fields the core reads, as they come off the wire (float32)."""
+
+    x: float
+    y: float
+    z: float
+    vx: float
+    vy: float
+    vz: float
+
+    @classmethod
+    def of(cls, pos: Sequence[float], vel: Sequence[float]) -> LocalPosition:
+        return cls(*(float(np.float32(v)) for v in (*pos, *vel)))
+
+    def get_msgId(self) -> int:  # pymavlink's name
+        return _MSG_LOCAL_POSITION_NED
+
+
+def attitude_quaternion(t_s: float, q_wxyz: Sequence[float]) -> tuple[float, ...]:
+    """ATTITUDE_QUATERNION's ``(time_boot_ms, q1, q2, q3, q4)`` as they come off the
+    wire (the quaternion float32)."""
+    return (round(t_s * 1e3), *(float(np.float32(v)) for v in q_wxyz))
 
 
 def rc_frame(channels: Sequence[int]) -> tuple[Any, ...]:

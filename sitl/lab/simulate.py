@@ -10,9 +10,15 @@ rate, and the gated actuator controls, mixed, are held until the next sample. Th
 scenario's companion link (:mod:`sitl.link_model`) the samples, the RC frames and
 the landed state reach the companion late (or twice, or never), the companion
 drops samples not newer than the last, and each command acts at the autopilot's
-first IMU sample after it arrives, as in the SITL. It is what campaigns run many
-times in parallel, and what the MAVLink path is checked against for the same
-seed.
+first IMU sample after it arrives, as in the SITL. In a flight mode
+(``mode``: angle, altitude, position, a mission) the core flies on the
+autopilot's estimates as the SITL streams them: the estimator model's
+(:mod:`sitl.estimator_model`, begun at the start as the SITL begins it at
+arming), on the schedules ``companion run`` asks for, crossing the link as
+float32, ahead of the IMU sample they come with; the stick limits and hover
+thrust the SITL's PX4 parameters answer. It is what campaigns run many times in
+parallel, and what the MAVLink path is checked against for the same seed,
+sample for sample, in every mode.
 
 Seeding: one :class:`numpy.random.SeedSequence` from the scenario's seed is
 split into independent streams for the plant, the IMU, the wind and the pilot,
@@ -33,15 +39,27 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
+from companion.core import FlightCore
 from companion.failsafe import FailsafeConfig
+from companion.mission import Mission
+from companion.modes import FLIGHT_MODES, FlightMode
 from companion.profile import VehicleProfile
 from companion.records import ControlLog
 from companion.records import columns as log_columns
 from companion.run_options import RunOptions
+from companion.startup import HOLD_POSITION_RATE_HZ
 from companion.step import LANDED_STATE_RATE_HZ
+from sitl.estimator_model import EKF_GPS, EstimatorModel, estimator_seed_sequence
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
-from sitl.lab.inprocess import LabShell, engaged_core, rc_frame
+from sitl.lab.inprocess import (
+    LabShell,
+    LocalPosition,
+    attitude_quaternion,
+    engaged_core,
+    rc_frame,
+    start_mode,
+)
 from sitl.link_model import (
     DOWN,
     ID_EXTENDED_SYS_STATE,
@@ -56,11 +74,14 @@ from sitl.pilot import PilotView, make_pilot
 from sitl.px4_control import ControlAllocator, thrust_for_command
 from sitl.rotors import hover_motor_command
 from sitl.scenario import Scenario
+from sitl.streams import MessageStreams, StreamSpec
 from sitl.wind import Wind
 
 __all__ = ["FlightRecord", "scenario_streams", "simulate_flight"]
 
 _ON_GROUND, _IN_AIR = 1, 2  # MAV_LANDED_STATE
+_ID_ATTITUDE_QUATERNION = 31
+_ID_LOCAL_POSITION_NED = 32
 
 
 @dataclass
@@ -83,6 +104,67 @@ class FlightRecord:
         np.savez_compressed(path, allow_pickle=False, **self.columns)
 
 
+class _Estimates:
+    """What the SITL's PX4 streams a flight mode besides the IMU, in its order
+    (:meth:`sitl.mavlink_face.MavlinkFace.publish`): ahead of the step's IMU
+    sample, the estimator model's position (50 Hz) and attitude (with every
+    sample); after it, the landed state its autopilot last detected (at the
+    previous step); each on the schedule the companion asks for, begun at
+    arming."""
+
+    def __init__(self, model: EstimatorModel, streams: MessageStreams, needs_position: bool):
+        self.model = model
+        self.streams = streams
+        self.needs_position = needs_position
+        self.begun = False
+        self.landed = True
+        """The autopilot's landed state: the vehicle's at its last update."""
+
+    @classmethod
+    def for_mode(cls, mode: FlightMode, imu: Imu, seed: int, dt_s: float) -> _Estimates | None:
+        if not mode.needs_attitude:
+            return None
+        model = EstimatorModel(
+            EKF_GPS,
+            rng=np.random.default_rng(estimator_seed_sequence(seed)),
+            dt_s=dt_s,
+            imu_rate_hz=min(imu.model.rate_hz, 1.0 / dt_s),
+        )
+        specs = [
+            StreamSpec(_ID_ATTITUDE_QUATERNION, "ATTITUDE_QUATERNION", 0.0, imu_based=True),
+            StreamSpec(_ID_LOCAL_POSITION_NED, "LOCAL_POSITION_NED", 0.0),
+            StreamSpec(ID_EXTENDED_SYS_STATE, "EXTENDED_SYS_STATE", 0.0),
+        ]
+        streams = MessageStreams(specs, imu_rate_hz=imu.model.rate_hz)
+        # What companion run's start-up asks for (companion.startup).
+        streams.set_interval(_ID_ATTITUDE_QUATERNION, 1e6 / imu.model.rate_hz)
+        if mode.needs_position:
+            streams.set_interval(_ID_LOCAL_POSITION_NED, 1e6 / HOLD_POSITION_RATE_HZ)
+        streams.set_interval(ID_EXTENDED_SYS_STATE, 1e6 / LANDED_STATE_RATE_HZ)
+        return cls(model, streams, mode.needs_position)
+
+    def ahead(self, core: FlightCore, t_s: float, state: Any, *, imu_sample: bool) -> None:
+        """The estimator fed this step's state; what goes out ahead of the sample."""
+        if self.begun:
+            self.model.update(state)
+        else:
+            self.model.begin(state)
+            self.begun = True
+        st = self.streams
+        att, pos = self.model.attitude, self.model.position
+        if st.due(_ID_LOCAL_POSITION_NED, t_s) and pos is not None:
+            core.on_message(LocalPosition.of(pos.position_ned_m, pos.velocity_ned_m_s), t_s)
+        if imu_sample and st.due(_ID_ATTITUDE_QUATERNION, t_s) and att is not None:
+            core.modes.on_attitude_quaternion(attitude_quaternion(t_s, att.q_wxyz))
+
+    def after(self, core: FlightCore, t_s: float, landed: bool) -> None:
+        """What goes out after the sample: the landed state the autopilot detected
+        at its last update; then it updates on this step's ``landed``."""
+        if self.streams.due(ID_EXTENDED_SYS_STATE, t_s):
+            core.on_landed_state(_ON_GROUND if self.landed else _IN_AIR)
+        self.landed = landed
+
+
 def scenario_streams(seed: int) -> dict[str, np.random.Generator]:
     """Independent generators for each random source of a flight."""
     names = ("plant", "imu", "wind", "pilot")
@@ -101,6 +183,8 @@ def simulate_flight(
     law: Any | None = None,
     failsafe: FailsafeConfig | None = None,
     control_log: Path | None = None,
+    mode: str = "rates",
+    mission: Mission | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -136,8 +220,13 @@ def simulate_flight(
         ``control.mcap`` (same topics, fields and events; the sample times are
         the plant's, ``wall_s`` the lab's clock), so a simulated flight opens in
         Foxglove and PlotJuggler as a real one does.
+    mode, mission
+        ``companion run``'s ``--mode`` and ``--mission``. A flight mode flies on
+        the autopilot's estimates as the SITL streams them (module docstring);
+        on the ideal link only.
     """
-    rngs = scenario_streams(scenario.seed if seed is None else seed)
+    flight_seed = scenario.seed if seed is None else seed
+    rngs = scenario_streams(flight_seed)
     dt = scenario.physics_dt_s
     wind = Wind(scenario.wind.config(), rng=rngs["wind"])
     quad = Quadrotor(
@@ -153,7 +242,12 @@ def simulate_flight(
         output="actuator",
         engage="auto",
         failsafe=FailsafeConfig() if failsafe is None else failsafe,
+        mode=mode,  # type: ignore[arg-type]
+        mission=mission,
     )
+    estimates = _Estimates.for_mode(FLIGHT_MODES[mode], imu, flight_seed, dt)
+    if estimates is not None and not scenario.link.ideal:
+        raise ValueError(f"mode {mode!r}: flown in process on the ideal link only")
     shell = LabShell()
     now = [0.0]  # the lab's clock: the plant's time
     log = None
@@ -166,8 +260,27 @@ def simulate_flight(
         shell.on_event = lambda kind, detail: log.event(
             {"t_s": now[0], "wall": now[0], "kind": kind, "detail": detail}
         )
-    core = engaged_core(opts, shell, lambda: now[0], controller=law)
-    if log is not None:
+    before = None
+    if estimates is not None:
+
+        def before(core: FlightCore) -> None:
+            start_mode(core, imu.model.rate_hz, on_ground=quad.state.landed)
+
+    core = engaged_core(opts, shell, lambda: now[0], controller=law, before=before)
+    row: list[list[float]] = [[]]
+    if estimates is not None:
+        # A flight mode's collective is the law's, not the pilot's: read back from
+        # the control-log row the core builds (and passed on to the log, if one).
+        thrust_at = log_columns(opts.profile.n_motors).index("thrust")
+        keep = log.append if log is not None else None
+
+        def append(values: list[float]) -> None:
+            row[0] = values
+            if keep is not None:
+                keep(values)
+
+        core.log_append = append
+    elif log is not None:
         core.log_append = log.append
     controller, step, pilot_in = core.controller, core.step, core.pilot
     see_plant = getattr(controller, "see_plant", None)
@@ -231,7 +344,7 @@ def simulate_flight(
         cols["ref_rad_s"].append(step.law_ref)
         cols["meas_rad_s"].append(gyro)
         cols["true_rad_s"].append(st.rate_frd_rad_s)
-        cols["thrust"].append(pilot_in.thrust)
+        cols["thrust"].append(pilot_in.thrust if estimates is None else row[0][thrust_at])
         cols["torque"].append(out.torque)
         cols["u"].append(out.u)
         cols["f_hat"].append(out.f_hat)
@@ -269,7 +382,14 @@ def simulate_flight(
                 for a in link.arrivals(UP, ID_RC_CHANNELS, t):
                     heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
         sample = imu.update(t, quad.rate_frd_rad_s, quad.specific_force_frd_m_s2)
-        if ideal:
+        if estimates is not None:
+            # As the SITL streams to a flight mode: the estimates, the IMU sample
+            # (flown on them), then the landed state.
+            estimates.ahead(core, t, quad.state, imu_sample=sample is not None)
+            if sample is not None:
+                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s, t)
+            estimates.after(core, t, quad.state.landed)
+        elif ideal:
             # The landed state goes out on its step, ahead of that step's IMU sample
             # (the SITL streams it after arming, every period, as the link branch).
             if t >= next_landed - 1e-12:

@@ -264,11 +264,14 @@ def test_after_arming_the_estimates_do_not_depend_on_when(
     assert [f.t_start_s for f in flights] == pytest.approx([0.2, 0.5], abs=0.0015)
     assert len(after[0]) > 50
     assert after[0] == after[1]
-    # The first goes out at arming, and is the new model's: not what came before.
-    first = after[0][0]
-    assert first[:2] == ("ATTITUDE_QUATERNION", 0)
+    # The first go out at arming (the position, then the attitude, ahead of the
+    # step's IMU sample), and are the new model's, not the last of the one before.
+    firsts = [m for m in after[0] if m[1] == 0]
+    assert [m[0] for m in firsts] == ["LOCAL_POSITION_NED", "ATTITUDE_QUATERNION"]
     before = [m for m in estimates(flights[0]) if m[1] < round(flights[0].t_start_s * 1e3)]
-    assert first[2:] not in [m[2:] for m in before]
+    for first in firsts:
+        last = [b for b in before if b[0] == first[0]][-1]
+        assert first[2:] != last[2:], first[0]
 
 
 IMU_MESSAGES = ("HIGHRES_IMU", "RAW_IMU", "SCALED_IMU")
