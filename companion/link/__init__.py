@@ -4,7 +4,8 @@ See :mod:`companion.link.transport` (the transports, in
 :mod:`~companion.link.udp_transport`, :mod:`~companion.link.serial_transport`
 and :mod:`~companion.link.memory_transport`), :mod:`companion.link.mavlink` (the link;
 its parts in :mod:`~companion.link.receive`, :mod:`~companion.link.accept`,
-:mod:`~companion.link.requests` and :mod:`~companion.link.frames`) and
+:mod:`~companion.link.requests`, :mod:`~companion.link.send` and
+:mod:`~companion.link.frames`) and
 :mod:`companion.link.signing`; ``docs/signing.md`` explains key set-up.
 """
 

@@ -8,12 +8,15 @@
         await link.request_message_interval(mavlink2.MAVLINK_MSG_ID_HIGHRES_IMU, 4000)
         link.send(link.mav.set_actuator_control_target_encode(...))
 
-:class:`MavlinkLink` here holds the set-up, the lifecycle and the sending, and
-owns three parts it calls: a :class:`~companion.link.receive.Receiver` (the
+:class:`MavlinkLink` here holds the set-up and the lifecycle, and
+owns four parts it calls: a :class:`~companion.link.receive.Receiver` (the
 frames in the bytes, the fast road of :meth:`MavlinkLink.add_fast_handler`), an
 :class:`~companion.link.accept.Acceptor` (which frames are the autopilot's, and
-who the autopilot is) and a :class:`~companion.link.requests.Requester` (the
-requests and the waits for their replies). The wire format is in
+who the autopilot is), a :class:`~companion.link.requests.Requester` (the
+requests and the waits for their replies) and a
+:class:`~companion.link.send.Sender` (the per-sample commands, our HEARTBEAT,
+SETUP_SIGNING; every frame sent goes through a
+:class:`~companion.link.send.FrameSink`). The wire format is in
 :mod:`companion.link.frames`.
 
 Counters (``link.counters``): ``received`` (frames decoded, before any check),
@@ -38,52 +41,24 @@ logged once, the link keeps going).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
-import time
 from collections.abc import Sequence
 from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from companion.errors import LinkError
-from companion.link import frames
 from companion.link.accept import Acceptor, FastHandler, OnAnomaly, OnMessage, OnRaw
-from companion.link.frames import (
-    EXTRA_ACTUATOR,
-    EXTRA_ATTITUDE_TARGET,
-    ID_ACTUATOR,
-    ID_ATTITUDE_TARGET,
-    crc16,
-)
 from companion.link.receive import Receiver
 from companion.link.requests import Requester
-from companion.link.signing import SigningConfig, signing_timestamp_now
+from companion.link.send import FrameSink, Sender
+from companion.link.signing import SigningConfig
 from companion.link.transport import Transport
 
 __all__ = ["MavlinkLink", "mavlink2"]
 
 logger = logging.getLogger(__name__)
-
-# Assigned, not imported by name: CPython (3.11) compiles ``NAME.pack(...)`` for an
-# imported NAME as an attribute load and a call, a bound method made each time.
-_HEADER = frames.HEADER
-_U16 = frames.U16
-_ACTUATOR = frames.ACTUATOR
-_ATTITUDE_TARGET = frames.ATTITUDE_TARGET
-
-
-class _Sink:
-    """pymavlink's output "file": every packed frame goes through the link."""
-
-    __slots__ = ("_link",)
-
-    def __init__(self, link: MavlinkLink) -> None:
-        self._link = link
-
-    def write(self, buf: bytes) -> None:
-        self._link._write_frame(buf)
 
 
 class MavlinkLink:
@@ -164,7 +139,6 @@ class MavlinkLink:
         self.source_component = source_component
         self.signing = signing
         self.heartbeat_hz = heartbeat_hz
-        self._on_raw = on_raw  # what we send; the receiver has its own for what arrives
         self.counters: dict[str, int] = dict.fromkeys(
             (
                 "received",
@@ -188,8 +162,9 @@ class MavlinkLink:
             0,
         )
         # Encoder: what callers use (link.mav.xxx_encode / xxx_send); signs when configured.
+        self._sink = FrameSink(transport, self.counters, on_raw)  # the receiver has its own on_raw
         self.mav = mavlink2.MAVLink(
-            _Sink(self), srcSystem=source_system, srcComponent=source_component
+            self._sink, srcSystem=source_system, srcComponent=source_component
         )
         self._acceptor = Acceptor(
             transport,
@@ -208,6 +183,7 @@ class MavlinkLink:
             source_system=source_system,
             source_component=source_component,
         )
+        self._sender = Sender(self._sink, self.mav, self._acceptor, signing=signing)
         # The receiver finds the frames; pymavlink only decodes them, with a parser
         # of its own, separate and keyless, so it does not judge signatures (the
         # acceptor does).
@@ -221,7 +197,6 @@ class MavlinkLink:
             on_message=on_message,
             on_raw=on_raw,
         )
-        self._heartbeat_task: asyncio.Task[None] | None = None
         self._started = False
         self._closed = False
 
@@ -282,11 +257,11 @@ class MavlinkLink:
     @property
     def on_raw(self) -> OnRaw | None:
         """See the class; may be replaced at any time (for both directions)."""
-        return self._on_raw
+        return self._sink.on_raw
 
     @on_raw.setter
     def on_raw(self, on_raw: OnRaw | None) -> None:
-        self._on_raw = on_raw
+        self._sink.on_raw = on_raw
         self._receiver.on_raw = on_raw
 
     @property
@@ -319,22 +294,12 @@ class MavlinkLink:
         """
         if self._started:
             raise LinkError(f"{self.transport.description}: link already started")
-        if self.signing is not None:
-            s = self.mav.signing
-            s.secret_key = self.signing.key
-            s.link_id = self.signing.link_id
-            s.sign_outgoing = True
-            s.timestamp = max(s.timestamp, signing_timestamp_now())
+        self._sender.start_signing()
         await self.transport.open(self._receiver.on_bytes)
         self._started = True
         self._closed = False
         self._requester.opened()
-        if self.heartbeat_hz > 0:
-            task = asyncio.get_running_loop().create_task(
-                self._heartbeat_loop(1.0 / self.heartbeat_hz), name="mavlink-heartbeat"
-            )
-            task.add_done_callback(self._heartbeat_done)
-            self._heartbeat_task = task
+        self._sender.start_heartbeat(self.heartbeat_hz)
         logger.info(
             "MAVLink link on %s as %d/%d%s",
             self.transport.description,
@@ -346,7 +311,7 @@ class MavlinkLink:
     @property
     def heartbeat_task(self) -> asyncio.Task[None] | None:
         """Our HEARTBEAT task while the link runs (the app watches it)."""
-        return self._heartbeat_task
+        return self._sender.heartbeat_task
 
     async def close(self) -> None:
         """Stop the heartbeat, fail pending waits with :class:`LinkError`, close the transport."""
@@ -354,11 +319,7 @@ class MavlinkLink:
             return
         self._closed = True
         self._requester.closing()
-        task, self._heartbeat_task = self._heartbeat_task, None
-        if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+        await self._sender.stop_heartbeat()
         self._requester.fail_waits(LinkError(f"{self.transport.description}: link closed"))
         await self.transport.close()
 
@@ -368,29 +329,6 @@ class MavlinkLink:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
-
-    async def _heartbeat_loop(self, period_s: float) -> None:
-        loop = asyncio.get_running_loop()
-        mav = self.mav
-        next_t = loop.time()
-        while True:
-            mav.heartbeat_send(
-                mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
-                mavlink2.MAV_AUTOPILOT_INVALID,
-                0,
-                0,
-                mavlink2.MAV_STATE_ACTIVE,
-            )
-            next_t += period_s
-            delay = next_t - loop.time()
-            if delay < 0.0:  # fell behind (loop was busy): do not send a burst to catch up
-                next_t = loop.time()
-                delay = 0.0
-            await asyncio.sleep(delay)
-
-    def _heartbeat_done(self, task: asyncio.Task[None]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            logger.error("heartbeat task died", exc_info=task.exception())
 
     # ------------------------------------------------------------------ requests
 
@@ -476,27 +414,12 @@ class MavlinkLink:
         """Pack ``msg`` (signed when signing is configured) and write it; never blocks."""
         self.mav.send(msg)
 
-    # --------------------------------------------------------- the per-sample sends
-
     def send_actuator_controls(
         self, time_usec: int, controls: Sequence[float], group: int = 0
     ) -> None:
-        """SET_ACTUATOR_CONTROL_TARGET to the autopilot: the per-sample command.
-
-        Packs the frame with one precompiled ``struct`` instead of pymavlink's
-        message object and generic packer (bytes identical, tested); with
-        signing it takes pymavlink's path, which signs.
-        """
-        sysid, compid = self._acceptor.require_target()
-        if self.signing is not None:
-            self.send(
-                self.mav.set_actuator_control_target_encode(
-                    time_usec, group, sysid, compid, list(controls)
-                )
-            )
-            return
-        payload = _ACTUATOR.pack(time_usec, *controls, group, sysid, compid)
-        self._write_fast(ID_ACTUATOR, EXTRA_ACTUATOR, payload)
+        """SET_ACTUATOR_CONTROL_TARGET to the autopilot: the per-sample command
+        (packed as :meth:`companion.link.send.Sender.send_actuator_controls` says)."""
+        self._sender.send_actuator_controls(time_usec, controls, group)
 
     def send_body_rates(
         self,
@@ -508,50 +431,7 @@ class MavlinkLink:
         """SET_ATTITUDE_TARGET with body rates and thrust (``type_mask`` 128:
         ignore the attitude quaternion). Same fast path as
         :meth:`send_actuator_controls`."""
-        sysid, compid = self._acceptor.require_target()
-        r0, r1, r2 = rates_frd_rad_s
-        if self.signing is not None:
-            self.send(
-                self.mav.set_attitude_target_encode(
-                    time_boot_ms, sysid, compid, type_mask, [1.0, 0.0, 0.0, 0.0], r0, r1, r2,
-                    thrust,
-                )
-            )  # fmt: skip
-            return
-        payload = _ATTITUDE_TARGET.pack(
-            time_boot_ms, 1.0, 0.0, 0.0, 0.0, r0, r1, r2, thrust, sysid, compid, type_mask
-        )
-        self._write_fast(ID_ATTITUDE_TARGET, EXTRA_ATTITUDE_TARGET, payload)
-
-    def _write_fast(self, msg_id: int, crc_extra: bytes, payload: bytes) -> None:
-        # MAVLink 2 drops trailing zero bytes of a payload (at least one byte stays).
-        body = payload.rstrip(b"\x00") or payload[:1]
-        mav = self.mav
-        seq = mav.seq
-        frame = (
-            _HEADER.pack(
-                0xFD,
-                len(body),
-                0,
-                0,
-                seq,
-                mav.srcSystem,
-                mav.srcComponent,
-                msg_id & 0xFFFF,
-                msg_id >> 16,
-            )
-            + body
-        )
-        mav.seq = (seq + 1) & 0xFF
-        frame += _U16.pack(crc16(crc_extra, crc16(frame[1:])))
-        self._write_frame(frame)
-
-    def _write_frame(self, buf: bytes) -> None:
-        self.transport.write(buf)
-        self.counters["sent"] += 1
-        on_raw = self._on_raw
-        if on_raw is not None:
-            on_raw(time.time(), bytes(buf), True)
+        self._sender.send_body_rates(time_boot_ms, rates_frd_rad_s, thrust, type_mask)
 
     def send_setup_signing(self, key: bytes, initial_timestamp: int | None = None) -> None:
         """Send SETUP_SIGNING with ``key`` to the target (provision the autopilot).
@@ -565,12 +445,4 @@ class MavlinkLink:
         LinkError
             If the target is not known yet.
         """
-        if len(key) != 32:
-            raise ValueError("signing key must be exactly 32 bytes")
-        sysid, compid = self._acceptor.require_target()
-        ts = signing_timestamp_now() if initial_timestamp is None else initial_timestamp
-        msg = self.mav.setup_signing_encode(sysid, compid, list(key), ts)
-        buf = msg.pack(self.mav)
-        self.mav.seq = (self.mav.seq + 1) % 256
-        self.transport.write(buf)
-        self.counters["sent"] += 1
+        self._sender.send_setup_signing(key, initial_timestamp)
