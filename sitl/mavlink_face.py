@@ -557,6 +557,14 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             return self.flush(t_s) > 0
         return imu_sent
 
+    def keep_alive(self, wall_s: float) -> None:
+        """A heartbeat if none went out for 1 s of wall time (on the ideal link):
+        a lockstep SITL waiting for a slow client's setpoint still beats, as the
+        autopilot it imitates would, so the client's link watchdog does not take
+        the client's own slowness for a lost autopilot."""
+        if self.link_model is None and wall_s - self._last_heartbeat_wall_s > 1.0:
+            self._send_heartbeat(wall_s)
+
     def _send_due(self, msg_id: int, t_s: float) -> None:
         """Send ``msg_id`` if its stream is due (and, where slots are held, it has data)."""
         if self.holds_unsent_slots and not self._has_data(msg_id):

@@ -136,6 +136,8 @@ Status = Literal["completed", "stopped", "crashed"]
 _MODE_BY_NAME = {m.name: m for m in MainMode}
 RC_PERIOD_S = 0.01
 """The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
+_KEEP_ALIVE_POLL_S = 0.25
+"""A lockstep wait looks this often (wall clock) whether a heartbeat is due."""
 PILOT_END_GRACE_S = 2.0
 """With ``pilot_from_arm``, the flight goes on this long after the pilot's timeline
 ends (the pilot holds its last segment), so a companion flying the same duration
@@ -778,8 +780,9 @@ class Runner:
                             t,
                         )
                         break
-                    if face.wait_readable(left):
+                    if face.wait_readable(min(left, _KEEP_ALIVE_POLL_S)):
                         face.poll(t, defer_commands=True)
+                    face.keep_alive(monotonic())
                 face.expect_answers(())
 
             if sample is not None:

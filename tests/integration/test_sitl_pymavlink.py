@@ -210,6 +210,37 @@ def test_lockstep_waits_for_the_client(
     assert summary["clock"] == "lockstep"
 
 
+def test_a_lockstep_wait_still_beats(start_sitl: Starter, connect: Connect, udp_port: int) -> None:
+    """A client held off the CPU leaves the lockstep SITL waiting for its setpoint:
+    the autopilot's heartbeat goes on (1 Hz of wall time), simulation time does
+    not, so the client's link watchdog does not take its own stall for a lost
+    autopilot (a loaded machine's lab flight failed safe so, "no heartbeat for
+    3.5 s")."""
+    sitl = start_sitl(udp_port, "--clock", "lockstep", "--lockstep-timeout", "5.0")
+    master = connect(udp_port)
+    assert command(master, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 105, 4000) == 0
+    flags = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+    send_actuators(master, 0.0)
+    assert command(master, mavlink.MAV_CMD_DO_SET_MODE, flags, 6, 0) == 0
+    send_actuators(master, 0.0)
+    assert command(master, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    send_actuators(master, 0.0)
+    # Drain what came, then answer nothing for 3 s (inside the lockstep timeout).
+    while master.recv_match(blocking=True, timeout=0.2) is not None:
+        pass
+    beats, samples = [], []
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 3.0:
+        m = master.recv_match(type=["HEARTBEAT", "HIGHRES_IMU"], blocking=True, timeout=0.2)
+        if m is None:
+            continue
+        (beats if m.get_type() == "HEARTBEAT" else samples).append(time.monotonic() - t0)
+    assert sitl.stop() == 0
+    assert len(samples) <= 1  # waiting: no new sample
+    assert len(beats) >= 2, beats  # but beating, about once a second
+    assert max(b - a for a, b in itertools.pairwise([0.0, *beats, 3.0])) < 1.6, beats
+
+
 def test_bad_profile_exits_2(tmp_path: object, udp_port: int) -> None:
     import subprocess
     import sys
