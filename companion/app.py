@@ -168,7 +168,7 @@ class Companion:
     @_telemetry.setter
     def _telemetry(self, telemetry: Any) -> None:
         self._mqtt = telemetry
-        self.core.publish_sample = None if telemetry is None else telemetry.publish_sample
+        self.core.output.publish_sample = None if telemetry is None else telemetry.publish_sample
 
     # ------------------------------------------------------------ the run's state
     @property
@@ -391,7 +391,7 @@ class Companion:
             records.close()
             return EXIT_ERROR
         core = self.core
-        core.log_append = records.append
+        core.output.log_append = records.append
         if opts.failsafe.bounds_lifted:
             self.event(
                 "bounds_lifted",

@@ -39,16 +39,14 @@ from companion.link.timesync import LinkClock
 from companion.modes import FLIGHT_MODES, ModeLaws
 from companion.pilot import EngageSwitch, PilotInput
 from companion.run_options import RunOptions
+from companion.sample_output import SampleOutput
 from companion.shell import Shell
 from companion.stacks import FlightStack
 from companion.step import NO_RATES, SampleStep
 
-__all__ = ["AGES_KEPT", "FlightCore", "Shell"]
+__all__ = ["FlightCore", "Shell"]
 
 _log = logging.getLogger("companion.app")
-
-AGES_KEPT = 1024
-"""The last samples' ages kept for the link's figures (about 1 s at 1 kHz)."""
 
 # MAVLink numbers used here (common.xml).
 _MSG_HEARTBEAT = 0
@@ -143,7 +141,6 @@ class FlightCore:
         """When the last finite LOCAL_POSITION_NED came."""
         self.switch = EngageSwitch(opts.engage_channel)
         self.t_engaged: float | None = None
-        self._actuator_output = opts.output == "actuator"
         self._script = opts.reference
         # Counted in the autopilot's whole microseconds: a float difference of two
         # large stamps would end the run one sample early or late by its rounding.
@@ -154,19 +151,16 @@ class FlightCore:
             opts.engage == "rc-switch" or opts.reference is None or opts.reference.thrust is None
         )
         # The link, measured: TIMESYNC round trips (the shell asks), and each
-        # sample's age when its command leaves (a ring of the last AGES_KEPT).
+        # sample's age when its command leaves (the output keeps it).
         self.link_clock = LinkClock()
-        self.sample_ages_s = [float("nan")] * AGES_KEPT
-        self.n_ages = 0
-        self.log_append: Callable[[list[float]], None] | None = None
-        """Where each sample's control-log row goes (None: not recorded)."""
-        self.publish_sample: Callable[..., None] | None = None
-        """Where each sample's telemetry goes (None: none)."""
+        self.output = SampleOutput(
+            shell, self.step, self.controller, self.modes, self.link_clock,
+            actuator=opts.output == "actuator",
+        )  # fmt: skip
+        """What leaves for each sample, and what is kept of it (its record's sinks)."""
         self.n_imu = 0
         self.n_imu_invalid = 0
         self.n_imu_clock_resets = 0
-        self.n_commands = 0
-        self.n_commands_gated = 0
         self.n_sample_errors = 0
         self._errors_in_row = 0
 
@@ -195,8 +189,8 @@ class FlightCore:
             "imu_gaps": t.n_gaps,
             "imu_time_outliers": t.n_time_outliers,
             "imu_clock_resets": self.n_imu_clock_resets,
-            "commands_sent": self.n_commands,
-            "commands_gated": self.n_commands_gated,
+            "commands_sent": self.output.n_commands,
+            "commands_gated": self.output.n_commands_gated,
             "sample_errors": self.n_sample_errors,
             "rc_invalid": p.n_invalid,
             "rc_unhealthy": p.n_unhealthy,
@@ -329,26 +323,13 @@ class FlightCore:
             # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
             self.link_clock.reply(msg.tc1, msg.ts1, arrival)
         elif mid == _MSG_SYS_STATUS:
-            self._on_sys_status(msg)
+            # The pre-arm checks (--engage auto waits for them before arming), and the
+            # RC receiver's health (ArduPilot streams a lost radio's last pulses).
+            change = self.pilot.receiver_report(self.ap.sys_status(msg))
+            if change is not None:
+                self.shell.event(*change)
         elif mid == _MSG_ATTITUDE_TARGET:
             self.modes.on_attitude_target(float(msg.thrust), self.clock())
-
-    def _on_sys_status(self, msg: Any) -> None:
-        """SYS_STATUS: the pre-arm checks (``--engage auto`` waits for them before
-        arming), and the RC receiver's health: while the autopilot calls it
-        unhealthy, its RC_CHANNELS are not the pilot's."""
-        healthy = self.ap.sys_status(msg)
-        if healthy is None or healthy == self.pilot.receiver_healthy:
-            return
-        self.pilot.receiver_healthy = healthy
-        if healthy:
-            self.shell.event("rc_receiver", "the autopilot reports its RC receiver healthy again")
-        else:
-            self.shell.event(
-                "rc_receiver_lost",
-                "the autopilot reports its RC receiver unhealthy (SYS_STATUS): its RC_CHANNELS "
-                "are the last pulses it had, not the pilot's",
-            )
 
     def on_landed_state(self, state: int) -> None:
         """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
@@ -561,7 +542,7 @@ class FlightCore:
             modes.needs_attitude and self.commanding and self.setpoints_flown
         )
         if self.commanding:
-            sent = self._send_output(t_s, out, ref, thrust)
+            sent = self.output.send(t_s, out, ref, thrust)
         else:
             modes.applied_thrust = None  # the outer loops learn only what was sent
             modes.rate_saturated = None
@@ -571,39 +552,13 @@ class FlightCore:
                 shell.event(kind, detail)
             modes.events.clear()
         # ---- the command has left: what follows is off the latency path
-        age = t_sent + self.link_clock.offset_s - t_s  # NaN until the first TIMESYNC answer
-        self.sample_ages_s[self.n_ages % AGES_KEPT] = age
-        self.n_ages += 1
+        age = self.output.age(t_s, t_sent)
         step.learn()
-        gyro = step.gyro
         if self.engaged:
-            verdict = self.watch.envelope(t_s, dt, gyro, out)
+            verdict = self.watch.envelope(t_s, dt, step.gyro, out)
             if verdict is not None:
                 self.failsafe(*verdict)
-        append = self.log_append
-        if append is not None:
-            tq = out.torque
-            err = out.error
-            f_hat = out.f_hat
-            u = out.u
-            sat = out.saturated_axes
-            g0, g1, g2 = gyro
-            alpha, lag, delay = self.controller.identified()
-            # The layout of companion.records.columns.
-            append(
-                [
-                    t_s, t0, (t_sent - t0) * 1e6, float(engaged), float(out.held),
-                    ref[0], g0, err[0], f_hat[0], u[0], tq[0], float(sat[0]),
-                    ref[1], g1, err[1], f_hat[1], u[1], tq[1], float(sat[1]),
-                    ref[2], g2, err[2], f_hat[2], u[2], tq[2], float(sat[2]),
-                    thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
-                    self.link_clock.rtt_s * 1e3, age * 1e3, *modes.log_columns(),
-                    *(step.law_ref if step.shaper is not None else NO_RATES),
-                    *alpha, *lag, *delay,
-                ]
-            )  # fmt: skip
-        if self.publish_sample is not None:
-            self.publish_sample(t_s, out.error, out.f_hat, out.u)
+        self.output.keep(t_s, t0, t_sent, age, engaged, out, ref, thrust, sent)
 
     def _mode_reference(
         self, dt: float, gyro: tuple[float, float, float], ref: Any, thrust: float
@@ -623,34 +578,3 @@ class FlightCore:
             dt, gyro, ref, thrust, self.pilot.deflection, self.controller,
             gyro_limit_rad_s=self.step.gyro_limit_rad_s, mission_flown=self.engaged,
         )  # fmt: skip
-
-    def _send_output(
-        self, t_s: float, out: Any, ref: tuple[float, float, float], thrust: float
-    ) -> Sequence[float]:
-        """Send this sample's command through the last gate; returns the body rates
-        sent (NaN: none)."""
-        modes = self.modes
-        if self._actuator_output:
-            controls, replaced = self.step.actuator_command(out, thrust)
-            if replaced:
-                self._gated(replaced)
-            r, p, y, t = controls
-            self.shell.send_actuator_controls(round(t_s * 1e6), (r, p, y, t, 0.0, 0.0, 0.0, 0.0))
-            modes.applied_thrust = t
-            modes.rate_saturated = out.saturated_axes
-            self.n_commands += 1
-            return NO_RATES
-        sp, thrust_out, replaced = self.step.rates_command(out, ref, thrust)
-        if replaced:
-            self._gated(replaced)
-        self.shell.send_body_rates(round(t_s * 1e3) & 0xFFFFFFFF, sp, thrust_out)
-        modes.applied_thrust = thrust_out
-        modes.rate_saturated = None  # the autopilot's rate loop: its mixer is not seen
-        self.n_commands += 1
-        return sp
-
-    def _gated(self, n: int) -> None:
-        """The last gate replaced ``n`` non-finite fields of a command."""
-        self.n_commands_gated += n
-        if self.n_commands_gated == n:
-            self.shell.event("command_gated", f"{n} non-finite field(s) replaced by safe values")

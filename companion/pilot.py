@@ -105,6 +105,21 @@ class PilotInput:
         safe mode may be flown on."""
         return self.fresh(now) and self.receiver_healthy
 
+    def receiver_report(self, healthy: bool | None) -> tuple[str, str] | None:
+        """The autopilot's word on its RC receiver (SYS_STATUS; None: it says
+        nothing): while it calls it unhealthy, its RC_CHANNELS are not the
+        pilot's. Returns the event a change calls for, or None."""
+        if healthy is None or healthy == self.receiver_healthy:
+            return None
+        self.receiver_healthy = healthy
+        if healthy:
+            return "rc_receiver", "the autopilot reports its RC receiver healthy again"
+        return (
+            "rc_receiver_lost",
+            "the autopilot reports its RC receiver unhealthy (SYS_STATUS): its RC_CHANNELS "
+            "are the last pulses it had, not the pilot's",
+        )
+
 
 class EngageSwitch:
     """The engage switch on one channel (``--engage rc-switch``): high 1700-2200 us

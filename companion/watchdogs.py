@@ -51,7 +51,7 @@ def link_figures(core: FlightCore) -> dict[str, float | int | None]:
     import numpy as np
 
     figures = core.link_clock.stats().as_dict()
-    ages = np.asarray(core.sample_ages_s[: core.n_ages])
+    ages = np.asarray(core.output.sample_ages_s[: core.output.n_ages])
     ages = ages[np.isfinite(ages)]
     for name, q in (("sample_age_p50_ms", 50), ("sample_age_p99_ms", 99)):
         figures[name] = round(float(np.percentile(ages, q)) * 1e3, 3) if ages.size else None

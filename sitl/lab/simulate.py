@@ -279,9 +279,9 @@ def simulate_flight(
             if keep is not None:
                 keep(values)
 
-        core.log_append = append
+        core.output.log_append = append
     elif log is not None:
-        core.log_append = log.append
+        core.output.log_append = log.append
     controller, step, pilot_in = core.controller, core.step, core.pilot
     see_plant = getattr(controller, "see_plant", None)
     autopilot_mix = ControlAllocator.from_profile(plant).mix

@@ -57,7 +57,7 @@ def test_engaged_it_sends_one_command_per_sample_flown_and_drops_a_late_one() ->
     core.on_imu(10.008, (0.0, 0.0, 0.0), clock.t + 0.02)  # a late duplicate
     assert shell.controls is None
     assert core.counters()["imu_duplicate_or_late"] == 1
-    assert core.n_commands == 5
+    assert core.output.n_commands == 5
 
 
 def test_the_switch_engages_through_the_shell_and_hands_back_when_low() -> None:
@@ -132,7 +132,7 @@ def test_each_row_carries_the_model_the_law_flies() -> None:
     shell, clock = LabShell(), Clock()
     core = engaged_core(options(output="actuator"), shell, clock)
     rows: list[list[float]] = []
-    core.log_append = rows.append
+    core.output.log_append = rows.append
     core.on_rc(rc_frame(CENTRED), clock.t)
     for k in range(3):
         core.on_imu(10.0 + 0.004 * k, (0.0, 0.0, 0.0), clock.t + 0.004 * k)
