@@ -31,7 +31,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import common as mavlink
 
 from sitl.ardupilot import ArduCopter
-from sitl.ardupilot_modes import CopterMode
+from sitl.ardupilot_modes import GUIDED, CopterMode
 from sitl.mavlink_face import (
     ID_ATTITUDE,
     ID_ATTITUDE_QUATERNION,
@@ -238,6 +238,14 @@ class ArduPilotFace(MavlinkFace[ArduCopter]):
         if not base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
             return MavResult.UNSUPPORTED
         return self.autopilot.set_mode(t_s, custom_mode)
+
+    def _external_control_mode(self, mode: float) -> bool:
+        return as_int(mode) in GUIDED
+
+    def _ends_external_control(self, msg: Any) -> bool:
+        if msg.get_type() == "SET_MODE":
+            return self._for_us(msg.target_system, None) and msg.custom_mode not in GUIDED
+        return super()._ends_external_control(msg)
 
     def _vehicle_command(self, command: int, p: Sequence[float], t_s: float) -> MavResult | None:
         ap = self.autopilot

@@ -358,6 +358,34 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         else:
             self._handle_other(mtype, msg, t_s)
 
+    @property
+    def leaving_external_control(self) -> bool:
+        """A command kept for the next step (:meth:`poll` with ``defer_commands``),
+        or on its way through a modelled link (which cannot deliver it while the
+        clock waits), takes the vehicle out of the companion's hands: a land, or a mode other
+        than the one its setpoints fly in. The lockstep clock stops waiting
+        for a setpoint then: the client handing back answers no more samples."""
+        pending = (*self._deferred, *(m for _, _, m in self._inbox))  # kept, or on its way
+        return any(self._ends_external_control(m) for m in pending)
+
+    def _ends_external_control(self, msg: Any) -> bool:
+        if msg.get_type() not in ("COMMAND_LONG", "COMMAND_INT"):
+            return False
+        if not self._for_us(msg.target_system, msg.target_component):
+            return False
+        if msg.command == mavlink.MAV_CMD_NAV_LAND:
+            return True
+        if msg.command == mavlink.MAV_CMD_DO_SET_MODE:
+            try:
+                return not self._external_control_mode(msg.param2)
+            except (ValueError, OverflowError):
+                return False  # refused when it is handled (int(nan))
+        return False
+
+    @abstractmethod
+    def _external_control_mode(self, mode: float) -> bool:
+        """``MAV_CMD_DO_SET_MODE``'s param2 names a mode the companion's setpoints fly."""
+
     @abstractmethod
     def neutral_setpoint(self, t_s: float) -> None:
         """Give the autopilot a setpoint of zero rates or torques and zero thrust

@@ -252,6 +252,9 @@ class Px4Face(MavlinkFace[Autopilot]):
             thrust = self.autopilot.last_torque_thrust[3]
         self.autopilot.on_rates_target(t_s, rates, thrust)
 
+    def _external_control_mode(self, mode: float) -> bool:
+        return as_int(mode) == MainMode.OFFBOARD
+
     def _vehicle_command(self, command: int, p: Sequence[float], t_s: float) -> MavResult | None:
         ap = self.autopilot
         if command == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:

@@ -767,6 +767,8 @@ class Runner:
                 summary.lockstep_waits += 1
                 deadline = monotonic() + cfg.lockstep_timeout_s
                 while face.setpoints_arrived < want and not stop.is_set():
+                    if face.leaving_external_control:
+                        break  # a hand-back: applied at the next step, no answer coming
                     left = deadline - monotonic()
                     if left <= 0.0:
                         summary.lockstep_timeouts += 1

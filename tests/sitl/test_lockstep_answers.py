@@ -157,3 +157,85 @@ def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_s
     assert len(sent) > 100
     wrong = [(t, roll) for t, roll in sent if roll != pytest.approx(code(round(t / US)), abs=1e-9)]
     assert not wrong, f"{len(wrong)} of {len(sent)} samples flew another's answer: {wrong[:3]}"
+
+
+@pytest.mark.parametrize("how", ["mode", "land"])
+def test_a_hand_back_ends_the_lockstep_wait_without_a_timeout(how: str) -> None:
+    """A client handing back answers no more samples: its mode or land command,
+    kept for the next step, ends the wait there rather than the timeout (seen
+    costing every lockstep flight its timeout at its end)."""
+    client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    client.bind(("127.0.0.1", 0))
+    client.settimeout(0.5)
+    port = client.getsockname()[1]
+    profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
+    config = RunConfig(
+        mavlink=parse_endpoint(f"udpout:127.0.0.1:{port}"),
+        pilot="paper-acro",
+        clock="lockstep",
+        seed=1,
+        duration_s=1.0,
+        initial_mode="MANUAL",
+        auto_arm=False,
+        log_path=None,
+        lockstep_timeout_s=60.0,  # a wait that times out fails the test's bound
+    )
+    runner = Runner(profile, config, profile_name="f450")
+    runner.face.streams.set_interval(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 4000.0, t_s=0.0)
+    ap = runner.autopilot
+    poll = runner.face.poll
+
+    def poll_then_engage(t_s: float, *, defer_commands: bool = False) -> int:
+        n = poll(t_s, defer_commands=defer_commands)
+        if runner.quad.steps == 100:
+            assert ap.set_mode(t_s, 6) == 0  # type: ignore[attr-defined]  # OFFBOARD
+            assert ap.arm(t_s) == 0
+        return n
+
+    runner.face.poll = poll_then_engage  # type: ignore[method-assign]
+    summary: list[object] = []
+    sitl = threading.Thread(target=lambda: summary.append(runner.run()), daemon=True)
+    mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    answered = 0
+    handed_back_at: float | None = None
+    try:
+        sitl.start()
+        while sitl.is_alive() and handed_back_at is None:
+            try:
+                data, addr = client.recvfrom(4096)
+            except TimeoutError:
+                continue
+            for msg in mav.parse_buffer(data) or []:
+                if msg.get_type() != "HIGHRES_IMU" or handed_back_at is not None:
+                    continue
+                if not ap.external_control or answered < 50:
+                    sp = mavlink.MAVLink_set_actuator_control_target_message(
+                        msg.time_usec, 0, 1, 1, [0.0] * 3 + [0.5] + [0.0] * 4
+                    )
+                    client.sendto(sp.pack(mav), addr)
+                    answered += 1
+                    continue
+                # The sample the clock now waits on goes unanswered: hand back.
+                if how == "mode":  # POSCTL
+                    cmd = mavlink.MAVLink_command_long_message(
+                        1, 1, mavlink.MAV_CMD_DO_SET_MODE, 0, 1, 3, 0, 0, 0, 0, 0
+                    )
+                else:
+                    cmd = mavlink.MAVLink_command_long_message(
+                        1, 1, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0
+                    )
+                client.sendto(cmd.pack(mav), addr)
+                handed_back_at = time.monotonic()
+        sitl.join(10)
+        finished_alone = not sitl.is_alive()
+    finally:
+        runner.stop.set()
+        sitl.join(10)
+        client.close()
+
+    assert handed_back_at is not None and finished_alone
+    assert summary, "the SITL did not finish"
+    run = summary[0]
+    assert run.lockstep_timeouts == 0  # type: ignore[attr-defined]
+    assert not ap.external_control
+    assert run.sim_time_s == pytest.approx(1.0, abs=0.01)  # type: ignore[attr-defined]
