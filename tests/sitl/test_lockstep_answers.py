@@ -15,6 +15,7 @@ import socket
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
@@ -80,13 +81,15 @@ def test_a_lockstep_timeout_makes_the_judge_count_everything_again() -> None:
 # ------------------------------------------------------- a SITL and a client
 
 
-def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_stall() -> None:
+def _client_and_lockstep_sitl(**config: Any) -> tuple[socket.socket, Runner]:
+    """A UDP client and a lockstep SITL (1 s, MANUAL, disarmed) streaming
+    HIGHRES_IMU to it at 250 Hz."""
     client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     client.bind(("127.0.0.1", 0))
     client.settimeout(0.5)
     port = client.getsockname()[1]
     profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
-    config = RunConfig(
+    cfg = RunConfig(
         mavlink=parse_endpoint(f"udpout:127.0.0.1:{port}"),
         pilot="paper-acro",
         clock="lockstep",
@@ -95,9 +98,15 @@ def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_s
         initial_mode="MANUAL",
         auto_arm=False,
         log_path=None,
+        **config,
     )
-    runner = Runner(profile, config, profile_name="f450")
+    runner = Runner(profile, cfg, profile_name="f450")
     runner.face.streams.set_interval(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 4000.0, t_s=0.0)
+    return client, runner
+
+
+def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_stall() -> None:
+    client, runner = _client_and_lockstep_sitl()
     ap = runner.autopilot
     offboard_step = 300  # t = 0.3 s: the client sleeps through it
 
@@ -164,24 +173,8 @@ def test_a_hand_back_ends_the_lockstep_wait_without_a_timeout(how: str) -> None:
     """A client handing back answers no more samples: its mode or land command,
     kept for the next step, ends the wait there rather than the timeout (seen
     costing every lockstep flight its timeout at its end)."""
-    client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    client.bind(("127.0.0.1", 0))
-    client.settimeout(0.5)
-    port = client.getsockname()[1]
-    profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
-    config = RunConfig(
-        mavlink=parse_endpoint(f"udpout:127.0.0.1:{port}"),
-        pilot="paper-acro",
-        clock="lockstep",
-        seed=1,
-        duration_s=1.0,
-        initial_mode="MANUAL",
-        auto_arm=False,
-        log_path=None,
-        lockstep_timeout_s=60.0,  # a wait that times out fails the test's bound
-    )
-    runner = Runner(profile, config, profile_name="f450")
-    runner.face.streams.set_interval(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 4000.0, t_s=0.0)
+    # A wait that times out fails the test's bound.
+    client, runner = _client_and_lockstep_sitl(lockstep_timeout_s=60.0)
     ap = runner.autopilot
     poll = runner.face.poll
 
