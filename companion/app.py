@@ -467,4 +467,4 @@ class Companion:
         return self._exit_code
 
     def _on_message(self, msg: Any) -> None:
-        self.core.on_message(msg, self.link.rx_perf_s)
+        self.core.messages.on_message(msg, self.link.rx_perf_s)

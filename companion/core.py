@@ -16,7 +16,8 @@ command; then, off the latency path, what the law learns, the failsafes judged
 per sample (:class:`companion.failsafe.SampleWatch`) and the record. The
 pilot's frames (:class:`companion.pilot.PilotInput`) carry the reference and
 the engage switch; the autopilot's heartbeats say whether the vehicle is
-engaged.
+engaged, and its other messages go where they are kept
+(:class:`companion.autopilot_messages.AutopilotMessages`).
 
 Engaged means the autopilot's heartbeat shows the engage mode (OFFBOARD,
 GUIDED_NOGPS) and armed while we command; a failsafe stops the commands in the
@@ -29,6 +30,7 @@ import logging
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from companion.autopilot_messages import AutopilotMessages
 from companion.autopilot_state import AutopilotState
 from companion.config import build_controller, build_stick_map
 from companion.control import RateController
@@ -47,20 +49,6 @@ from companion.step import NO_RATES, SampleStep
 __all__ = ["FlightCore", "Shell"]
 
 _log = logging.getLogger("companion.app")
-
-# MAVLink numbers used here (common.xml).
-_MSG_HEARTBEAT = 0
-_MSG_SYS_STATUS = 1
-_MSG_LOCAL_POSITION_NED = 32
-_MSG_ATTITUDE_TARGET = 83
-_MSG_TIMESYNC = 111
-_MSG_EXTENDED_SYS_STATE = 245
-_MSG_STATUSTEXT = 253
-_LANDED_STATE_UNDEFINED = 0  # MAV_LANDED_STATE_UNDEFINED
-_LANDED_STATE_ON_GROUND = 1  # MAV_LANDED_STATE_ON_GROUND
-_POSITION_TIMEOUT_S = 1.0
-"""A position estimate counts as valid while LOCAL_POSITION_NED (sent by PX4 and
-ArduPilot only while their estimate is valid) is younger than this."""
 
 
 class FlightCore:
@@ -136,9 +124,6 @@ class FlightCore:
         """The autopilot's ``custom_mode`` as the last engagement began."""
         self.ap = AutopilotState()
         """What the autopilot says of itself."""
-        self.last_statustext = ""
-        self.last_position: float | None = None
-        """When the last finite LOCAL_POSITION_NED came."""
         self.switch = EngageSwitch(opts.engage_channel)
         self.t_engaged: float | None = None
         self._script = opts.reference
@@ -158,6 +143,11 @@ class FlightCore:
             actuator=opts.output == "actuator",
         )  # fmt: skip
         """What leaves for each sample, and what is kept of it (its record's sinks)."""
+        self.messages = AutopilotMessages(
+            shell, clock, self.on_heartbeat, ap=self.ap, pilot=self.pilot, modes=self.modes,
+            controller=self.controller, link_clock=self.link_clock,
+        )  # fmt: skip
+        """The autopilot's other messages, each to what keeps it (HEARTBEAT: here)."""
         self.n_imu = 0
         self.n_imu_invalid = 0
         self.n_imu_clock_resets = 0
@@ -200,15 +190,11 @@ class FlightCore:
 
     def conditions(self, now: float, *, rc_failsafe: bool) -> Conditions:
         """What a safe mode may be chosen on, now."""
-        pos = self.last_position
-        position = pos is not None and now - pos <= _POSITION_TIMEOUT_S
-        if self.modes.needs_position:  # the modes that fly on it judge it themselves
-            position = position and self.modes.position_fresh()
         return Conditions(
             # Frames that came while the receiver was healthy, and it still is (ArduPilot
             # streams a lost radio's last pulses; its SYS_STATUS says it is lost).
             rc_valid=self.pilot.valid_rc(now),
-            position_valid=position,
+            position_valid=self.messages.position_valid(now),
             rc_failsafe=rc_failsafe,
             autopilot_failsafe=failsafe_state(self.ap.status),
         )
@@ -303,49 +289,6 @@ class FlightCore:
         modes.reset(take_over, on_ground=on_ground)
 
     # --------------------------------------------------------------- messages
-    def on_message(self, msg: Any, arrival: float) -> None:
-        """A message from the generic parser (the IMU, the estimates and the pilot's
-        frames come through their own methods)."""
-        mid = msg.get_msgId()
-        if mid == _MSG_HEARTBEAT:
-            self.on_heartbeat(msg)
-        elif mid == _MSG_STATUSTEXT:
-            text = msg.text.decode(errors="replace") if isinstance(msg.text, bytes) else msg.text
-            self.last_statustext = text.rstrip("\x00")
-            self.shell.event("autopilot_says", self.last_statustext)
-        elif mid == _MSG_EXTENDED_SYS_STATE:
-            self.on_landed_state(int(msg.landed_state))
-        elif mid == _MSG_LOCAL_POSITION_NED:
-            # A hand-back without RC holds with a valid position: a finite one.
-            if self.modes.on_local_position(msg):
-                self.last_position = self.clock()
-        elif mid == _MSG_TIMESYNC and msg.tc1 != 0:
-            # An answer to ours (the autopilot's own requests, tc1 = 0, go unanswered).
-            self.link_clock.reply(msg.tc1, msg.ts1, arrival)
-        elif mid == _MSG_SYS_STATUS:
-            # The pre-arm checks (--engage auto waits for them before arming), and the
-            # RC receiver's health (ArduPilot streams a lost radio's last pulses).
-            change = self.pilot.receiver_report(self.ap.sys_status(msg))
-            if change is not None:
-                self.shell.event(*change)
-        elif mid == _MSG_ATTITUDE_TARGET:
-            self.modes.on_attitude_target(float(msg.thrust), self.clock())
-
-    def on_landed_state(self, state: int) -> None:
-        """EXTENDED_SYS_STATE's ``landed_state``: no identification on the ground.
-
-        An autopilot that never sends it (or sends UNDEFINED) leaves the
-        collective as the only gate."""
-        if state != _LANDED_STATE_UNDEFINED:
-            self.modes.landed_state_seen = True
-        on_ground = state == _LANDED_STATE_ON_GROUND
-        if on_ground != self.controller.on_ground:
-            self.controller.on_ground = on_ground
-            self.modes.on_ground_changed(on_ground)
-            self.shell.event(
-                "landed_state", "on the ground" if on_ground else f"in the air ({state})"
-            )
-
     def on_heartbeat(self, msg: Any) -> None:
         """HEARTBEAT: the autopilot's mode, armed state and failsafe state; the engaged edge."""
         ap = self.ap
@@ -397,45 +340,13 @@ class FlightCore:
 
     def _switch(self, chans: Sequence[int]) -> None:
         """The engage switch, on each valid frame of the pilot's input."""
-        if self.opts.engage != "rc-switch" or not self.started_up:
-            return
-        switch = self.switch
-        edge = switch.edge(chans)
-        if edge is None:
-            return
-        shell = self.shell
-        ch, value = switch.channel, switch.value
-        if edge == "high_at_start":
-            shell.event(
-                "rc_switch_high_at_start",
-                f"ch{ch} high ({value} us) at start: nothing engages until the "
-                "switch has been low; put it low, then high to engage",
-            )
-        elif edge == "high":
-            shell.event("rc_switch", f"ch{ch} high ({value} us): engaging")
-            shell.engage()
-        else:
-            # Still waiting for the flight mode's estimates: nothing was sent yet.
-            if not self.commanding and shell.cancel_engaging():
-                shell.event("rc_switch", f"ch{ch} low ({value} us): engagement abandoned")
-            if self.engaged or self.commanding:
-                was = self.release()
-                shell.event("rc_switch", f"ch{ch} low ({value} us): handing back")
-                shell.hand_back("pilot switched back", was_commanding=was)
+        if self.opts.engage == "rc-switch" and self.started_up:
+            self.switch.on_frame(
+                chans, self.shell, engaged=self.engaged, commanding=self.commanding,
+                release=self.release,
+            )  # fmt: skip
 
     # ------------------------------------------------------------ the samples
-    def on_highres_imu(self, v: tuple[Any, ...], arrival: float) -> None:
-        """HIGHRES_IMU ``(time_usec, xgyro, ygyro, zgyro)``."""
-        if self.imu_source == "highres_imu":
-            t_usec, g0, g1, g2 = v
-            self.on_imu(t_usec * 1e-6, (g0, g1, g2), arrival)
-
-    def on_attitude(self, v: tuple[Any, ...], arrival: float) -> None:
-        """ATTITUDE ``(time_boot_ms, rollspeed, pitchspeed, yawspeed)``."""
-        if self.imu_source == "attitude":
-            t_ms, g0, g1, g2 = v
-            self.on_imu(t_ms * 1e-3, (g0, g1, g2), arrival)
-
     def on_imu(self, t_s: float, gyro: tuple[float, float, float], arrival: float) -> None:
         """One IMU sample stamped ``t_s`` that arrived at ``arrival``: everything
         before the command is what the sample needs (the timestamp and range

@@ -28,11 +28,18 @@ def add_fast_handlers(link: Any, core: FlightCore) -> None:
     """The messages on the control path skip pymavlink's generic parser when
     their frame allows: the IMU sample, the estimates, the pilot's frames."""
 
+    # The IMU's message is the stack's, known once it is recognised (startup).
     def on_highres_imu(v: tuple[Any, ...]) -> None:
-        core.on_highres_imu(v, link.rx_perf_s)
+        """HIGHRES_IMU ``(time_usec, xgyro, ygyro, zgyro)``."""
+        if core.imu_source == "highres_imu":
+            t_usec, g0, g1, g2 = v
+            core.on_imu(t_usec * 1e-6, (g0, g1, g2), link.rx_perf_s)
 
     def on_attitude(v: tuple[Any, ...]) -> None:
-        core.on_attitude(v, link.rx_perf_s)
+        """ATTITUDE ``(time_boot_ms, rollspeed, pitchspeed, yawspeed)``."""
+        if core.imu_source == "attitude":
+            t_ms, g0, g1, g2 = v
+            core.on_imu(t_ms * 1e-3, (g0, g1, g2), link.rx_perf_s)
 
     def on_rc(v: tuple[Any, ...]) -> None:
         core.on_rc(v, time.perf_counter())

@@ -20,12 +20,13 @@ No I/O and no clock: each frame comes with its arrival time.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from companion.control.sticks import StickMap, joystick_channels
+from companion.shell import Shell
 
-__all__ = ["PilotInput"]
+__all__ = ["EngageSwitch", "PilotInput"]
 
 
 class PilotInput:
@@ -157,3 +158,37 @@ class EngageSwitch:
             self.high = False
             return "low"
         return None
+
+    def on_frame(
+        self,
+        chans: Sequence[int],
+        shell: Shell,
+        *,
+        engaged: bool,
+        commanding: bool,
+        release: Callable[[], bool],
+    ) -> None:
+        """Act on one valid frame's edge: tell the pilot a switch high at start does
+        nothing, engage on high, abandon or hand back on low (``release`` stops
+        the commands in this call and says whether there were any)."""
+        edge = self.edge(chans)
+        if edge is None:
+            return
+        ch, value = self.channel, self.value
+        if edge == "high_at_start":
+            shell.event(
+                "rc_switch_high_at_start",
+                f"ch{ch} high ({value} us) at start: nothing engages until the "
+                "switch has been low; put it low, then high to engage",
+            )
+        elif edge == "high":
+            shell.event("rc_switch", f"ch{ch} high ({value} us): engaging")
+            shell.engage()
+        else:
+            # Still waiting for the flight mode's estimates: nothing was sent yet.
+            if not commanding and shell.cancel_engaging():
+                shell.event("rc_switch", f"ch{ch} low ({value} us): engagement abandoned")
+            if engaged or commanding:
+                was = release()
+                shell.event("rc_switch", f"ch{ch} low ({value} us): handing back")
+                shell.hand_back("pilot switched back", was_commanding=was)

@@ -122,7 +122,7 @@ def start_mode(core: FlightCore, imu_rate_hz: float, *, on_ground: bool) -> None
     the IMU rate granted, the landed state, and the law built with the stick limits
     and hover thrust the SITL's parameters answer."""
     core.modes.imu_rate_hz = imu_rate_hz
-    core.on_landed_state(_ON_GROUND if on_ground else _IN_AIR)
+    core.messages.on_landed_state(_ON_GROUND if on_ground else _IN_AIR)
     params = PX4.stick_params
     # As PARAM_VALUE carries them: float32.
     answered = {

@@ -153,7 +153,8 @@ class _Estimates:
         st = self.streams
         att, pos = self.model.attitude, self.model.position
         if st.due(_ID_LOCAL_POSITION_NED, t_s) and pos is not None:
-            core.on_message(LocalPosition.of(pos.position_ned_m, pos.velocity_ned_m_s), t_s)
+            local = LocalPosition.of(pos.position_ned_m, pos.velocity_ned_m_s)
+            core.messages.on_message(local, t_s)
         if imu_sample and st.due(_ID_ATTITUDE_QUATERNION, t_s) and att is not None:
             core.modes.on_attitude_quaternion(attitude_quaternion(t_s, att.q_wxyz))
 
@@ -161,7 +162,7 @@ class _Estimates:
         """What goes out after the sample: the landed state the autopilot detected
         at its last update; then it updates on this step's ``landed``."""
         if self.streams.due(ID_EXTENDED_SYS_STATE, t_s):
-            core.on_landed_state(_ON_GROUND if self.landed else _IN_AIR)
+            core.messages.on_landed_state(_ON_GROUND if self.landed else _IN_AIR)
         self.landed = landed
 
 
@@ -316,7 +317,7 @@ def simulate_flight(
     last_sample_t = -math.inf
 
     def on_landed(landed: bool) -> None:
-        core.on_landed_state(_ON_GROUND if landed else _IN_AIR)
+        core.messages.on_landed_state(_ON_GROUND if landed else _IN_AIR)
 
     def on_sample(
         sample_t: float, gyro: tuple[float, float, float], arrival: float
