@@ -213,10 +213,6 @@ def fly_mavlink(
         "--mavlink", f"udpout:127.0.0.1:{sitl_port}",
         "--scenario", str(scenario),
         "--clock", "lockstep",
-        # A loaded machine can hold either process back for longer than the
-        # default 0.5 s, and a wait that times out is a different flight; the
-        # companion's hand-back ends the last wait, whatever this is.
-        "--lockstep-timeout", "2",
         "--pilot-from-arm", "--no-auto-arm",
         *(["--mode", "manual"] if autopilot == "px4" else
           ["--autopilot", "ardupilot", "--mode", "stabilize", "--param", "GUID_OPTIONS=8"]),

@@ -168,8 +168,10 @@ def test_ardupilot_rc_loss_the_radio_failsafe_acts_and_the_companion_hands_back(
     fs = failsafes[0]
     back = only(ev, "handed_back")
     assert 0.0 <= back["wall"] - fs["wall"] < 1.0
-    # Seen within a heartbeat or two of the receiver's loss.
-    assert 0.0 <= fs["wall"] - lost["wall"] < 2.0, (lost, fs)
+    # Seen within a heartbeat or two of the receiver's loss; the HEARTBEAT showing
+    # RTL goes out at once, the SYS_STATUS calling the receiver lost at its next
+    # 5 Hz slot: either may come first (CI saw the HEARTBEAT 1 ms ahead).
+    assert -0.25 <= fs["wall"] - lost["wall"] < 2.0, (lost, fs)
     if fs["kind"] == "failsafe_rc_lost":
         assert back["detail"].endswith("-> LOITER accepted"), back
         assert "(the failsafe is RC loss)" in back["detail"]
