@@ -27,7 +27,14 @@ Clocks
     runs as fast as the CPU allows, so a client may fall behind there; a client
     that stamps its setpoints with their samples' times (the companion) has its
     late answers to older samples handled but not counted (:mod:`sitl.answers`):
-    each wait ends on the answer to the sample it gave. With
+    each wait ends on the answer to the sample it gave. Once a client streams
+    setpoints outside OFFBOARD (PX4 wants them before it switches), the clock
+    keeps to the wall's (as ``realtime``) until OFFBOARD or
+    ``_STREAMING_S`` after the last one: run free, it overfilled the client's
+    socket, the datagrams the kernel dropped left jumps in the IMU time that
+    the wall clock did not take, and a client that holds such a sample back as
+    a possibly corrupt stamp (the companion) never answered the one the first
+    wait in OFFBOARD was for. With
     ``autopilot="ardupilot"`` the same holds in GUIDED / GUIDED_NOGPS after
     each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
@@ -138,6 +145,8 @@ RC_PERIOD_S = 0.01
 """The simulated RC receiver delivers a frame every 10 ms (100 Hz)."""
 _KEEP_ALIVE_POLL_S = 0.25
 """A lockstep wait looks this often (wall clock) whether a heartbeat is due."""
+_STREAMING_S = 0.1
+"""A client whose last setpoint is this recent (simulation time) streams them."""
 PILOT_END_GRACE_S = 2.0
 """With ``pilot_from_arm``, the flight goes on this long after the pilot's timeline
 ends (the pilot holds its last segment), so a companion flying the same duration
@@ -649,6 +658,10 @@ class Runner:
         next_rc_s = 0.0
         client_active = True
         sp_at_timeout = -1
+        sp_seen, sp_seen_t = face.setpoints_arrived, -math.inf
+        # (sim time, wall time) the clock keeps to while a client streams setpoints
+        # outside OFFBOARD (module docstring); None: not keeping to the wall's.
+        paced_from: tuple[float, float] | None = None
         motors: tuple[float, ...] = (0.0,) * self.profile.n_motors
         monotonic = time.monotonic
         stop = self.stop
@@ -753,6 +766,8 @@ class Runner:
                 log.imu(sample.time_s, sample.gyro_frd_rad_s)
             imu_sent = face.publish(t, imu_sample=sample is not None, wall_s=monotonic())
 
+            if face.setpoints_arrived != sp_seen:
+                sp_seen, sp_seen_t = face.setpoints_arrived, t
             if not client_active and face.setpoints_arrived != sp_at_timeout:
                 client_active = True  # setpoints resumed after a lockstep timeout
             if lockstep and imu_sent and client_active and ap.external_control:
@@ -833,4 +848,18 @@ class Runner:
                         break
                     if face.wait_readable(ahead):
                         face.poll(quad.t_s)
+            elif not ap.external_control and quad.t_s - sp_seen_t <= _STREAMING_S:
+                # A client streams setpoints the autopilot does not fly yet: keep to
+                # the wall's clock, from where this began (module docstring).
+                if paced_from is None:
+                    paced_from = (quad.t_s, monotonic())
+                t_from, wall_from = paced_from
+                while True:
+                    ahead = (quad.t_s - t_from) - (monotonic() - wall_from)
+                    if ahead <= 0.0 or stop.is_set():
+                        break
+                    if face.wait_readable(ahead):
+                        face.poll(quad.t_s, defer_commands=True)
+            else:
+                paced_from = None
         return "stopped"

@@ -82,24 +82,24 @@ def test_a_lockstep_timeout_makes_the_judge_count_everything_again() -> None:
 
 
 def _client_and_lockstep_sitl(**config: Any) -> tuple[socket.socket, Runner]:
-    """A UDP client and a lockstep SITL (1 s, MANUAL, disarmed) streaming
-    HIGHRES_IMU to it at 250 Hz."""
+    """A UDP client and a lockstep SITL (1 s, MANUAL, disarmed, unless ``config``
+    says otherwise) streaming HIGHRES_IMU to it at 250 Hz."""
     client = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     client.bind(("127.0.0.1", 0))
     client.settimeout(0.5)
     port = client.getsockname()[1]
     profile = load_profile(ROOT / "vehicle_profiles" / "f450.yaml")
-    cfg = RunConfig(
-        mavlink=parse_endpoint(f"udpout:127.0.0.1:{port}"),
-        pilot="paper-acro",
-        clock="lockstep",
-        seed=1,
-        duration_s=1.0,
-        initial_mode="MANUAL",
-        auto_arm=False,
-        log_path=None,
-        **config,
-    )
+    settings: dict[str, Any] = {
+        "mavlink": parse_endpoint(f"udpout:127.0.0.1:{port}"),
+        "pilot": "paper-acro",
+        "clock": "lockstep",
+        "seed": 1,
+        "duration_s": 1.0,
+        "initial_mode": "MANUAL",
+        "auto_arm": False,
+        "log_path": None,
+    }
+    cfg = RunConfig(**{**settings, **config})
     runner = Runner(profile, cfg, profile_name="f450")
     runner.face.streams.set_interval(mavlink.MAVLINK_MSG_ID_HIGHRES_IMU, 4000.0, t_s=0.0)
     return client, runner
@@ -178,11 +178,15 @@ def test_a_hand_back_ends_the_lockstep_wait_without_a_timeout(how: str) -> None:
     ap = runner.autopilot
     poll = runner.face.poll
 
+    engaged: list[float] = []
+
     def poll_then_engage(t_s: float, *, defer_commands: bool = False) -> int:
         n = poll(t_s, defer_commands=defer_commands)
-        if runner.quad.steps == 100:
-            assert ap.set_mode(t_s, 6) == 0  # type: ignore[attr-defined]  # OFFBOARD
+        # OFFBOARD once the client's setpoints stream (PX4 wants them first), once.
+        ready = runner.quad.steps >= 100 and not defer_commands and not engaged
+        if ready and ap.set_mode(t_s, 6) == 0:  # type: ignore[attr-defined]  # OFFBOARD
             assert ap.arm(t_s) == 0
+            engaged.append(t_s)
         return n
 
     runner.face.poll = poll_then_engage  # type: ignore[method-assign]
@@ -232,3 +236,50 @@ def test_a_hand_back_ends_the_lockstep_wait_without_a_timeout(how: str) -> None:
     assert run.lockstep_timeouts == 0  # type: ignore[attr-defined]
     assert not ap.external_control
     assert run.sim_time_s == pytest.approx(1.0, abs=0.01)  # type: ignore[attr-defined]
+
+
+def test_a_client_streaming_setpoints_outside_offboard_is_not_outrun() -> None:
+    """Run free, the clock overfilled a streaming client's socket: the datagrams the
+    kernel dropped left jumps in IMU time the wall did not take, and the companion
+    held the sample after such a jump back (a possibly corrupt stamp) while the
+    first wait in OFFBOARD waited for its answer (CI: a 0.5 s lockstep timeout at
+    engagement). While a client streams setpoints the autopilot does not fly yet,
+    the clock keeps to the wall's; when they stop, it runs free again."""
+    client, runner = _client_and_lockstep_sitl(duration_s=3.0)
+    sitl = threading.Thread(target=runner.run, daemon=True)
+    mav = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    clocks: list[tuple[float, float]] = []  # (wall, simulation time), while streaming
+    answered = 0
+    try:
+        sitl.start()
+        wall0 = time.monotonic()
+        while sitl.is_alive() and len(clocks) < 2:
+            try:
+                data, addr = client.recvfrom(4096)
+            except TimeoutError:
+                continue
+            for msg in mav.parse_buffer(data) or []:
+                if msg.get_type() != "HIGHRES_IMU":
+                    continue
+                sp = mavlink.MAVLink_set_actuator_control_target_message(
+                    msg.time_usec, 0, 1, 1, [0.0] * 8
+                )
+                client.sendto(sp.pack(mav), addr)
+                answered += 1
+            since = time.monotonic() - wall0
+            if since >= (0.2, 0.7)[len(clocks)]:
+                clocks.append((time.monotonic(), runner.quad.t_s))
+        # Silent now: the clock runs free to the end of the run.
+        sitl.join(10)
+        finished = not sitl.is_alive()
+    finally:
+        runner.stop.set()
+        sitl.join(10)
+        client.close()
+
+    assert finished and answered > 50 and len(clocks) == 2
+    (w0, s0), (w1, s1) = clocks
+    # Simulation time kept to the wall's (it may only fall behind), where it ran
+    # several times faster before.
+    assert s1 - s0 <= (w1 - w0) + 0.02, (s1 - s0, w1 - w0)
+    assert runner.quad.t_s == pytest.approx(3.0, abs=0.01)
