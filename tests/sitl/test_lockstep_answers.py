@@ -105,6 +105,16 @@ def _client_and_lockstep_sitl(**config: Any) -> tuple[socket.socket, Runner]:
     return client, runner
 
 
+def _imu_received(client: socket.socket, mav: Any) -> list[tuple[Any, Any]]:
+    """The HIGHRES_IMU messages in the client's next datagram, with its sender
+    (none within the client's timeout: none)."""
+    try:
+        data, addr = client.recvfrom(4096)
+    except TimeoutError:
+        return []
+    return [(m, addr) for m in mav.parse_buffer(data) or [] if m.get_type() == "HIGHRES_IMU"]
+
+
 def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_stall() -> None:
     client, runner = _client_and_lockstep_sitl()
     ap = runner.autopilot
@@ -138,13 +148,7 @@ def test_the_first_offboard_steps_fly_their_own_samples_answers_after_a_client_s
     answered = 0
     try:
         while sitl.is_alive():
-            try:
-                data, addr = client.recvfrom(4096)
-            except TimeoutError:
-                continue
-            for msg in mav.parse_buffer(data) or []:
-                if msg.get_type() != "HIGHRES_IMU":
-                    continue
+            for msg, addr in _imu_received(client, mav):
                 if not slept and msg.time_usec >= 100_000:
                     slept = True
                     time.sleep(0.3)  # the SITL runs on, OFFBOARD begins meanwhile
@@ -198,12 +202,8 @@ def test_a_hand_back_ends_the_lockstep_wait_without_a_timeout(how: str) -> None:
     try:
         sitl.start()
         while sitl.is_alive() and handed_back_at is None:
-            try:
-                data, addr = client.recvfrom(4096)
-            except TimeoutError:
-                continue
-            for msg in mav.parse_buffer(data) or []:
-                if msg.get_type() != "HIGHRES_IMU" or handed_back_at is not None:
+            for msg, addr in _imu_received(client, mav):
+                if handed_back_at is not None:
                     continue
                 if not ap.external_control or answered < 50:
                     sp = mavlink.MAVLink_set_actuator_control_target_message(
@@ -254,13 +254,7 @@ def test_a_client_streaming_setpoints_outside_offboard_is_not_outrun() -> None:
         sitl.start()
         wall0 = time.monotonic()
         while sitl.is_alive() and len(clocks) < 2:
-            try:
-                data, addr = client.recvfrom(4096)
-            except TimeoutError:
-                continue
-            for msg in mav.parse_buffer(data) or []:
-                if msg.get_type() != "HIGHRES_IMU":
-                    continue
+            for msg, addr in _imu_received(client, mav):
                 sp = mavlink.MAVLink_set_actuator_control_target_message(
                     msg.time_usec, 0, 1, 1, [0.0] * 8
                 )
