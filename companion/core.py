@@ -34,11 +34,13 @@ from companion.autopilot_messages import AutopilotMessages
 from companion.autopilot_state import AutopilotState
 from companion.config import build_controller, build_stick_map
 from companion.control import RateController
+from companion.control.outer import OuterLaw
 from companion.failsafe import SampleWatch
+from companion.flight_modes import FLIGHT_MODES
 from companion.handback import Conditions, failsafe_state
 from companion.imu_time import NEW_CLOCK, ImuTimeline
 from companion.link.timesync import LinkClock
-from companion.modes import FLIGHT_MODES, ModeLaws
+from companion.modes import ModeLaws
 from companion.pilot import EngageSwitch, PilotInput
 from companion.run_options import RunOptions
 from companion.sample_output import SampleOutput
@@ -65,6 +67,9 @@ class FlightCore:
     controller
         The rate law to fly instead of the one ``opts.controller`` builds (the
         lab's oracle).
+    outer_law
+        Makes the outer loops to fly in the altitude and position modes instead
+        of their own (the lab's baseline, PX4's default cascade).
     """
 
     def __init__(
@@ -74,6 +79,7 @@ class FlightCore:
         clock: Callable[[], float],
         *,
         controller: RateController | None = None,
+        outer_law: Callable[[], OuterLaw] | None = None,
     ) -> None:
         self.opts = opts
         self.shell = shell
@@ -103,6 +109,7 @@ class FlightCore:
             opts.mission,
             stale_estimate_s=opts.failsafe.stale_estimate_s,
             stale_position_s=opts.failsafe.stale_position_s,
+            outer_law=outer_law,
         )
         self.time = ImuTimeline()
         self.stack: FlightStack | None = None

@@ -47,17 +47,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 from companion.control import RateController
 from companion.control.angle_mode import AngleMode
 from companion.control.hold_modes import HoldMode
+from companion.control.outer import OuterLaw
 from companion.control.stick_limits import StickLimits
 from companion.failsafe import Verdict
+from companion.flight_modes import FlightMode
 from companion.mission import Mission, MissionPath
 
-__all__ = ["FLIGHT_MODES", "NO_OUTER_LOG", "FlightMode", "ModeLaws"]
+__all__ = ["NO_OUTER_LOG", "ModeLaws"]
 
 Vec3 = tuple[float, float, float]
 
@@ -71,68 +72,20 @@ _AUTOPILOT_THRUST_TAU_S = 0.3
 """... and averaged over this (its collective, streamed at 20 Hz, moves each message)."""
 
 
-@dataclass(frozen=True)
-class FlightMode:
-    """One ``--mode``: what the sticks ask, and what it flies on."""
-
-    name: str
-    description: str
-    """What the sticks fly, for the run's ``mode`` event."""
-    law: Callable[[StickLimits], AngleMode | HoldMode] | None = None
-    """Its outer law, given the stack's stick limits (None: the sticks are the
-    rate loop's reference)."""
-    needs_position: bool = False
-    flies_missions: bool = False
-    """``--mission`` flies its waypoints in this mode."""
-
-    @property
-    def needs_attitude(self) -> bool:
-        return self.law is not None
-
-
-FLIGHT_MODES: dict[str, FlightMode] = {
-    m.name: m
-    for m in (
-        FlightMode("rates", "rates: sticks to body rates, the rate loop's reference"),
-        FlightMode(
-            "angle",
-            "angle: sticks to roll and pitch angles up to the autopilot's own limit and a "
-            "yaw rate, on the autopilot's ATTITUDE_QUATERNION",
-            law=lambda limits: AngleMode(limits.tilt_max_deg),
-        ),
-        FlightMode(
-            "altitude",
-            "altitude: sticks to roll and pitch angles, a climb rate (the altitude held "
-            "at mid-stick) and a yaw rate, within the autopilot's own limits, on "
-            "ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
-            law=lambda limits: HoldMode(position=False, limits=limits),
-            needs_position=True,
-        ),
-        FlightMode(
-            "position",
-            "position: sticks to a horizontal velocity and a climb rate (the position "
-            "and altitude held at mid-stick) and a yaw rate, shaped as the autopilot's own "
-            "Position mode shapes them, on ATTITUDE_QUATERNION and LOCAL_POSITION_NED",
-            law=lambda limits: HoldMode(position=True, limits=limits),
-            needs_position=True,
-            flies_missions=True,
-        ),
-    )
-}
-"""Every ``--mode``, by name."""
-
-
 class ModeLaws:
     """The flight mode's law and the estimates it flies on.
 
     Parameters
     ----------
     mode
-        The flight mode (:data:`FLIGHT_MODES`).
+        The flight mode (:data:`companion.flight_modes.FLIGHT_MODES`).
     mission
         With ``"position"``: the waypoints flown from where an engagement starts.
     stale_estimate_s, stale_position_s
         How much IMU time an attitude or position estimate may age.
+    outer_law
+        Makes the outer loops the altitude and position modes fly instead of
+        their own (the lab's baseline, PX4's default cascade).
     """
 
     def __init__(
@@ -142,8 +95,10 @@ class ModeLaws:
         *,
         stale_estimate_s: float,
         stale_position_s: float,
+        outer_law: Callable[[], OuterLaw] | None = None,
     ) -> None:
         self.mode = mode
+        self._outer_law = outer_law
         self.needs_attitude = mode.needs_attitude
         self.needs_position = mode.needs_position
         self.angle: AngleMode | None = None
@@ -181,7 +136,8 @@ class ModeLaws:
         """The flight mode's law, with the stack's stick limits and hover thrust."""
         self.stick_limits = limits
         self.hover_thrust_prior = hover_thrust
-        law = None if self.mode.law is None else self.mode.law(limits)
+        outer = None if self._outer_law is None else self._outer_law()
+        law = None if self.mode.law is None else self.mode.law(limits, outer)
         if isinstance(law, AngleMode):
             self.angle = law
         elif law is not None:

@@ -250,9 +250,9 @@ def run(
     import asyncio
 
     from companion.app import Companion, RunOptions
+    from companion.flight_modes import FLIGHT_MODES
     from companion.link.signing import load_signing_key
     from companion.link.transport import open_transport
-    from companion.modes import FLIGHT_MODES
 
     profile, cfg, ctrl_path = load_inputs(profile_path, controller_path, output)
     warn_profile(profile, profile_path)

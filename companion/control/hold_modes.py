@@ -58,7 +58,13 @@ from typing import NamedTuple
 from companion.control.angle_mode import stick_tilt_rad
 from companion.control.attitude import AttitudeSetpoint
 from companion.control.horizontal import HorizontalSetpoint, tilt_of_attitude
-from companion.control.outer import DEFAULT_OUTER_GAINS, OuterController, OuterGains, OuterSetpoint
+from companion.control.outer import (
+    DEFAULT_OUTER_GAINS,
+    OuterController,
+    OuterGains,
+    OuterLaw,
+    OuterSetpoint,
+)
 from companion.control.quaternion import Quat, Vec3, normalise_or_none, yaw_rad
 from companion.control.stick_limits import StickLimits, expo_past_deadband
 from companion.control.vertical import VerticalSetpoint
@@ -121,14 +127,22 @@ class HoldMode:
         What the sticks may ask: the stack's (:mod:`companion.stacks`).
     gains
         The outer loops' (:data:`DEFAULT_OUTER_GAINS`: one set for every vehicle).
+    outer
+        Other outer loops to fly instead of :class:`OuterController` with
+        ``gains`` (the lab's baseline, PX4's default cascade).
     """
 
     def __init__(
-        self, *, position: bool, limits: StickLimits, gains: OuterGains = DEFAULT_OUTER_GAINS
+        self,
+        *,
+        position: bool,
+        limits: StickLimits,
+        gains: OuterGains = DEFAULT_OUTER_GAINS,
+        outer: OuterLaw | None = None,
     ) -> None:
         self.position = position
         self.limits = limits
-        self.outer = OuterController(gains)
+        self.outer: OuterLaw = OuterController(gains) if outer is None else outer
         self.max_tilt_rad = math.radians(limits.tilt_max_deg)
         self.setpoint = OuterSetpoint()
         """The last setpoint flown."""

@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from companion.control.attitude import (
     DEFAULT_ATTITUDE_GAINS,
@@ -79,6 +79,7 @@ __all__ = [
     "GainBackoff",
     "OuterController",
     "OuterGains",
+    "OuterLaw",
     "OuterOutput",
     "OuterSetpoint",
     "SaturationBackoff",
@@ -234,6 +235,91 @@ def altitude_first_tilt_limit(level_thrust: float, thrust_max: float, tilt_max_r
         return tilt_max_rad
     lim = math.acos(level_thrust / thrust_max)
     return lim if lim < tilt_max_rad else tilt_max_rad
+
+
+class _AttitudePart(Protocol):
+    def reset(self) -> None: ...
+
+    def update(
+        self, dt_s: float, q_wxyz: Quat, rate_frd_rad_s: Vec3, setpoint: AttitudeSetpoint
+    ) -> Vec3: ...
+
+
+class _VerticalPart(Protocol):
+    on_ground: bool
+    climb_ref_m_s: float
+    """The climb rate the loop flies to now, m/s (a hold is left from it)."""
+
+    def update(
+        self,
+        dt_s: float,
+        z_ned_m: float,
+        vz_ned_m_s: float,
+        setpoint: VerticalSetpoint,
+        *,
+        cos_tilt: float = 1.0,
+        applied: float | None = None,
+    ) -> float: ...
+
+
+class _HorizontalPart(Protocol):
+    velocity_ref_ne_m_s: tuple[float, float]
+    """The velocity the loop flies to now, north and east, m/s."""
+
+    def reset(self) -> None: ...
+
+
+class OuterLaw(Protocol):
+    """What the flight modes ask of outer loops (:class:`OuterController`; the
+    lab's baseline, PX4's default cascade, is another): the cascade's
+    :meth:`update`, and its attitude, vertical and horizontal parts for a mode
+    that flies some of them alone."""
+
+    @property
+    def attitude(self) -> _AttitudePart: ...
+
+    @property
+    def vertical(self) -> _VerticalPart: ...
+
+    @property
+    def horizontal(self) -> _HorizontalPart: ...
+
+    @property
+    def gain_scale(self) -> float:
+        """The scale on the gains (1: not backed off)."""
+        ...
+
+    def reset(
+        self,
+        thrust: float | None = None,
+        hover_thrust: float | None = None,
+        tilt_ne: tuple[float, float] = (0.0, 0.0),
+        *,
+        at_rest: bool = False,
+    ) -> None:
+        """Forget all state; take over at ``thrust`` (as :meth:`OuterController.reset`)."""
+        ...
+
+    def note_rate_saturation(
+        self, dt_s: float, rate_saturated: tuple[bool, bool, bool] | None
+    ) -> float:
+        """One sample of the rate loop's saturation; returns the gains' scale."""
+        ...
+
+    def update(
+        self,
+        dt_s: float,
+        q_wxyz: Quat,
+        rate_frd_rad_s: Vec3,
+        position_ned_m: Vec3,
+        velocity_ned_m_s: Vec3,
+        setpoint: OuterSetpoint,
+        *,
+        applied_thrust: float | None = None,
+        rate_saturated: tuple[bool, bool, bool] | None = None,
+    ) -> OuterOutput:
+        """One update of the cascade."""
+        ...
 
 
 class OuterController:

@@ -491,6 +491,8 @@ class PxVertical:
         The vertical collective (up), normalised.
     saturated
         Whether the vertical thrust was at a bound (the anti-windup's condition).
+    climb_ref_m_s
+        The climb rate asked last (up, m/s): :meth:`velocity_setpoint`'s.
     on_ground
         Set by the caller while landed (module docstring, take-off).
     fault, nonfinite_events
@@ -500,6 +502,7 @@ class PxVertical:
     __slots__ = (
         "_deriv",
         "_gains",
+        "climb_ref_m_s",
         "fault",
         "integral_m_s2",
         "level_thrust",
@@ -530,6 +533,7 @@ class PxVertical:
         ``MPC_THR_HOVER`` and an empty integrator."""
         self.integral_m_s2 = 0.0
         self._deriv.reset()
+        self.climb_ref_m_s = 0.0
         self.level_thrust = self._gains.hover_thrust
         self.saturated = False
         self.fault = False
@@ -544,7 +548,9 @@ class PxVertical:
         v = -setpoint.climb_m_s
         if setpoint.up_m is not None:
             v += g.z_p_1_s * (-setpoint.up_m - z_ned_m)
-        return min(max(v, -g.z_vel_max_up_m_s), g.z_vel_max_dn_m_s)
+        v = min(max(v, -g.z_vel_max_up_m_s), g.z_vel_max_dn_m_s)
+        self.climb_ref_m_s = -v
+        return v
 
     def acceleration(self, dt_s: float, vz_ned_m_s: float, vz_sp: float, accel_ff: float) -> float:
         """The down-acceleration the PID asks, m/s^2 (the derivative updated)."""
@@ -689,8 +695,17 @@ class CascadePid:
     def gains(self) -> CascadeGains:
         return self._gains
 
-    def reset(self, thrust: float | None = None, hover_thrust: float | None = None) -> None:
-        """Forget all state (``thrust``, ``hover_thrust``: see :meth:`PxVertical.reset`)."""
+    def reset(
+        self,
+        thrust: float | None = None,
+        hover_thrust: float | None = None,
+        tilt_ne: tuple[float, float] = (0.0, 0.0),
+        *,
+        at_rest: bool = False,
+    ) -> None:
+        """Forget all state. ``thrust``, ``hover_thrust``: see :meth:`PxVertical.reset`;
+        ``tilt_ne`` and ``at_rest`` are accepted for the MFC interface and ignored:
+        PX4's position controller starts its integrators empty."""
         self.attitude.reset()
         self.vertical.reset(thrust, hover_thrust)
         self.horizontal.reset()

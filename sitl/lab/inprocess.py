@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from companion.control import RateController
+from companion.control.outer import OuterLaw
 from companion.core import FlightCore
 from companion.run_options import RunOptions
 from companion.stacks import PX4
@@ -98,14 +99,16 @@ def engaged_core(
     clock: Callable[[], float],
     *,
     controller: RateController | None = None,
+    outer_law: Callable[[], OuterLaw] | None = None,
     before: Callable[[FlightCore], None] | None = None,
 ) -> FlightCore:
     """A flight core for ``opts``, engaged as ``companion run`` engages a PX4:
     it streams setpoints, then the heartbeat shows OFFBOARD and armed (over
     MAVLink that heartbeat reaches the core before the arming's ACK reaches the
     engagement, so the laws start at the engaged edge in every mode).
-    ``before``: what the autopilot told the core before that (start-up's)."""
-    core = FlightCore(opts, shell, clock, controller=controller)
+    ``before``: what the autopilot told the core before that (start-up's);
+    ``controller``, ``outer_law``: as :class:`~companion.core.FlightCore`'s."""
+    core = FlightCore(opts, shell, clock, controller=controller, outer_law=outer_law)
     core.stack = PX4
     core.started_up = True
     if before is not None:

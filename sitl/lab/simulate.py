@@ -39,10 +39,11 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
+from companion.control.outer import OuterLaw
 from companion.core import FlightCore
 from companion.failsafe import FailsafeConfig
+from companion.flight_modes import FLIGHT_MODES, FlightMode
 from companion.mission import Mission
-from companion.modes import FLIGHT_MODES, FlightMode
 from companion.profile import VehicleProfile
 from companion.records import ControlLog
 from companion.records import columns as log_columns
@@ -186,6 +187,7 @@ def simulate_flight(
     control_log: Path | None = None,
     mode: str = "rates",
     mission: Mission | None = None,
+    outer_law: Callable[[], OuterLaw] | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -225,6 +227,10 @@ def simulate_flight(
         ``companion run``'s ``--mode`` and ``--mission``. A flight mode flies on
         the autopilot's estimates as the SITL streams them (module docstring);
         on the ideal link only.
+    outer_law
+        Makes the outer loops the altitude and position modes fly in place of
+        their own (the lab's baseline: PX4's default cascade,
+        :class:`sitl.lab.cascade_pid.CascadePid`).
     """
     flight_seed = scenario.seed if seed is None else seed
     rngs = scenario_streams(flight_seed)
@@ -267,7 +273,9 @@ def simulate_flight(
         def before(core: FlightCore) -> None:
             start_mode(core, imu.model.rate_hz, on_ground=quad.state.landed)
 
-    core = engaged_core(opts, shell, lambda: now[0], controller=law, before=before)
+    core = engaged_core(
+        opts, shell, lambda: now[0], controller=law, outer_law=outer_law, before=before
+    )
     row: list[list[float]] = [[]]
     if estimates is not None:
         # A flight mode's collective is the law's, not the pilot's: read back from

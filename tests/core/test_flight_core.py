@@ -13,7 +13,7 @@ import pytest
 
 from companion.config import DEFAULT_CONTROLLER, load_controller
 from companion.core import FlightCore
-from companion.modes import FLIGHT_MODES
+from companion.flight_modes import FLIGHT_MODES
 from companion.options import FLIGHT_MODE_NAMES
 from companion.profile import load_profile
 from companion.run_options import RunOptions
