@@ -30,11 +30,11 @@ Clocks
     each wait ends on the answer to the sample it gave. Once a client streams
     setpoints outside OFFBOARD (PX4 wants them before it switches), the clock
     keeps to the wall's (as ``realtime``) until OFFBOARD or
-    ``_STREAMING_S`` after the last one: run free, it overfilled the client's
-    socket, the datagrams the kernel dropped left jumps in the IMU time that
-    the wall clock did not take, and a client that holds such a sample back as
-    a possibly corrupt stamp (the companion) never answered the one the first
-    wait in OFFBOARD was for. With
+    ``_STREAMING_S`` after the last one. Run free there, it would overfill the
+    client's socket: the datagrams the kernel drops leave jumps in the IMU time
+    that the wall clock does not take, and a client that holds such a sample
+    back as a possibly corrupt stamp (the companion does) never answers the one
+    the first wait in OFFBOARD is for. With
     ``autopilot="ardupilot"`` the same holds in GUIDED / GUIDED_NOGPS after
     each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
