@@ -42,7 +42,7 @@ from __future__ import annotations
 import bisect
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Protocol
 
 from pydantic import Field
 
@@ -52,7 +52,7 @@ from companion.control.stick_limits import StickLimits
 from companion.control.vertical import VerticalSetpoint
 from companion.schema import StrictModel, load_yaml_model
 
-__all__ = ["Mission", "MissionPath", "Waypoint", "load_mission"]
+__all__ = ["FlightPlan", "Mission", "MissionPath", "PlannedPath", "Waypoint", "load_mission"]
 
 MAX_RANGE_M = 5000.0
 """How far from the start a waypoint may be, per axis."""
@@ -66,6 +66,43 @@ MAX_ACCEL_M_S2 = 10.0
 MAX_JERK_M_S3 = 100.0
 
 Vec3 = tuple[float, float, float]
+
+
+class PlannedPath(Protocol):
+    """A plan as flown from where an engagement started: the setpoint against the
+    plan's own clock (the caller's: the app runs it while the vehicle is in the air)."""
+
+    duration_s: float
+    """When the plan ends; the setpoint stays where it is after."""
+
+    def at(self, t_s: float) -> OuterSetpoint:
+        """The setpoint ``t_s`` seconds into the plan."""
+        ...
+
+    def target_at(self, t_s: float) -> Vec3:
+        """The waypoint the setpoint is flying to (or holding at), NED, m: above the
+        vehicle on its legs, it takes off."""
+        ...
+
+    def waypoints_reached(self, t_s: float) -> int:
+        """How many of the plan's waypoints the setpoint has reached by ``t_s``."""
+        ...
+
+    def summary(self) -> str:
+        """The path in a line (the ``mission_started`` event)."""
+        ...
+
+
+class FlightPlan(Protocol):
+    """What the position mode flies instead of the sticks: a :class:`Mission`, or
+    the lab's scripted setpoints (:mod:`sitl.lab.outer_flight`)."""
+
+    @property
+    def n_waypoints(self) -> int: ...
+
+    def path(self, origin_ned_m: Vec3, limits: StickLimits) -> PlannedPath:
+        """The plan flown from ``origin_ned_m`` within the stack's ``limits``."""
+        ...
 
 
 class Waypoint(StrictModel):
@@ -99,6 +136,13 @@ class Mission(StrictModel):
         "autopilot's own missions'; null: at once",
     )
     waypoints: Annotated[list[Waypoint], Field(min_length=1, max_length=MAX_WAYPOINTS)]
+
+    @property
+    def n_waypoints(self) -> int:
+        return len(self.waypoints)
+
+    def path(self, origin_ned_m: Vec3, limits: StickLimits) -> MissionPath:
+        return MissionPath(self, origin_ned_m, limits)
 
 
 def load_mission(path: str | Path) -> Mission:
@@ -180,6 +224,10 @@ class MissionPath:
             HorizontalSetpoint((v[0], v[1]), (p[0], p[1]), (acc[0], acc[1])),
             VerticalSetpoint(-v[2], -p[2], -acc[2]),
         )
+
+    def summary(self) -> str:
+        jerk = "none (stepped)" if self.jerk_m_s3 is None else f"{self.jerk_m_s3:g} m/s^3"
+        return f"{self.duration_s:.1f} s, accelerating at {self.accel_m_s2:g} m/s^2, jerk {jerk}"
 
     def target_at(self, t_s: float) -> Vec3:
         """The waypoint the setpoint is flying to (or holding at) at ``t_s``, NED, m."""

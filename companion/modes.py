@@ -56,7 +56,7 @@ from companion.control.outer import OuterLaw
 from companion.control.stick_limits import StickLimits
 from companion.failsafe import Verdict
 from companion.flight_modes import FlightMode
-from companion.mission import Mission, MissionPath
+from companion.mission import FlightPlan, PlannedPath
 
 __all__ = ["NO_OUTER_LOG", "ModeLaws"]
 
@@ -80,7 +80,8 @@ class ModeLaws:
     mode
         The flight mode (:data:`companion.flight_modes.FLIGHT_MODES`).
     mission
-        With ``"position"``: the waypoints flown from where an engagement starts.
+        With ``"position"``: the plan (a mission's waypoints) flown from where an
+        engagement starts, instead of the sticks.
     stale_estimate_s, stale_position_s
         How much IMU time an attitude or position estimate may age.
     outer_law
@@ -91,7 +92,7 @@ class ModeLaws:
     def __init__(
         self,
         mode: FlightMode,
-        mission: Mission | None,
+        mission: FlightPlan | None,
         *,
         stale_estimate_s: float,
         stale_position_s: float,
@@ -120,7 +121,7 @@ class ModeLaws:
         """Which axes our rate loop's mixer saturated on the last command sent
         (None: not known: nothing sent, or the autopilot's rate loop flies it)."""
         self.mission = mission
-        self.mission_path: MissionPath | None = None
+        self.mission_path: PlannedPath | None = None
         """The mission as flown from where this engagement started (None before)."""
         self.mission_t = 0.0
         self._mission_reached = 0
@@ -349,16 +350,14 @@ class ModeLaws:
         assert hold is not None and mission is not None
         path = self.mission_path
         if path is None:
-            path = self.mission_path = MissionPath(mission, pos, hold.limits)
+            path = self.mission_path = mission.path(pos, hold.limits)
             self.mission_t = 0.0
             self._mission_reached = 0
             self.events.append((
                 "mission_started",
                 # The lab reads the start back from this text (sitl/lab/outer_report.py).
-                f"{len(mission.waypoints)} waypoints from N {pos[0]:.2f} E {pos[1]:.2f} "
-                f"D {pos[2]:.2f} m, {path.duration_s:.1f} s, accelerating at "
-                f"{path.accel_m_s2:g} m/s^2, jerk "
-                + ("none (stepped)" if path.jerk_m_s3 is None else f"{path.jerk_m_s3:g} m/s^3"),
+                f"{mission.n_waypoints} waypoints from N {pos[0]:.2f} E {pos[1]:.2f} "
+                f"D {pos[2]:.2f} m, {path.summary()}",
             ))  # fmt: skip
         if not on_ground:
             self.mission_t += dt
@@ -366,10 +365,10 @@ class ModeLaws:
         reached = path.waypoints_reached(t)
         if reached > self._mission_reached:
             self._mission_reached = reached
-            done = reached == len(mission.waypoints)
+            done = reached == mission.n_waypoints
             self.events.append((
                 "mission_waypoint",
-                f"{reached} of {len(mission.waypoints)}" + (": holding there" if done else ""),
+                f"{reached} of {mission.n_waypoints}" + (": holding there" if done else ""),
             ))  # fmt: skip
         take_off = path.target_at(t)[2] < pos[2] - 0.3  # the waypoint flown to is above
         return hold.fly(

@@ -8,7 +8,7 @@ from typing import Literal
 
 from companion.config import MfcConfig, PidConfig
 from companion.failsafe import FailsafeConfig
-from companion.mission import Mission
+from companion.mission import FlightPlan
 from companion.profile import VehicleProfile
 from companion.reference import ReferenceScript
 
@@ -28,9 +28,9 @@ class RunOptions:
     mode: Literal["rates", "angle", "altitude", "position"] = "rates"
     """What the sticks ask: body rates, or the outer loops on the autopilot's
     estimates (:mod:`companion.modes`)."""
-    mission: Mission | None = None
-    """With ``mode="position"``: waypoints flown from where each engagement starts,
-    instead of the sticks (:mod:`companion.mission`)."""
+    mission: FlightPlan | None = None
+    """With ``mode="position"``: waypoints (or the lab's scripted setpoints) flown
+    from where each engagement starts, instead of the sticks (:mod:`companion.mission`)."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     imu_source: Literal["auto", "highres_imu", "attitude"] = "auto"
     """"auto": the stack's (PX4 HIGHRES_IMU, ArduPilot ATTITUDE)."""

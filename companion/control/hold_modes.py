@@ -148,6 +148,9 @@ class HoldMode:
         """The last setpoint flown."""
         self.attitude_setpoint: AttitudeSetpoint | None = None
         """What the attitude loop was last asked (None: on the ground, not flown)."""
+        self.tilt_limited = False
+        """Whether the last sample's tilt was clamped (position mode: its max, or
+        altitude first)."""
         self._up_hold: float | None = None
         self._ne_hold: tuple[float, float] | None = None
         self._climb_sp = 0.0
@@ -275,6 +278,7 @@ class HoldMode:
         cos_tilt = 1.0 if q is None else 1.0 - 2.0 * (q[1] * q[1] + q[2] * q[2])
 
         if self.on_ground or not self.position:
+            self.tilt_limited = False
             self._ne_hold = None
             self._shaper.reset((0.0, 0.0))
             thrust = outer.vertical.update(
@@ -304,6 +308,7 @@ class HoldMode:
             applied_thrust=applied_thrust, rate_saturated=rate_saturated,
         )  # fmt: skip
         self.attitude_setpoint = o.attitude_setpoint
+        self.tilt_limited = o.tilt_limited
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)
 
     def fly(
@@ -340,6 +345,7 @@ class HoldMode:
             outer.horizontal.reset()
             self.setpoint = OuterSetpoint(vertical=vsp)
             self.attitude_setpoint = None
+            self.tilt_limited = False
             return HoldCommand(_ZERO3, thrust)
         self.setpoint = setpoint
         o = outer.update(
@@ -347,4 +353,5 @@ class HoldMode:
             applied_thrust=applied_thrust, rate_saturated=rate_saturated,
         )  # fmt: skip
         self.attitude_setpoint = o.attitude_setpoint
+        self.tilt_limited = o.tilt_limited
         return HoldCommand(o.rate_ref_frd_rad_s, o.thrust)

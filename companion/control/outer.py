@@ -250,6 +250,16 @@ class _VerticalPart(Protocol):
     climb_ref_m_s: float
     """The climb rate the loop flies to now, m/s (a hold is left from it)."""
 
+    @property
+    def hover_thrust(self) -> float:
+        """The loop's estimate of the collective that hovers."""
+        ...
+
+    @property
+    def saturated(self) -> bool:
+        """Whether the last collective sat at a bound."""
+        ...
+
     def update(
         self,
         dt_s: float,
