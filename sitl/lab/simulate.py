@@ -43,14 +43,14 @@ from companion.control.outer import OuterLaw
 from companion.core import FlightCore
 from companion.failsafe import FailsafeConfig
 from companion.flight_modes import FLIGHT_MODES, FlightMode
-from companion.mission import Mission
+from companion.mission import FlightPlan
 from companion.profile import VehicleProfile
 from companion.records import ControlLog
 from companion.records import columns as log_columns
 from companion.run_options import RunOptions
 from companion.startup import HOLD_POSITION_RATE_HZ
 from companion.step import LANDED_STATE_RATE_HZ
-from sitl.estimator_model import EKF_GPS, EstimatorModel, estimator_seed_sequence
+from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
 from sitl.frames import quat_to_euler_rad
 from sitl.imu import Imu
 from sitl.lab.inprocess import (
@@ -71,7 +71,7 @@ from sitl.link_model import (
     LinkModel,
 )
 from sitl.physics import Quadrotor
-from sitl.pilot import PilotView, make_pilot
+from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.px4_control import ControlAllocator, thrust_for_command
 from sitl.rotors import hover_motor_command
 from sitl.scenario import Scenario
@@ -122,11 +122,13 @@ class _Estimates:
         """The autopilot's landed state: the vehicle's at its last update."""
 
     @classmethod
-    def for_mode(cls, mode: FlightMode, imu: Imu, seed: int, dt_s: float) -> _Estimates | None:
+    def for_mode(
+        cls, mode: FlightMode, imu: Imu, seed: int, dt_s: float, spec: EstimatorSpec
+    ) -> _Estimates | None:
         if not mode.needs_attitude:
             return None
         model = EstimatorModel(
-            EKF_GPS,
+            spec,
             rng=np.random.default_rng(estimator_seed_sequence(seed)),
             dt_s=dt_s,
             imu_rate_hz=min(imu.model.rate_hz, 1.0 / dt_s),
@@ -186,8 +188,11 @@ def simulate_flight(
     failsafe: FailsafeConfig | None = None,
     control_log: Path | None = None,
     mode: str = "rates",
-    mission: Mission | None = None,
+    mission: FlightPlan | None = None,
     outer_law: Callable[[], OuterLaw] | None = None,
+    estimator: EstimatorSpec = EKF_GPS,
+    pilot: Pilot | None = None,
+    observe: Callable[[float, FlightCore, Quadrotor], None] | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -231,6 +236,14 @@ def simulate_flight(
         Makes the outer loops the altitude and position modes fly in place of
         their own (the lab's baseline: PX4's default cascade,
         :class:`sitl.lab.cascade_pid.CascadePid`).
+    estimator
+        The autopilot's estimator a flight mode flies on (its errors and lags).
+    pilot
+        Flies the sticks in place of ``scenario.pilot`` (which then only names it).
+    observe
+        Called after each sample the core flew, with its time, the core and the
+        plant (to read, never to change): the lab's outer flights record the
+        loops' insides.
     """
     flight_seed = scenario.seed if seed is None else seed
     rngs = scenario_streams(flight_seed)
@@ -240,7 +253,8 @@ def simulate_flight(
         plant, rng=rngs["plant"], dt_s=dt, test_stand=not scenario.free_flight, wind=wind
     )
     imu = Imu(scenario.imu_model(plant), rng=rngs["imu"], dt_s=dt)
-    pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
+    if pilot is None:
+        pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
     duration = scenario.duration_s or pilot.duration_s
     opts = RunOptions(
         connect="in-process",
@@ -252,7 +266,7 @@ def simulate_flight(
         mode=mode,  # type: ignore[arg-type]
         mission=mission,
     )
-    estimates = _Estimates.for_mode(FLIGHT_MODES[mode], imu, flight_seed, dt)
+    estimates = _Estimates.for_mode(FLIGHT_MODES[mode], imu, flight_seed, dt, estimator)
     if estimates is not None and not scenario.link.ideal:
         raise ValueError(f"mode {mode!r}: flown in process on the ideal link only")
     shell = LabShell()
@@ -363,6 +377,8 @@ def simulate_flight(
         cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
         cols["altitude_m"].append(-st.pos_ned_m[2])
         cols["airborne"].append(not st.landed)
+        if observe is not None:
+            observe(sample_t, core, quad)
         return sent
 
     wall0 = time.perf_counter()
