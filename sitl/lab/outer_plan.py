@@ -6,12 +6,15 @@ against time. The product flies them through its own flight modes
 
 * the altitude and position scenarios are a position-mode plan
   (:class:`ScenarioPlan`, flown as ``--mission`` flies a mission's waypoints):
-  from where the vehicle engages, on its legs, a climb at
-  :data:`~companion.control.hold_modes.TAKEOFF_CLIMB_M_S` to the scenario's
-  altitude, a hold, then the scenario's own setpoints, all relative to that
-  start. The plan's clock is the mission's (it runs while the vehicle is in the
-  air), so the scenario starts :data:`PLAN_LIFT_OFF_S` earlier on it than on
-  the flight's; the flight records when it really started.
+  on its legs, a climb at :data:`~companion.control.hold_modes.TAKEOFF_CLIMB_M_S`
+  to the scenario's altitude, a hold, then the scenario's own setpoints. Unlike a
+  mission's, they are in the estimate's local frame, whose origin is where the
+  vehicle stands at the start (as the scenarios are written), not relative to
+  where the estimate put it as it engaged: the true state against them is then
+  the loops' error and the estimate's now, not also the estimate's then. The
+  plan's clock is the mission's (it runs while the vehicle is in the air), so
+  the scenario starts :data:`PLAN_LIFT_OFF_S` earlier on it than on the
+  flight's; the flight records when it really started.
 * the angle scenario is a pilot (:class:`AnglePilot`) flying the altitude mode:
   the throttle up to climb, centred to hold; the roll and pitch sticks at the
   angles asked (the stack's tilt at full stick); the yaw stick turning the
@@ -95,7 +98,9 @@ def px4_stick_limits() -> StickLimits:
 
 
 class ScenarioPath:
-    """An outer scenario's setpoints from ``origin_ned_m`` (module docstring)."""
+    """An outer scenario's setpoints in the local frame (module docstring);
+    ``origin_ned_m``: where the estimate put the vehicle as it engaged (its
+    take-off climbs from there)."""
 
     def __init__(self, scenario: _Scenario, origin_ned_m: Vec3) -> None:
         self._scenario = scenario
@@ -109,24 +114,22 @@ class ScenarioPath:
         sc = self._scenario
         if t_s >= self.start_s:
             return sc.setpoints(t_s - self.start_s)
-        if t_s < self._climb_s:
-            return Setpoints(TAKEOFF_CLIMB_M_S * max(t_s, 0.0), climb_m_s=TAKEOFF_CLIMB_M_S)
+        up = -self._origin[2] + TAKEOFF_CLIMB_M_S * max(t_s, 0.0)
+        if up < sc.hold_up_m:
+            return Setpoints(up, climb_m_s=TAKEOFF_CLIMB_M_S)
         return Setpoints(sc.hold_up_m)
 
     def at(self, t_s: float) -> OuterSetpoint:
         sp = self._setpoints(t_s)
-        o = self._origin
-        n, e = sp.position_ne_m
         return OuterSetpoint(
-            HorizontalSetpoint(sp.velocity_ne_m_s, (o[0] + n, o[1] + e), sp.accel_ne_m_s2),
-            VerticalSetpoint(sp.climb_m_s, -o[2] + sp.up_m),
+            HorizontalSetpoint(sp.velocity_ne_m_s, sp.position_ne_m, sp.accel_ne_m_s2),
+            VerticalSetpoint(sp.climb_m_s, sp.up_m),
             sp.yaw_rad,
         )
 
     def target_at(self, t_s: float) -> Vec3:
-        o = self._origin
         if t_s < self._climb_s:
-            return (o[0], o[1], o[2] - self._scenario.hold_up_m)
+            return (0.0, 0.0, -self._scenario.hold_up_m)
         sp = self.at(t_s)
         pos = sp.horizontal.position_ne_m
         assert pos is not None and sp.vertical.up_m is not None

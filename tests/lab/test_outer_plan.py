@@ -23,22 +23,23 @@ def _f450() -> VehicleProfile:
     return load_profile(ROOT / "vehicle_profiles" / "f450.yaml", simulated=True)
 
 
-def test_a_plan_climbs_from_where_it_starts_then_flies_the_scenario_from_there() -> None:
+def test_a_plan_climbs_from_where_it_starts_then_flies_the_scenario_in_the_local_frame() -> None:
     sc = SCENARIOS["square"]
-    origin = (3.0, -2.0, -0.1)  # NED: 0.1 m up
+    origin = (0.2, -0.1, 0.3)  # NED: where the estimate put the vehicle, 0.3 m down
     path = ScenarioPlan(sc).path(origin, px4_stick_limits())
     # On the legs the waypoint flown to is above: the position mode takes off.
-    assert path.target_at(0.0) == pytest.approx((3.0, -2.0, -0.1 - sc.hold_up_m))
+    assert path.target_at(0.0) == pytest.approx((0.0, 0.0, -sc.hold_up_m))
     climbing = path.at(2.0)
-    assert climbing.vertical.up_m == pytest.approx(0.1 + 2.0 * TAKEOFF_CLIMB_M_S)
+    assert climbing.vertical.up_m == pytest.approx(-0.3 + 2.0 * TAKEOFF_CLIMB_M_S)
     assert climbing.vertical.climb_m_s == TAKEOFF_CLIMB_M_S
-    assert climbing.horizontal.position_ne_m == pytest.approx((3.0, -2.0))
+    assert climbing.horizontal.position_ne_m == pytest.approx((0.0, 0.0))
+    assert path.at(7.0).vertical.up_m == sc.hold_up_m
     assert path.start_s == pytest.approx(sc.start_s - PLAN_LIFT_OFF_S)
     # Two seconds into the square: 4 m north of the start, at 2 m/s north.
     sp = path.at(path.start_s + 2.0)
-    assert sp.horizontal.position_ne_m == pytest.approx((3.0 + 4.0, -2.0))
+    assert sp.horizontal.position_ne_m == pytest.approx((4.0, 0.0))
     assert sp.horizontal.velocity_ne_m_s == pytest.approx((2.0, 0.0))
-    assert sp.vertical.up_m == pytest.approx(0.1 + sc.hold_up_m)
+    assert sp.vertical.up_m == pytest.approx(sc.hold_up_m)
     assert path.waypoints_reached(1e3) == 0
 
 
