@@ -325,7 +325,8 @@ class OuterFlight:
     loop; ``thrust_applied`` the mixer's; ``rate_ref_rad_s``, ``gyro_rad_s``,
     ``torque`` (n, 3) the rate loop's reference, measurement and realised torque;
     ``hover_thrust`` the vertical loop's estimate; ``rate_sat`` any rate-loop axis
-    saturated; ``thrust_sat``; ``tilt_limited``; ``airborne``.
+    saturated; ``thrust_sat``; ``tilt_limited``; ``airborne``; ``est_euler_rad``
+    (n, 3) the attitude estimate flown on.
     """
 
     columns: dict[str, np.ndarray]
@@ -390,10 +391,11 @@ def simulate_outer_flight(
     names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
              "sp_up_m", "sp_att_rad", "thrust", "thrust_applied", "rate_ref_rad_s",
              "gyro_rad_s", "torque", "hover_thrust", "rate_sat", "thrust_sat",
-             "tilt_limited", "airborne", "gain_scale")  # fmt: skip
+             "tilt_limited", "airborne", "gain_scale", "est_euler_rad")  # fmt: skip
     cols: dict[str, list[Any]] = {k: [] for k in names}
     seen: dict[str, Any] = {"lift_off_s": None, "start_s": scenario.start_s if angle else None}
     nan2 = (math.nan, math.nan)
+    nan3 = (math.nan, math.nan, math.nan)
 
     def observe(t: float, core: FlightCore, quad: Quadrotor) -> None:
         modes, step = core.modes, core.step
@@ -406,7 +408,9 @@ def simulate_outer_flight(
         started = isinstance(path, ScenarioPath) and modes.mission_t >= path.start_s
         if seen["start_s"] is None and started:
             seen["start_s"] = t
-        sp = hold.setpoint
+        # What was asked: the plan's setpoint (on the legs the mode flies only a
+        # climb), or the altitude mode's own from the sticks.
+        sp = path.at(modes.mission_t) if isinstance(path, ScenarioPath) else hold.setpoint
         ne, up = sp.horizontal.position_ne_m, sp.vertical.up_m
         att = hold.attitude_setpoint
         cols["t_s"].append(t)
@@ -432,6 +436,8 @@ def simulate_outer_flight(
         cols["tilt_limited"].append(hold.tilt_limited)
         cols["airborne"].append(not st.landed)
         cols["gain_scale"].append(hold.outer.gain_scale)
+        q = modes.att_q
+        cols["est_euler_rad"].append(nan3 if q is None else quat_to_euler_rad(q))
         seen["outer"] = hold.outer
 
     record = simulate_flight(
@@ -487,9 +493,12 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     the loops' own error, without the estimator's); ``att_mae_deg`` (roll and pitch, mean of
     both), ``yaw_mae_deg``, ``rate_sat_s``, ``thrust_sat_s``, ``tilt_limited_s``,
     ``gain_scale_min`` and ``backed_off_s`` (the least scale on the outer gains and
-    the time it was below 1), ``crashed``, ``crashed_at_s``; for altitude steps
-    ``step_reach_s``: per step, the time after it to come within 10 % of its size
-    of the new altitude (None: never).
+    the time it was below 1), ``est_floor_h_m``, ``est_floor_v_m``,
+    ``est_floor_att_deg``, ``est_floor_yaw_deg`` (the estimate's own error against
+    the truth over the same part: RMS, and the attitude's MAE; the floor under the
+    loops' figures), ``crashed``, ``crashed_at_s``; for altitude steps
+    ``step_reach_s``: per step, the time after it for the estimated altitude to
+    come within 10 % of its size of the new one (None: never).
     """
     c, m = flight.columns, flight.meta
     t = c["t_s"]
@@ -508,6 +517,8 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
         for k in ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "est_rms_h_m", "est_rms_v_m"):
             out[k] = None
         for k in ("att_mae_deg", "yaw_mae_deg", "path_rms_m", "path_max_m"):
+            out[k] = None
+        for k in ("est_floor_h_m", "est_floor_v_m", "est_floor_att_deg", "est_floor_yaw_deg"):
             out[k] = None
         out.update(rate_sat_s=None, thrust_sat_s=None, tilt_limited_s=None, step_reach_s=None)
         out.update(gain_scale_min=None, backed_off_s=None)
@@ -536,13 +547,23 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     # None where no heading was asked (the altitude mode's yaw stick asks a rate).
     yaw_err = err[:, 2][np.isfinite(err[:, 2])]
     out["yaw_mae_deg"] = float(np.degrees(np.mean(yaw_err))) if len(yaw_err) else None
+    # The estimate's own error over the same part: the floor under the loops' figures
+    # (no law flies better than what it is told; vertical and attitude).
+    est_err = c["est_pos_ned_m"][sel] - pos
+    out["est_floor_h_m"] = float(np.sqrt(np.mean(est_err[:, 0] ** 2 + est_err[:, 1] ** 2)))
+    out["est_floor_v_m"] = float(np.sqrt(np.mean(est_err[:, 2] ** 2)))
+    att_err = np.abs(_wrap(c["est_euler_rad"][sel] - e))
+    out["est_floor_att_deg"] = float(np.degrees(np.nanmean(att_err[:, :2])))
+    out["est_floor_yaw_deg"] = float(np.degrees(np.nanmean(att_err[:, 2])))
     out["rate_sat_s"] = float(c["rate_sat"][sel].sum() * dt_s)
     out["thrust_sat_s"] = float(c["thrust_sat"][sel].sum() * dt_s)
     out["tilt_limited_s"] = float(c["tilt_limited"][sel].sum() * dt_s)
     out["gain_scale_min"] = float(c["gain_scale"][sel].min())
     out["backed_off_s"] = float((c["gain_scale"][sel] < 1.0).sum() * dt_s)
     reach: list[float | None] = []
-    up = -c["pos_ned_m"][:, 2]
+    # On the estimate the loops fly: the truth carries the estimate's slow error
+    # (tenths of a metre of height for seconds), which is not the loop's response.
+    up = -c["est_pos_ned_m"][:, 2]
     for ts in scenario.step_times_s:
         t0 = start + ts
         i0 = int(np.searchsorted(t, t0))

@@ -47,6 +47,7 @@ __all__ = [
     "summary_markdown",
     "sweep_flights",
     "true_state_flights",
+    "verdict",
 ]
 
 DAMAGE: dict[str, float] = {"intact": 1.0, "motor80": 0.8, "motor60": 0.6}
@@ -61,6 +62,32 @@ OUTPUTS = ("flights.parquet", "flights.json", "summary.md")
 
 METRICS = ("pos_rms_h_m", "pos_rms_v_m", "path_rms_m", "att_mae_deg", "yaw_mae_deg")
 """The figures compared, MFC against PX4's default (all errors: lower is better)."""
+
+TIE_FRACTION = 0.05
+"""Two figures closer than this fraction of PX4's are a tie..."""
+TIE_FLOORS = {"pos_rms_v_m": "est_floor_v_m", "att_mae_deg": "est_floor_att_deg"}
+"""... or closer than the estimate's own error on that metric (the mean of the two
+flights' ``outer_metrics`` floor), where it is larger: on the vertical and the
+attitude both laws fly the estimate's error, which neither can see."""
+
+
+def verdict(metric: str, mfc: dict[str, Any], px4: dict[str, Any]) -> str | None:
+    """``"better"``, ``"tie"`` or ``"worse"`` for MFC on ``metric`` (None: not
+    comparable: either crashed or has no figure)."""
+    a, b = mfc.get(metric), px4.get(metric)
+    if mfc["crashed"] or px4["crashed"] or a is None or b is None:
+        return None
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return None
+    band = TIE_FRACTION * abs(b)
+    floor_key = TIE_FLOORS.get(metric)
+    if floor_key is not None:
+        floors = [f for f in (mfc.get(floor_key), px4.get(floor_key)) if f is not None]
+        if floors:
+            band = max(band, sum(floors) / len(floors))
+    if abs(a - b) < band:
+        return "tie"
+    return "better" if a < b else "worse"
 
 
 @dataclass(frozen=True)
@@ -229,6 +256,7 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     if infeasible:
         lines.append("- Infeasible: " + ", ".join("/".join(k) for k in infeasible))
     better: dict[str, list[int]] = {m: [0, 0] for m in METRICS}
+    verdicts: dict[str, dict[str, int]] = {m: {"better": 0, "tie": 0, "worse": 0} for m in METRICS}
     rows = []
     for k, c in sorted(cases.items()):
         mf, px = c["flights"].get(("mfc", False)), c["flights"].get(("px4", False))
@@ -240,6 +268,9 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
             if r is not None:
                 better[m][0] += r < 1.0
                 better[m][1] += 1
+            v = verdict(m, mf, px)
+            if v is not None:
+                verdicts[m][v] += 1
             cells.append("-" if r is None else f"{r:.2f}")
         crash = "MFC" if mf["crashed"] else ""
         crash += ("+" if crash and px["crashed"] else "") + ("PX4" if px["crashed"] else "")
@@ -247,6 +278,16 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
         rows.append(f"| {' | '.join(k)} | {' | '.join(cells)} | {crash or '-'} | {feas} |")
     lines += ["", "MFC better than PX4's default (ratio below 1), cases per metric:", ""]
     lines += [f"- {m}: {b} of {n}" for m, (b, n) in better.items()]
+    lines += [
+        "",
+        f"Better, tied (within {TIE_FRACTION:.0%} of PX4's, or the estimate's own error "
+        "on the vertical and the attitude) and worse, cases per metric:",
+        "",
+    ]
+    lines += [
+        f"- {m}: {v['better']} better, {v['tie']} tied, {v['worse']} worse"
+        for m, v in verdicts.items()
+    ]
     lines += [
         "",
         "| vehicle | damage | scenario | " + " | ".join(METRICS) + " | crashed | feasible |",

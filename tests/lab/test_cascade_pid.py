@@ -308,8 +308,8 @@ def _px4_rates() -> MfcConfig | PidConfig:
 
 HOLD_S = 15.0
 HOLD_BOUND_M = 0.5
-"""Measured over 14-15 s, seed 20200318: 0.23 m horizontal RMS, 0.19 m vertical
-(``python -m sitl.lab.outer_flight --outer px4 --profile f450 --duration 15``).
+"""Measured over 14-15 s, seed 20200318, 2026-11-29: 0.14 m horizontal RMS, 0.10 m
+vertical (``python -m sitl.lab.outer_flight --outer px4 --profile f450 --duration 15``).
 Loose: a regression check that the baseline flies, not a figure of merit."""
 
 

@@ -32,11 +32,13 @@ ROOT = Path(__file__).resolve().parents[2]
 FAST = dataclasses.replace(
     EKF_GPS,
     attitude_tau_s=(0.01, 0.01, 0.01),
+    attitude_bias_sigma_rad=(0.0, 0.0, 0.0),
     position_tau_s=(0.01, 0.01, 0.01),
+    position_smoothing_s=(0.0, 0.0, 0.0),
     velocity_tau_s=(0.01, 0.01, 0.01),
 )
-"""EKF_GPS's sigmas with errors that forget within a message period: a few
-seconds of streams are many independent draws of each error."""
+"""EKF_GPS's sigmas with errors that forget within a message period (no smoothing,
+no bias): a few seconds of streams are many independent draws of each error."""
 
 
 @pytest.fixture(scope="module")
@@ -167,13 +169,15 @@ def test_local_position_errors_are_the_specs_size(profile: VehicleProfile, tmp_p
 def test_with_ekf_gps_position_errors_wander_within_a_few_sigma(
     profile: VehicleProfile, tmp_path: Path
 ) -> None:
-    """EKF_GPS's errors are slow (tau 1-2 s): bounded, and they drift, they do not jump."""
+    """EKF_GPS's errors are slow (their driver's tau 3.5-6.5 s, smoothed over 1-1.5 s):
+    bounded, and they drift, they do not jump."""
     lp = fly(profile, tmp_path, seed=2, duration_s=4.0).of("LOCAL_POSITION_NED")
     pos = np.array([(m.x, m.y, m.z) for m in lp])
     sigma = np.array(EKF_GPS.position_sigma_m)
     assert np.all(np.abs(pos) < 5.0 * sigma)
     assert np.all(np.abs(pos).max(axis=0) > 0.02 * sigma)  # not the truth
-    # 0.1 s apart with tau 2 s: the step's sigma is sqrt(2 (1 - e^-0.05)) = 0.31 sigma.
+    # 0.1 s apart: even an unsmoothed driver with tau 3.5 s steps by
+    # sqrt(2 (1 - e^-0.1/3.5)) = 0.24 sigma; the smoothing makes it less.
     steps = np.diff(pos[1:], axis=0)  # from the second: the first is 70 ms before the next
     assert np.all(np.sqrt(np.mean(steps**2, axis=0)) < 0.5 * sigma)
 
