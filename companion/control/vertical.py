@@ -336,7 +336,10 @@ class VerticalLoop:
           starts a new finite difference;
         * setpoint non-finite: a climb-rate reference of zero (hold what altitude
           there is);
-        * ``cos_tilt`` or ``applied`` non-finite: taken as level / as sent.
+        * ``cos_tilt`` or ``applied`` non-finite: taken as level / as sent;
+        * finite inputs so large that the climb's change overflows: nothing learnt
+          from that sample (and ``F`` started again at the hover estimate should it
+          have gone non-finite).
         """
         g = self._gains
         fault = False
@@ -374,9 +377,17 @@ class VerticalLoop:
         est = self._est
         prev = self._climb_prev
         if prev is not None:
-            u_prev = (self._out if applied is None else applied) * self._cos_applied
-            est.update(dt_s, (climb - prev) / dt_s, u_prev, self._alpha)
-            self._learn_hover(dt_s, climb, cos_tilt)
+            accel = (climb - prev) / dt_s
+            if math.isfinite(accel):
+                u_prev = (self._out if applied is None else applied) * self._cos_applied
+                est.update(dt_s, accel, u_prev, self._alpha)
+            else:  # absurd finite climbs overflowed: nothing to learn from
+                fault = True
+            if math.isfinite(est.f_hat):
+                self._learn_hover(dt_s, climb, cos_tilt)
+            else:  # start F again at the hover estimate, as a reset does
+                fault = True
+                est.reset(self._hover, -self._alpha * self._hover)
         self._climb_prev = climb
         f = est.f_hat
         self.f_hat = f

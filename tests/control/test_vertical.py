@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from companion.control.ultralocal import GRAVITY_M_S2 as G
@@ -238,6 +238,13 @@ finite_or_not = st.one_of(
 
 @settings(max_examples=80, deadline=None)
 @given(st.lists(st.tuples(*[finite_or_not] * 8), min_size=1, max_size=5))
+@example(  # found by a run under load: the climb's change overflowed, F went NaN
+    [
+        (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        (1e308, 0.0, -1e308, 0.0, 0.0, 0.0, 0.0, 0.0),
+        (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0),
+    ]
+)
 def test_never_a_non_finite_or_unbounded_thrust(samples: list[tuple[float, ...]]) -> None:
     g = DEFAULT_VERTICAL_GAINS
     loop = VerticalLoop()
