@@ -92,7 +92,6 @@ class SampleStep:
         "last_rates_sent",
         "last_thrust_sent",
         "law_ref",
-        "law_thrust",
         "out",
         "passthrough",
         "rate_fs_rad_s",
@@ -133,8 +132,6 @@ class SampleStep:
         self.law_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         """The reference the law was given on the last sample (the pilot's, or
         shaped as the autopilot shapes it)."""
-        self.law_thrust = 0.0
-        """The collective the law was given on the last sample."""
         self.last_rates_sent: tuple[float, float, float] | None = None
         self.out: Any = None
         """The law's output on the last sample (None before the first)."""
@@ -182,7 +179,6 @@ class SampleStep:
         if shaper is not None:
             ref = shaper.reference(dt, ref)
         self.law_ref = ref
-        self.law_thrust = thrust
         out = self.out = self.controller.update(dt, gyro, ref, thrust)
         return out
 

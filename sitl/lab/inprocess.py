@@ -21,6 +21,7 @@ import numpy as np
 
 from companion.control import RateController
 from companion.control.outer import OuterLaw
+from companion.control.stick_limits import StickLimits
 from companion.core import FlightCore
 from companion.run_options import RunOptions
 from companion.stacks import PX4
@@ -31,6 +32,7 @@ __all__ = [
     "LocalPosition",
     "attitude_quaternion",
     "engaged_core",
+    "px4_stick_limits",
     "rc_frame",
     "start_mode",
 ]
@@ -126,13 +128,19 @@ def start_mode(core: FlightCore, imu_rate_hz: float, *, on_ground: bool) -> None
     and hover thrust the SITL's parameters answer."""
     core.modes.imu_rate_hz = imu_rate_hz
     core.messages.on_landed_state(_ON_GROUND if on_ground else _IN_AIR)
+    limits, hover = px4_stick_limits()
+    core.modes.build(limits, hover, on_ground=bool(core.controller.on_ground))
+
+
+def px4_stick_limits() -> tuple[StickLimits, float]:
+    """What the sticks may ask on the bundled SITL's PX4, and its hover thrust, from
+    its parameters as ``companion run``'s start-up reads them (PARAM_VALUE: float32)."""
     params = PX4.stick_params
-    # As PARAM_VALUE carries them: float32.
     answered = {
         s.name: float(np.float32(s.default)) for s in px4_param_specs() if s.name in params.defaults
     }
     hover = answered.get(params.hover_thrust, params.defaults[params.hover_thrust])
-    core.modes.build(params.limits(answered), hover, on_ground=bool(core.controller.on_ground))
+    return params.limits(answered), hover
 
 
 @dataclass(frozen=True)

@@ -70,13 +70,13 @@ from companion.profile import VehicleProfile, load_profile
 from sitl.estimator_model import EKF_GPS, PERFECT, EstimatorSpec
 from sitl.frames import quat_to_euler_rad
 from sitl.lab.cascade_pid import PX4_DEFAULT_CASCADE, CascadeGains, CascadePid
+from sitl.lab.inprocess import px4_stick_limits
 from sitl.lab.outer_plan import (
     AnglePilot,
     CentredSticks,
     ScenarioPath,
     ScenarioPlan,
     Setpoints,
-    px4_stick_limits,
 )
 from sitl.lab.simulate import simulate_flight
 from sitl.physics import Quadrotor
@@ -387,11 +387,13 @@ def simulate_outer_flight(
         law = lambda: OuterController(gains)  # noqa: E731
     angle = scenario.mode == "angle"
     plan = None if angle else ScenarioPlan(flown)
-    pilot = AnglePilot(flown, px4_stick_limits()) if angle else CentredSticks(duration)
-    names = ("t_s", "pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
-             "sp_up_m", "sp_att_rad", "thrust", "thrust_applied", "rate_ref_rad_s",
-             "gyro_rad_s", "torque", "hover_thrust", "rate_sat", "thrust_sat",
-             "tilt_limited", "airborne", "gain_scale", "est_euler_rad")  # fmt: skip
+    pilot = AnglePilot(flown, px4_stick_limits()[0]) if angle else CentredSticks(duration)
+    # Besides what the flight's record already has (t_s, thrust, the rate reference,
+    # the torque: taken from it below).
+    names = ("pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
+             "sp_up_m", "sp_att_rad", "thrust_applied", "gyro_rad_s", "hover_thrust",
+             "rate_sat", "thrust_sat", "tilt_limited", "airborne", "gain_scale",
+             "est_euler_rad")  # fmt: skip
     cols: dict[str, list[Any]] = {k: [] for k in names}
     seen: dict[str, Any] = {"lift_off_s": None, "start_s": scenario.start_s if angle else None}
     nan2 = (math.nan, math.nan)
@@ -413,7 +415,6 @@ def simulate_outer_flight(
         sp = path.at(modes.mission_t) if isinstance(path, ScenarioPath) else hold.setpoint
         ne, up = sp.horizontal.position_ne_m, sp.vertical.up_m
         att = hold.attitude_setpoint
-        cols["t_s"].append(t)
         cols["pos_ned_m"].append(st.pos_ned_m)
         cols["est_pos_ned_m"].append(modes.pos[0])
         cols["euler_rad"].append(quat_to_euler_rad(st.q_wxyz))
@@ -425,11 +426,8 @@ def simulate_outer_flight(
         else:
             yaw = math.nan if att.yaw_rad is None else att.yaw_rad
             cols["sp_att_rad"].append((att.roll_rad, att.pitch_rad, yaw))
-        cols["thrust"].append(step.law_thrust)
         cols["thrust_applied"].append(out.thrust)
-        cols["rate_ref_rad_s"].append(step.law_ref)
         cols["gyro_rad_s"].append(step.gyro)
-        cols["torque"].append(out.torque)
         cols["hover_thrust"].append(vert.hover_thrust)
         cols["rate_sat"].append(any(out.saturated_axes))
         cols["thrust_sat"].append(vert.saturated)
@@ -446,6 +444,9 @@ def simulate_outer_flight(
         observe=observe,
     )  # fmt: skip
     columns = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
+    for k, rec in (("t_s", "t_s"), ("thrust", "thrust"), ("rate_ref_rad_s", "ref_rad_s"),
+                   ("torque", "torque")):  # fmt: skip
+        columns[k] = np.asarray(record.columns[rec], dtype=float)
     for k in ("rate_sat", "thrust_sat", "tilt_limited", "airborne"):
         columns[k] = columns[k].astype(bool)
     outer = seen.get("outer")

@@ -35,9 +35,7 @@ from companion.control.horizontal import HorizontalSetpoint
 from companion.control.outer import OuterSetpoint
 from companion.control.stick_limits import StickLimits
 from companion.control.vertical import VerticalSetpoint
-from companion.stacks import PX4
 from sitl.pilot import PilotView, Sticks
-from sitl.px4_params import px4_param_specs
 
 __all__ = [
     "PLAN_LIFT_OFF_S",
@@ -46,7 +44,6 @@ __all__ = [
     "ScenarioPath",
     "ScenarioPlan",
     "Setpoints",
-    "px4_stick_limits",
 ]
 
 Vec3 = tuple[float, float, float]
@@ -90,13 +87,6 @@ class _Scenario(Protocol):
     def setpoints(self) -> Callable[[float], Setpoints]: ...
 
 
-def px4_stick_limits() -> StickLimits:
-    """What the sticks may ask on the bundled SITL's PX4 (its parameters' defaults)."""
-    params = PX4.stick_params
-    answered = {s.name: s.default for s in px4_param_specs() if s.name in params.defaults}
-    return params.limits(answered)
-
-
 class ScenarioPath:
     """An outer scenario's setpoints in the local frame (module docstring);
     ``origin_ned_m``: where the estimate put the vehicle as it engaged (its
@@ -128,7 +118,7 @@ class ScenarioPath:
         )
 
     def target_at(self, t_s: float) -> Vec3:
-        if t_s < self._climb_s:
+        if t_s < self.start_s:  # climbing to, or holding at, the first altitude
             return (0.0, 0.0, -self._scenario.hold_up_m)
         sp = self.at(t_s)
         pos = sp.horizontal.position_ne_m

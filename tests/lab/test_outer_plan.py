@@ -12,8 +12,9 @@ import pytest
 from companion.config import load_controller
 from companion.control.hold_modes import TAKEOFF_CLIMB_M_S
 from companion.profile import VehicleProfile, load_profile
+from sitl.lab.inprocess import px4_stick_limits
 from sitl.lab.outer_flight import SCENARIOS, simulate_outer_flight
-from sitl.lab.outer_plan import PLAN_LIFT_OFF_S, AnglePilot, ScenarioPlan, px4_stick_limits
+from sitl.lab.outer_plan import PLAN_LIFT_OFF_S, AnglePilot, ScenarioPlan
 from sitl.pilot import PilotView
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -26,7 +27,7 @@ def _f450() -> VehicleProfile:
 def test_a_plan_climbs_from_where_it_starts_then_flies_the_scenario_in_the_local_frame() -> None:
     sc = SCENARIOS["square"]
     origin = (0.2, -0.1, 0.3)  # NED: where the estimate put the vehicle, 0.3 m down
-    path = ScenarioPlan(sc).path(origin, px4_stick_limits())
+    path = ScenarioPlan(sc).path(origin, px4_stick_limits()[0])
     # On the legs the waypoint flown to is above: the position mode takes off.
     assert path.target_at(0.0) == pytest.approx((0.0, 0.0, -sc.hold_up_m))
     climbing = path.at(2.0)
@@ -45,7 +46,7 @@ def test_a_plan_climbs_from_where_it_starts_then_flies_the_scenario_in_the_local
 
 def test_the_angle_pilot_climbs_at_the_take_off_rate_then_holds_the_sticks_asked() -> None:
     sc = SCENARIOS["angle-sticks"]
-    limits = px4_stick_limits()
+    limits = px4_stick_limits()[0]
     pilot = AnglePilot(sc, limits)
 
     def view(t: float, up: float) -> PilotView:
