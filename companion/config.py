@@ -316,6 +316,14 @@ class MfcConfig(_LoopConfig):
     )
     prefilter_hz: float | None = Field(20.0, gt=0.0, le=500.0)
     adapt_min_thrust: float = Field(0.15, ge=0.0, le=1.0)
+    yaw_share_max: float = Field(
+        0.0,
+        ge=0.0,
+        le=0.9,
+        description="the largest fraction of roll and pitch the mixer may give yaw while "
+        "the vehicle loses its heading to yaw saturation (0: roll and pitch first always, "
+        "the paper's mixer)",
+    )
     axes: MfcAxes
 
     @model_validator(mode="after")

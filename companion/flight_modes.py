@@ -35,6 +35,15 @@ class FlightMode:
     def needs_attitude(self) -> bool:
         return self.law is not None
 
+    @property
+    def shares_yaw(self) -> bool:
+        """Whether the rate loop may give yaw a share of roll and pitch while the
+        heading is being lost (:class:`companion.control.yaw_share.YawShare`): in
+        the modes that fly the attitude for the pilot, a vehicle that spins has
+        failed the mode; in rates the pilot flies yaw, and roll and pitch stay
+        first (an acro flip needs all of them)."""
+        return self.needs_attitude
+
 
 FLIGHT_MODES: dict[str, FlightMode] = {
     m.name: m

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from companion.control import AXES
+from companion.flight_modes import FLIGHT_MODES
 from companion.records import read_control_log
 from companion.step import whole_us
 
@@ -91,7 +92,8 @@ def replay(
         (e.g. a simulation's ``true_<axis>_rad_s``) can be replayed on those.
     meta
         The log's metadata (read from the file when ``log_path`` is one): its
-        ``rates_full_scale_deg_s`` teaches a shaped flight's law as it was taught.
+        ``rates_full_scale_deg_s`` teaches a shaped flight's law as it was taught;
+        its ``mode`` says whether yaw was offered a share of roll and pitch.
 
     Returns
     -------
@@ -128,6 +130,11 @@ def replay(
     engaged = cols["engaged"] if "engaged" in cols else np.ones(n)
     ground = (cols["on_ground"] != 0.0).tolist() if "on_ground" in cols else [False] * n
     controller = build_controller(cfg, prof)
+    # As the run's flight core set it: yaw's share only in the modes that fly the
+    # attitude (a log without its mode predates the share).
+    flown = FLIGHT_MODES.get(meta.get("mode", "rates"))
+    if flown is None or not flown.shares_yaw:
+        controller.yaw_share.most = 0.0
     n_motors = controller.mixer.n_motors
     names = output_columns(n_motors)
     out = np.full((n, len(names)), np.nan)

@@ -54,6 +54,7 @@ from companion.control.intelligent import IntelligentController, MfcAxisGains
 from companion.control.mixer import Mixer
 from companion.control.pid import PidGains, RatePid
 from companion.control.prefilter import ReferencePrefilter
+from companion.control.yaw_share import YawShare
 
 __all__ = ["ControlOutput", "MfcController", "MfcGains", "PidController", "RateController"]
 
@@ -68,7 +69,9 @@ class MfcGains:
     defaults and bounds). ``command_full_scale_us``: the command that makes a
     normalised torque of 1; ``adapt_min_thrust``: the identification learns only
     while the pilot's collective is at least this; ``dt_min_s``, ``dt_max_s``:
-    the sample intervals the laws trust."""
+    the sample intervals the laws trust; ``yaw_share_max``: the most of roll and
+    pitch the mixer may give yaw while the vehicle loses its heading
+    (:class:`~companion.control.yaw_share.YawShare`)."""
 
     roll: MfcAxisGains
     pitch: MfcAxisGains
@@ -78,6 +81,7 @@ class MfcGains:
     adapt_min_thrust: float
     dt_min_s: float
     dt_max_s: float
+    yaw_share_max: float
 
     def axes(self) -> tuple[MfcAxisGains, MfcAxisGains, MfcAxisGains]:
         return (self.roll, self.pitch, self.yaw)
@@ -143,6 +147,8 @@ class RateController(Protocol):
     """Updates given a non-finite input (each held the last output)."""
     dt_clamped_events: int
     """Updates whose time step was clamped to the law's bounds."""
+    yaw_share: YawShare
+    """Yaw's share of roll and pitch offered to the mixer (``most`` 0: none)."""
 
     @property
     def held_on_ground(self) -> bool:
@@ -207,6 +213,8 @@ class MfcController:
         self._scale = 1.0 / gains.command_full_scale_us
         self._mix = mixer.mix_fn  # Mixer.mix, bound for this geometry
         self._applied: Vec3 = _ZERO3
+        self.yaw_share = YawShare(gains.yaw_share_max)
+        """Yaw's share of roll and pitch, given while the heading is being lost."""
         self._dt_min = gains.dt_min_s
         self._dt_max = gains.dt_max_s
         self._last: ControlOutput | None = None
@@ -248,6 +256,7 @@ class MfcController:
             self._filter.reset()
         self._prev_ref = None
         self._applied = _ZERO3
+        self.yaw_share.reset()
         self._last = None
         self._quiet_s = math.inf
 
@@ -343,12 +352,15 @@ class MfcController:
         u1 = a1.update(dt_s, w1, r1, d1, p1)
         u2 = a2.update(dt_s, w2, r2, d2, p2)
         # 3. The mixer: normalised torques and the collective to motors, and what
-        # of the torques it could apply (the law's next lesson).
+        # of the torques it could apply (the law's next lesson); yaw's share of
+        # roll and pitch for the next sample from what it did.
         s = self._scale
-        motors, achieved, sat_axes, sat_motors, thrust_eff = self._mix(
-            thrust, u0 * s, u1 * s, u2 * s
+        share = self.yaw_share
+        motors, achieved, sat_axes, sat_motors, thrust_eff, given = self._mix(
+            thrust, u0 * s, u1 * s, u2 * s, share.value
         )
         self._applied = achieved
+        share.update(dt_s, a2.e_dot, sat_axes[2], sat_axes[0] or sat_axes[1], given)
         out: ControlOutput = _new_tuple(
             ControlOutput,
             (
@@ -379,6 +391,8 @@ class PidController:
         self._last: ControlOutput | None = None
         self._sat_pos = (False, False, False)
         self._sat_neg = (False, False, False)
+        self.yaw_share = YawShare(0.0)
+        """Never offered: PX4's allocation puts roll and pitch first."""
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
         self.on_ground = False

@@ -21,7 +21,8 @@ the paper's units a full-scale command is 500 us of differential PWM.
 Saturation priority (air mode): roll and pitch first, scaled together when
 their spread alone exceeds the motor range; then the collective is shifted so
 they fit (authority is kept at zero throttle and at full throttle); yaw gets
-only the headroom left. The result reports what was achieved and what
+the headroom left, and, when the caller offers it a share, as much of roll
+and pitch as that share allows. The result reports what was achieved and what
 saturated, so a caller can keep an estimator from learning a command that was
 never applied.
 
@@ -53,10 +54,14 @@ class MixResult(NamedTuple):
     """True for motors at idle or at full command."""
     thrust: float
     """The collective actually realised (air mode may shift it)."""
+    yaw_share: float
+    """The fraction of roll and pitch given up for yaw (0 unless a share was
+    offered and yaw did not fit without it)."""
 
 
 _INF = math.inf
 _TINY = 1e-9  # |yaw| below this is no request: avoids dividing by an underflowed product
+_SHARE_STEPS = 8  # bisection steps for the yaw share: within 1/256 of the share
 
 
 def _clamp_or_zero(x: float, lo: float, hi: float) -> float:
@@ -175,18 +180,31 @@ class Mixer:
             tuple(2.0 * f for f in self._yf),
         )
 
-    def mix(self, thrust: float, roll: float, pitch: float, yaw: float) -> MixResult:
+    def mix(
+        self, thrust: float, roll: float, pitch: float, yaw: float, yaw_share: float = 0.0
+    ) -> MixResult:
         """Allocate thrust and torques to motors with air-mode priority.
+
+        ``yaw_share`` in [0, 1] lets yaw go ahead of roll and pitch by that much:
+        when the yaw asked does not fit in the headroom they leave, roll and pitch
+        are shrunk together, by no more than the share, to the least that lets it
+        fit. They are shrunk only where that gives yaw more or, at the top of the
+        collective, gives back lift the air mode cut so that they fit (the
+        collective is never moved past the one asked, and never for yaw).
+        :class:`~companion.control.yaw_share.YawShare` decides the share from the
+        flight.
 
         Non-finite inputs (NaN, +/-inf) are treated as zero, finite ones are
         clamped to their range (and a clamped request counts as saturated);
         every output is finite and in ``[idle, 1]``.
         """
         if self._quad:
-            return self._mix_quad(thrust, roll, pitch, yaw)
-        return self._mix_generic(thrust, roll, pitch, yaw)
+            return self._mix_quad(thrust, roll, pitch, yaw, yaw_share)
+        return self._mix_generic(thrust, roll, pitch, yaw, yaw_share)
 
-    def _mix_generic(self, thrust: float, roll: float, pitch: float, yaw: float) -> MixResult:
+    def _mix_generic(
+        self, thrust: float, roll: float, pitch: float, yaw: float, yaw_share: float = 0.0
+    ) -> MixResult:
         idle = self.idle
         t = _clamp_or_zero(thrust, 0.0, 1.0)
         r = _clamp_or_zero(roll, -1.0, 1.0)
@@ -197,34 +215,37 @@ class Mixer:
 
         # 1. Roll and pitch: scale both together if their spread exceeds the range.
         d = [a * r + b * p for a, b in self._rp]
-        d_min = min(d)
-        d_max = max(d)
-        spread = d_max - d_min
+        spread = max(d) - min(d)
         rp_scale = 1.0
         span = 1.0 - idle
         if spread > span:
             rp_scale = span / spread
             d = [di * rp_scale for di in d]
-            d_min *= rp_scale
-            d_max *= rp_scale
-        # 2. Air mode: shift the collective so roll/pitch fit in [idle, 1].
-        t_eff = t if t > idle else idle
-        if t_eff + d_min < idle:
-            t_eff = idle - d_min
-        elif t_eff + d_max > 1.0:
-            t_eff = 1.0 - d_max
-        # 3. Yaw gets the headroom left: the largest |yaw| with every motor in range.
-        y_scale = 1.0
-        if y != 0.0:
-            hi = 1.0 - t_eff
-            lo = idle - t_eff
-            for di, k in zip(d, self._yf):
-                k *= y  # this motor's change for the full yaw request
-                if k == 0.0:
-                    continue
-                room = (hi - di) / k if k > 0.0 else (lo - di) / k
-                if room < y_scale:
-                    y_scale = room if room > 0.0 else 0.0
+        # 2. and 3. The collective shifted so they fit, yaw in the headroom left.
+        t_eff, y_scale = self._fit(t, d, y)
+        # 4. A yaw share: roll and pitch shrunk, by at most the share, until yaw fits.
+        given = 0.0
+        share = _clamp_or_zero(yaw_share, 0.0, 1.0)
+        if y_scale < 1.0 and share > 0.0:
+            f_fits = 1.0 - share
+            d_fit = [di * f_fits for di in d]
+            t_fit, ys_fit = self._fit(t, d_fit, y)
+            if ys_fit >= 1.0:  # the least shrink that fits, by bisection
+                f_short = 1.0
+                for _ in range(_SHARE_STEPS):
+                    f = 0.5 * (f_fits + f_short)
+                    d_f = [di * f for di in d]
+                    t_f, ys_f = self._fit(t, d_f, y)
+                    if ys_f >= 1.0:
+                        f_fits, d_fit, t_fit, ys_fit = f, d_f, t_f, ys_f
+                    else:
+                        f_short = f
+            # Shrunk where it gives yaw more or, at the top of the collective, gives
+            # back lift the air mode cut so roll and pitch fit (never more than asked).
+            if ys_fit > y_scale or t_fit > t_eff:
+                given = min(share, 1.0 - f_fits)
+                rp_scale *= f_fits
+                d, t_eff, y_scale = d_fit, t_fit, ys_fit
         ye = y * y_scale
         motors = [t_eff + di + k * ye for di, k in zip(d, self._yf)]
         lo_ok = idle + 1e-9
@@ -251,9 +272,37 @@ class Mixer:
             ),
             sat,
             t_eff,
+            given,
         )
 
-    def _mix_quad(self, thrust: float, roll: float, pitch: float, yaw: float) -> MixResult:
+    def _fit(self, t: float, d: list[float], y: float) -> tuple[float, float]:
+        """Air mode's collective for the roll and pitch changes ``d`` (shifted so they
+        fit in [idle, 1]), and the largest fraction of the yaw request ``y`` that
+        fits on top."""
+        idle = self.idle
+        d_min = min(d)
+        d_max = max(d)
+        t_eff = t if t > idle else idle
+        if t_eff + d_min < idle:
+            t_eff = idle - d_min
+        elif t_eff + d_max > 1.0:
+            t_eff = 1.0 - d_max
+        y_scale = 1.0
+        if y != 0.0:
+            hi = 1.0 - t_eff
+            lo = idle - t_eff
+            for di, k in zip(d, self._yf):
+                k *= y  # this motor's change for the full yaw request
+                if k == 0.0:
+                    continue
+                room = (hi - di) / k if k > 0.0 else (lo - di) / k
+                if room < y_scale:
+                    y_scale = room if room > 0.0 else 0.0
+        return t_eff, y_scale
+
+    def _mix_quad(
+        self, thrust: float, roll: float, pitch: float, yaw: float, yaw_share: float = 0.0
+    ) -> MixResult:
         # The same algorithm as _mix_generic, unrolled for four motors: this
         # runs once per IMU sample, and the unrolled form costs a quarter of the
         # list-based one (tests pin the two to identical results).
@@ -318,6 +367,8 @@ class Mixer:
                 (hi - d3) / q3 if q3 > 0.0 else (lo - d3) / q3,
             )
             y_scale = y_scale if y_scale > 0.0 else 0.0
+            if y_scale < 1.0 and yaw_share > 0.0:  # rare: the general path shares
+                return self._mix_generic(thrust, roll, pitch, yaw, yaw_share)
         ye = y * y_scale
         m0 = t_eff + d0 + k0 * ye
         m1 = t_eff + d1 + k1 * ye
@@ -352,5 +403,6 @@ class Mixer:
                 ),
                 sat,
                 t_eff,
+                0.0,
             ),
         )

@@ -78,6 +78,7 @@ class RunRecords:
             "controller": opts.controller.kind,
             "controller_path": opts.controller_path,
             "output": opts.output,
+            "mode": opts.mode,
             "engage": opts.engage,
             "version": __version__,
             "control_compiled": COMPILED,

@@ -247,14 +247,16 @@ finite_or_not = st.one_of(
     pitch=finite_or_not,
     yaw=finite_or_not,
     idle=st.sampled_from([0.0, 0.05, 0.2]),
+    share=st.sampled_from([0.0, 0.3, 0.5, 0.9, math.nan]),
 )
 def test_quad_path_equals_generic_path(
-    thrust: float, roll: float, pitch: float, yaw: float, idle: float
+    thrust: float, roll: float, pitch: float, yaw: float, idle: float, share: float
 ) -> None:
     m = quad_x_mixer(idle=idle)
     assert m._quad  # the fast path is the one used
-    quad = m._mix_quad(thrust, roll, pitch, yaw)
-    generic = m._mix_generic(thrust, roll, pitch, yaw)
+    quad = m._mix_quad(thrust, roll, pitch, yaw, share)
+    generic = m._mix_generic(thrust, roll, pitch, yaw, share)
+    assert quad.yaw_share == generic.yaw_share
     assert quad.saturated_axes == generic.saturated_axes
     assert quad.saturated_motors == generic.saturated_motors
     np.testing.assert_allclose(quad.motors, generic.motors, rtol=0, atol=1e-15)
@@ -279,3 +281,66 @@ def test_yaw_never_costs_roll_pitch_or_the_collective(
     assert got.achieved[:2] == ref.achieved[:2]
     assert got.thrust == ref.thrust
     assert all(idle <= x <= 1.0 for x in got.motors)
+
+
+# ---------------------------------------------------------------------------
+# Yaw's share of roll and pitch (companion.control.yaw_share decides it).
+
+
+def test_a_yaw_share_gives_yaw_roll_and_pitch_up_to_the_share() -> None:
+    """The F450 case above (roll 0.8, yaw 0.8 at 0.5): yaw fits once roll and
+    pitch are shrunk to f <= 0.125 (motor 3: 0.5 - 0.4 f - 0.4 >= 0.05).
+
+    With a share of 0.5 (f = 0.5) it does not: yaw gets min((0.5 - 0.2) / 0.4,
+    (0.45 - 0.2) / 0.4) = 0.625 of its request, 0.5 realised, roll 0.4; with 0.9
+    the whole yaw fits at the least shrink that allows it (the bisection's 1/256).
+    """
+    m = f450_mixer()
+    half = m.mix(0.5, 0.8, 0.0, 0.8, yaw_share=0.5)
+    np.testing.assert_allclose(half.achieved, [0.4, 0.0, 0.5], rtol=1e-12)
+    assert half.yaw_share == pytest.approx(0.5)
+    assert half.saturated_axes == (True, False, True)  # the laws learn what was applied
+    assert half.thrust == 0.5  # yaw never moves the collective
+    np.testing.assert_allclose(torques_from_motors(m, half.motors)[1:], half.achieved, atol=1e-12)
+    most = m.mix(0.5, 0.8, 0.0, 0.8, yaw_share=0.9)
+    assert most.achieved[2] == pytest.approx(0.8)
+    assert most.saturated_axes[2] is False
+    assert 0.8 * 0.125 - 0.9 / 256 * 0.8 <= most.achieved[0] <= 0.8 * 0.125
+    assert most.yaw_share == pytest.approx(0.875, abs=0.9 / 256)
+
+
+def test_a_share_not_needed_changes_nothing() -> None:
+    """Yaw that fits, or no yaw: the share is not used and the result is the plain one."""
+    m = f450_mixer()
+    for args in ((0.5, 0.2, 0.1, 0.1), (0.5, 0.8, 0.0, 0.0), (0.9, 0.0, 0.0, 0.1)):
+        plain, shared = m.mix(*args), m.mix(*args, yaw_share=0.5)
+        assert shared == plain
+        assert shared.yaw_share == 0.0
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    thrust=st.floats(0.0, 1.0),
+    roll=st.floats(-1.0, 1.0),
+    pitch=st.floats(-1.0, 1.0),
+    yaw=st.floats(-1.0, 1.0),
+    share=st.floats(0.0, 1.0),
+    idle=st.sampled_from([0.0, 0.05, 0.2]),
+)
+def test_a_share_costs_roll_and_pitch_at_most_the_share_for_yaw_or_lift(
+    thrust: float, roll: float, pitch: float, yaw: float, share: float, idle: float
+) -> None:
+    m = quad_x_mixer(idle=idle)
+    got, plain = m.mix(thrust, roll, pitch, yaw, yaw_share=share), m.mix(thrust, roll, pitch, yaw)
+    assert all(idle <= x <= 1.0 for x in got.motors)
+    assert 0.0 <= got.yaw_share <= share
+    for a in (0, 1):  # shrunk by no more than the share, never grown
+        assert abs(got.achieved[a]) <= abs(plain.achieved[a]) + 1e-12
+        assert abs(got.achieved[a]) >= (1.0 - share) * abs(plain.achieved[a]) - 1e-12
+    # Given for yaw, or at the top of the collective for the lift the air mode cut.
+    assert abs(got.achieved[2]) >= abs(plain.achieved[2]) - 1e-12 or got.thrust > plain.thrust
+    # The collective moves only back toward the one asked (less air-mode shift).
+    asked = max(thrust, idle)
+    assert abs(got.thrust - asked) <= abs(plain.thrust - asked) + 1e-12
+    if got.yaw_share == 0.0:
+        assert got == plain

@@ -15,7 +15,8 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     """mfc_rates.yaml differs from mfc_default.yaml only where its header says:
     roll/pitch margin 1.0 and kd 10, a 60 Hz prefilter, none of the lag
     scaling's later changes (authority easing, margin_min, lag_scaling_max and _min, the
-    lag-scaled window), no identification of the loop's delay, and the yaw margin left at 0.8."""
+    lag-scaled window), no identification of the loop's delay, the yaw margin left at 0.8,
+    and no yaw share (the autopilot mixes)."""
     base = load_controller(DEFAULT_CONTROLLER)
     rates = load_controller(RATES_CONTROLLER)
     assert isinstance(base, MfcConfig) and isinstance(rates, MfcConfig)
@@ -52,7 +53,9 @@ def test_rates_default_is_the_shipped_law_with_its_documented_changes() -> None:
     )
     assert b_yaw.window_lag_scaled and not r_yaw.window_lag_scaled
     assert (base.prefilter_hz, rates.prefilter_hz) == (30.0, 60.0)
-    same_top = {"axes": None, "prefilter_hz": None}
+    # The autopilot mixes with --output rates: no share of roll and pitch to give yaw.
+    assert (base.yaw_share_max, rates.yaw_share_max) == (0.5, 0.0)
+    same_top = {"axes": None, "prefilter_hz": None, "yaw_share_max": None}
     assert base.model_copy(update=same_top) == rates.model_copy(update=same_top)
 
 
