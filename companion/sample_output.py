@@ -140,7 +140,7 @@ class SampleOutput:
                     thrust, out.thrust, *out.motors, *sent, float(self.controller.on_ground),
                     self.link_clock.rtt_s * 1e3, age * 1e3, *self.modes.log_columns(),
                     *(step.law_ref if step.shaper is not None else NO_RATES),
-                    *alpha, *lag, *delay,
+                    *alpha, *lag, *delay, self.controller.yaw_share.value,
                 ]
             )  # fmt: skip
         if self.publish_sample is not None:

@@ -54,7 +54,8 @@ def columns(n_motors: int) -> list[str]:
     flies, per axis, as configured or identified online: ``alpha_<axis>`` (its
     input gain, rad/s^m per command unit), ``lag_<axis>_s`` (the actuator lag)
     and ``delay_<axis>_s`` (the loop's delay); NaN for a law with no model (the
-    PID).
+    PID). Last, ``yaw_share``: the share of roll and pitch the mixer may give yaw
+    while the heading is being lost (0..1; 0 when none is offered).
     """
     if not isinstance(n_motors, int) or isinstance(n_motors, bool) or n_motors < 1:
         raise ValueError(f"n_motors must be a positive integer, got {n_motors!r}")
@@ -78,6 +79,7 @@ def columns(n_motors: int) -> list[str]:
     cols += ["outer_gain_scale"]
     cols += [f"law_ref_{a}_rad_s" for a in AXES]
     cols += [f"{q}_{a}{unit}" for q, unit in _MODEL for a in AXES]
+    cols += ["yaw_share"]
     return cols
 
 
@@ -104,7 +106,11 @@ _PLACES: tuple[tuple[str, str, str], ...] = (
     (rf"alpha_(?P<a>{_AX})", "/law/{a}", "alpha"),
     (rf"lag_(?P<a>{_AX})_s", "/law/{a}", "lag_s"),
     (rf"delay_(?P<a>{_AX})_s", "/law/{a}", "delay_s"),
-    (r"(?P<f>thrust|thrust_out|motor_[1-9][0-9]*|engaged|held|on_ground)", "/mixer", "{f}"),
+    (
+        r"(?P<f>thrust|thrust_out|motor_[1-9][0-9]*|engaged|held|on_ground|yaw_share)",
+        "/mixer",
+        "{f}",
+    ),
     (rf"(?P<f>(sp|est)_({_AX})_rad|(sp|est)_(north|east|up)_m|outer_gain_scale)", "/outer", "{f}"),
 )
 _COMPILED = tuple((re.compile(p), t, f) for p, t, f in _PLACES)
@@ -120,7 +126,9 @@ _DESCRIPTIONS = {
     "rad/s^m per command unit), the actuator lag and the loop's delay (s); NaN for the PID.",
     "/mixer": "The mixer and the gates: the pilot's collective and the realised one (0..1), "
     "the motor commands ([idle, 1]), engaged, held (a non-finite input repeated the last "
-    "output) and on_ground (the autopilot said ON_GROUND: nothing learnt), all 0/1.",
+    "output) and on_ground (the autopilot said ON_GROUND: nothing learnt), all 0/1, and "
+    "yaw_share (the share of roll and pitch yaw may take while the heading is being "
+    "lost, 0..1).",
     "/link": "The sample on both clocks: t_s (the IMU stamp, autopilot clock, s), wall_s "
     "(its arrival, companion monotonic clock, s), latency_us (arrival to command sent), "
     "rtt_ms (last TIMESYNC round trip) and sample_age_ms (the sample's age when its "

@@ -42,22 +42,23 @@ def test_columns_layout() -> None:
         "torque_roll", "sat_roll",
     ]  # fmt: skip
     assert cols[12] == "ref_pitch_rad_s" and cols[19] == "ref_yaw_rad_s"
-    assert cols[-38:-25] == [
+    assert cols[-39:-26] == [
         "sat_yaw", "thrust", "thrust_out", "motor_1", "motor_2", "motor_3", "motor_4",
         "sent_roll_rad_s", "sent_pitch_rad_s", "sent_yaw_rad_s", "on_ground",
         "link_rtt_ms", "sample_age_ms",
     ]  # fmt: skip
-    assert cols[-25:-12] == [
+    assert cols[-26:-13] == [
         "sp_roll_rad", "sp_pitch_rad", "sp_yaw_rad", "est_roll_rad", "est_pitch_rad",
         "est_yaw_rad", "sp_north_m", "sp_east_m", "sp_up_m", "est_north_m", "est_east_m",
         "est_up_m", "outer_gain_scale",
     ]  # fmt: skip
-    assert cols[-12:-9] == ["law_ref_roll_rad_s", "law_ref_pitch_rad_s", "law_ref_yaw_rad_s"]
-    assert cols[-9:] == [
+    assert cols[-13:-10] == ["law_ref_roll_rad_s", "law_ref_pitch_rad_s", "law_ref_yaw_rad_s"]
+    assert cols[-10:-1] == [
         "alpha_roll", "alpha_pitch", "alpha_yaw", "lag_roll_s", "lag_pitch_s", "lag_yaw_s",
         "delay_roll_s", "delay_pitch_s", "delay_yaw_s",
     ]  # fmt: skip
-    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2 + 13 + 3 + 9
+    assert cols[-1] == "yaw_share"
+    assert len(cols) == 5 + 21 + 2 + 4 + 3 + 1 + 2 + 13 + 3 + 9 + 1
     assert len(columns(6)) == len(cols) + 2
     with pytest.raises(ValueError):
         columns(0)

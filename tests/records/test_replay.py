@@ -84,6 +84,7 @@ def write_log(
             row += [np.nan] * 13  # the outer loops': --mode rates
             row += [np.nan] * 3  # law_ref: the pilot's rates flown unshaped
             row += [np.nan] * 9  # the law's model: not compared by replay
+            row += [0.0]  # yaw_share: none offered in --mode rates
             log.append(row)
 
 
