@@ -326,7 +326,8 @@ class OuterFlight:
     ``torque`` (n, 3) the rate loop's reference, measurement and realised torque;
     ``hover_thrust`` the vertical loop's estimate; ``rate_sat`` any rate-loop axis
     saturated; ``thrust_sat``; ``tilt_limited``; ``airborne``; ``est_euler_rad``
-    (n, 3) the attitude estimate flown on.
+    (n, 3) the attitude estimate flown on; ``yaw_share`` yaw's share of roll and
+    pitch offered to the mixer (0 for a law without one).
     """
 
     columns: dict[str, np.ndarray]
@@ -393,7 +394,7 @@ def simulate_outer_flight(
     names = ("pos_ned_m", "est_pos_ned_m", "euler_rad", "sp_pos_ne_m", "sp_vel_ne_m_s",
              "sp_up_m", "sp_att_rad", "thrust_applied", "gyro_rad_s", "hover_thrust",
              "rate_sat", "thrust_sat", "tilt_limited", "airborne", "gain_scale",
-             "est_euler_rad")  # fmt: skip
+             "est_euler_rad", "yaw_share")  # fmt: skip
     cols: dict[str, list[Any]] = {k: [] for k in names}
     seen: dict[str, Any] = {"lift_off_s": None, "start_s": scenario.start_s if angle else None}
     nan2 = (math.nan, math.nan)
@@ -434,6 +435,8 @@ def simulate_outer_flight(
         cols["tilt_limited"].append(hold.tilt_limited)
         cols["airborne"].append(not st.landed)
         cols["gain_scale"].append(hold.outer.gain_scale)
+        share = getattr(step.controller, "yaw_share", None)
+        cols["yaw_share"].append(0.0 if share is None else share.value)
         q = modes.att_q
         cols["est_euler_rad"].append(nan3 if q is None else quat_to_euler_rad(q))
         seen["outer"] = hold.outer
@@ -494,7 +497,8 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     the loops' own error, without the estimator's); ``att_mae_deg`` (roll and pitch, mean of
     both), ``yaw_mae_deg``, ``rate_sat_s``, ``thrust_sat_s``, ``tilt_limited_s``,
     ``gain_scale_min`` and ``backed_off_s`` (the least scale on the outer gains and
-    the time it was below 1), ``est_floor_h_m``, ``est_floor_v_m``,
+    the time it was below 1), ``yaw_share_s`` (the time yaw was offered a share of
+    roll and pitch), ``est_floor_h_m``, ``est_floor_v_m``,
     ``est_floor_att_deg``, ``est_floor_yaw_deg`` (the estimate's own error against
     the truth over the same part: RMS, and the attitude's MAE; the floor under the
     loops' figures), ``crashed``, ``crashed_at_s``; for altitude steps
@@ -522,7 +526,7 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
         for k in ("est_floor_h_m", "est_floor_v_m", "est_floor_att_deg", "est_floor_yaw_deg"):
             out[k] = None
         out.update(rate_sat_s=None, thrust_sat_s=None, tilt_limited_s=None, step_reach_s=None)
-        out.update(gain_scale_min=None, backed_off_s=None)
+        out.update(gain_scale_min=None, backed_off_s=None, yaw_share_s=None)
         return out
     dt_s = float(np.median(np.diff(t)))
     pos = c["pos_ned_m"][sel]
@@ -561,6 +565,7 @@ def outer_metrics(flight: OuterFlight, scenario: OuterScenario) -> dict[str, Any
     out["tilt_limited_s"] = float(c["tilt_limited"][sel].sum() * dt_s)
     out["gain_scale_min"] = float(c["gain_scale"][sel].min())
     out["backed_off_s"] = float((c["gain_scale"][sel] < 1.0).sum() * dt_s)
+    out["yaw_share_s"] = float((c["yaw_share"][sel] > 0.0).sum() * dt_s)
     reach: list[float | None] = []
     # On the estimate the loops fly: the truth carries the estimate's slow error
     # (tenths of a metre of height for seconds), which is not the loop's response.

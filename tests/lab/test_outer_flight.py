@@ -385,3 +385,31 @@ def test_a_vehicle_tipped_at_lift_off_by_a_weak_motor_is_flown_and_backs_off() -
     assert not out["crashed"]
     assert -fl.columns["pos_ned_m"][-1, 2] > 3.5 and fl.columns["airborne"][-2000:].all()
     assert out["gain_scale_min"] == pytest.approx(0.55) and out["backed_off_s"] > 1.0
+
+
+def test_a_vehicle_losing_its_heading_to_yaw_saturation_is_given_a_yaw_share() -> None:
+    """The cut-prop F450 with motor 0 at 60 % holding position: with roll and pitch
+    always first, the weak motor leaves yaw no room, the vehicle turns where yaw
+    drives it and drifts off (20.4 m horizontal RMS, 4.8 m vertical, heading 14.3 deg
+    MAE: measured, this flight); the shipped rate loop gives yaw a share of roll and
+    pitch once the heading is being lost (companion/control/yaw_share.py) and holds
+    the position (0.85 m, heading 11.5 deg).
+
+    Regression pin, measured 2026-11-29 with this flight (the outer sweep's seed); on
+    seeds 1 and 2: 0.78 and 0.87 m, 14.2 and 9.5 deg, against 1.28 and 4.74 m, 70.9
+    and 87.0 deg without the share (docs/research/mixer.md, "Yaw's share on demand")."""
+    from sitl.lab.campaign import damaged_profile
+    from sitl.lab.outer_flight import _profile
+
+    plant = damaged_profile(_profile("f450_cut_props"), 0.6)
+    sc = SCENARIOS["position-hold"]
+    shipped = _rate_cfg()
+    assert isinstance(shipped, MfcConfig) and shipped.yaw_share_max == 0.5
+    fl = simulate_outer_flight(plant, shipped, sc)
+    out = outer_metrics(fl, sc)
+    assert not out["crashed"] and out["yaw_mae_deg"] < 15.0 and out["pos_rms_h_m"] < 1.5
+    assert out["yaw_share_s"] > 5.0 and fl.columns["yaw_share"].max() == 0.5
+    first = shipped.model_copy(update={"yaw_share_max": 0.0})
+    lost = outer_metrics(simulate_outer_flight(plant, first, sc), sc)
+    assert lost["yaw_share_s"] == 0.0
+    assert lost["crashed"] or lost["pos_rms_h_m"] > 5.0
