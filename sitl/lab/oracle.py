@@ -109,6 +109,7 @@ import numpy as np
 
 from companion.config import MfcConfig, PidConfig, build_mixer
 from companion.control.mfc import ControlOutput
+from companion.control.yaw_share import YawShare
 from companion.profile import VehicleProfile
 from sitl.link_model import LinkSpec
 from sitl.scenario import Scenario
@@ -205,6 +206,8 @@ class OracleController:
         if not period_s > 0.0:
             raise ValueError(f"period_s: expected > 0, got {period_s!r}")
         self.mixer = build_mixer(plant)
+        self.yaw_share = YawShare(0.0)
+        """Never offered: the oracle allocates yaw itself (``yaw_reserve``)."""
         self.on_ground = False
         self.nonfinite_events = 0
         self.dt_clamped_events = 0
@@ -260,10 +263,20 @@ class OracleController:
     def learn(self) -> None:
         """Nothing to learn: the oracle knows the plant."""
 
-    def identified(self) -> tuple[tuple[float, float, float], ...]:
+    def identified(
+        self,
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]:
         """No model identified: it reads the plant (NaN, as the PID's)."""
         nan3 = (math.nan, math.nan, math.nan)
         return (nan3, nan3, nan3)
+
+    @property
+    def held_on_ground(self) -> bool:
+        """:attr:`on_ground` (the rate-controller interface; as the PID's)."""
+        return self.on_ground
+
+    def teach_applied(self, torque: tuple[float, float, float]) -> None:
+        """Nothing to teach: it knows the plant (the rate-controller interface)."""
 
     def update(
         self,

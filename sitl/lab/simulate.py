@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import MfcConfig, PidConfig
+from companion.control.mfc import RateController
 from companion.control.outer import OuterLaw
 from companion.core import FlightCore
 from companion.failsafe import FailsafeConfig
@@ -184,7 +185,7 @@ def simulate_flight(
     controller_profile: VehicleProfile | None = None,
     seed: int | None = None,
     progress: Callable[[float], None] | None = None,
-    law: Any | None = None,
+    law: RateController | None = None,
     failsafe: FailsafeConfig | None = None,
     control_log: Path | None = None,
     mode: str = "rates",
