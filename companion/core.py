@@ -87,8 +87,7 @@ class FlightCore:
         self.controller = (
             build_controller(opts.controller, opts.profile) if controller is None else controller
         )
-        if not FLIGHT_MODES[opts.mode].shares_yaw:
-            self.controller.yaw_share.most = 0.0
+        FLIGHT_MODES[opts.mode].fit(self.controller)
         self.pilot = PilotInput(build_stick_map(opts.controller), opts.failsafe.rc_timeout_s)
         # The range gate, the law and the command gate: the lab's flights use the same.
         self.step = SampleStep(

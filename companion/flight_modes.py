@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from companion.control.angle_mode import AngleMode
 from companion.control.hold_modes import HoldMode
+from companion.control.mfc import RateController
 from companion.control.outer import OuterLaw
 from companion.control.stick_limits import StickLimits
 
@@ -43,6 +44,12 @@ class FlightMode:
         failed the mode; in rates the pilot flies yaw, and roll and pitch stay
         first (an acro flip needs all of them)."""
         return self.needs_attitude
+
+    def fit(self, controller: RateController) -> None:
+        """The rate loop as this mode flies it: no yaw share where it offers none
+        (the flight core at start, replay for the mode its log recorded)."""
+        if not self.shares_yaw:
+            controller.yaw_share.most = 0.0
 
 
 FLIGHT_MODES: dict[str, FlightMode] = {

@@ -130,11 +130,9 @@ def replay(
     engaged = cols["engaged"] if "engaged" in cols else np.ones(n)
     ground = (cols["on_ground"] != 0.0).tolist() if "on_ground" in cols else [False] * n
     controller = build_controller(cfg, prof)
-    # As the run's flight core set it: yaw's share only in the modes that fly the
-    # attitude (a log without its mode predates the share).
-    flown = FLIGHT_MODES.get(meta.get("mode", "rates"))
-    if flown is None or not flown.shares_yaw:
-        controller.yaw_share.most = 0.0
+    # As the run's flight core fitted it (a log without its mode predates the
+    # yaw share: flown as rates, which offers none).
+    FLIGHT_MODES.get(meta.get("mode", "rates"), FLIGHT_MODES["rates"]).fit(controller)
     n_motors = controller.mixer.n_motors
     names = output_columns(n_motors)
     out = np.full((n, len(names)), np.nan)

@@ -435,8 +435,7 @@ def simulate_outer_flight(
         cols["tilt_limited"].append(hold.tilt_limited)
         cols["airborne"].append(not st.landed)
         cols["gain_scale"].append(hold.outer.gain_scale)
-        share = getattr(step.controller, "yaw_share", None)
-        cols["yaw_share"].append(0.0 if share is None else share.value)
+        cols["yaw_share"].append(step.controller.yaw_share.value)
         q = modes.att_q
         cols["est_euler_rad"].append(nan3 if q is None else quat_to_euler_rad(q))
         seen["outer"] = hold.outer
