@@ -76,7 +76,7 @@ ID_EXTENDED_SYS_STATE = 245
 
 _SEED_CHILD = 4
 """The link's child of the scenario's seed sequence: the plant, the IMU, the wind
-and the pilot have children 0-3 (``sitl.lab.simulate.scenario_streams``)."""
+and the pilot have children 0-3 (``sitl.world.flight_streams``)."""
 
 
 class LinkSpec(StrictModel):

@@ -3,9 +3,9 @@
 One step of the loop (physics ``dt_s`` = 1 ms)::
 
     read MAVLink (commands, setpoints)        face.poll
-    IMU sample of the state at t              imu.update
+    pilot sticks (RC frame every 10 ms)       world.sticks
+    IMU sample of the state at t              world.sense
     the estimator's newest output             estimator.update (attitude, position)
-    pilot sticks (RC frame every 10 ms)       pilot.sticks
     send what is due at t                     face.publish (HIGHRES_IMU, ATTITUDE, ...)
     lockstep: wait for the client's setpoint  face.wait_readable + poll
     autopilot on the IMU sample               autopilot.update -> motor commands
@@ -111,28 +111,24 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-
 from companion.profile import ImuModel, VehicleProfile
 from sitl.autopilot import Autopilot, AutopilotConfig, Joystick
-from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
+from sitl.estimator_model import EKF_GPS, EstimatorSpec
 from sitl.faults import IMU_RANGE_GYRO_RAD_S, Fault, OutgoingFaults
 from sitl.flight_log import LogWriter
 from sitl.frames import quat_to_euler_rad
-from sitl.imu import Imu
 from sitl.link_model import LINK_PROFILES, LinkModel, LinkSpec
 from sitl.mavlink_face import MavlinkFace
 from sitl.mavlink_link import Endpoint, enable_signing
 from sitl.personality import Event, FirmwareVersion, ParamStore, Personality
-from sitl.physics import Quadrotor
-from sitl.pilot import Pilot, PilotView, make_pilot
 from sitl.px4_control import thrust_for_command
 from sitl.px4_face import Px4Face, px4_streams
 from sitl.px4_modes import FlightMode, MainMode
 from sitl.px4_params import PX4_DEFAULT_FIRMWARE, Px4Params, px4_sitl_airframe
 from sitl.rotors import hover_motor_command
 from sitl.streams import MessageStreams
-from sitl.wind import Wind, WindConfig
+from sitl.wind import WindConfig
+from sitl.world import Every, World, WorldSpec
 
 __all__ = ["RunConfig", "RunSummary", "Runner", "joystick_from_channels"]
 
@@ -375,7 +371,6 @@ class Runner:
                     f"fault motor-fail@{fault.t_s:g}:{fault.arg}: MOTOR is 0.."
                     f"{profile.n_motors - 1} on {self.profile_name}"
                 )
-        rng_phys = np.random.default_rng(config.seed).spawn(4)[0]
         try:
             hover = hover_motor_command(profile)
         except ValueError:
@@ -385,10 +380,20 @@ class Runner:
             self.hover_thrust = thrust_for_command(hover, profile.limits.motor_idle)
         else:
             self.hover_thrust = hover
-        self.quad = Quadrotor(profile, rng=rng_phys, dt_s=config.dt_s, test_stand=config.test_stand)
-        self.imu: Imu
-        self.pilot: Pilot | None = None
-        self._make_streams()
+        wind = config.wind
+        if wind is None and config.wind_gust_m_s > 0.0:
+            wind = WindConfig(gust_sigma_m_s=config.wind_gust_m_s)
+        spec = WorldSpec(
+            dt_s=config.dt_s,
+            test_stand=config.test_stand,
+            imu_model=config.imu_model or profile.physics.imu,
+            wind=wind,
+            pilot=config.pilot,
+            hover_throttle=self.hover_thrust,
+            estimator=config.estimator,
+        )
+        self.world = World(profile, spec, config.seed)
+        self.quad = self.world.quad
         self.autopilot: Personality[Any]
         self.face: MavlinkFace[Any]
         self.streams: MessageStreams
@@ -407,13 +412,11 @@ class Runner:
         self._link_counts: dict[str, int] = {}
         self.link: LinkModel | None = None
         self._make_link()
-        self.estimator: EstimatorModel | None = None
-        self._make_estimator()
         self._outgoing: OutgoingFaults | None = None
         self.stop = threading.Event()
         self.duration_s = config.duration_s
-        if self.duration_s is None and self.pilot is not None and not config.pilot_from_arm:
-            self.duration_s = self.pilot.duration_s
+        if self.duration_s is None and self.world.pilot is not None and not config.pilot_from_arm:
+            self.duration_s = self.world.pilot.duration_s
 
     def _make_px4(self, hover_thrust: float) -> None:
         """The PX4 personality (the default)."""
@@ -423,7 +426,7 @@ class Runner:
                 raise ValueError(f"PX4 has no mode {cfg.initial_mode!r}")
             main = _MODE_BY_NAME[cfg.initial_mode.upper()]
         else:
-            main = MainMode.ACRO if self.pilot is not None else MainMode.MANUAL
+            main = MainMode.ACRO if self.world.pilot is not None else MainMode.MANUAL
         params = Px4Params(cfg.firmware or PX4_DEFAULT_FIRMWARE)
         ap = Autopilot(
             self.profile,
@@ -435,7 +438,7 @@ class Runner:
             initial_mode=FlightMode(main),
             params=params,
         )
-        imu_rate_hz = min(self.imu.model.rate_hz, 1.0 / cfg.dt_s)
+        imu_rate_hz = min(self.world.imu.model.rate_hz, 1.0 / cfg.dt_s)
         for name, value in (*px4_sitl_airframe(imu_rate_hz), *cfg.px4_params):
             if name not in params:
                 raise ValueError(
@@ -472,7 +475,7 @@ class Runner:
             except KeyError:
                 raise ValueError(f"ArduCopter has no mode {cfg.initial_mode!r}") from None
         else:
-            mode = CopterMode.ACRO if self.pilot is not None else CopterMode.STABILIZE
+            mode = CopterMode.ACRO if self.world.pilot is not None else CopterMode.STABILIZE
         ap = ArduCopter(
             self.profile,
             ArduCopterConfig(
@@ -558,45 +561,11 @@ class Runner:
                 log.event(ev)
             log.close(asdict(summary))
 
-    def _make_streams(self) -> None:
-        """Wind, IMU and pilot, each from its own stream of the scenario's seed.
-
-        The same seed gives the same streams whenever this runs: at start-up,
-        and again at arming with ``pilot_from_arm``, so a flight does not
-        depend on how long a companion took to arm the vehicle.
-        """
-        cfg = self.config
-        _, rng_imu, rng_wind, rng_pilot = np.random.default_rng(cfg.seed).spawn(4)
-        wind = None
-        if cfg.wind is not None:
-            wind = Wind(cfg.wind, rng=rng_wind)
-        elif cfg.wind_gust_m_s > 0.0:
-            wind = Wind(WindConfig(gust_sigma_m_s=cfg.wind_gust_m_s), rng=rng_wind)
-        self.quad.set_wind(wind)
-        self.imu = Imu(cfg.imu_model or self.profile.physics.imu, rng=rng_imu, dt_s=cfg.dt_s)
-        if cfg.pilot:
-            self.pilot = make_pilot(cfg.pilot, rng=rng_pilot, free_flight=not cfg.test_stand)
-
-    def _make_estimator(self) -> None:
-        """The estimator's model from the run's seed, on a stream of its own
-        (:func:`~sitl.estimator_model.estimator_seed_sequence`): at start-up, and
-        again at the pilot's start (as :meth:`_make_streams`), so its errors do
-        not depend on how long the vehicle sat before arming. None: the truth."""
-        cfg = self.config
-        if cfg.estimator is None:
-            self.estimator = None
-            return
-        self.estimator = EstimatorModel(
-            cfg.estimator,
-            rng=np.random.default_rng(estimator_seed_sequence(cfg.seed)),
-            dt_s=cfg.dt_s,
-            imu_rate_hz=min(self.imu.model.rate_hz, 1.0 / cfg.dt_s),
-        )
-
     def _make_link(self, t_start_s: float | None = None) -> None:
         """The link's model from the run's seed: at start-up, and again at the pilot's
-        start ``t_start_s`` (as :meth:`_make_streams`), so its draws do not depend
-        on how many frames went out before.
+        start ``t_start_s`` (as the world's streams begin again,
+        :meth:`~sitl.world.World.restart`), so its draws do not depend on how many
+        frames went out before.
 
         At the pilot's start the flight begins afresh, as the in-process
         simulation's does: the samples and setpoints on their way are lost, and
@@ -645,17 +614,16 @@ class Runner:
 
     def _loop(self, log: LogWriter, summary: RunSummary, wall0: float) -> Status:
         cfg = self.config
-        quad, imu, ap, face, pilot = self.quad, self.imu, self.autopilot, self.face, self.pilot
-        est = self.estimator
+        world, ap, face = self.world, self.autopilot, self.face
+        quad, pilot, est = world.quad, world.pilot, world.estimator
         est_begin = False  # the estimator starts again: its first estimate at once
         snap = face.snapshot
         lockstep = cfg.clock == "lockstep"
         linked = not cfg.link.ideal
         duration = self.duration_s if self.duration_s is not None else math.inf
-        hover = self.hover_thrust
         joystick_pilot = cfg.pilot_input == "joystick"
         sticks: tuple[int, ...] | None = None
-        next_rc_s = 0.0
+        rc = Every(cfg.rc_period_s)
         client_active = True
         sp_at_timeout = -1
         sp_seen, sp_seen_t = face.setpoints_arrived, -math.inf
@@ -703,35 +671,23 @@ class Runner:
             if k_pilot0 is None and ap.armed:
                 k_pilot0 = quad.steps
                 t_flight = 0.0
-                self._make_streams()
+                world.restart()
                 self._make_link(t)
-                self._make_estimator()
-                est = self.estimator
+                est = world.estimator
                 est_begin = True
                 face.reset_setpoint_age()
                 # The messages too: their schedules began when the client asked.
                 self.streams.rephase(t)
-                imu, pilot = self.imu, self.pilot
-                next_rc_s = t
+                pilot = world.pilot
+                rc = Every(cfg.rc_period_s, t)
                 log.event(Event(t, "pilot_start", {"t_s": t}))
             st = quad.state
             euler = quat_to_euler_rad(st.q_wxyz)
-            if pilot is not None and t >= next_rc_s - 1e-9:
-                next_rc_s += cfg.rc_period_s
-                view = PilotView(
-                    t_flight,
-                    euler[0],
-                    euler[1],
-                    euler[2],
-                    st.rate_frd_rad_s,
-                    -st.pos_ned_m[2],
-                    -st.vel_ned_m_s[2],
-                    hover,
-                )
-                sticks = pilot.sticks(view).channels()
+            if pilot is not None and rc.due(t):
+                sticks = world.sticks(t_flight, euler)
                 if joystick_pilot and not face.rc_lost and isinstance(ap, Autopilot):
                     ap.on_manual_control(t, joystick_from_channels(sticks))
-            sample = imu.update(t, st.rate_frd_rad_s, st.specific_force_frd_m_s2)
+            sample = world.sense()
             snap.t_s = t
             snap.q_wxyz = st.q_wxyz
             snap.euler_rad = euler

@@ -5,7 +5,7 @@ the flight core (:class:`companion.core.FlightCore`) in ``--mode position`` or
 ``--mode altitude``, as ``companion run`` flies it, on its ideal link:
 
 * the plant (:class:`sitl.physics.Quadrotor`, the scenario's wind) and the IMU,
-  from the scenario's seed streams (:func:`sitl.lab.simulate.scenario_streams`);
+  from the scenario's seed streams (:func:`sitl.world.flight_streams`);
 * the autopilot's estimator (:mod:`sitl.estimator_model`, the scenario's): the
   outer loops see ``ATTITUDE_QUATERNION`` at the IMU rate and
   ``LOCAL_POSITION_NED`` at 50 Hz, with an EKF's errors and lags, never the true

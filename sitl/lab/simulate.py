@@ -20,9 +20,9 @@ thrust the SITL's PX4 parameters answer. It is what campaigns run many times in
 parallel, and what the MAVLink path is checked against for the same seed,
 sample for sample, in every mode.
 
-Seeding: one :class:`numpy.random.SeedSequence` from the scenario's seed is
-split into independent streams for the plant, the IMU, the wind and the pilot,
-so changing one (say, the wind) never shifts another's random numbers.
+The plant, its IMU, the wind, the pilot and the estimator are the SITL's own
+(:class:`sitl.world.World`, seeded from the scenario as the SITL seeds them),
+asked the same things in the same order each physics step.
 """
 
 from __future__ import annotations
@@ -51,9 +51,8 @@ from companion.records import columns as log_columns
 from companion.run_options import RunOptions
 from companion.startup import HOLD_POSITION_RATE_HZ
 from companion.step import LANDED_STATE_RATE_HZ
-from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
+from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec
 from sitl.frames import quat_to_euler_rad
-from sitl.imu import Imu
 from sitl.lab.inprocess import (
     LabShell,
     LocalPosition,
@@ -72,14 +71,14 @@ from sitl.link_model import (
     LinkModel,
 )
 from sitl.physics import Quadrotor
-from sitl.pilot import Pilot, PilotView, make_pilot
+from sitl.pilot import Pilot
 from sitl.px4_control import ControlAllocator, thrust_for_command
 from sitl.rotors import hover_motor_command
 from sitl.scenario import Scenario
 from sitl.streams import MessageStreams, StreamSpec
-from sitl.wind import Wind
+from sitl.world import Every, World, WorldSpec
 
-__all__ = ["FlightRecord", "scenario_streams", "simulate_flight"]
+__all__ = ["FlightRecord", "simulate_flight"]
 
 _ON_GROUND, _IN_AIR = 1, 2  # MAV_LANDED_STATE
 _ID_ATTITUDE_QUATERNION = 31
@@ -123,17 +122,11 @@ class _Estimates:
         """The autopilot's landed state: the vehicle's at its last update."""
 
     @classmethod
-    def for_mode(
-        cls, mode: FlightMode, imu: Imu, seed: int, dt_s: float, spec: EstimatorSpec
-    ) -> _Estimates | None:
-        if not mode.needs_attitude:
+    def for_mode(cls, mode: FlightMode, world: World) -> _Estimates | None:
+        model = world.estimator
+        if not mode.needs_attitude or model is None:
             return None
-        model = EstimatorModel(
-            spec,
-            rng=np.random.default_rng(estimator_seed_sequence(seed)),
-            dt_s=dt_s,
-            imu_rate_hz=min(imu.model.rate_hz, 1.0 / dt_s),
-        )
+        imu = world.imu
         specs = [
             StreamSpec(_ID_ATTITUDE_QUATERNION, "ATTITUDE_QUATERNION", 0.0, imu_based=True),
             StreamSpec(_ID_LOCAL_POSITION_NED, "LOCAL_POSITION_NED", 0.0),
@@ -168,13 +161,6 @@ class _Estimates:
         if self.streams.due(ID_EXTENDED_SYS_STATE, t_s):
             core.messages.on_landed_state(_ON_GROUND if self.landed else _IN_AIR)
         self.landed = landed
-
-
-def scenario_streams(seed: int) -> dict[str, np.random.Generator]:
-    """Independent generators for each random source of a flight."""
-    names = ("plant", "imu", "wind", "pilot")
-    children = np.random.SeedSequence(seed).spawn(len(names))
-    return {n: np.random.default_rng(s) for n, s in zip(names, children, strict=True)}
 
 
 def simulate_flight(
@@ -247,16 +233,26 @@ def simulate_flight(
         loops' insides.
     """
     flight_seed = scenario.seed if seed is None else seed
-    rngs = scenario_streams(flight_seed)
     dt = scenario.physics_dt_s
-    wind = Wind(scenario.wind.config(), rng=rngs["wind"])
-    quad = Quadrotor(
-        plant, rng=rngs["plant"], dt_s=dt, test_stand=not scenario.free_flight, wind=wind
+    flown = FLIGHT_MODES[mode]
+    world = World(
+        plant,
+        WorldSpec(
+            dt_s=dt,
+            test_stand=not scenario.free_flight,
+            imu_model=scenario.imu_model(plant),
+            wind=scenario.wind.config(),
+            pilot=scenario.pilot,
+            # The pilot's hover collective in PX4's units (0 the motors' armed idle, 1 full).
+            hover_throttle=thrust_for_command(hover_motor_command(plant), plant.limits.motor_idle),
+            estimator=estimator if flown.needs_attitude else None,
+        ),
+        flight_seed,
+        pilot=pilot,
     )
-    imu = Imu(scenario.imu_model(plant), rng=rngs["imu"], dt_s=dt)
-    if pilot is None:
-        pilot = make_pilot(scenario.pilot, rng=rngs["pilot"], free_flight=scenario.free_flight)
-    duration = scenario.duration_s or pilot.duration_s
+    quad, imu = world.quad, world.imu
+    assert world.pilot is not None
+    duration = scenario.duration_s or world.pilot.duration_s
     opts = RunOptions(
         connect="in-process",
         profile=controller_profile or plant,
@@ -267,7 +263,7 @@ def simulate_flight(
         mode=mode,  # type: ignore[arg-type]
         mission=mission,
     )
-    estimates = _Estimates.for_mode(FLIGHT_MODES[mode], imu, flight_seed, dt, estimator)
+    estimates = _Estimates.for_mode(flown, world)
     if estimates is not None and not scenario.link.ideal:
         raise ValueError(f"mode {mode!r}: flown in process on the ideal link only")
     shell = LabShell()
@@ -309,17 +305,13 @@ def simulate_flight(
     controller, step, pilot_in = core.controller, core.step, core.pilot
     see_plant = getattr(controller, "see_plant", None)
     autopilot_mix = ControlAllocator.from_profile(plant).mix
-    # The pilot's hover collective in PX4's units (0 the motors' armed idle, 1 full).
-    hover = thrust_for_command(hover_motor_command(plant), plant.limits.motor_idle)
     n_motors = plant.n_motors
 
     n_steps = round(duration / dt)
     # The landed state, as the autopilot streams it at the rate the companion asks:
     # one message at each period (the first at the start), read on its physics step.
-    landed_period = 1.0 / LANDED_STATE_RATE_HZ
-    next_landed = 0.0
-    rc_period = 1.0 / scenario.rc_rate_hz
-    next_rc = 0.0
+    landed_due = Every(1.0 / LANDED_STATE_RATE_HZ)
+    rc_due = Every(1.0 / scenario.rc_rate_hz)
     channels: tuple[int, ...] = (1500, 1500, 1000, 1500)
     motors: tuple[float, ...] = (0.0,) * n_motors
 
@@ -387,27 +379,14 @@ def simulate_flight(
     report_every = max(1, n_steps // 100)
     for k in range(n_steps):
         t = now[0] = quad.t_s
-        if t >= next_rc - 1e-12:
-            st = quad.state
-            roll, pitch, yaw = quat_to_euler_rad(st.q_wxyz)
-            view = PilotView(
-                t_s=t,
-                roll_rad=roll,
-                pitch_rad=pitch,
-                yaw_rad=yaw,
-                rate_frd_rad_s=st.rate_frd_rad_s,
-                altitude_m=-st.pos_ned_m[2],
-                climb_rate_m_s=-st.vel_ned_m_s[2],
-                hover_throttle=hover,
-            )
-            channels = pilot.sticks(view).channels()
-            next_rc += rc_period
+        if rc_due.due(t):
+            channels = world.sticks(t)
             if ideal:
                 core.on_rc(rc_frame(channels), t)
             else:
                 for a in link.arrivals(UP, ID_RC_CHANNELS, t):
                     heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
-        sample = imu.update(t, quad.rate_frd_rad_s, quad.specific_force_frd_m_s2)
+        sample = world.sense()
         if estimates is not None:
             # As the SITL streams to a flight mode: the estimates, the IMU sample
             # (flown on them), then the landed state.
@@ -418,14 +397,12 @@ def simulate_flight(
         elif ideal:
             # The landed state goes out on its step, ahead of that step's IMU sample
             # (the SITL streams it after arming, every period, as the link branch).
-            if t >= next_landed - 1e-12:
+            if landed_due.due(t):
                 on_landed(quad.state.landed)
-                next_landed += landed_period
             if sample is not None:
                 motors = on_sample(sample.time_s, sample.gyro_frd_rad_s, t)
         else:
-            if t >= next_landed - 1e-12:
-                next_landed += landed_period
+            if landed_due.due(t):
                 for a in link.arrivals(UP, ID_EXTENDED_SYS_STATE, t):
                     heapq.heappush(
                         uplink, (a, next(order), ID_EXTENDED_SYS_STATE, quad.state.landed)
@@ -480,7 +457,7 @@ def simulate_flight(
         "link": scenario.link.describe(),
         "link_counts": link.counts(),
         "n_motors": n_motors,
-        "hover_throttle": hover,
+        "hover_throttle": world.spec.hover_throttle,
         "failsafes": [f"{kind}: {detail}" for kind, detail in shell.failsafes],
     }
     return FlightRecord(columns, meta)

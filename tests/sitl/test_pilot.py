@@ -14,7 +14,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from companion.errors import ConfigError
-from sitl.lab.simulate import scenario_streams
 from sitl.pilot import (
     DEFAULT_RATE_FULL_SCALE_DEG_S,
     MANEUVERS,
@@ -32,6 +31,7 @@ from sitl.pilot import (
     throttle_command,
 )
 from sitl.scenario import load_scenario
+from sitl.world import flight_streams
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "sitl" / "sticks"
 EXAMPLE = SCENARIOS / "example_sticks.yaml"
@@ -414,7 +414,7 @@ def test_paper_acro_is_frozen() -> None:
     """
     sc = load_scenario("paper-acro")
     assert sc.seed == 20200318
-    streams = scenario_streams(sc.seed)
+    streams = flight_streams(sc.seed)
     pilot = make_pilot(sc.pilot, rng=streams["pilot"], free_flight=sc.free_flight)
     assert pilot.duration_s == 60.0
     frames = [pilot.sticks(view(0.01 * k)).channels() for k in range(6001)]
