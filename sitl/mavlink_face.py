@@ -276,6 +276,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         RC_CHANNELS go on with the last values, RSSI unchanged), rather than none."""
         self._rc_last_sent: tuple[list[int], int, int] | None = None
         self.messages_received = 0
+        self.commands_received = 0
+        """COMMAND_LONG and COMMAND_INT addressed to this autopilot."""
         self.params_sent = 0
         self._pending: set[int] = set()
         self._last_heartbeat_wall_s = -math.inf
@@ -344,10 +346,12 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             self._handle_attitude_target(msg, t_s)
         elif mtype == "COMMAND_LONG":
             if self._for_us(msg.target_system, msg.target_component):
+                self.commands_received += 1
                 params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6)
                 self._handle_command(msg, msg.command, params, t_s)
         elif mtype == "COMMAND_INT":
             if self._for_us(msg.target_system, msg.target_component):
+                self.commands_received += 1
                 params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y)
                 self._handle_command(msg, msg.command, params, t_s)
         elif mtype == "TIMESYNC" and msg.tc1 == 0:

@@ -30,11 +30,15 @@ Clocks
     each wait ends on the answer to the sample it gave. Once a client streams
     setpoints outside OFFBOARD (PX4 wants them before it switches), the clock
     keeps to the wall's (as ``realtime``) until OFFBOARD or
-    ``_STREAMING_S`` after the last one. Run free there, it would overfill the
-    client's socket: the datagrams the kernel drops leave jumps in the IMU time
-    that the wall clock does not take, and a client that holds such a sample
-    back as a possibly corrupt stamp (the companion does) never answers the one
-    the first wait in OFFBOARD is for. With
+    ``_STREAMING_S`` after the last one, and so it does for ``_COMMANDING_S``
+    after each command (a client setting the autopilot up: stream rates, mode,
+    arming). Run free there, it would overfill the client's socket: the
+    datagrams the kernel drops leave jumps in the IMU time that the wall clock
+    does not take, and a client that holds such a sample back as a possibly
+    corrupt stamp (the companion does) never answers the one the first wait in
+    OFFBOARD is for; a command's COMMAND_ACK may be dropped with them, every
+    time it is tried (seen on a loaded machine: a companion gave up on its
+    SET_MESSAGE_INTERVAL while the clock ran ten times the wall's). With
     ``autopilot="ardupilot"`` the same holds in GUIDED / GUIDED_NOGPS after
     each RAW_IMU / SCALED_IMU / HIGHRES_IMU sent.
 
@@ -143,6 +147,10 @@ _KEEP_ALIVE_POLL_S = 0.25
 """A lockstep wait looks this often (wall clock) whether a heartbeat is due."""
 _STREAMING_S = 0.1
 """A client whose last setpoint is this recent (simulation time) streams them."""
+_COMMANDING_S = 1.0
+"""A client whose last command is this recent (simulation time) is setting the
+autopilot up, waiting for each answer (the companion tries a command four times,
+0.5 s apart)."""
 PILOT_END_GRACE_S = 2.0
 """With ``pilot_from_arm``, the flight goes on this long after the pilot's timeline
 ends (the pilot holds its last segment), so a companion flying the same duration
@@ -627,6 +635,7 @@ class Runner:
         client_active = True
         sp_at_timeout = -1
         sp_seen, sp_seen_t = face.setpoints_arrived, -math.inf
+        cmd_seen, cmd_seen_t = face.commands_received, -math.inf
         # (sim time, wall time) the clock keeps to while a client streams setpoints
         # outside OFFBOARD (module docstring); None: not keeping to the wall's.
         paced_from: tuple[float, float] | None = None
@@ -724,6 +733,8 @@ class Runner:
 
             if face.setpoints_arrived != sp_seen:
                 sp_seen, sp_seen_t = face.setpoints_arrived, t
+            if face.commands_received != cmd_seen:
+                cmd_seen, cmd_seen_t = face.commands_received, t
             if not client_active and face.setpoints_arrived != sp_at_timeout:
                 client_active = True  # setpoints resumed after a lockstep timeout
             if lockstep and imu_sent and client_active and ap.external_control:
@@ -804,9 +815,12 @@ class Runner:
                         break
                     if face.wait_readable(ahead):
                         face.poll(quad.t_s)
-            elif not ap.external_control and quad.t_s - sp_seen_t <= _STREAMING_S:
-                # A client streams setpoints the autopilot does not fly yet: keep to
-                # the wall's clock, from where this began (module docstring).
+            elif not ap.external_control and (
+                quad.t_s - sp_seen_t <= _STREAMING_S or quad.t_s - cmd_seen_t <= _COMMANDING_S
+            ):
+                # A client streams setpoints the autopilot does not fly yet, or sets
+                # it up: keep to the wall's clock, from where this began (module
+                # docstring).
                 if paced_from is None:
                     paced_from = (quad.t_s, monotonic())
                 t_from, wall_from = paced_from
