@@ -1,0 +1,164 @@
+"""The shipped controller through companion links, against the round trip's own cost.
+
+A command computed from a sample moves the motors one round trip later, so even
+a controller that knows the plant and predicts it perfectly answers each stick
+move that late. Through a link, MFC's roll and pitch are judged against that
+limit: the ideal tracker's MAE one round trip late
+(:func:`sitl.lab.paper.analysis.ideal_tracker_through_link_deg_s`, the link's
+own seeded draws), as a ratio to the same ratio on the ideal link::
+
+    cost = (MFC_link / tracker_link) / (MFC_ideal / tracker_ideal)
+
+A cost of 1 means the link took from MFC only what it takes from a perfect
+tracker. Each flight is the full ``paper-acro`` through the product's flight
+core (:func:`sitl.lab.simulate.simulate_flight`), actuator output, PX4's
+allocation in the plant's autopilot. Yaw has no ideal tracker (a rotor's
+spin-up reaction gives it far more than its steady peak for a moment); its
+figure is the ratio to the ideal link's.
+
+Run::
+
+    python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S]
+
+prints a Markdown table and writes ``link_limit.json`` to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+from companion.control import AXES
+
+__all__ = ["LINKS", "TARGETS", "VEHICLES", "cost_table", "fly_through"]
+
+ROOT = Path(__file__).resolve().parents[2]
+VEHICLES = ("f450", "f450_cut_props", "tarot650", "x500")
+LINKS = ("ideal", "uart", "usb-serial", "delay_ms=10")
+TARGETS = {"uart": 1.1, "usb-serial": 1.1, "delay_ms=10": 1.25}
+"""The most a link may cost MFC beyond what it costs the ideal tracker, roll and pitch."""
+
+
+def fly_through(job: tuple[str, str, float | None]) -> dict[str, Any]:
+    """One paper flight of ``vehicle`` through ``link``: MFC's MAE per axis and the
+    ideal tracker's (ideal link: as the gyro reports it; a link: one round trip
+    late), deg/s; whether it crashed."""
+    from companion.config import load_controller
+    from companion.profile import load_profile
+    from sitl.lab.paper.analysis import motion_limits
+    from sitl.lab.paper.flights import paper_scenario
+    from sitl.lab.report import compute_metrics
+    from sitl.lab.simulate import simulate_flight
+
+    vehicle, link, duration_s = job
+    profile = load_profile(ROOT / "vehicle_profiles" / f"{vehicle}.yaml")
+    sc = paper_scenario(duration_s, None if link == "ideal" else link)
+    record = simulate_flight(profile, load_controller(), sc)
+    metrics = compute_metrics(record)
+    weight = sc.imu_model(profile).first_stage_filter_weight
+    limits = motion_limits(record, profile, weight, sc.link, sc.seed)
+    key = "ideal_tracker_measured_deg_s" if link == "ideal" else "ideal_tracker_link_deg_s"
+    return {
+        "vehicle": vehicle,
+        "link": link,
+        "crashed": bool(metrics["crashed"]),
+        "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
+        "tracker_deg_s": limits[key],
+    }
+
+
+def cost_table(flights: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per vehicle and link other than the ideal: the cost beyond the tracker's on
+    roll and pitch, the yaw's ratio to the ideal link, and the verdict."""
+    by = {(f["vehicle"], f["link"]): f for f in flights}
+    rows = []
+    for (vehicle, link), f in sorted(by.items()):
+        if link == "ideal":
+            continue
+        base = by[(vehicle, "ideal")]
+        cost = {
+            a: round(
+                (f["mfc_deg_s"][a] / f["tracker_deg_s"][a])
+                / (base["mfc_deg_s"][a] / base["tracker_deg_s"][a]),
+                3,
+            )
+            for a in AXES[:2]
+        }
+        target = TARGETS[link]
+        rows.append(
+            {
+                "vehicle": vehicle,
+                "link": link,
+                "cost": cost,
+                "yaw_ratio": round(f["mfc_deg_s"]["yaw"] / base["mfc_deg_s"]["yaw"], 3),
+                "target": target,
+                "crashed": f["crashed"],
+                "met": not f["crashed"] and max(cost.values()) <= target,
+            }
+        )
+    return rows
+
+
+def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
+    by = {(f["vehicle"], f["link"]): f for f in flights}
+    lines = [
+        "| vehicle | link | MFC roll / pitch / yaw | tracker roll / pitch "
+        "| cost roll / pitch | target | yaw / ideal link's | met |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for vehicle in VEHICLES:
+        base = by.get((vehicle, "ideal"))
+        if base is not None:
+            m, t = base["mfc_deg_s"], base["tracker_deg_s"]
+            lines.append(
+                f"| {vehicle} | ideal | {m['roll']:.2f} / {m['pitch']:.2f} / {m['yaw']:.2f} "
+                f"| {t['roll']:.2f} / {t['pitch']:.2f} | 1 | | 1 | |"
+            )
+        for r in rows:
+            if r["vehicle"] != vehicle:
+                continue
+            f = by[(vehicle, r["link"])]
+            m, t, c = f["mfc_deg_s"], f["tracker_deg_s"], r["cost"]
+            crash = " (crashed)" if r["crashed"] else ""
+            lines.append(
+                f"| {vehicle} | {r['link']} | {m['roll']:.2f} / {m['pitch']:.2f} / "
+                f"{m['yaw']:.2f}{crash} | {t['roll']:.2f} / {t['pitch']:.2f} "
+                f"| {c['roll']:.2f} / {c['pitch']:.2f} | {r['target']} | {r['yaw_ratio']:.2f} "
+                f"| {'yes' if r['met'] else '**no**'} |"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m sitl.lab.link_limit", description=__doc__)
+    ap.add_argument("--out", type=Path, help="write link_limit.json here")
+    ap.add_argument("--workers", type=int, default=2, help="flights at once (default 2)")
+    ap.add_argument("--duration", type=float, help="seconds of paper-acro (default: all 60 s)")
+    ap.add_argument(
+        "--vehicle", action="append", choices=VEHICLES, help="fly only these (repeatable)"
+    )
+    args = ap.parse_args(argv)
+    if args.workers < 1:
+        ap.error(f"--workers: expected at least 1, got {args.workers}")
+    vehicles = args.vehicle or list(VEHICLES)
+    jobs = [(v, link, args.duration) for v in vehicles for link in LINKS]
+    with ProcessPoolExecutor(args.workers) as pool:
+        flights = list(pool.map(fly_through, jobs))
+    rows = cost_table(flights)
+    print(_markdown(flights, rows))
+    unmet = [r for r in rows if not r["met"]]
+    print(f"\n{len(rows) - len(unmet)} of {len(rows)} vehicle-link pairs within target")
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "link_limit.json").write_text(
+            json.dumps({"flights": flights, "costs": rows}, indent=2) + "\n", encoding="utf-8"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""The link's cost beyond the round trip's own (sitl/lab/link_limit.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+from sitl.lab.link_limit import cost_table, fly_through
+
+
+def _flight(link: str, mfc: tuple[float, float, float], tracker: tuple[float, float]) -> dict:
+    return {
+        "vehicle": "f450",
+        "link": link,
+        "crashed": False,
+        "mfc_deg_s": dict(zip(("roll", "pitch", "yaw"), mfc, strict=True)),
+        "tracker_deg_s": dict(zip(("roll", "pitch"), tracker, strict=True)),
+    }
+
+
+def test_the_cost_is_mfcs_ratio_to_the_tracker_over_the_same_on_the_ideal_link() -> None:
+    flights = [
+        _flight("ideal", (6.0, 5.0, 4.0), (5.0, 5.0)),  # MFC 1.2x / 1.0x the tracker
+        _flight("uart", (9.0, 6.0, 5.0), (6.0, 6.0)),  # 1.5x / 1.0x
+    ]
+    (row,) = cost_table(flights)
+    assert row["cost"] == {"roll": pytest.approx(1.25), "pitch": pytest.approx(1.0)}
+    assert row["yaw_ratio"] == pytest.approx(1.25)
+    assert row["target"] == 1.1
+    assert not row["met"]
+
+
+def test_a_crash_is_never_within_target() -> None:
+    flights = [
+        _flight("ideal", (6.0, 5.0, 4.0), (5.0, 5.0)),
+        _flight("delay_ms=10", (6.0, 5.0, 4.0), (5.0, 5.0)),
+    ]
+    flights[1]["crashed"] = True
+    (row,) = cost_table(flights)
+    assert row["cost"] == {"roll": 1.0, "pitch": 1.0}
+    assert not row["met"]
+
+
+@pytest.mark.slow
+def test_a_flight_through_a_link_pays_for_its_round_trip() -> None:
+    ideal = fly_through(("f450", "ideal", 6.0))
+    late = fly_through(("f450", "delay_ms=10", 6.0))
+    assert not ideal["crashed"] and not late["crashed"]
+    # The perfect tracker answers 10 ms each way late, and MFC with it: both lose.
+    for axis in ("roll", "pitch"):
+        assert late["tracker_deg_s"][axis] > ideal["tracker_deg_s"][axis]
+        assert late["mfc_deg_s"][axis] > ideal["mfc_deg_s"][axis]
