@@ -317,6 +317,10 @@ class FlightStack:
     """How the STATUSTEXTs begin with which it says why it refused a mode switch."""
     stick_params: StickParams = PX4_STICK_PARAMS
     """What limits the sticks in its angle, altitude and position modes."""
+    thrust_param_bit: tuple[str, int] | None = None
+    """The parameter and its bit without which ``SET_ATTITUDE_TARGET``'s thrust is
+    not a normalised thrust (ArduPilot: GUID_OPTIONS bit 3, else a climb rate);
+    None: it always is."""
 
     def is_engage_mode(self, custom_mode: int) -> bool:
         return self.modes.main(custom_mode) == int(self.engage_mode[0])
@@ -407,6 +411,8 @@ PX4 = FlightStack(
 
 ARDUPILOT = FlightStack(
     name="ardupilot",
+    # ArduCopter's GUID_OPTIONS bit 3 (value 8): SET_ATTITUDE_TARGET thrust is thrust.
+    thrust_param_bit=("GUID_OPTIONS", 3),
     display_name="ArduPilot",
     autopilot_id=3,
     modes=ARDUPILOT_MODES,

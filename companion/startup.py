@@ -48,7 +48,6 @@ _SYS_STATUS_RATE_HZ = 5.0
 _STICK_PARAM_TIMEOUT_S = 0.25
 """Each stick-limit parameter is asked twice at most, all at once: an autopilot that
 does not answer one costs the start-up 0.5 s, not a second per parameter."""
-_GUID_OPTIONS_THRUST = 8  # ArduPilot GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET thrust is thrust
 
 
 class StartUp:
@@ -84,16 +83,17 @@ class StartUp:
             raise EngageError(str(exc)) from None
         if core.imu_source == "auto":
             core.imu_source = stack.imu_message  # type: ignore[assignment]
-        if stack.name == "ardupilot" and opts.output == "rates" and opts.engage != "none":
-            # Our thrust is a normalised collective; ArduPilot reads it as a climb-rate
-            # request unless GUID_OPTIONS bit 3 is set. Flying with the wrong meaning
-            # would be dangerous: refuse instead.
-            value = await self.link.param_read("GUID_OPTIONS")
-            if not int(value) & _GUID_OPTIONS_THRUST:
+        if stack.thrust_param_bit is not None and opts.output == "rates" and opts.engage != "none":
+            # Our thrust is a normalised collective; a stack that reads it otherwise
+            # (ArduPilot: as a climb-rate request) unless a bit is set would fly the
+            # wrong meaning, which would be dangerous: refuse instead.
+            name, bit = stack.thrust_param_bit
+            value = int(await self.link.param_read(name))
+            if not value & (1 << bit):
                 raise EngageError(
-                    f"ArduPilot GUID_OPTIONS = {int(value)}: SET_ATTITUDE_TARGET thrust would "
-                    "be read as a climb rate; set bit 3 (add 8, e.g. GUID_OPTIONS = "
-                    f"{int(value) | _GUID_OPTIONS_THRUST}) so it is a normalised thrust"
+                    f"{stack.display_name} {name} = {value}: SET_ATTITUDE_TARGET thrust would "
+                    f"be read as a climb rate; set bit {bit} (add {1 << bit}, e.g. {name} = "
+                    f"{value | (1 << bit)}) so it is a normalised thrust"
                 )
         if opts.output == "rates" and stack.rate_shaping is not None:
             await self._learn_rate_shaping(stack.rate_shaping)
