@@ -118,3 +118,20 @@ def test_the_pattern_finds_references_and_spares_the_rest(tmp_path: Path) -> Non
     lines = [int(entry.split(":")[1]) for entry in found]
     assert lines == list(range(1, len(planted) + 1)), "\n".join(found)
     assert all(entry.startswith("docs/research/planted.md:") for entry in found)
+
+
+POINT = re.compile(r"\bpoints? \d+\b")
+"""A research note's numbered point ("gains.md point 8"): renumbering breaks it; an
+anchor (``gains.md#window-lag-scaled``) does not."""
+
+
+def test_code_configs_and_user_docs_cite_research_by_anchor_not_by_point() -> None:
+    found = []
+    for path in files(ROOT):
+        where = path.relative_to(ROOT)
+        if where.parts[:2] == ("docs", "research") or where.parts[0] == "tests":
+            continue  # a note numbers its own points; tests quote patterns
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if POINT.search(line):
+                found.append(f"{where}:{number}: {line.strip()!r}")
+    assert not found, "numbered points cited; use the note's anchor:\n" + "\n".join(found)

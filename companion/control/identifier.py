@@ -3,10 +3,11 @@ r"""Online identification of one axis's input gain and actuator lag.
 Not in the paper, which takes :math:`\alpha` as a constant ("it is
 meaningless to try to estimate alpha precisely", Section II-A). The shipped
 controller identifies it, with the lag of the motors, because one gain set has
-to fly every vehicle (``docs/research/gains.md``, points 1-2): :class:`PlantIdentifier`
-fits the window means of :math:`y^{(m)} = F + b\,u_a` (:math:`u_a` the command
-after a first-order lag) and gives :math:`\alpha = \text{margin} \cdot \hat b`
-and the lag :math:`\tau` that the law (:mod:`companion.control.intelligent`)
+to fly every vehicle (``docs/research/gains.md#lag-in-estimate`` and
+``#identified-online``): :class:`PlantIdentifier` fits the window means of
+:math:`y^{(m)} = F + b\,u_a` (:math:`u_a` the command after a first-order lag)
+and gives :math:`\alpha = \text{margin} \cdot \hat b` and the lag
+:math:`\tau` that the law (:mod:`companion.control.intelligent`)
 then uses in its estimate of ``F`` and, with ``lag_scaled_gains``, in its gains.
 
 It runs off the path from sample to command: the law notes each sample's
