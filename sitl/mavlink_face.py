@@ -61,7 +61,7 @@ import logging
 import math
 import os
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Generic, TypeVar
 
@@ -276,6 +276,11 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         RC_CHANNELS go on with the last values, RSSI unchanged), rather than none."""
         self._rc_last_sent: tuple[list[int], int, int] | None = None
         self.messages_received = 0
+        self.timesync_clock: Callable[[], float] | None = None
+        """The autopilot's clock a TIMESYNC is answered with, s; None: the simulation
+        time of the step that handles it. A realtime run sets the wall-paced clock
+        (the time the simulation keeps to), so a client's sample ages include what
+        a SITL fallen behind the wall delivers late, as a slow autopilot's would."""
         self.commands_received = 0
         """COMMAND_LONG and COMMAND_INT addressed to this autopilot."""
         self.params_sent = 0
@@ -355,7 +360,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                 params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y)
                 self._handle_command(msg, msg.command, params, t_s)
         elif mtype == "TIMESYNC" and msg.tc1 == 0:
-            self.mav.timesync_send(round(t_s * 1e9), msg.ts1)
+            now = t_s if self.timesync_clock is None else self.timesync_clock()
+            self.mav.timesync_send(round(now * 1e9), msg.ts1)
         elif mtype in _PARAM_MESSAGES:
             if self._for_us(msg.target_system, msg.target_component):
                 self._handle_param(mtype, msg)
