@@ -18,9 +18,10 @@ figure is the ratio to the ideal link's.
 
 Run::
 
-    python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S]
+    python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S] [--seeds N]
 
-prints a Markdown table and writes ``link_limit.json`` to ``--out``.
+prints a Markdown table (with ``--seeds``, each cost the mean of the seeds')
+and writes ``link_limit.json`` to ``--out``.
 """
 
 from __future__ import annotations
@@ -43,10 +44,10 @@ TARGETS = {"uart": 1.1, "usb-serial": 1.1, "delay_ms=10": 1.25}
 """The most a link may cost MFC beyond what it costs the ideal tracker, roll and pitch."""
 
 
-def fly_through(job: tuple[str, str, float | None]) -> dict[str, Any]:
-    """One paper flight of ``vehicle`` through ``link``: MFC's MAE per axis and the
-    ideal tracker's (ideal link: as the gyro reports it; a link: one round trip
-    late), deg/s; whether it crashed."""
+def fly_through(job: tuple[str, str, float | None, int | None]) -> dict[str, Any]:
+    """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
+    scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
+    gyro reports it; a link: one round trip late), deg/s; whether it crashed."""
     from companion.config import load_controller
     from companion.profile import load_profile
     from sitl.lab.paper.analysis import motion_limits
@@ -54,9 +55,11 @@ def fly_through(job: tuple[str, str, float | None]) -> dict[str, Any]:
     from sitl.lab.report import compute_metrics
     from sitl.lab.simulate import simulate_flight
 
-    vehicle, link, duration_s = job
+    vehicle, link, duration_s, seed = job
     profile = load_profile(ROOT / "vehicle_profiles" / f"{vehicle}.yaml")
     sc = paper_scenario(duration_s, None if link == "ideal" else link)
+    if seed is not None:
+        sc = sc.model_copy(update={"seed": seed})
     record = simulate_flight(profile, load_controller(), sc)
     metrics = compute_metrics(record)
     weight = sc.imu_model(profile).first_stage_filter_weight
@@ -65,6 +68,7 @@ def fly_through(job: tuple[str, str, float | None]) -> dict[str, Any]:
     return {
         "vehicle": vehicle,
         "link": link,
+        "seed": sc.seed,
         "crashed": bool(metrics["crashed"]),
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
         "tracker_deg_s": limits[key],
@@ -73,62 +77,75 @@ def fly_through(job: tuple[str, str, float | None]) -> dict[str, Any]:
 
 def cost_table(flights: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per vehicle and link other than the ideal: the cost beyond the tracker's on
-    roll and pitch, the yaw's ratio to the ideal link, and the verdict."""
-    by = {(f["vehicle"], f["link"]): f for f in flights}
+    roll and pitch (each seed's flight against the ideal link's on the same seed,
+    then the mean over the seeds), the yaw's ratio to the ideal link (likewise),
+    and the verdict on the mean; any crash fails it."""
+    by = {(f["vehicle"], f["link"], int(f.get("seed", 0))): f for f in flights}
+    pairs = sorted({(v, link) for v, link, _ in by if link != "ideal"})
     rows = []
-    for (vehicle, link), f in sorted(by.items()):
-        if link == "ideal":
-            continue
-        base = by[(vehicle, "ideal")]
-        cost = {
-            a: round(
-                (f["mfc_deg_s"][a] / f["tracker_deg_s"][a])
-                / (base["mfc_deg_s"][a] / base["tracker_deg_s"][a]),
-                3,
-            )
-            for a in AXES[:2]
-        }
+    for vehicle, link in pairs:
+        seeds = sorted(s for v, k, s in by if (v, k) == (vehicle, link))
+        costs: dict[str, list[float]] = {a: [] for a in AXES[:2]}
+        yaw: list[float] = []
+        crashed = False
+        for seed in seeds:
+            f, base = by[(vehicle, link, seed)], by[(vehicle, "ideal", seed)]
+            crashed = crashed or f["crashed"] or base["crashed"]
+            for a in AXES[:2]:
+                costs[a].append(
+                    (f["mfc_deg_s"][a] / f["tracker_deg_s"][a])
+                    / (base["mfc_deg_s"][a] / base["tracker_deg_s"][a])
+                )
+            yaw.append(f["mfc_deg_s"]["yaw"] / base["mfc_deg_s"]["yaw"])
+        cost = {a: round(sum(v) / len(v), 3) for a, v in costs.items()}
         target = TARGETS[link]
         rows.append(
             {
                 "vehicle": vehicle,
                 "link": link,
+                "seeds": seeds,
                 "cost": cost,
-                "yaw_ratio": round(f["mfc_deg_s"]["yaw"] / base["mfc_deg_s"]["yaw"], 3),
+                "cost_per_seed": {a: [round(x, 3) for x in v] for a, v in costs.items()},
+                "yaw_ratio": round(sum(yaw) / len(yaw), 3),
                 "target": target,
-                "crashed": f["crashed"],
-                "met": not f["crashed"] and max(cost.values()) <= target,
+                "crashed": crashed,
+                "met": not crashed and max(cost.values()) <= target,
             }
         )
     return rows
 
 
+def _mean(flights: list[dict[str, Any]], key: str, axis: str) -> float:
+    return float(sum(f[key][axis] for f in flights)) / len(flights)
+
+
 def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
-    by = {(f["vehicle"], f["link"]): f for f in flights}
+    """The table; MAE columns the mean over the seeds."""
     lines = [
         "| vehicle | link | MFC roll / pitch / yaw | tracker roll / pitch "
-        "| cost roll / pitch | target | yaw / ideal link's | met |",
-        "|---|---|---|---|---|---|---|---|",
+        "| cost roll / pitch | per seed (roll; pitch) | target | yaw / ideal link's | met |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
+
+    def maes(vehicle: str, link: str) -> str:
+        fs = [f for f in flights if (f["vehicle"], f["link"]) == (vehicle, link)]
+        m = [_mean(fs, "mfc_deg_s", a) for a in AXES]
+        t = [_mean(fs, "tracker_deg_s", a) for a in AXES[:2]]
+        crash = " (crashed)" if any(f["crashed"] for f in fs) else ""
+        return f"{m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f}{crash} | {t[0]:.2f} / {t[1]:.2f}"
+
     for vehicle in VEHICLES:
-        base = by.get((vehicle, "ideal"))
-        if base is not None:
-            m, t = base["mfc_deg_s"], base["tracker_deg_s"]
-            lines.append(
-                f"| {vehicle} | ideal | {m['roll']:.2f} / {m['pitch']:.2f} / {m['yaw']:.2f} "
-                f"| {t['roll']:.2f} / {t['pitch']:.2f} | 1 | | 1 | |"
-            )
+        if any(f["vehicle"] == vehicle and f["link"] == "ideal" for f in flights):
+            lines.append(f"| {vehicle} | ideal | {maes(vehicle, 'ideal')} | 1 | | | 1 | |")
         for r in rows:
             if r["vehicle"] != vehicle:
                 continue
-            f = by[(vehicle, r["link"])]
-            m, t, c = f["mfc_deg_s"], f["tracker_deg_s"], r["cost"]
-            crash = " (crashed)" if r["crashed"] else ""
+            c, per = r["cost"], r["cost_per_seed"]
+            seeds = "; ".join(" ".join(f"{x:.2f}" for x in per[a]) for a in AXES[:2])
             lines.append(
-                f"| {vehicle} | {r['link']} | {m['roll']:.2f} / {m['pitch']:.2f} / "
-                f"{m['yaw']:.2f}{crash} | {t['roll']:.2f} / {t['pitch']:.2f} "
-                f"| {c['roll']:.2f} / {c['pitch']:.2f} | {r['target']} | {r['yaw_ratio']:.2f} "
-                f"| {'yes' if r['met'] else '**no**'} |"
+                f"| {vehicle} | {r['link']} | {maes(vehicle, r['link'])} "
+                f"| {c['roll']:.2f} / {c['pitch']:.2f} | {seeds} | {r['target']} "
+                f"| {r['yaw_ratio']:.2f} | {'yes' if r['met'] else '**no**'} |"
             )
     return "\n".join(lines)
 
@@ -141,11 +158,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--vehicle", action="append", choices=VEHICLES, help="fly only these (repeatable)"
     )
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="fly each on this many seeds, the scenario's and the next ones (default 1)",
+    )
     args = ap.parse_args(argv)
     if args.workers < 1:
         ap.error(f"--workers: expected at least 1, got {args.workers}")
+    if args.seeds < 1:
+        ap.error(f"--seeds: expected at least 1, got {args.seeds}")
+    from sitl.lab.paper.flights import paper_scenario
+
+    first = paper_scenario(None, None).seed
     vehicles = args.vehicle or list(VEHICLES)
-    jobs = [(v, link, args.duration) for v in vehicles for link in LINKS]
+    jobs = [
+        (v, link, args.duration, first + k)
+        for k in range(args.seeds)
+        for v in vehicles
+        for link in LINKS
+    ]
     with ProcessPoolExecutor(args.workers) as pool:
         flights = list(pool.map(fly_through, jobs))
     rows = cost_table(flights)

@@ -42,8 +42,8 @@ def test_a_crash_is_never_within_target() -> None:
 
 @pytest.mark.slow
 def test_a_flight_through_a_link_pays_for_its_round_trip() -> None:
-    ideal = fly_through(("f450", "ideal", 6.0))
-    late = fly_through(("f450", "delay_ms=10", 6.0))
+    ideal = fly_through(("f450", "ideal", 6.0, None))
+    late = fly_through(("f450", "delay_ms=10", 6.0, None))
     assert not ideal["crashed"] and not late["crashed"]
     # The perfect tracker answers 10 ms each way late, and MFC with it: both lose.
     for axis in ("roll", "pitch"):
