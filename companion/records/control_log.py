@@ -25,9 +25,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.records.encoder_process import ProcessEncoder
 from companion.records.sink import BufferedLog, Sink
 from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
-from companion.records.writer import RecordWriter
+from companion.records.writer import Encoder, RecordWriter
 
 __all__ = ["FORMAT", "ControlLog", "last_sample_time", "read_control_log"]
 
@@ -62,6 +63,19 @@ class _Batch:
 
     def __len__(self) -> int:
         return len(self.rows) + _EVENT_BYTES * len(self.events)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled for the encoder's process (:mod:`companion.records.encoder_process`):
+        the rows as bytes, an event's values that are not plain data as text."""
+        plain = (str, int, float, bool, type(None), list, tuple, dict)
+        events = [
+            {k: v if isinstance(v, plain) else str(v) for k, v in ev.items()} for ev in self.events
+        ]
+        return (_batch_of, (bytes(self.rows), events))
+
+
+def _batch_of(rows: bytes, events: list[dict[str, Any]]) -> _Batch:
+    return _Batch(memoryview(rows), events)
 
 
 class _Tail:
@@ -323,11 +337,17 @@ class ControlLog(BufferedLog):
         }
         full_meta.update(meta or {})
         full_meta["columns"] = ",".join(cols)
-        encoder = _McapEncoder(cols, {str(k): str(v) for k, v in full_meta.items()}, writer)
+        text_meta = {str(k): str(v) for k, v in full_meta.items()}
+        encoder: Encoder = _McapEncoder(cols, text_meta, writer)
+        header = encoder.header()  # type: ignore[attr-defined]
+        if writer is not None:
+            # Formatting a 1 kHz flight's messages takes milliseconds of Python: in
+            # another process it never holds the lock the control loop needs.
+            encoder = ProcessEncoder(
+                "companion.records.control_log:_McapEncoder", (cols, text_meta, None), encoder
+            )
         # The header goes out at once: a killed process leaves a file MCAP readers open.
-        self._sink = Sink(
-            self.path, "control log", writer, header=encoder.header(), encoder=encoder
-        )
+        self._sink = Sink(self.path, "control log", writer, header=header, encoder=encoder)
         self._open = True  # False once closed, or stopped by a write error
         self._next_flush = time.monotonic() + flush_interval_s
 
