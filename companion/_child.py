@@ -1,4 +1,4 @@
-"""The encoder's child process (:mod:`companion.records.encoder_process`)."""
+"""A child process's entry (:mod:`companion.child_process`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ def main() -> int:
     # to stderr instead of into them.
     out = os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
-    from companion.records.encoder_process import serve
+    from companion.child_process import serve
 
     return serve(sys.stdin.buffer, out)
 
