@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
 
 def main() -> int:
+    # A Ctrl-C at the terminal, or a service manager's SIGTERM to the whole group,
+    # is the companion's to act on: it finishes its records through this child,
+    # then closes its input, and this child ends then (or when the companion dies).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # Our frames go out on a private copy of stdout; whatever an import prints goes
     # to stderr instead of into them.
     out = os.fdopen(os.dup(1), "wb")

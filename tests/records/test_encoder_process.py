@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from companion.child_process import ChildObject
 from companion.records import ControlLog, RecordWriter, columns, read_control_log
 from companion.records.encoder_process import ProcessEncoder
 
@@ -97,3 +98,16 @@ def test_an_encoder_process_that_cannot_start_leaves_the_encoding_here(
     got, meta = read_control_log(tmp_path / "a.mcap")
     assert "cut_short" not in meta
     np.testing.assert_array_equal(got["t_s"], data[:, cols.index("t_s")])
+
+
+def test_the_child_outlives_a_signal_to_the_group_and_ends_with_its_input() -> None:
+    """Ctrl-C reaches every process of the terminal's group: the companion hands
+    back and finishes its records through the child, so the child must not die
+    of it; it ends when its input closes."""
+    child = ChildObject("companion.records.topics:event_schema", ())
+    assert child.pid is not None
+    os.kill(child.pid, signal.SIGINT)
+    os.kill(child.pid, signal.SIGTERM)
+    time.sleep(0.2)
+    assert child.call("__len__") > 0  # still answering
+    assert child.close() == 0
