@@ -22,6 +22,7 @@ import pickle
 import struct
 import subprocess
 import sys
+import threading
 from typing import IO, Any
 
 __all__ = ["ChildObject", "serve"]
@@ -60,6 +61,8 @@ class ChildObject:
     """
 
     def __init__(self, factory: str, args: tuple[Any, ...]) -> None:
+        self._lock = threading.Lock()
+        """One exchange at a time: a frame is never interleaved with another's."""
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
             [sys.executable, "-m", "companion._child"],
             stdin=subprocess.PIPE,
@@ -104,8 +107,9 @@ class ChildObject:
             raise OSError("the child process has ended")
         assert proc.stdin is not None and proc.stdout is not None
         try:
-            _send(proc.stdin, request)
-            reply = _recv(proc.stdout)
+            with self._lock:
+                _send(proc.stdin, request)
+                reply = _recv(proc.stdout)
         except (OSError, ValueError, pickle.PicklingError) as exc:
             self.close()
             raise OSError(f"the child process: {exc}") from exc
