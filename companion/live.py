@@ -11,12 +11,10 @@ Off the control path. The loop's only work is :meth:`LiveView.append`: at most
 :data:`RATE_HZ` samples a second (the control log keeps them all), each row it
 already built for the control log copied into an ``array('d')``, and every
 ``flush_interval_s`` that buffer handed to a bounded queue in one
-non-blocking put. A thread of its own hands the rows to the live view's own
-process (:class:`Publisher`, :mod:`companion.child_process`), which runs the
-server, formats the messages (JSON, one per topic per sample) and hands them
-to the SDK: formatting in the companion's process would hold the interpreter
-lock the loop's thread needs. Topics nobody subscribed to are not formatted
-at all. Nothing in it waits on a
+non-blocking put. A thread of its own formats the messages (JSON, one per
+topic per sample) and hands them to the SDK, in slices that let go of the
+interpreter often, so the loop's thread never waits long for it; topics
+nobody subscribed to are not formatted at all. Nothing in it waits on a
 viewer: the SDK keeps each viewer's messages in a backlog of its own
 (``_BACKLOG`` messages) and drops the oldest when a viewer does not read them.
 
@@ -30,7 +28,6 @@ counts once per connection).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
@@ -73,6 +70,11 @@ costs a JSON object per topic on the companion's computer."""
 _MAX_PENDING_ROWS = 5000
 """Rows waiting for the publishing thread, at most (5 s at 1 kHz); more are dropped."""
 _MAX_PENDING_EVENTS = 1000
+_SLICE_S = 200e-6
+"""The publishing thread formats for at most this long before it lets go of the
+interpreter for ``_PAUSE_S``: a thread that holds it keeps the loop's thread
+waiting up to the switch interval (5 ms) otherwise."""
+_PAUSE_S = 50e-6
 _LINGER_S = 0.25
 """At the end, how long the server stays up after the last messages are handed to
 it: they are still on their way to the viewers (the run's last counters)."""
@@ -127,14 +129,6 @@ def tee(*appends: Callable[[Sequence[float]], None]) -> Callable[[Sequence[float
             a(row)
 
     return append
-
-
-_PLAIN = (str, int, float, bool, type(None), list, tuple, dict)
-
-
-def _plain(event: dict[str, Any]) -> dict[str, Any]:
-    """An event for the live view's process: values that are not plain data as text."""
-    return {k: v if isinstance(v, _PLAIN) else str(v) for k, v in event.items()}
 
 
 class _OverflowCounter(logging.Handler):
@@ -268,30 +262,47 @@ class LiveView:
         self.published = 0
         """Messages handed to the SDK (each goes to every viewer subscribed to its topic)."""
         self.publish_errors = 0
-        self._overflows = 0
-        self._columns = cols
-        self._child: Any = None
-        self._bound_port: int | None = None
+        self._overflows = _OverflowCounter()
+        self._server: Any = None
         self._thread: threading.Thread | None = None
         self._open = False
 
     # ------------------------------------------------------------ the loop's side
     def start(self) -> None:
-        """Listen (in the live view's own process) and start the publishing thread.
+        """Listen and start the publishing thread.
 
         Raises
         ------
         OSError
-            If the live view's process cannot start or listen there (the port is
-            taken, the host unknown, the SDK missing: :func:`sdk_problem` says so
-            first).
+            If the SDK cannot listen there (the port is taken, the host unknown).
+        ImportError
+            If the SDK is not installed (:func:`sdk_problem` says so first).
         """
-        from companion.child_process import ChildObject
+        import foxglove
 
-        self._child = ChildObject(
-            "companion.live:Publisher", (self._columns, self.host, self._port)
+        _sdk_logging()
+        # Kept: the channels are bound to the context only as long as it lives.
+        self._context = ctx = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(
+                name="mfc-companion",
+                host=self.host,
+                port=self._port,
+                context=ctx,
+                message_backlog_size=_BACKLOG,
+            )
+        except RuntimeError as exc:  # the SDK's FoxgloveError
+            raise OSError(f"cannot serve the live view on {self.host}:{self._port}: {exc}") from exc
+        self._channels = []
+        for tp in self._topics:
+            schema = foxglove.Schema(name=tp.schema_name, encoding="jsonschema", data=tp.schema())
+            ch = foxglove.Channel(tp.name, schema=schema, message_encoding="json", context=ctx)
+            self._channels.append((ch, _Formatter(tp)))
+        schema = foxglove.Schema(name="mfc.event", encoding="jsonschema", data=event_schema())
+        self._events_channel = foxglove.Channel(
+            EVENTS_TOPIC, schema=schema, message_encoding="json", context=ctx
         )
-        self._bound_port = int(self._child.call("port"))
+        logging.getLogger(_LOSSY_LOGGER).addHandler(self._overflows)
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         self._thread.start()
         self._open = True
@@ -301,7 +312,7 @@ class LiveView:
     @property
     def port(self) -> int:
         """The port listened on (the one chosen, with ``port=0``)."""
-        return self._bound_port if self._bound_port is not None else self._port
+        return int(self._server.port) if self._server is not None else self._port
 
     def append(self, row: Sequence[float]) -> None:
         """Take one row (the control log's, in column order). O(1), never blocks.
@@ -362,7 +373,7 @@ class LiveView:
             "published": self.published,
             "dropped_rows": self.dropped_rows,
             "dropped_events": self.dropped_events,
-            "viewer_overflows": self._overflows,
+            "viewer_overflows": self._overflows.count,
             "publish_errors": self.publish_errors,
         }
 
@@ -377,10 +388,10 @@ class LiveView:
         self._queue.put(None)
         if self._thread is not None:
             self._thread.join(timeout_s)
-        if self._child is not None:
-            with contextlib.suppress(OSError):
-                self._child.call("close")
-            self._child.close()
+        if self._server is not None:
+            time.sleep(_LINGER_S)
+            self._server.stop()
+        logging.getLogger(_LOSSY_LOGGER).removeHandler(self._overflows)
 
     def __enter__(self) -> LiveView:
         return self
@@ -398,11 +409,7 @@ class LiveView:
             buf, events = item
             n_rows = len(buf) // self.n_columns
             try:
-                assert self._child is not None
-                published, self._overflows = self._child.call(
-                    "publish", buf.tobytes(), n_rows, [_plain(ev) for ev in events]
-                )
-                self.published += published
+                self._publish(buf, n_rows, events)
             except Exception:  # nothing may end this thread
                 self.publish_errors += 1
                 if self.publish_errors == 1:
@@ -411,60 +418,11 @@ class LiveView:
                 self._out_rows += n_rows
                 self._out_events += len(events)
 
-
-class Publisher:
-    """The SDK's server, its channels and the messages' formatting: what the live
-    view runs in its own process (:mod:`companion.child_process`), so formatting
-    never holds the interpreter lock the control loop needs.
-
-    Raises
-    ------
-    OSError
-        If the SDK cannot listen at ``host``:``port``.
-    """
-
-    def __init__(self, columns: Sequence[str], host: str, port: int) -> None:
-        import foxglove
-
-        logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
-        _sdk_logging()
-        cols = list(columns)
-        self.n_columns = len(cols)
-        self._t = cols.index("t_s") if "t_s" in cols else None
-        # Kept: the channels are bound to the context only as long as it lives.
-        self._context = ctx = foxglove.Context()
-        try:
-            self._server: Any = foxglove.start_server(
-                name="mfc-companion",
-                host=host,
-                port=port,
-                context=ctx,
-                message_backlog_size=_BACKLOG,
-            )
-        except RuntimeError as exc:  # the SDK's FoxgloveError
-            raise OSError(f"cannot serve the live view on {host}:{port}: {exc}") from exc
-        self._channels = []
-        for tp in topics(cols):
-            schema = foxglove.Schema(name=tp.schema_name, encoding="jsonschema", data=tp.schema())
-            ch = foxglove.Channel(tp.name, schema=schema, message_encoding="json", context=ctx)
-            self._channels.append((ch, _Formatter(tp)))
-        schema = foxglove.Schema(name="mfc.event", encoding="jsonschema", data=event_schema())
-        self._events_channel = foxglove.Channel(
-            EVENTS_TOPIC, schema=schema, message_encoding="json", context=ctx
-        )
-        self._overflows = _OverflowCounter()
-        logging.getLogger(_LOSSY_LOGGER).addHandler(self._overflows)
-
-    def port(self) -> int:
-        """The port listened on (the one chosen, with port 0)."""
-        return int(self._server.port)
-
-    def publish(self, rows: bytes, n: int, events: list[dict[str, Any]]) -> tuple[int, int]:
-        """Publish ``n`` rows (float64 bytes) and ``events`` to the topics someone
-        subscribed to: the messages published, and the viewers' overflows so far."""
-        data = np.frombuffer(rows, dtype=np.float64)[: n * self.n_columns]
-        data = data.reshape(n, self.n_columns)
+    def _publish(self, buf: array[float], n: int, events: list[dict[str, Any]]) -> None:
+        data = np.frombuffer(buf, dtype=np.float64)[: n * self.n_columns].reshape(n, self.n_columns)
         t_ns = [_ns(t) for t in data[:, self._t].tolist()] if self._t is not None else [0] * n
+        clock = time.perf_counter
+        deadline = clock() + _SLICE_S
         published = 0
         for ch, fmt in self._channels:
             if not ch.has_sinks():
@@ -473,6 +431,9 @@ class Publisher:
                 if msg is not None:
                     ch.log(msg, log_time=lt)
                     published += 1
+                if clock() >= deadline:
+                    time.sleep(_PAUSE_S)
+                    deadline = clock() + _SLICE_S
         ch = self._events_channel
         if events and ch.has_sinks():
             for ev in events:
@@ -484,12 +445,4 @@ class Publisher:
                 }
                 ch.log(json.dumps(safe, default=str), log_time=lt)
                 published += 1
-        return published, self._overflows.count
-
-    def close(self) -> None:
-        """Let the viewers have the last messages, then stop serving."""
-        if self._server is not None:
-            time.sleep(_LINGER_S)
-            self._server.stop()
-            self._server = None
-        logging.getLogger(_LOSSY_LOGGER).removeHandler(self._overflows)
+        self.published += published
