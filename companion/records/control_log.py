@@ -338,13 +338,14 @@ class ControlLog(BufferedLog):
         full_meta.update(meta or {})
         full_meta["columns"] = ",".join(cols)
         text_meta = {str(k): str(v) for k, v in full_meta.items()}
-        encoder: Encoder = _McapEncoder(cols, text_meta, writer)
-        header = encoder.header()  # type: ignore[attr-defined]
+        local = _McapEncoder(cols, text_meta, writer)
+        header = local.header()
+        encoder: Encoder = local
         if writer is not None:
             # Formatting a 1 kHz flight's messages takes milliseconds of Python: in
             # another process it never holds the lock the control loop needs.
             encoder = ProcessEncoder(
-                "companion.records.control_log:_McapEncoder", (cols, text_meta, None), encoder
+                "companion.records.control_log:_McapEncoder", (cols, text_meta, None), local
             )
         # The header goes out at once: a killed process leaves a file MCAP readers open.
         self._sink = Sink(self.path, "control log", writer, header=header, encoder=encoder)
