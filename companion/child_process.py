@@ -110,7 +110,10 @@ class ChildObject:
             with self._lock:
                 _send(proc.stdin, request)
                 reply = _recv(proc.stdout)
-        except (OSError, ValueError, pickle.PicklingError) as exc:
+        except OSError as exc:  # a broken pipe: the child has gone
+            code = self.close()
+            raise OSError(f"the child process ended (exit code {code}): {exc}") from exc
+        except (ValueError, pickle.PicklingError) as exc:
             self.close()
             raise OSError(f"the child process: {exc}") from exc
         if reply is None:

@@ -111,3 +111,19 @@ def test_the_child_outlives_a_signal_to_the_group_and_ends_with_its_input() -> N
     time.sleep(0.2)
     assert child.call("__len__") > 0  # still answering
     assert child.close() == 0
+
+
+@pytest.mark.parametrize("reaped", [False, True], ids=["dying", "reaped"])
+def test_a_call_into_a_killed_child_says_it_ended(reaped: bool) -> None:
+    """Whether the write finds the pipe broken or the read finds it empty, and
+    whether or not the child has been reaped yet, the caller learns the same."""
+    child = ChildObject("companion.records.topics:event_schema", ())
+    assert child.pid is not None
+    os.kill(child.pid, signal.SIGKILL)
+    if reaped:
+        os.waitpid(child.pid, 0)
+    else:
+        time.sleep(0.2)  # dead, so a write meets a broken pipe
+    with pytest.raises(OSError, match="child process ended"):
+        child.call("__len__", b"x" * 200_000)  # more than the pipe holds
+    assert child.pid is None
