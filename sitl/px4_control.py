@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sitl.ardupilot_control import GyroLowPass
+from sitl.linalg import pseudo_inverse
 
 if TYPE_CHECKING:
     from companion.profile import VehicleProfile
@@ -274,7 +275,10 @@ class ControlAllocator:
             # moment = p x a - k a with a = (0, 0, -1) (a rotor's height drops out);
             # force = a. c_t = 1: it cancels in the normalisation.
             eff[:, i] = (-py, px, k, 0.0, 0.0, -1.0)
-        mix = np.linalg.pinv(eff)  # n x 6
+        try:
+            mix = np.array(pseudo_inverse(eff.tolist()))  # n x 6, the same bits everywhere
+        except ValueError:  # a degenerate geometry: LAPACK's, whatever the machine
+            mix = np.linalg.pinv(eff)
         scale = np.ones(6)
         nz_r = int(np.count_nonzero(np.abs(mix[:, 0]) > 1e-3))
         nz_p = int(np.count_nonzero(np.abs(mix[:, 1]) > 1e-3))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.profile import VehicleProfile
+from sitl.linalg import inverse
 
 __all__ = ["GRAVITY_M_S2", "VehicleParams"]
 
@@ -62,7 +63,7 @@ class VehicleParams:
                 "physics.inertia_kg_m2 + physics.damage.inertia_delta_kg_m2: expected a "
                 f"symmetric positive-definite matrix, got {J.tolist()}"
             )
-        J_inv = np.linalg.inv(J)
+        J_inv = np.array(inverse(J.tolist()))  # the same bits on every machine
 
         def rows(a: np.ndarray) -> tuple[tuple[float, float, float], ...]:
             return tuple((float(r[0]), float(r[1]), float(r[2])) for r in a)
