@@ -354,6 +354,17 @@ class Companion:
         with contextlib.suppress(Exception):
             self.event("counters", self.counters_detail())
 
+    async def _live_published(self, timeout_s: float) -> None:
+        """Wait (bounded) until the live view has published what it was handed, so
+        the run's last counters count all of it."""
+        live = self.records.live
+        if live is None:
+            return
+        live.flush()
+        end = time.monotonic() + timeout_s
+        while live.pending and time.monotonic() < end:
+            await asyncio.sleep(0.01)
+
     def _on_signal(self, sig: int) -> None:
         self.event("signal", signal.Signals(sig).name)
         self._exit_code = EXIT_OK
@@ -438,6 +449,7 @@ class Companion:
                 "run ended", was_commanding=True if engagement.hand_back_owed else None
             )
             await engagement.hand_back_once_the_link_is_back()
+            await self._live_published(1.0)
             self._final_counters()
             if self._telemetry is not None:
                 await self._telemetry.drain(1.0)  # the last events say why it ended

@@ -4,31 +4,33 @@
 same topics with the same fields and JSON schemas
 (:func:`companion.records.topics`, ``/events``), to any Foxglove app that
 connects, as the flight goes. The server is the ``foxglove-sdk`` package's
-(the ``live`` extra: ``pip install 'mfc-companion[live]'``); it runs on its own
-native threads.
+(the ``live`` extra: ``pip install 'mfc-companion[live]'``).
 
 Off the control path. The loop's only work is :meth:`LiveView.append`: at most
 :data:`RATE_HZ` samples a second (the control log keeps them all), each row it
 already built for the control log copied into an ``array('d')``, and every
 ``flush_interval_s`` that buffer handed to a bounded queue in one
-non-blocking put. A thread of its own formats the messages (JSON, one per
-topic per sample) and hands them to the SDK, in slices that let go of the
-interpreter often, so the loop's thread never waits long for it; topics
-nobody subscribed to are not formatted at all. Nothing in it waits on a
-viewer: the SDK keeps each viewer's messages in a backlog of its own
-(``_BACKLOG`` messages) and drops the oldest when a viewer does not read them.
+non-blocking put. A thread of its own passes the rows to the live view's own
+process (:class:`companion.live_publisher.Publisher`, through
+:mod:`companion.child_process`), which runs the server and formats the
+messages (JSON, one per topic per sample; topics nobody subscribed to are not
+formatted at all): formatting here would hold the interpreter lock the loop's
+thread needs. Nothing in it waits on a viewer: the SDK keeps each viewer's
+messages in a backlog of its own and drops the oldest when a viewer does not
+read them.
 
 What is lost is counted (:attr:`LiveView.counters`, in the run's ``counters``
 events as ``live.*``): ``dropped_rows`` and ``dropped_events``, rows and events
-the publishing thread was too far behind to take (exact);
-``viewer_overflows``, the times a viewer's backlog filled, after which the SDK
-drops that viewer's oldest messages (the SDK says when, not how many; a viewer
-counts once per connection).
+the publishing thread was too far behind to take, or that came after the live
+view's process ended (exact); ``viewer_overflows``, the times a viewer's
+backlog filled, after which the SDK drops that viewer's oldest messages (the
+SDK says when, not how many; a viewer counts once per connection);
+``publish_errors``, batches that failed, and the live view's process ending.
 """
 
 from __future__ import annotations
 
-import json
+import contextlib
 import logging
 import math
 import queue
@@ -38,9 +40,8 @@ from array import array
 from collections.abc import Callable, Sequence
 from typing import Any
 
-import numpy as np
-
-from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
+from companion.child_process import ChildObject
+from companion.records.topics import topics
 
 __all__ = [
     "DEFAULT_HOST",
@@ -60,9 +61,6 @@ serves every network the companion computer is on (the vehicle's)."""
 
 INSTALL_HINT = "pip install 'mfc-companion[live]'"
 
-_BACKLOG = 4096
-"""Messages the SDK holds for each viewer (about 3 s of seven topics at
-:data:`RATE_HZ`): a viewer behind by more loses its oldest ones."""
 RATE_HZ = 200.0
 """Samples per second the live view sends at most, whatever the IMU's rate (the
 control log keeps every one): a plot on a screen shows no more, and each sample
@@ -70,16 +68,6 @@ costs a JSON object per topic on the companion's computer."""
 _MAX_PENDING_ROWS = 5000
 """Rows waiting for the publishing thread, at most (5 s at 1 kHz); more are dropped."""
 _MAX_PENDING_EVENTS = 1000
-_SLICE_S = 200e-6
-"""The publishing thread formats for at most this long before it lets go of the
-interpreter for ``_PAUSE_S``: a thread that holds it keeps the loop's thread
-waiting up to the switch interval (5 ms) otherwise."""
-_PAUSE_S = 50e-6
-_LINGER_S = 0.25
-"""At the end, how long the server stays up after the last messages are handed to
-it: they are still on their way to the viewers (the run's last counters)."""
-_LOSSY_LOGGER = "foxglove.websocket.connected_client.send_lossy"
-"""The SDK's logger that says a viewer's backlog is full."""
 
 
 def parse_live_address(text: str) -> tuple[str, int]:
@@ -131,74 +119,12 @@ def tee(*appends: Callable[[Sequence[float]], None]) -> Callable[[Sequence[float
     return append
 
 
-class _OverflowCounter(logging.Handler):
-    """Counts the SDK's "outbox for client ... full" records."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.INFO)
-        self.count = 0
-
-    def emit(self, record: logging.LogRecord) -> None:
-        if "full" in record.getMessage():
-            self.count += 1
+_PLAIN = (str, int, float, bool, type(None), list, tuple, dict)
 
 
-_sdk_logging_lock = threading.Lock()
-_sdk_logging_on = False
-
-
-def _sdk_logging() -> None:
-    """The SDK's log records into :mod:`logging` (once per process): its INFO lines
-    say when a viewer connects, leaves, or falls behind."""
-    global _sdk_logging_on
-    import foxglove
-
-    with _sdk_logging_lock:
-        if not _sdk_logging_on:
-            # The viewer's backlog records are INFO: let them through to our counter
-            # whatever the run's own log level.
-            logging.getLogger(_LOSSY_LOGGER).setLevel(logging.INFO)
-            foxglove.set_log_level("INFO")
-            _sdk_logging_on = True
-
-
-def _ns(t_s: float) -> int:
-    """Seconds as whole nanoseconds (the log time); 0 for NaN or negative."""
-    if not (math.isfinite(t_s) and t_s >= 0.0):
-        return 0
-    return round(min(t_s, 1.8e10) * 1e9)
-
-
-class _Formatter:
-    """One topic's messages from its columns: JSON objects, ``null`` for non-finite."""
-
-    def __init__(self, tp: Topic) -> None:
-        self.topic = tp
-        self.full = "{" + ",".join(f'"{f}":%.17g' for f in tp.fields) + "}"
-
-    def messages(self, data: np.ndarray) -> list[str | None]:
-        vals = data[:, self.topic.columns]
-        finite = np.isfinite(vals)
-        rows = vals.tolist()
-        whole = finite.all(axis=1).tolist()
-        some = finite.any(axis=1).tolist()
-        out: list[str | None] = []
-        fields = self.topic.fields
-        for r, row in enumerate(rows):
-            if whole[r]:
-                out.append(self.full % tuple(row))
-            elif self.topic.sparse and not some[r]:
-                out.append(None)  # nothing to say on this topic for this sample
-            else:
-                out.append(
-                    "{"
-                    + ",".join(
-                        f'"{f}":{v!r}' if math.isfinite(v) else f'"{f}":null'
-                        for f, v in zip(fields, row, strict=True)
-                    )
-                    + "}"
-                )
-        return out
+def _plain(event: dict[str, Any]) -> dict[str, Any]:
+    """An event for the live view's process: values that are not plain data as text."""
+    return {k: v if isinstance(v, _PLAIN) else str(v) for k, v in event.items()}
 
 
 class LiveView:
@@ -231,7 +157,7 @@ class LiveView:
         max_rate_hz: float = RATE_HZ,
     ) -> None:
         cols = list(columns)
-        self._topics = topics(cols)  # raises on an unknown column
+        topics(cols)  # raises on an unknown column
         if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
             raise ValueError(f"port must be an integer in 0..65535, got {port!r}")
         if not (math.isfinite(flush_interval_s) and 0.0 <= flush_interval_s <= 1.0):
@@ -262,47 +188,31 @@ class LiveView:
         self.published = 0
         """Messages handed to the SDK (each goes to every viewer subscribed to its topic)."""
         self.publish_errors = 0
-        self._overflows = _OverflowCounter()
-        self._server: Any = None
+        self._overflows = 0
+        self._columns = cols
+        self._child: ChildObject | None = None
+        self._bound_port: int | None = None
         self._thread: threading.Thread | None = None
         self._open = False
 
     # ------------------------------------------------------------ the loop's side
     def start(self) -> None:
-        """Listen and start the publishing thread.
+        """Start the live view's process, listening, and the publishing thread.
 
         Raises
         ------
         OSError
-            If the SDK cannot listen there (the port is taken, the host unknown).
-        ImportError
-            If the SDK is not installed (:func:`sdk_problem` says so first).
+            If the live view's process cannot start or cannot listen there (the
+            port is taken, the host unknown).
         """
-        import foxglove
-
-        _sdk_logging()
-        # Kept: the channels are bound to the context only as long as it lives.
-        self._context = ctx = foxglove.Context()
         try:
-            self._server = foxglove.start_server(
-                name="mfc-companion",
-                host=self.host,
-                port=self._port,
-                context=ctx,
-                message_backlog_size=_BACKLOG,
+            child = ChildObject(
+                "companion.live_publisher:Publisher", (self._columns, self.host, self._port)
             )
-        except RuntimeError as exc:  # the SDK's FoxgloveError
+        except OSError as exc:
             raise OSError(f"cannot serve the live view on {self.host}:{self._port}: {exc}") from exc
-        self._channels = []
-        for tp in self._topics:
-            schema = foxglove.Schema(name=tp.schema_name, encoding="jsonschema", data=tp.schema())
-            ch = foxglove.Channel(tp.name, schema=schema, message_encoding="json", context=ctx)
-            self._channels.append((ch, _Formatter(tp)))
-        schema = foxglove.Schema(name="mfc.event", encoding="jsonschema", data=event_schema())
-        self._events_channel = foxglove.Channel(
-            EVENTS_TOPIC, schema=schema, message_encoding="json", context=ctx
-        )
-        logging.getLogger(_LOSSY_LOGGER).addHandler(self._overflows)
+        self._child = child
+        self._bound_port = int(child.call("port"))
         self._thread = threading.Thread(target=self._run, name="live-view", daemon=True)
         self._thread.start()
         self._open = True
@@ -312,7 +222,7 @@ class LiveView:
     @property
     def port(self) -> int:
         """The port listened on (the one chosen, with ``port=0``)."""
-        return int(self._server.port) if self._server is not None else self._port
+        return self._bound_port if self._bound_port is not None else self._port
 
     def append(self, row: Sequence[float]) -> None:
         """Take one row (the control log's, in column order). O(1), never blocks.
@@ -373,9 +283,15 @@ class LiveView:
             "published": self.published,
             "dropped_rows": self.dropped_rows,
             "dropped_events": self.dropped_events,
-            "viewer_overflows": self._overflows.count,
+            "viewer_overflows": self._overflows,
             "publish_errors": self.publish_errors,
         }
+
+    @property
+    def pending(self) -> int:
+        """Rows and events handed over and not yet published (after :meth:`flush`,
+        0 means :attr:`counters` count everything so far)."""
+        return self._in_rows - self._out_rows + self._in_events - self._out_events
 
     def close(self, timeout_s: float = 1.0) -> None:
         """Publish what is buffered (waiting at most ``timeout_s``), then stop serving.
@@ -388,10 +304,11 @@ class LiveView:
         self._queue.put(None)
         if self._thread is not None:
             self._thread.join(timeout_s)
-        if self._server is not None:
-            time.sleep(_LINGER_S)
-            self._server.stop()
-        logging.getLogger(_LOSSY_LOGGER).removeHandler(self._overflows)
+        child, self._child = self._child, None
+        if child is not None:
+            with contextlib.suppress(OSError):
+                child.call("close")  # lets the viewers have the last messages
+            child.close()
 
     def __enter__(self) -> LiveView:
         return self
@@ -410,39 +327,25 @@ class LiveView:
             n_rows = len(buf) // self.n_columns
             try:
                 self._publish(buf, n_rows, events)
-            except Exception:  # nothing may end this thread
-                self.publish_errors += 1
-                if self.publish_errors == 1:
-                    log.exception("live view: publishing failed (logged once, counted after)")
             finally:
                 self._out_rows += n_rows
                 self._out_events += len(events)
 
     def _publish(self, buf: array[float], n: int, events: list[dict[str, Any]]) -> None:
-        data = np.frombuffer(buf, dtype=np.float64)[: n * self.n_columns].reshape(n, self.n_columns)
-        t_ns = [_ns(t) for t in data[:, self._t].tolist()] if self._t is not None else [0] * n
-        clock = time.perf_counter
-        deadline = clock() + _SLICE_S
-        published = 0
-        for ch, fmt in self._channels:
-            if not ch.has_sinks():
-                continue  # nobody subscribed: not even formatted
-            for msg, lt in zip(fmt.messages(data), t_ns, strict=True):
-                if msg is not None:
-                    ch.log(msg, log_time=lt)
-                    published += 1
-                if clock() >= deadline:
-                    time.sleep(_PAUSE_S)
-                    deadline = clock() + _SLICE_S
-        ch = self._events_channel
-        if events and ch.has_sinks():
-            for ev in events:
-                t = ev.get("t_s")
-                lt = _ns(float(t)) if isinstance(t, int | float) else (t_ns[-1] if n else 0)
-                safe = {
-                    k: None if isinstance(v, float) and not math.isfinite(v) else v
-                    for k, v in ev.items()
-                }
-                ch.log(json.dumps(safe, default=str), log_time=lt)
-                published += 1
-        self.published += published
+        child = self._child
+        if child is None or child.pid is None:  # its process has ended: counted, dropped
+            self.dropped_rows += n
+            self.dropped_events += len(events)
+            return
+        try:
+            published, self._overflows, errors = child.call(
+                "publish", buf.tobytes(), n, [_plain(ev) for ev in events]
+            )
+        except OSError as exc:  # the process ended: nothing more is served
+            self.publish_errors += 1
+            self.dropped_rows += n
+            self.dropped_events += len(events)
+            log.error("live view: its process ended, nothing more is served (%s)", exc)
+            return
+        self.published = published
+        self.publish_errors = errors
