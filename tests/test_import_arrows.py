@@ -7,7 +7,7 @@ Read from the source with :mod:`ast` (an ``import`` statement, or
 docstring that names a module counts for nothing, while an import under
 ``TYPE_CHECKING`` or inside a function counts as any other. What the product finds
 of the lab at run time it finds through the entry points the lab registers
-(:mod:`companion.lab`).
+(:mod:`companion.lab`). And every product module stays under 500 lines.
 """
 
 from __future__ import annotations
@@ -270,3 +270,13 @@ def test_the_check_sees_each_kind_of_import(tmp_path: Path) -> None:
         encoding="utf-8",
     )
     assert [line for line, name in imported(src) if name.split(".")[0] == "sitl"] == [3, 4, 6, 7]
+
+
+def test_every_product_module_is_under_500_lines() -> None:
+    """A module a reader holds whole: the house's own rule for ``companion/``."""
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in sorted((ROOT / "companion").rglob("*.py"))
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) >= 500
+    }
+    assert not long, long

@@ -46,10 +46,8 @@ _BEHIND_BYTES = 256 * 1024
 """... unless this much waits for the writer (three 0.2 s batches at 1 kHz): a
 process that keeps the interpreter busy (an in-process flight faster than real
 time) would otherwise starve it."""
-_MAX_EVENTS = 10_000
-"""Events held between two flushes at most; more are counted in ``dropped_events``."""
-_EVENT_BYTES = 200
-"""What one event counts against the writer's bounds (a typical event's JSON)."""
+_MAX_EVENTS = 10_000  # held between two flushes at most; more are counted in dropped_events
+_EVENT_BYTES = 200  # what one event counts against the writer's bounds (a typical event's JSON)
 
 
 class _Batch:
