@@ -16,9 +16,15 @@ allocation in the plant's autopilot. Yaw has no ideal tracker (a rotor's
 spin-up reaction gives it far more than its steady peak for a moment); its
 figure is the ratio to the ideal link's.
 
+With ``--output rates`` each flight is the companion sending body rates
+(``mfc_rates.yaml``) to the SITL's PX4 rate loop, over MAVLink in lockstep
+(:func:`sitl.lab.fly.fly_mavlink`, the SITL modelling the link): the
+autopilot's rate loop is in the plant, the tracker the same.
+
 Run::
 
     python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S] [--seeds N]
+                                  [--output actuator|rates]
 
 prints a Markdown table (with ``--seeds``, each cost the mean of the seeds')
 and writes ``link_limit.json`` to ``--out``.
@@ -40,27 +46,46 @@ __all__ = ["LINKS", "TARGETS", "VEHICLES", "cost_table", "fly_through"]
 ROOT = Path(__file__).resolve().parents[2]
 VEHICLES = ("f450", "f450_cut_props", "tarot650", "x500")
 LINKS = ("ideal", "uart", "usb-serial", "delay_ms=10")
+RATES_CONTROLLER = ROOT / "companion" / "data" / "mfc_rates.yaml"
 TARGETS = {"uart": 1.1, "usb-serial": 1.1, "delay_ms=10": 1.25}
 """The most a link may cost MFC beyond what it costs the ideal tracker, roll and pitch."""
 
 
-def fly_through(job: tuple[str, str, float | None, int | None]) -> dict[str, Any]:
+def fly_through(
+    job: tuple[str, str, float | None, int | None], output: str = "actuator"
+) -> dict[str, Any]:
     """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
     scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
-    gyro reports it; a link: one round trip late), deg/s; whether it crashed."""
+    gyro reports it; a link: one round trip late), deg/s; whether it crashed.
+    ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring)."""
     from companion.config import load_controller
     from companion.profile import load_profile
     from sitl.lab.paper.analysis import motion_limits
-    from sitl.lab.paper.flights import paper_scenario
+    from sitl.lab.paper.flights import SCENARIO, paper_scenario
     from sitl.lab.report import compute_metrics
     from sitl.lab.simulate import simulate_flight
 
     vehicle, link, duration_s, seed = job
-    profile = load_profile(ROOT / "vehicle_profiles" / f"{vehicle}.yaml")
+    path = ROOT / "vehicle_profiles" / f"{vehicle}.yaml"
+    profile = load_profile(path)
     sc = paper_scenario(duration_s, None if link == "ideal" else link)
     if seed is not None:
         sc = sc.model_copy(update={"seed": seed})
-    record = simulate_flight(profile, load_controller(), sc)
+    if output == "rates":
+        import tempfile
+
+        from sitl.lab.fly import fly_mavlink, merge_logs
+
+        with tempfile.TemporaryDirectory(prefix="link-limit-") as tmp:
+            flight = fly_mavlink(
+                path, SCENARIO, tmp, controller_path=RATES_CONTROLLER, output="rates",
+                duration_s=duration_s, seed=sc.seed, link=sc.link,
+            )  # fmt: skip
+            if flight.companion_rc != 0:
+                raise RuntimeError(f"{vehicle} through {link}: {flight.why()}")
+            record = merge_logs(flight)
+    else:
+        record = simulate_flight(profile, load_controller(), sc)
     metrics = compute_metrics(record)
     weight = sc.imu_model(profile).first_stage_filter_weight
     limits = motion_limits(record, profile, weight, sc.link, sc.seed)
@@ -164,6 +189,13 @@ def main(argv: list[str] | None = None) -> int:
         default=1,
         help="fly each on this many seeds, the scenario's and the next ones (default 1)",
     )
+    ap.add_argument(
+        "--output",
+        choices=("actuator", "rates"),
+        default="actuator",
+        help="actuator: the flight core in process (default); rates: mfc_rates.yaml to the "
+        "SITL's rate loop over MAVLink",
+    )
     args = ap.parse_args(argv)
     if args.workers < 1:
         ap.error(f"--workers: expected at least 1, got {args.workers}")
@@ -180,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
         for link in LINKS
     ]
     with ProcessPoolExecutor(args.workers) as pool:
-        flights = list(pool.map(fly_through, jobs))
+        flights = list(pool.map(fly_through, jobs, [args.output] * len(jobs)))
     rows = cost_table(flights)
     print(_markdown(flights, rows))
     unmet = [r for r in rows if not r["met"]]
@@ -188,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "link_limit.json").write_text(
-            json.dumps({"flights": flights, "costs": rows}, indent=2) + "\n", encoding="utf-8"
+            json.dumps({"output": args.output, "flights": flights, "costs": rows}, indent=2) + "\n",
+            encoding="utf-8",
         )
     return 0
 

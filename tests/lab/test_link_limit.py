@@ -49,3 +49,16 @@ def test_a_flight_through_a_link_pays_for_its_round_trip() -> None:
     for axis in ("roll", "pitch"):
         assert late["tracker_deg_s"][axis] > ideal["tracker_deg_s"][axis]
         assert late["mfc_deg_s"][axis] > ideal["mfc_deg_s"][axis]
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_rates_flight_over_mavlink_pays_for_its_round_trip_too() -> None:
+    """``--output rates``: the companion and the SITL as two processes, the SITL's
+    PX4 rate loop in the plant and the link modelled by the SITL."""
+    ideal = fly_through(("f450", "ideal", 6.0, None), "rates")
+    late = fly_through(("f450", "delay_ms=10", 6.0, None), "rates")
+    assert not ideal["crashed"] and not late["crashed"]
+    for axis in ("roll", "pitch"):
+        assert late["tracker_deg_s"][axis] > ideal["tracker_deg_s"][axis]
+        assert late["mfc_deg_s"][axis] > ideal["mfc_deg_s"][axis]
