@@ -56,9 +56,11 @@ def fly_through(
 ) -> dict[str, Any]:
     """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
     scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
-    gyro reports it; a link: one round trip late), deg/s; whether it crashed.
+    gyro reports it; a link: one round trip late), deg/s; whether it crashed, and
+    the failsafes that ended it early (the MAE then covers the flight up to them).
     ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring)."""
     from companion.config import load_controller
+    from companion.errors import EXIT_FAILSAFE, EXIT_OK
     from companion.profile import load_profile
     from sitl.lab.paper.analysis import motion_limits
     from sitl.lab.paper.flights import SCENARIO, paper_scenario
@@ -81,11 +83,13 @@ def fly_through(
                 path, SCENARIO, tmp, controller_path=RATES_CONTROLLER, output="rates",
                 duration_s=duration_s, seed=sc.seed, link=sc.link,
             )  # fmt: skip
-            if flight.companion_rc != 0:
+            if flight.companion_rc not in (EXIT_OK, EXIT_FAILSAFE):
                 raise RuntimeError(f"{vehicle} through {link}: {flight.why()}")
             record = merge_logs(flight)
+        failsafes = [f"{e['kind']}: {e['detail']}" for e in record.meta["failsafe_events"]]
     else:
         record = simulate_flight(profile, load_controller(), sc)
+        failsafes = list(record.meta.get("failsafes", []))
     metrics = compute_metrics(record)
     weight = sc.imu_model(profile).first_stage_filter_weight
     limits = motion_limits(record, profile, weight, sc.link, sc.seed)
@@ -95,6 +99,7 @@ def fly_through(
         "link": link,
         "seed": sc.seed,
         "crashed": bool(metrics["crashed"]),
+        "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
         "tracker_deg_s": limits[key],
     }
@@ -104,7 +109,8 @@ def cost_table(flights: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per vehicle and link other than the ideal: the cost beyond the tracker's on
     roll and pitch (each seed's flight against the ideal link's on the same seed,
     then the mean over the seeds), the yaw's ratio to the ideal link (likewise),
-    and the verdict on the mean; any crash fails it."""
+    and the verdict on the mean; any crash, or a failsafe that ended a flight
+    early, fails it."""
     by = {(f["vehicle"], f["link"], int(f.get("seed", 0))): f for f in flights}
     pairs = sorted({(v, link) for v, link, _ in by if link != "ideal"})
     rows = []
@@ -113,9 +119,11 @@ def cost_table(flights: list[dict[str, Any]]) -> list[dict[str, Any]]:
         costs: dict[str, list[float]] = {a: [] for a in AXES[:2]}
         yaw: list[float] = []
         crashed = False
+        failsafes: list[str] = []
         for seed in seeds:
             f, base = by[(vehicle, link, seed)], by[(vehicle, "ideal", seed)]
             crashed = crashed or f["crashed"] or base["crashed"]
+            failsafes += [*f.get("failsafes", ()), *base.get("failsafes", ())]
             for a in AXES[:2]:
                 costs[a].append(
                     (f["mfc_deg_s"][a] / f["tracker_deg_s"][a])
@@ -134,7 +142,8 @@ def cost_table(flights: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "yaw_ratio": round(sum(yaw) / len(yaw), 3),
                 "target": target,
                 "crashed": crashed,
-                "met": not crashed and max(cost.values()) <= target,
+                "failsafes": failsafes,
+                "met": not crashed and not failsafes and max(cost.values()) <= target,
             }
         )
     return rows
@@ -156,7 +165,9 @@ def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
         fs = [f for f in flights if (f["vehicle"], f["link"]) == (vehicle, link)]
         m = [_mean(fs, "mfc_deg_s", a) for a in AXES]
         t = [_mean(fs, "tracker_deg_s", a) for a in AXES[:2]]
+        ended = sum(bool(f.get("failsafes")) for f in fs)
         crash = " (crashed)" if any(f["crashed"] for f in fs) else ""
+        crash += f" (failsafe in {ended} of {len(fs)})" if ended else ""
         return f"{m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f}{crash} | {t[0]:.2f} / {t[1]:.2f}"
 
     for vehicle in VEHICLES:

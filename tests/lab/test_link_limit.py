@@ -62,3 +62,14 @@ def test_a_rates_flight_over_mavlink_pays_for_its_round_trip_too() -> None:
     for axis in ("roll", "pitch"):
         assert late["tracker_deg_s"][axis] > ideal["tracker_deg_s"][axis]
         assert late["mfc_deg_s"][axis] > ideal["mfc_deg_s"][axis]
+
+
+def test_a_flight_a_failsafe_ended_is_never_within_target() -> None:
+    flights = [
+        _flight("ideal", (6.0, 5.0, 4.0), (5.0, 5.0)),
+        _flight("delay_ms=10", (6.0, 5.0, 4.0), (5.0, 5.0)),
+    ]
+    flights[1]["failsafes"] = ["failsafe_envelope: tracking error ..."]
+    (row,) = cost_table(flights)
+    assert row["cost"] == {"roll": 1.0, "pitch": 1.0}
+    assert row["failsafes"] and not row["met"]
