@@ -405,9 +405,13 @@ class Autopilot(Personality[FlightMode]):
 
     def _on_armed(self, t_s: float) -> None:
         self._rc_lost_at_arming = self.rc_lost(t_s)
-        # The flight starts here: the gyro filters too, so that it does not depend on
-        # how long the vehicle sat disarmed (PX4's run on; at rest the difference is noise).
+        # The flight starts here: the gyro filters, the rate loop and its sample
+        # clock too, so that it does not depend on how long the vehicle sat disarmed
+        # nor on where between two samples the arm command came (PX4's filters run
+        # on; at rest the difference is noise).
         self.rate_pid.filter.reset()
+        self.rate_pid.reset()
+        self._last_rate_t_s = None
 
     def set_mode(self, t_s: float, main: int, sub: int = 0) -> MavResult:
         """Request a mode (``MAV_CMD_DO_SET_MODE`` param2 = main, param3 = sub).

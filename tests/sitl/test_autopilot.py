@@ -6,6 +6,7 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from companion.profile import VehicleProfile, load_profile
@@ -312,3 +313,31 @@ def test_stream_due_rate_is_exact() -> None:
     assert n == 250
     s.set_interval(65, -1)
     assert not any(s.due(65, k * 0.001) for k in range(100))
+
+
+def test_a_rates_flight_after_arming_does_not_depend_on_the_samples_phase_before(
+    profile: VehicleProfile,
+) -> None:
+    """Armed between two gyro samples at different phases (as the companion's arm
+    command lands whenever it comes), the rate loop's output from arming on is the
+    same, bit for bit, for the same samples and setpoints after arming."""
+    rng = np.random.default_rng(3)
+    after_gyro = rng.normal(0.0, 0.2, size=(200, 3)).tolist()
+    after_sp = rng.normal(0.0, 1.0, size=(200, 3)).tolist()
+    outputs = []
+    for phase_s, arm_s in ((0.0, 0.401), (0.0015, 0.9)):
+        ap = make(profile)
+        t = phase_s
+        while t < arm_s:  # disarmed, the gyro stream running as it does on a vehicle
+            ap.on_rates_target(t, (0.0, 0.0, 0.0), 0.3)
+            ap.update(t, rng.normal(0.0, 0.05, size=3).tolist(), LEVEL, landed=True)
+            t += 0.004
+        assert ap.set_mode(arm_s, MainMode.OFFBOARD) is MavResult.ACCEPTED
+        assert ap.arm(arm_s) is MavResult.ACCEPTED
+        out = []
+        for k, (g, sp) in enumerate(zip(after_gyro, after_sp, strict=True)):
+            ts = arm_s + k * 0.004
+            ap.on_rates_target(ts, sp, 0.5)
+            out.append(ap.update(ts, g, LEVEL, landed=k < 10))
+        outputs.append(out)
+    assert outputs[0] == outputs[1]
