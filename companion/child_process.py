@@ -84,6 +84,14 @@ class ChildObject:
         """``method(*args)`` on the child's object: what it returned."""
         return self._exchange(("call", method, args))
 
+    def kill(self) -> None:
+        """End the child now, whatever it is doing: a call waiting on it returns
+        with :class:`OSError`."""
+        proc = self._proc
+        if proc is not None and proc.returncode is None:
+            with contextlib.suppress(OSError):
+                proc.kill()
+
     def close(self) -> int | None:
         """Close the child's input, wait for it a moment, then kill it; its exit code."""
         proc = self._proc

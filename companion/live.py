@@ -294,7 +294,8 @@ class LiveView:
         return self._in_rows - self._out_rows + self._in_events - self._out_events
 
     def close(self, timeout_s: float = 1.0) -> None:
-        """Publish what is buffered (waiting at most ``timeout_s``), then stop serving.
+        """Publish what is buffered (waiting at most ``timeout_s``), then stop serving;
+        a live view's process that has not answered by then is killed.
 
         Closing twice, or a view never started, is harmless."""
         if not self._open:
@@ -306,8 +307,11 @@ class LiveView:
             self._thread.join(timeout_s)
         child, self._child = self._child, None
         if child is not None:
-            with contextlib.suppress(OSError):
-                child.call("close")  # lets the viewers have the last messages
+            if self._thread is not None and self._thread.is_alive():
+                child.kill()  # it has not answered in time: what it held is lost
+            else:
+                with contextlib.suppress(OSError):
+                    child.call("close")  # lets the viewers have the last messages
             child.close()
 
     def __enter__(self) -> LiveView:

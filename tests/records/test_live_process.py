@@ -75,3 +75,18 @@ def test_a_port_in_use_is_refused_naming_it() -> None:
         with pytest.raises(OSError, match=f"cannot serve the live view on 127.0.0.1:{port}"):
             view.start()
     view.close()  # harmless
+
+
+def test_a_live_view_process_that_hangs_does_not_hold_the_close() -> None:
+    """Stopped (alive, answering nothing), the live view's process is killed when
+    the view closes, rather than keeping the companion from ending."""
+    view = LiveView(columns(4), port=0, flush_interval_s=0.0)
+    view.start()
+    child = view._child
+    assert child is not None and child.pid is not None
+    os.kill(child.pid, signal.SIGSTOP)
+    _rows(view, 1.0, 20)  # the publishing thread now waits on it
+    start = time.monotonic()
+    view.close(timeout_s=0.5)
+    assert time.monotonic() - start < 5.0
+    assert child.pid is None
