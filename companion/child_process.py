@@ -53,6 +53,9 @@ def _recv(f: IO[bytes]) -> Any:
 class ChildObject:
     """``factory(*args)`` (``"module:name"``) built in a child process and called there.
 
+    ``nice``: added to the child's niceness (Unix), so that the scheduler gives
+    the companion's own threads the CPU first when both want it.
+
     Raises
     ------
     OSError
@@ -60,11 +63,11 @@ class ChildObject:
         built; from :meth:`call` if the child failed or ended (it is then ended).
     """
 
-    def __init__(self, factory: str, args: tuple[Any, ...]) -> None:
+    def __init__(self, factory: str, args: tuple[Any, ...], *, nice: int = 0) -> None:
         self._lock = threading.Lock()
         """One exchange at a time: a frame is never interleaved with another's."""
         self._proc: subprocess.Popen[bytes] | None = subprocess.Popen(
-            [sys.executable, "-m", "companion._child"],
+            [sys.executable, "-m", "companion._child", str(int(nice))],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
         )

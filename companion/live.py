@@ -12,7 +12,7 @@ already built for the control log copied into an ``array('d')``, and every
 ``flush_interval_s`` that buffer handed to a bounded queue in one
 non-blocking put. A thread of its own passes the rows to the live view's own
 process (:class:`companion.live_publisher.Publisher`, through
-:mod:`companion.child_process`), which runs the server and formats the
+:mod:`companion.child_process`, run :data:`NICE` nicer), which runs the server and formats the
 messages (JSON, one per topic per sample; topics nobody subscribed to are not
 formatted at all): formatting here would hold the interpreter lock the loop's
 thread needs. Nothing in it waits on a viewer: the SDK keeps each viewer's
@@ -65,6 +65,10 @@ RATE_HZ = 200.0
 """Samples per second the live view sends at most, whatever the IMU's rate (the
 control log keeps every one): a plot on a screen shows no more, and each sample
 costs a JSON object per topic on the companion's computer."""
+NICE = 10
+"""The live view's process runs this much nicer than the companion: when the two
+want the same core, the scheduler gives it to the control loop first (the
+viewer then sees its messages a little later)."""
 _MAX_PENDING_ROWS = 5000
 """Rows waiting for the publishing thread, at most (5 s at 1 kHz); more are dropped."""
 _MAX_PENDING_EVENTS = 1000
@@ -139,7 +143,10 @@ class LiveView:
     flush_interval_s
         Rows are handed to the publishing thread at the first :meth:`append` at
         least this long after the last hand-over: a viewer sees the flight this
-        much late at most, plus its own link.
+        much late at most, plus its own link. Each hand-over wakes the thread,
+        which takes the interpreter for a moment: at 20 a second the viewer's
+        cost to the loop's 99th percentile was 1.07-1.24x (five runs), at 4 a
+        second 1.08-1.14x (four; ``scripts/bench.py loop --viewer``).
     max_rate_hz
         At most this many samples a second are sent (by their ``t_s``); the rest
         are skipped where they come, before any copy.
@@ -153,7 +160,7 @@ class LiveView:
         *,
         host: str = DEFAULT_HOST,
         port: int = 8765,
-        flush_interval_s: float = 0.05,
+        flush_interval_s: float = 0.25,
         max_rate_hz: float = RATE_HZ,
     ) -> None:
         cols = list(columns)
@@ -207,7 +214,9 @@ class LiveView:
         """
         try:
             child = ChildObject(
-                "companion.live_publisher:Publisher", (self._columns, self.host, self._port)
+                "companion.live_publisher:Publisher",
+                (self._columns, self.host, self._port),
+                nice=NICE,
             )
         except OSError as exc:
             raise OSError(f"cannot serve the live view on {self.host}:{self._port}: {exc}") from exc
