@@ -146,7 +146,7 @@ class LiveView:
         much late at most, plus its own link. Each hand-over wakes the thread,
         which takes the interpreter for a moment: at 20 a second the viewer's
         cost to the loop's 99th percentile was 1.07-1.24x (five runs), at 4 a
-        second 1.08-1.14x (four; ``scripts/bench.py loop --viewer``).
+        second 1.03-1.14x (seven; ``scripts/bench.py loop --viewer``).
     max_rate_hz
         At most this many samples a second are sent (by their ``t_s``); the rest
         are skipped where they come, before any copy.
