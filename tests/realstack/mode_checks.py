@@ -9,10 +9,12 @@ measured the same way; these are the bounds:
 * the same stick: the largest tilt and speed within 20 % of the stack's own mode
   (where the stack streams what its mode asks, the speed against that);
 * the holds: horizontal and altitude RMS no worse than 1.5 times the stack's,
-  with 0.1 m allowed for the noise of one short flight (two flights of PX4's own
-  POSCTL measured 0.09 and 0.23 m of altitude RMS); in altitude mode the altitude
-  only, in angle mode none (the throttle is the collective: the altitude is the
-  pilot's).
+  with an allowance for the noise of one short flight: 0.1 m horizontal, 0.2 m
+  of altitude (the stack's own altitude RMS moves that much between flights of
+  the same program: PX4's POSCTL measured 0.09 and 0.23 m, its ALTCTL 0.029,
+  0.029 and 0.235 m, where the companion's altitude mode measured 0.17, 0.065
+  and 0.107 m in the same three runs); in altitude mode the altitude only, in
+  angle mode none (the throttle is the collective: the altitude is the pilot's).
 
 A mission (``sitl/lab/realstack/missions.py``: the same waypoints flown by
 ``--mission`` and by the stack's own mission mode, at the same leg speed, the
@@ -57,7 +59,7 @@ PX4's own switch into STABILIZED measured up to 5.5 deg, the companion's up to 5
 ENGAGE_SAG_MAX_M = 0.2
 SAME_STICK = 0.2
 HOLD_FACTOR = 1.5
-HOLD_NOISE_M = 0.1
+HOLD_NOISE_M = {"hold_rms_m": 0.1, "alt_rms_m": 0.2}
 MISSION_PATH_FACTOR = 2.0
 MISSION_PATH_NOISE_M = 0.2
 _STACK_MISSION = {"px4": "AUTO.MISSION", "ardupilot": "AUTO"}
@@ -94,7 +96,7 @@ def failures(
     # mode holds the altitude only.
     holds = {"angle": (), "altitude": ("alt_rms_m",)}.get(mode, ("hold_rms_m", "alt_rms_m"))
     for key in holds:
-        bound = HOLD_FACTOR * stack[key] + HOLD_NOISE_M
+        bound = HOLD_FACTOR * stack[key] + HOLD_NOISE_M[key]
         if not ours[key] <= bound:
             out.append(f"{key} {ours[key]} against {stack[key]} (bound {bound:.3f})")
     return out
