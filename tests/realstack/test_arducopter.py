@@ -101,12 +101,13 @@ def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
     assert not errs["mfc"]["failsafes"], errs
     # ArduCopter slews a rate setpoint at its ATC_ACCEL_*_MAX: most of the error of a
     # flip is that slew, which no setpoint can change (docs/research/realstack.md).
-    # Roll and pitch are at parity: MFC over pass-through measured 0.93-1.057 over
-    # five full runs of this flight (two cores, some loaded), so a 10 % tie band that
-    # catches a law flying worse, not the spread. Yaw, slower than its shaper, MFC is
-    # ahead in every run (25.1-25.4 against 26.6-26.9 deg/s).
+    # Roll and pitch are at parity: MFC over pass-through measured 0.93-1.105 over ten
+    # full runs of this flight (two cores, some loaded; in the last five the
+    # pass-through's roll 23.0-27.0 deg/s, MFC's 24.9-25.4), so a 15 % tie band that catches
+    # a law flying worse, not the spread (at 10 % one run in ten failed on it). Yaw,
+    # slower than its shaper, MFC is ahead in every run (25.0-25.4 against 26.6-27.0).
     for axis in ("roll", "pitch"):
-        assert errs["mfc"][axis] <= 1.10 * errs["pass-through"][axis], (axis, errs)
+        assert errs["mfc"][axis] <= 1.15 * errs["pass-through"][axis], (axis, errs)
     assert errs["mfc"]["yaw"] < errs["pass-through"]["yaw"], errs
 
 
