@@ -13,8 +13,9 @@ def main() -> int:
     # then closes its input, and this child ends then (or when the companion dies).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    if len(sys.argv) > 1 and int(sys.argv[1]) and hasattr(os, "nice"):
-        os.nice(int(sys.argv[1]))
+    nice = int(sys.argv[1]) if len(sys.argv) > 1 else 0
+    if nice and hasattr(os, "nice"):
+        os.nice(nice)
     # Our frames go out on a private copy of stdout; whatever an import prints goes
     # to stderr instead of into them.
     out = os.fdopen(os.dup(1), "wb")
