@@ -4,7 +4,8 @@ Per sample, in this order:
 
 1. the gyro range gate: a sample beyond the sensor's full scale (5 % over, for
    its own overshoot), or not finite, is not a measurement; the law is given
-   NaN and holds its last output;
+   NaN and holds its last output, and the next valid sample's step counts
+   from the last sample the law flew;
 2. the law (the controller's ``update``);
 3. the last gate on the command: actuator controls, or body rates composed
    from the pilot's rate and the law's correction within the profile's limits.
@@ -89,6 +90,7 @@ class SampleStep:
         "gyro",
         "gyro_limit_rad_s",
         "gyro_valid",
+        "held_dt_s",
         "last_rates_sent",
         "last_thrust_sent",
         "law_ref",
@@ -128,6 +130,9 @@ class SampleStep:
         self.gyro_valid = True
         self.last_thrust_sent = 0.0
         self.dt_s = 0.0
+        self.held_dt_s = 0.0
+        """The time since the last sample the law flew, over the invalid samples
+        since (it holds on them): the next valid sample's step includes it."""
         self.shaper: RateShaper | None = None
         self.law_ref: tuple[float, float, float] = (0.0, 0.0, 0.0)
         """The reference the law was given on the last sample (the pilot's, or
@@ -154,6 +159,7 @@ class SampleStep:
         if self.shaper is not None:
             self.shaper.reset()
         self.last_rates_sent = None
+        self.held_dt_s = 0.0
 
     def sample(
         self,
@@ -168,18 +174,22 @@ class SampleStep:
         :attr:`gyro_valid` whether it was in range."""
         lim = self.gyro_limit_rad_s
         g0, g1, g2 = gyro
+        self.dt_s = dt
+        law_dt = dt
         if -lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim:
             self.gyro_valid = True
+            if self.held_dt_s:
+                law_dt, self.held_dt_s = dt + self.held_dt_s, 0.0
         else:
             self.gyro_valid = False
             gyro = NO_RATES
+            self.held_dt_s += dt
         self.gyro = gyro
-        self.dt_s = dt
         shaper = self.shaper
         if shaper is not None:
             ref = shaper.reference(dt, ref)
         self.law_ref = ref
-        out = self.out = self.controller.update(dt, gyro, ref, thrust)
+        out = self.out = self.controller.update(law_dt, gyro, ref, thrust)
         return out
 
     def actuator_command(
