@@ -1,9 +1,11 @@
 """Malformed MAVLink against the companion and the SITL in flight (``scripts/fuzz.py``).
 
 One short seeded run (a clean flight, then about 3000 cases of every default
-kind over two 3 s flights on the real-time clock; about 35 s of wall time) as a
+kind over four 3 s flights on the real-time clock; about 40 s of wall time) as a
 subprocess, the way a user runs it; its JSON report is the witness. The harness
-and the kinds are described in :mod:`sitl.lab.fuzzing.mavlink`.
+and the kinds are described in :mod:`sitl.lab.fuzzing.mavlink`. Its tracking
+ratios are real-time figures: marked ``alone``, so ``scripts/test --long`` flies
+them after the other long checks, not beside them.
 """
 
 from __future__ import annotations
@@ -14,9 +16,17 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
-from sitl.lab.fuzzing.mavlink import DEFAULT_KINDS, KINDS, StreamState, generate_cases
+from sitl.lab.fuzzing.mavlink import (
+    DEFAULT_KINDS,
+    IMU_PERIOD_US,
+    KINDS,
+    StreamState,
+    generate_cases,
+    late_commands,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 CASES = 3000
@@ -38,6 +48,7 @@ def short_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[int, dict[str, 
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.long
+@pytest.mark.alone
 def test_every_kind_is_sent_and_counted(short_run: tuple[int, dict[str, Any]]) -> None:
     _, report = short_run
     assert report["clean"]["failsafes"] == [] and report["clean"]["crashes"] == []
@@ -53,6 +64,7 @@ def test_every_kind_is_sent_and_counted(short_run: tuple[int, dict[str, Any]]) -
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.long
+@pytest.mark.alone
 def test_no_crash_and_no_nonfinite_command(short_run: tuple[int, dict[str, Any]]) -> None:
     """Neither process dies or logs a traceback, the vehicle does not crash, and every
     setpoint on the wire is finite and in range, whatever arrived."""
@@ -67,6 +79,7 @@ def test_no_crash_and_no_nonfinite_command(short_run: tuple[int, dict[str, Any]]
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.long
+@pytest.mark.alone
 def test_garbage_without_a_valid_imu_sample_costs_no_failsafe_and_no_tracking(
     short_run: tuple[int, dict[str, Any]],
 ) -> None:
@@ -83,3 +96,29 @@ def test_the_same_seed_makes_the_same_cases() -> None:
         assert a == generate_cases(7, kind, 40, st), kind
         assert a != generate_cases(8, kind, 40, st), kind
         assert {c.path for c in a} <= set(KINDS[kind].paths)
+
+
+def _sitl_log(path: Path, delays_steps: list[int]) -> Path:
+    """A SITL log at 1 kHz with IMU samples every 4 steps, each answered by a new
+    motor command ``delays_steps[i]`` steps after its sample."""
+    n = 4 * len(delays_steps) + 800
+    t = np.arange(n) * 1e-3
+    imu_idx = np.arange(0, 4 * len(delays_steps), 4) + 200
+    cmd = np.zeros((n, 4))
+    level = 0.0
+    for i, d in zip(imu_idx, delays_steps, strict=True):
+        level += 0.01
+        cmd[i + d :] = level
+    np.savez(path, t_s=t, motor_cmd=cmd, imu_t_s=t[imu_idx])
+    return path
+
+
+def test_late_commands_counts_answers_past_the_next_sample(tmp_path: Path) -> None:
+    assert IMU_PERIOD_US == 4000
+    on_time = _sitl_log(tmp_path / "a.npz", [4] * 300)
+    assert late_commands(on_time) == 0
+    delays = [4] * 300
+    for i in (100, 150, 200):
+        delays[i] = 7  # the answer lands 3 ms after the next sample
+    assert late_commands(_sitl_log(tmp_path / "b.npz", delays)) == 3
+    assert late_commands(tmp_path / "missing.npz") is None
