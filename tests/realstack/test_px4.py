@@ -99,8 +99,14 @@ def test_mfc_flies_px4s_rate_loop_better_than_passing_the_pilots_rates(
     errs = fly_rates_pair(px4, RATES, seed=11)
     assert not errs["mfc"]["failsafes"] and not errs["pass-through"]["failsafes"], errs
     figures.append({"test": "px4 rates acro-mixed seed 11 MAE deg/s", **errs})
-    for axis in ("roll", "pitch", "yaw"):
+    # Roll and pitch, MFC is well ahead (0.80-0.93 of pass-through over six runs).
+    # Yaw is at parity: 0.964-1.000 over the same six (two cores), the pass-through's
+    # yaw alone 28.47-29.12 deg/s between runs, and one run in six tied to the
+    # hundredth (28.47 and 28.47), so a 5 % tie band that catches a law flying worse,
+    # not the spread (docs/research/realstack.md).
+    for axis in ("roll", "pitch"):
         assert errs["mfc"][axis] < errs["pass-through"][axis], (axis, errs)
+    assert errs["mfc"]["yaw"] <= 1.05 * errs["pass-through"]["yaw"], errs
 
 
 def test_the_control_log_lines_up_with_px4s_ulog(
