@@ -9,9 +9,7 @@ the interpreter lock its control loop needs.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import threading
 import time
 from collections.abc import Sequence
@@ -19,7 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
+from companion.records.topics import (
+    EVENTS_TOPIC,
+    TopicFormat,
+    event_json,
+    event_schema,
+    stamps_ns,
+    topics,
+)
 
 __all__ = ["Publisher"]
 
@@ -66,45 +71,6 @@ def _sdk_logging() -> None:
             _sdk_logging_on = True
 
 
-def _ns(t_s: float) -> int:
-    """Seconds as whole nanoseconds (the log time); 0 for NaN or negative."""
-    if not (math.isfinite(t_s) and t_s >= 0.0):
-        return 0
-    return round(min(t_s, 1.8e10) * 1e9)
-
-
-class _Formatter:
-    """One topic's messages from its columns: JSON objects, ``null`` for non-finite."""
-
-    def __init__(self, tp: Topic) -> None:
-        self.topic = tp
-        self.full = "{" + ",".join(f'"{f}":%.17g' for f in tp.fields) + "}"
-
-    def messages(self, data: np.ndarray) -> list[str | None]:
-        vals = data[:, self.topic.columns]
-        finite = np.isfinite(vals)
-        rows = vals.tolist()
-        whole = finite.all(axis=1).tolist()
-        some = finite.any(axis=1).tolist()
-        out: list[str | None] = []
-        fields = self.topic.fields
-        for r, row in enumerate(rows):
-            if whole[r]:
-                out.append(self.full % tuple(row))
-            elif self.topic.sparse and not some[r]:
-                out.append(None)  # nothing to say on this topic for this sample
-            else:
-                out.append(
-                    "{"
-                    + ",".join(
-                        f'"{f}":{v!r}' if math.isfinite(v) else f'"{f}":null'
-                        for f, v in zip(fields, row, strict=True)
-                    )
-                    + "}"
-                )
-        return out
-
-
 class Publisher:
     """The server at ``host``:``port`` (0: any free one, :meth:`port` says which),
     a channel per topic of the control log's ``columns``, and the messages'
@@ -139,7 +105,7 @@ class Publisher:
         for tp in topics(cols):
             schema = foxglove.Schema(name=tp.schema_name, encoding="jsonschema", data=tp.schema())
             ch = foxglove.Channel(tp.name, schema=schema, message_encoding="json", context=ctx)
-            self._channels.append((ch, _Formatter(tp)))
+            self._channels.append((ch, TopicFormat(tp)))
         schema = foxglove.Schema(name="mfc.event", encoding="jsonschema", data=event_schema())
         self._events_channel = foxglove.Channel(
             EVENTS_TOPIC, schema=schema, message_encoding="json", context=ctx
@@ -172,7 +138,7 @@ class Publisher:
     def _publish(self, rows: bytes, n: int, events: list[dict[str, Any]]) -> None:
         data = np.frombuffer(rows, dtype=np.float64)[: n * self.n_columns]
         data = data.reshape(n, self.n_columns)
-        t_ns = [_ns(t) for t in data[:, self._t].tolist()] if self._t is not None else [0] * n
+        t_ns = stamps_ns(data[:, self._t]) if self._t is not None else [0] * n
         for ch, fmt in self._channels:
             if not ch.has_sinks():
                 continue
@@ -184,12 +150,9 @@ class Publisher:
         if events and ch.has_sinks():
             for ev in events:
                 t = ev.get("t_s")
-                lt = _ns(float(t)) if isinstance(t, int | float) else (t_ns[-1] if n else 0)
-                safe = {
-                    k: None if isinstance(v, float) and not math.isfinite(v) else v
-                    for k, v in ev.items()
-                }
-                ch.log(json.dumps(safe, default=str), log_time=lt)
+                last = t_ns[-1] if n else 0
+                lt = stamps_ns(np.array([float(t)]))[0] if isinstance(t, int | float) else last
+                ch.log(event_json(ev), log_time=lt)
                 self.published += 1
 
     def close(self) -> None:

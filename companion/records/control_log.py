@@ -27,7 +27,15 @@ import numpy as np
 
 from companion.records.encoder_process import ProcessEncoder
 from companion.records.sink import BufferedLog, Sink
-from companion.records.topics import EVENTS_TOPIC, Topic, event_schema, topics
+from companion.records.topics import (
+    EVENTS_TOPIC,
+    Topic,
+    TopicFormat,
+    event_json,
+    event_schema,
+    stamps_ns,
+    topics,
+)
 from companion.records.writer import Encoder, RecordWriter
 
 __all__ = ["FORMAT", "ControlLog", "last_sample_time", "read_control_log"]
@@ -101,12 +109,6 @@ class _Tail:
         return out
 
 
-def _ns(values: np.ndarray) -> list[int]:
-    """Seconds as whole nanoseconds (what MCAP stamps are); 0 for NaN or negative."""
-    v = np.where(np.isfinite(values) & (values >= 0.0), values, 0.0)
-    return np.rint(np.minimum(v, 1.8e10) * 1e9).astype(np.int64).tolist()  # type: ignore[no-any-return]
-
-
 class _McapEncoder:
     """Rows and events to MCAP bytes; every method but the constructor runs on the
     writer's thread, one call at a time (:class:`companion.records.writer.Encoder`)."""
@@ -142,7 +144,7 @@ class _McapEncoder:
             self._channels.append(self._w.register_channel(tp.name, "json", sid))
         sid = self._w.register_schema("mfc.event", "jsonschema", event_schema())
         self._events_channel = self._w.register_channel(EVENTS_TOPIC, "json", sid)
-        self._templates: list[dict[int, tuple[str, list[int]] | None]] = [{} for _ in self._topics]
+        self._formats = [TopicFormat(tp) for tp in self._topics]
         self._row = 0
         self._n_events = 0
         self._writer = writer
@@ -150,45 +152,6 @@ class _McapEncoder:
     def header(self) -> bytes:
         """The bytes written so far: the magic, the header, the metadata."""
         return self._out.take()
-
-    @staticmethod
-    def _template(
-        tp: Topic, templates: dict[int, tuple[str, list[int]] | None], code: int
-    ) -> tuple[str, list[int]] | None:
-        """``tp``'s message for rows whose special fields are the bits of ``code``
-        (bit i: field i is not finite, written ``null``; bit k + i, for k fields:
-        it is -0.0, which ``%.17g`` would write as ``-0``, an integer zero): a
-        %-format and the fields it takes; None for a sparse topic's row with
-        nothing finite."""
-        k = len(tp.fields)
-        if tp.sparse and code == (1 << k) - 1:
-            templates[code] = None
-            return None
-        parts, keep = [], []
-        for i, name in enumerate(tp.fields):
-            if code >> i & 1:
-                parts.append(f'"{name}":null')
-            elif code >> (k + i) & 1:
-                parts.append(f'"{name}":-0.0')
-            else:
-                parts.append(f'"{name}":%.17g')
-                keep.append(i)
-        made = ("{" + ",".join(parts) + "}", keep)
-        templates[code] = made
-        return made
-
-    def _fields(self, data: np.ndarray) -> list[tuple[list[int], list[list[float]]]]:
-        """Per topic, each row's special fields (as the bits :meth:`_template`
-        reads) and its values."""
-        out = []
-        for tp in self._topics:
-            vals = data[:, tp.columns]
-            k = len(tp.fields)
-            weights = 1 << np.arange(k, dtype=np.int64)
-            special = ~np.isfinite(vals) * weights
-            special += ((vals == 0.0) & np.signbit(vals)) * (weights << k)
-            out.append((special.sum(axis=1).tolist(), vals.tolist()))
-        return out
 
     def encode(self, batch: _Batch) -> bytes:
         """Rows and events to one MCAP chunk (and its index).
@@ -203,9 +166,9 @@ class _McapEncoder:
         data = np.frombuffer(batch.rows, dtype=np.float64)
         n = len(data) // n_cols
         data = data[: n * n_cols].reshape(n, n_cols)
-        t_ns = _ns(data[:, self._t]) if self._t is not None else [0] * n
-        wall_ns = _ns(data[:, self._wall]) if self._wall is not None else t_ns
-        per_topic = list(zip(self._channels, self._topics, self._fields(data), self._templates))
+        t_ns = stamps_ns(data[:, self._t]) if self._t is not None else [0] * n
+        wall_ns = stamps_ns(data[:, self._wall]) if self._wall is not None else t_ns
+        per_topic = [(ch, fm, *fm.codes(data)) for ch, fm in zip(self._channels, self._formats)]
         add = self._w.add_message
         clock = time.perf_counter
         deadline = clock() + _SLICE_S
@@ -217,9 +180,9 @@ class _McapEncoder:
                 deadline = clock() + _SLICE_S
             seq = (self._row + r) & 0xFFFFFFFF
             lt, pt = t_ns[r], wall_ns[r]
-            for ch, tp, (codes, rows), templates in per_topic:
+            for ch, fm, codes, rows in per_topic:
                 code = codes[r]
-                tmpl = templates[code] if code in templates else self._template(tp, templates, code)
+                tmpl = fm.templates[code] if code in fm.templates else fm.template(code)
                 if tmpl is None:
                     continue  # a sparse topic with nothing to say
                 fmt, keep = tmpl
@@ -232,18 +195,13 @@ class _McapEncoder:
         return self._out.take()
 
     def _add_events(self, events: list[dict[str, Any]], last_ns: int | None) -> None:
-        import json
-
         for ev in events:
             t = ev.get("t_s")
-            lt = _ns(np.array([float(t)]))[0] if isinstance(t, int | float) else (last_ns or 0)
+            lt = stamps_ns(np.array([float(t)]))[0] if isinstance(t, int | float) else last_ns or 0
             wall = ev.get("wall")
-            pt = _ns(np.array([float(wall)]))[0] if isinstance(wall, int | float) else lt
-            body = json.dumps(ev, default=str, allow_nan=False) if _finite(ev) else None
-            if body is None:
-                body = json.dumps({k: _json_safe(v) for k, v in ev.items()}, default=str)
+            pt = stamps_ns(np.array([float(wall)]))[0] if isinstance(wall, int | float) else lt
             self._w.add_message(
-                self._events_channel, lt, body.encode(), pt, self._n_events & 0xFFFFFFFF
+                self._events_channel, lt, event_json(ev).encode(), pt, self._n_events & 0xFFFFFFFF
             )
             self._n_events += 1
 
@@ -251,14 +209,6 @@ class _McapEncoder:
         """The summary (schemas, channels, statistics, chunk indexes) and the footer."""
         self._w.finish()  # type: ignore[no-untyped-call]
         return self._out.take()
-
-
-def _finite(ev: dict[str, Any]) -> bool:
-    return all(not isinstance(v, float) or math.isfinite(v) for v in ev.values())
-
-
-def _json_safe(v: Any) -> Any:
-    return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
 class ControlLog(BufferedLog):

@@ -10,13 +10,26 @@ these two functions, so a new column is added in one place.
 from __future__ import annotations
 
 import json
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
 
 from companion.control import AXES
 
-__all__ = ["EVENTS_TOPIC", "Topic", "columns", "event_schema", "topics"]
+__all__ = [
+    "EVENTS_TOPIC",
+    "Topic",
+    "TopicFormat",
+    "columns",
+    "event_json",
+    "event_schema",
+    "stamps_ns",
+    "topics",
+]
 
 EVENTS_TOPIC = "/events"
 """The topic the run's events go to (as ``events.jsonl`` has them)."""
@@ -221,3 +234,81 @@ def event_schema() -> bytes:
         },
     }
     return json.dumps(doc).encode()
+
+
+def stamps_ns(seconds: np.ndarray) -> list[int]:
+    """Seconds as whole nanoseconds (the messages' log time, in MCAP and in the
+    live view); 0 for NaN or negative."""
+    v = np.where(np.isfinite(seconds) & (seconds >= 0.0), seconds, 0.0)
+    return np.rint(np.minimum(v, 1.8e10) * 1e9).astype(np.int64).tolist()  # type: ignore[no-any-return]
+
+
+class TopicFormat:
+    """One topic's JSON messages from its columns, as the log and the live view
+    both write them.
+
+    A row's *code* says which of its fields are special (:meth:`codes`): bit i,
+    field i is not finite (written ``null``); bit k + i, for k fields, it is
+    -0.0 (which ``%.17g`` would write as ``-0``, an integer zero). Each code
+    gets a %-template once (:meth:`template`); a row is then one %-format.
+    """
+
+    __slots__ = ("templates", "topic")
+
+    def __init__(self, tp: Topic) -> None:
+        self.topic = tp
+        self.templates: dict[int, tuple[str, list[int]] | None] = {}
+        """The templates made so far, by code."""
+
+    def codes(self, data: np.ndarray) -> tuple[list[int], list[list[float]]]:
+        """Each row's code and values, for this topic's columns of ``data``."""
+        vals = data[:, self.topic.columns]
+        k = len(self.topic.fields)
+        weights = 1 << np.arange(k, dtype=np.int64)
+        special = ~np.isfinite(vals) * weights
+        special += ((vals == 0.0) & np.signbit(vals)) * (weights << k)
+        return special.sum(axis=1).tolist(), vals.tolist()
+
+    def template(self, code: int) -> tuple[str, list[int]] | None:
+        """The message for rows with ``code``: a %-format and the fields it
+        takes; None for a sparse topic's row with nothing finite."""
+        if code in self.templates:
+            return self.templates[code]
+        tp = self.topic
+        k = len(tp.fields)
+        made: tuple[str, list[int]] | None = None
+        if not (tp.sparse and code == (1 << k) - 1):
+            parts, keep = [], []
+            for i, name in enumerate(tp.fields):
+                if code >> i & 1:
+                    parts.append(f'"{name}":null')
+                elif code >> (k + i) & 1:
+                    parts.append(f'"{name}":-0.0')
+                else:
+                    parts.append(f'"{name}":%.17g')
+                    keep.append(i)
+            made = ("{" + ",".join(parts) + "}", keep)
+        self.templates[code] = made
+        return made
+
+    def messages(self, data: np.ndarray) -> list[str | None]:
+        """Every row's message (None: a sparse topic with nothing to say)."""
+        codes, rows = self.codes(data)
+        out: list[str | None] = []
+        for code, row in zip(codes, rows, strict=True):
+            tmpl = self.template(code)
+            if tmpl is None:
+                out.append(None)
+            else:
+                fmt, keep = tmpl
+                out.append(fmt % (tuple(row) if not code else tuple(row[i] for i in keep)))
+        return out
+
+
+def event_json(ev: dict[str, Any]) -> str:
+    """An event as a JSON object: non-finite numbers ``null``, anything else
+    JSON cannot hold as its ``str``."""
+    if all(not isinstance(v, float) or math.isfinite(v) for v in ev.values()):
+        return json.dumps(ev, default=str, allow_nan=False)
+    safe = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in ev.items()}
+    return json.dumps(safe, default=str)
