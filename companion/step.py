@@ -178,8 +178,8 @@ class SampleStep:
         law_dt = dt
         if -lim <= g0 <= lim and -lim <= g1 <= lim and -lim <= g2 <= lim:
             self.gyro_valid = True
-            if self.held_dt_s:
-                law_dt, self.held_dt_s = dt + self.held_dt_s, 0.0
+            if self.held_dt_s:  # (a step of 0 primes the law: it stays 0)
+                law_dt, self.held_dt_s = (dt + self.held_dt_s if dt > 0.0 else 0.0), 0.0
         else:
             self.gyro_valid = False
             gyro = NO_RATES

@@ -168,3 +168,24 @@ def test_an_invalid_sample_between_two_valid_ones_changes_no_command_of_theirs()
     step counts from the last valid one, not from the NaN's stamp (found by
     ``scripts/fuzz.py``: NaN samples between real ones cost 1.23-1.39x roll MAE)."""
     assert _commands(nan_between=True) == _commands(nan_between=False)
+
+
+def test_the_law_is_given_the_time_since_the_last_sample_it_flew() -> None:
+    """The steps the law is given, around invalid samples: their time is carried
+    to the next valid sample, except to a priming one (step 0), which stays 0."""
+    from companion.step import SampleStep
+
+    class Law:
+        def __init__(self) -> None:
+            self.steps: list[float] = []
+
+        def update(self, dt: float, *_: object) -> None:
+            self.steps.append(dt)
+
+    law = Law()
+    step = SampleStep(law, PROFILE)  # type: ignore[arg-type]
+    nan, ok = (float("nan"), 0.0, 0.0), (0.1, 0.0, 0.0)
+    for dt, gyro in ((0.0, ok), (0.004, ok), (0.001, nan), (0.003, ok), (0.004, nan), (0.0, ok)):
+        step.sample(dt, gyro, (0.0, 0.0, 0.0), 0.5)
+    assert law.steps == [0.0, 0.004, 0.001, 0.004, 0.004, 0.0]
+    assert step.held_dt_s == 0.0
