@@ -535,21 +535,34 @@ def _frame_pool(make: Callable[[np.random.Generator], bytes], seed: int) -> list
     return [make(rng) for _ in range(256)]
 
 
-class Huge(CaseKind):
-    name, target, paths = "huge", "companion", _TO_COMPANION
-    description = "10-60 kB datagrams: random, frame-start junk, or other systems' frames"
+class _HugeKind(CaseKind):
+    """10-60 kB datagrams drawn from a pool of frames built once (:meth:`prepare`)."""
+
+    pool_seed: int
 
     def __init__(self) -> None:
-        self._pool: list[bytes] | None = None
+        self._pool: list[bytes] = []
+
+    @abc.abstractmethod
+    def frame(self, rng: np.random.Generator) -> bytes:
+        """One frame of the pool."""
 
     def prepare(self) -> None:
-        if self._pool is None:
-            self._pool = _frame_pool(lambda r: _foreign_to_companion(r, StreamState()), 1)
+        if not self._pool:
+            self._pool = _frame_pool(self.frame, self.pool_seed)
 
     def datagrams(self, rng: np.random.Generator, st: StreamState) -> list[bytes]:
         self.prepare()
-        assert self._pool is not None
         return [_huge(rng, self._pool)]
+
+
+class Huge(_HugeKind):
+    name, target, paths = "huge", "companion", _TO_COMPANION
+    description = "10-60 kB datagrams: random, frame-start junk, or other systems' frames"
+    pool_seed = 1
+
+    def frame(self, rng: np.random.Generator) -> bytes:
+        return _foreign_to_companion(rng, StreamState())
 
 
 class SpoofedHeartbeat(CaseKind):
@@ -630,21 +643,13 @@ class SitlBadCrc(CaseKind):
         return [_corrupt(frame, rng)]
 
 
-class SitlHuge(CaseKind):
+class SitlHuge(_HugeKind):
     name, target, paths = "sitl_huge", "sitl", _TO_SITL
     description = "10-60 kB datagrams into the SITL's port"
+    pool_seed = 2
 
-    def __init__(self) -> None:
-        self._pool: list[bytes] | None = None
-
-    def prepare(self) -> None:
-        if self._pool is None:
-            self._pool = _frame_pool(_foreign_to_sitl, 2)
-
-    def datagrams(self, rng: np.random.Generator, st: StreamState) -> list[bytes]:
-        self.prepare()
-        assert self._pool is not None
-        return [_huge(rng, self._pool)]
+    def frame(self, rng: np.random.Generator) -> bytes:
+        return _foreign_to_sitl(rng)
 
 
 class SitlForeign(CaseKind):
