@@ -52,13 +52,17 @@ TARGETS = {"uart": 1.1, "usb-serial": 1.1, "delay_ms=10": 1.25}
 
 
 def fly_through(
-    job: tuple[str, str, float | None, int | None], output: str = "actuator"
+    job: tuple[str, str, float | None, int | None],
+    output: str = "actuator",
+    passthrough: bool = False,
 ) -> dict[str, Any]:
     """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
     scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
     gyro reports it; a link: one round trip late), deg/s; whether it crashed, and
     the failsafes that ended it early (the MAE then covers the flight up to them).
-    ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring)."""
+    ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring);
+    ``passthrough`` (rates only): the pilot's rates passed through instead of
+    MFC's, their MAE under the same key."""
     from companion.config import load_controller
     from companion.errors import EXIT_FAILSAFE, EXIT_OK
     from companion.profile import load_profile
@@ -68,6 +72,8 @@ def fly_through(
     from sitl.lab.simulate import simulate_flight
 
     vehicle, link, duration_s, seed = job
+    if passthrough and output != "rates":
+        raise ValueError(f"passthrough: needs output 'rates' (got {output!r})")
     path = ROOT / "vehicle_profiles" / f"{vehicle}.yaml"
     profile = load_profile(path)
     sc = paper_scenario(duration_s, None if link == "ideal" else link)
@@ -82,6 +88,7 @@ def fly_through(
             flight = fly_mavlink(
                 path, SCENARIO, tmp, controller_path=RATES_CONTROLLER, output="rates",
                 duration_s=duration_s, seed=sc.seed, link=sc.link,
+                companion_args=["--rates-passthrough"] if passthrough else [],
             )  # fmt: skip
             if flight.companion_rc not in (EXIT_OK, EXIT_FAILSAFE):
                 raise RuntimeError(f"{vehicle} through {link}: {flight.why()}")
@@ -98,6 +105,7 @@ def fly_through(
         "vehicle": vehicle,
         "link": link,
         "seed": sc.seed,
+        "controller": "passthrough" if passthrough else "mfc",
         "crashed": bool(metrics["crashed"]),
         "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
@@ -155,8 +163,9 @@ def _mean(flights: list[dict[str, Any]], key: str, axis: str) -> float:
 
 def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
     """The table; MAE columns the mean over the seeds."""
+    flown = "pass-through" if any(f.get("controller") == "passthrough" for f in flights) else "MFC"
     lines = [
-        "| vehicle | link | MFC roll / pitch / yaw | tracker roll / pitch "
+        f"| vehicle | link | {flown} roll / pitch / yaw | tracker roll / pitch "
         "| cost roll / pitch | per seed (roll; pitch) | target | yaw / ideal link's | met |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -207,7 +216,15 @@ def main(argv: list[str] | None = None) -> int:
         help="actuator: the flight core in process (default); rates: mfc_rates.yaml to the "
         "SITL's rate loop over MAVLink",
     )
+    ap.add_argument(
+        "--passthrough",
+        action="store_true",
+        help="with --output rates: pass the pilot's rates through instead of flying MFC "
+        "(the autopilot's own rate loop on the same flights)",
+    )
     args = ap.parse_args(argv)
+    if args.passthrough and args.output != "rates":
+        ap.error(f"--passthrough: needs --output rates (got --output {args.output})")
     if args.workers < 1:
         ap.error(f"--workers: expected at least 1, got {args.workers}")
     if args.seeds < 1:
@@ -223,7 +240,9 @@ def main(argv: list[str] | None = None) -> int:
         for link in LINKS
     ]
     with ProcessPoolExecutor(args.workers) as pool:
-        flights = list(pool.map(fly_through, jobs, [args.output] * len(jobs)))
+        flights = list(
+            pool.map(fly_through, jobs, [args.output] * len(jobs), [args.passthrough] * len(jobs))
+        )
     rows = cost_table(flights)
     print(_markdown(flights, rows))
     unmet = [r for r in rows if not r["met"]]
@@ -231,7 +250,16 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "link_limit.json").write_text(
-            json.dumps({"output": args.output, "flights": flights, "costs": rows}, indent=2) + "\n",
+            json.dumps(
+                {
+                    "output": args.output,
+                    "controller": "passthrough" if args.passthrough else "mfc",
+                    "flights": flights,
+                    "costs": rows,
+                },
+                indent=2,
+            )
+            + "\n",
             encoding="utf-8",
         )
     return 0

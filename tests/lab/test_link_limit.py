@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sitl.lab.link_limit import cost_table, fly_through
+from sitl.lab.link_limit import cost_table, fly_through, main
 
 
 def _flight(link: str, mfc: tuple[float, float, float], tracker: tuple[float, float]) -> dict:
@@ -73,3 +73,25 @@ def test_a_flight_a_failsafe_ended_is_never_within_target() -> None:
     (row,) = cost_table(flights)
     assert row["cost"] == {"roll": 1.0, "pitch": 1.0}
     assert row["failsafes"] and not row["met"]
+
+
+def test_passthrough_needs_the_rates_output(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["--passthrough"])
+    assert exit_.value.code == 2
+    assert "--passthrough: needs --output rates (got --output actuator)" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="needs output 'rates'"):
+        fly_through(("f450", "ideal", 1.0, None), "actuator", passthrough=True)
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_passthrough_flight_is_the_autopilots_own_rate_loop_on_the_same_flight() -> None:
+    """``--passthrough``: the same seed and link, the pilot's rates sent as they
+    are; lockstep makes each flight repeatable, so a different MAE is a
+    different controller."""
+    mfc = fly_through(("f450", "ideal", 6.0, None), "rates")
+    passed = fly_through(("f450", "ideal", 6.0, None), "rates", passthrough=True)
+    assert (mfc["controller"], passed["controller"]) == ("mfc", "passthrough")
+    assert not passed["crashed"]
+    assert passed["mfc_deg_s"] != mfc["mfc_deg_s"]
