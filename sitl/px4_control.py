@@ -127,15 +127,20 @@ class RateControl:
     """
 
     def __init__(self, gains: Sequence[Px4AxisGains] = PX4_V116_RATE_GAINS) -> None:
+        self.set_gains(gains)
+        self._int = [0.0, 0.0, 0.0]
+        self._sat_pos = (False, False, False)
+        self._sat_neg = (False, False, False)
+
+    def set_gains(self, gains: Sequence[Px4AxisGains]) -> None:
+        """New gains; the integrator is kept (PX4's ``parameters_updated``)."""
         g = tuple(gains)
+        self.gains = g
         self.kp = tuple(a.k * a.p for a in g)
         self.ki = tuple(a.k * a.i for a in g)
         self.kd = tuple(a.k * a.d for a in g)
         self.kff = tuple(a.ff for a in g)
         self.int_lim = tuple(a.int_lim for a in g)
-        self._int = [0.0, 0.0, 0.0]
-        self._sat_pos = (False, False, False)
-        self._sat_neg = (False, False, False)
 
     @property
     def integral(self) -> Vec3:

@@ -130,6 +130,7 @@ def test_defaults_are_px4s() -> None:
         "NAV_RCL_ACT": 2, "COM_RCL_EXCEPT": 0, "COM_RC_IN_MODE": 3, "NAV_DLL_ACT": 0,
         "COM_DL_LOSS_T": 10, "MAV_SYS_ID": 1, "MAV_COMP_ID": 1, "RC_MAP_ROLL": 0,
         "RC_MAP_FLTMODE": 0, "IMU_GYRO_RATEMAX": 400, "MAV_0_RATE": 1200, "MAV_1_MODE": 2,
+        "MC_ROLLRATE_K": 1.0, "MC_PITCHRATE_K": 1.0, "MC_YAWRATE_K": 1.0,
     }  # fmt: skip
     assert {k: p[k] for k in defaults} == pytest.approx(defaults)
     assert "COM_OBL_ACT" not in Px4Params(FirmwareVersion(1, 14, 0))  # gone in 1.14
@@ -210,6 +211,31 @@ def test_com_of_loss_t_set_over_mavlink_moves_the_offboard_failsafe(
     (ack,) = client.params(face)
     assert ack.param_value == pytest.approx(0.3)
     assert offboard_loss_after(face.autopilot) == pytest.approx(0.3, abs=0.06)
+
+
+def test_the_rate_loops_gain_set_over_mavlink_scales_its_p_i_and_d(
+    face: Px4Face, client: Client
+) -> None:
+    control = face.autopilot.rate_pid.control
+    before = (control.kp, control.ki, control.kd, control.kff)
+    control._int = [0.1, -0.1, 0.05]
+    client.mav.param_set_send(1, 1, b"MC_PITCHRATE_K", 2.5, PARAM_REAL32)
+    (ack,) = client.params(face)
+    assert ack.param_id == "MC_PITCHRATE_K" and ack.param_value == pytest.approx(2.5)
+    for now, was in zip((control.kp, control.ki, control.kd), before[:3], strict=True):
+        assert now == pytest.approx((was[0], 2.5 * was[1], was[2]))
+    assert control.kff == before[3]
+    assert control.integral == pytest.approx((0.1, -0.1, 0.05))  # kept, as PX4 does
+
+
+def test_the_rate_loops_gain_at_boot(profile: VehicleProfile) -> None:
+    cfg = RunConfig(
+        mavlink=parse_endpoint("udpout:127.0.0.1:9"),
+        px4_params=(("MC_ROLLRATE_K", 2.0), ("MC_YAWRATE_K", 0.5)),
+    )
+    control = Runner(profile, cfg).autopilot.rate_pid.control
+    assert control.kp == pytest.approx((0.3, 0.15, 0.1))
+    assert control.ki == pytest.approx((0.4, 0.2, 0.05))
 
 
 def test_com_of_loss_t_and_offboard_timeout_are_the_same(profile: VehicleProfile) -> None:
