@@ -19,12 +19,18 @@ figure is the ratio to the ideal link's.
 With ``--output rates`` each flight is the companion sending body rates
 (``mfc_rates.yaml``) to the SITL's PX4 rate loop, over MAVLink in lockstep
 (:func:`sitl.lab.fly.fly_mavlink`, the SITL modelling the link): the
-autopilot's rate loop is in the plant, the tracker the same.
+autopilot's rate loop is in the plant, the tracker the same. With
+``--passthrough`` as well, the companion passes the pilot's rates through
+(``companion run --rates-passthrough``): what the autopilot's own rate loop
+makes of the same flights and links, judged the same way. ``--sitl-param
+NAME=VALUE`` (rates only, repeatable) sets a parameter of the SITL's PX4 at
+boot (``sitl run --param``), e.g. its rate loop's gain ``MC_ROLLRATE_K``.
 
 Run::
 
     python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S] [--seeds N]
-                                  [--output actuator|rates]
+                                  [--output actuator|rates] [--passthrough]
+                                  [--sitl-param NAME=VALUE ...]
 
 prints a Markdown table (with ``--seeds``, each cost the mean of the seeds')
 and writes ``link_limit.json`` to ``--out``.
@@ -55,6 +61,7 @@ def fly_through(
     job: tuple[str, str, float | None, int | None],
     output: str = "actuator",
     passthrough: bool = False,
+    sitl_params: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
     scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
@@ -62,7 +69,8 @@ def fly_through(
     the failsafes that ended it early (the MAE then covers the flight up to them).
     ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring);
     ``passthrough`` (rates only): the pilot's rates passed through instead of
-    MFC's, their MAE under the same key."""
+    MFC's, their MAE under the same key; ``sitl_params`` (rates only): the
+    SITL's ``--param NAME=VALUE`` at boot."""
     from companion.config import load_controller
     from companion.errors import EXIT_FAILSAFE, EXIT_OK
     from companion.profile import load_profile
@@ -72,8 +80,9 @@ def fly_through(
     from sitl.lab.simulate import simulate_flight
 
     vehicle, link, duration_s, seed = job
-    if passthrough and output != "rates":
-        raise ValueError(f"passthrough: needs output 'rates' (got {output!r})")
+    if (passthrough or sitl_params) and output != "rates":
+        what = "passthrough" if passthrough else "sitl_params"
+        raise ValueError(f"{what}: needs output 'rates' (got {output!r})")
     path = ROOT / "vehicle_profiles" / f"{vehicle}.yaml"
     profile = load_profile(path)
     sc = paper_scenario(duration_s, None if link == "ideal" else link)
@@ -89,6 +98,7 @@ def fly_through(
                 path, SCENARIO, tmp, controller_path=RATES_CONTROLLER, output="rates",
                 duration_s=duration_s, seed=sc.seed, link=sc.link,
                 companion_args=["--rates-passthrough"] if passthrough else [],
+                sitl_args=[a for p in sitl_params for a in ("--param", p)],
             )  # fmt: skip
             if flight.companion_rc not in (EXIT_OK, EXIT_FAILSAFE):
                 raise RuntimeError(f"{vehicle} through {link}: {flight.why()}")
@@ -106,6 +116,7 @@ def fly_through(
         "link": link,
         "seed": sc.seed,
         "controller": "passthrough" if passthrough else "mfc",
+        "sitl_params": list(sitl_params),
         "crashed": bool(metrics["crashed"]),
         "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
@@ -222,9 +233,18 @@ def main(argv: list[str] | None = None) -> int:
         help="with --output rates: pass the pilot's rates through instead of flying MFC "
         "(the autopilot's own rate loop on the same flights)",
     )
+    ap.add_argument(
+        "--sitl-param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="with --output rates: a parameter of the SITL's PX4 at boot (repeatable), "
+        "e.g. MC_ROLLRATE_K=2",
+    )
     args = ap.parse_args(argv)
-    if args.passthrough and args.output != "rates":
-        ap.error(f"--passthrough: needs --output rates (got --output {args.output})")
+    for flag, given in (("--passthrough", args.passthrough), ("--sitl-param", args.sitl_param)):
+        if given and args.output != "rates":
+            ap.error(f"{flag}: needs --output rates (got --output {args.output})")
     if args.workers < 1:
         ap.error(f"--workers: expected at least 1, got {args.workers}")
     if args.seeds < 1:
@@ -240,8 +260,10 @@ def main(argv: list[str] | None = None) -> int:
         for link in LINKS
     ]
     with ProcessPoolExecutor(args.workers) as pool:
+        n = len(jobs)
+        params = tuple(args.sitl_param)
         flights = list(
-            pool.map(fly_through, jobs, [args.output] * len(jobs), [args.passthrough] * len(jobs))
+            pool.map(fly_through, jobs, [args.output] * n, [args.passthrough] * n, [params] * n)
         )
     rows = cost_table(flights)
     print(_markdown(flights, rows))
@@ -254,6 +276,7 @@ def main(argv: list[str] | None = None) -> int:
                 {
                     "output": args.output,
                     "controller": "passthrough" if args.passthrough else "mfc",
+                    "sitl_params": args.sitl_param,
                     "flights": flights,
                     "costs": rows,
                 },

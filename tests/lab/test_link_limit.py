@@ -95,3 +95,18 @@ def test_a_passthrough_flight_is_the_autopilots_own_rate_loop_on_the_same_flight
     assert (mfc["controller"], passed["controller"]) == ("mfc", "passthrough")
     assert not passed["crashed"]
     assert passed["mfc_deg_s"] != mfc["mfc_deg_s"]
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_sitl_param_reaches_the_autopilots_rate_loop() -> None:
+    """``--sitl-param MC_ROLLRATE_K=3``: the SITL's PX4 boots with a stiffer roll
+    rate loop; the same lockstep flight then tracks roll differently."""
+    default = fly_through(("f450", "ideal", 6.0, None), "rates", passthrough=True)
+    stiff = fly_through(
+        ("f450", "ideal", 6.0, None), "rates", passthrough=True, sitl_params=("MC_ROLLRATE_K=3",)
+    )
+    assert stiff["sitl_params"] == ["MC_ROLLRATE_K=3"]
+    assert stiff["mfc_deg_s"]["roll"] < default["mfc_deg_s"]["roll"]
+    with pytest.raises(ValueError, match="sitl_params: needs output 'rates'"):
+        fly_through(("f450", "ideal", 1.0, None), "actuator", sitl_params=("MC_ROLLRATE_K=3",))
