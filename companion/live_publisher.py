@@ -22,6 +22,7 @@ from companion.records.topics import (
     TopicFormat,
     event_json,
     event_schema,
+    stamp_ns,
     stamps_ns,
     topics,
 )
@@ -148,11 +149,9 @@ class Publisher:
                     self.published += 1
         ch = self._events_channel
         if events and ch.has_sinks():
+            last = t_ns[-1] if n else 0
             for ev in events:
-                t = ev.get("t_s")
-                last = t_ns[-1] if n else 0
-                lt = stamps_ns(np.array([float(t)]))[0] if isinstance(t, int | float) else last
-                ch.log(event_json(ev), log_time=lt)
+                ch.log(event_json(ev), log_time=stamp_ns(ev.get("t_s"), last))
                 self.published += 1
 
     def close(self) -> None:

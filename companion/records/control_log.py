@@ -33,6 +33,7 @@ from companion.records.topics import (
     TopicFormat,
     event_json,
     event_schema,
+    stamp_ns,
     stamps_ns,
     topics,
 )
@@ -196,10 +197,8 @@ class _McapEncoder:
 
     def _add_events(self, events: list[dict[str, Any]], last_ns: int | None) -> None:
         for ev in events:
-            t = ev.get("t_s")
-            lt = stamps_ns(np.array([float(t)]))[0] if isinstance(t, int | float) else last_ns or 0
-            wall = ev.get("wall")
-            pt = stamps_ns(np.array([float(wall)]))[0] if isinstance(wall, int | float) else lt
+            lt = stamp_ns(ev.get("t_s"), last_ns or 0)
+            pt = stamp_ns(ev.get("wall"), lt)
             self._w.add_message(
                 self._events_channel, lt, event_json(ev).encode(), pt, self._n_events & 0xFFFFFFFF
             )

@@ -27,6 +27,7 @@ __all__ = [
     "columns",
     "event_json",
     "event_schema",
+    "stamp_ns",
     "stamps_ns",
     "topics",
 ]
@@ -241,6 +242,12 @@ def stamps_ns(seconds: np.ndarray) -> list[int]:
     live view); 0 for NaN or negative."""
     v = np.where(np.isfinite(seconds) & (seconds >= 0.0), seconds, 0.0)
     return np.rint(np.minimum(v, 1.8e10) * 1e9).astype(np.int64).tolist()  # type: ignore[no-any-return]
+
+
+def stamp_ns(t: Any, default: int) -> int:
+    """An event's stamp (its ``t_s`` or ``wall``) as :func:`stamps_ns` gives it;
+    ``default`` when it is not a number."""
+    return stamps_ns(np.array([float(t)]))[0] if isinstance(t, int | float) else default
 
 
 class TopicFormat:
