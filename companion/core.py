@@ -97,6 +97,7 @@ class FlightCore:
             rates_full_scale_deg_s=opts.rates_full_scale_deg_s,
             rates_lead_s=opts.rates_lead_s,
             rates_passthrough=opts.rates_passthrough,
+            rates_law_axes=opts.rates_law_axes,
         )
         # The failsafes judged on each sample (in sample time).
         self.watch = SampleWatch(

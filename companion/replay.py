@@ -40,7 +40,7 @@ import numpy as np
 from companion.control import AXES
 from companion.flight_modes import FLIGHT_MODES
 from companion.records import read_control_log
-from companion.step import whole_us
+from companion.step import law_share, whole_us
 
 __all__ = ["OUTPUT_PREFIXES", "compare", "output_columns", "replay"]
 
@@ -144,6 +144,9 @@ def replay(
     thrust = cols["thrust"].tolist()
     eng = (engaged != 0.0).tolist()
     shaped = _shaped_reference(cols, meta, n)
+    law_axes = _law_axes(meta)
+    # As live: the law is taught what it sent only on a sample whose command left.
+    sent_roll = cols["sent_roll_rad_s"].tolist() if law_axes is not None else []
     update = controller.update
     learn = controller.learn
     fresh = True
@@ -173,6 +176,8 @@ def replay(
                     _unit((s2[i] - ref[2]) / fs[2]),
                 )
         o = update(dt, (w[0][i], w[1][i], w[2][i]), ref, thrust[i])
+        if taught is None and law_axes is not None and sent_roll[i] == sent_roll[i]:
+            taught = law_share(o.torque, law_axes)
         if taught is not None:
             controller.teach_applied(taught)
         learn()
@@ -196,6 +201,16 @@ def replay(
 
 def _unit(x: float) -> float:
     return 1.0 if x > 1.0 else -1.0 if x < -1.0 else x
+
+
+def _law_axes(meta: Mapping[str, str]) -> tuple[bool, bool, bool] | None:
+    """The axes the law corrected in a rates flight (``--rates-law-axes``), or None
+    where it was taught nothing or corrected all three."""
+    named = meta.get("rates_law_axes")
+    if named is None or meta.get("output") != "rates" or meta.get("rates_passthrough") == "True":
+        return None  # (a log without it predates the option: all three)
+    on = tuple(a in named.split(",") for a in AXES)
+    return None if all(on) else (on[0], on[1], on[2])
 
 
 def _shaped_reference(

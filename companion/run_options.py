@@ -53,6 +53,13 @@ class RunOptions:
     rates_passthrough: bool = False
     """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
     MFC-on-top is compared with); the law still runs and is logged."""
+    rates_law_axes: tuple[bool, bool, bool] = (True, True, True)
+    """With ``output="rates"``: per axis (roll, pitch, yaw), whether the law's
+    correction is added to the pilot's rate. On an axis without it the setpoint
+    is the pilot's rate and the lead, and the law there is taught that nothing
+    of its output was applied. On PX4 with its rate gains raised (``MC_ROLLRATE_K``
+    3), the law's correction made roll track worse than passing the pilot's rates
+    through, and yaw alone better on every axis (docs/research/realstack.md)."""
     log_dir: Path | None = None
     mqtt_url: str | None = None
     live: tuple[str, int] | None = None

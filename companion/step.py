@@ -25,7 +25,7 @@ from companion.control.gate import gate_actuator, gate_rates
 from companion.control.shaping import RateShaper
 from companion.profile import VehicleProfile
 
-__all__ = ["LANDED_STATE_RATE_HZ", "NO_RATES", "SampleStep", "whole_us"]
+__all__ = ["LANDED_STATE_RATE_HZ", "NO_RATES", "SampleStep", "law_share", "whole_us"]
 
 NO_RATES = (math.nan, math.nan, math.nan)
 """The body rates of a sample that sent none (actuator output, or not commanding)."""
@@ -47,6 +47,12 @@ def whole_us(dt: float) -> float:
     left as it is."""
     us = round(dt * 1e6)
     return us * 1e-6 if us > 0 else dt
+
+
+def law_share(torque: Any, axes: tuple[bool, bool, bool]) -> tuple[float, float, float]:
+    """The law's normalised correction on the axes it corrects, 0 on the others."""
+    t0, t1, t2 = torque
+    return (t0 if axes[0] else 0.0, t1 if axes[1] else 0.0, t2 if axes[2] else 0.0)
 
 
 def _unit(x: float) -> float:
@@ -74,6 +80,10 @@ class SampleStep:
         (the reference's derivative times this).
     rates_passthrough
         Rates output: send the pilot's rate alone (the law still runs).
+    rates_law_axes
+        Rates output: per axis (roll, pitch, yaw), whether the law's correction
+        is added; an axis without it is sent the pilot's rate and the lead, and
+        its law is taught that nothing of its output was applied.
     rate_accel_max_rad_s2
         Rates output: the autopilot's acceleration limits on a body-rate
         setpoint (ArduCopter's input shaping, :mod:`companion.control.shaping`),
@@ -93,6 +103,7 @@ class SampleStep:
         "held_dt_s",
         "last_rates_sent",
         "last_thrust_sent",
+        "law_axes",
         "law_ref",
         "out",
         "passthrough",
@@ -111,6 +122,7 @@ class SampleStep:
         rates_full_scale_deg_s: float | None = None,
         rates_lead_s: float = 0.0,
         rates_passthrough: bool = False,
+        rates_law_axes: tuple[bool, bool, bool] = (True, True, True),
         rate_accel_max_rad_s2: tuple[float, float, float] | None = None,
     ) -> None:
         if output not in ("actuator", "rates"):
@@ -123,6 +135,10 @@ class SampleStep:
         self.rate_fs_rad_s = self.rate_max_rad_s if fs is None else (math.radians(fs),) * 3
         self.rates_lead_s = rates_lead_s
         self.passthrough = rates_passthrough
+        self.law_axes: tuple[bool, bool, bool] | None = (
+            None if all(rates_law_axes) else rates_law_axes
+        )
+        """The axes the law corrects in rates output (None: all three)."""
         self.gyro_limit_rad_s = (
             math.radians(profile.physics.imu.gyro_range_deg_s) * GYRO_RANGE_MARGIN
         )
@@ -212,6 +228,13 @@ class SampleStep:
         shaper = self.shaper
         fs = self.rate_fs_rad_s
         tq = out.torque
+        mask = self.law_axes
+        if mask is not None and not self.passthrough:
+            tq = law_share(tq, mask)
+            if shaper is None:
+                # Nothing of the law's output went out on the other axes (the
+                # shaped path teaches from what was sent, below).
+                self.controller.teach_applied(tq)
         if self.passthrough:
             want: tuple[float, float, float] | list[float] = ref
         elif shaper is not None:

@@ -33,6 +33,7 @@ from companion.cli._shared import (
     skip_fly_check_opt,
     warn_profile,
 )
+from companion.control import AXES
 from companion.errors import MfcError
 from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
 from companion.options import (
@@ -57,6 +58,19 @@ __all__ = ["run"]
 _ARM_TIMEOUT_MAX_S = 600.0
 """``--arm-timeout-s``: ten minutes. ArduCopter's SITL has a position estimate
 40-50 s after boot; a real GPS from a cold start takes a few minutes."""
+
+
+def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
+    """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
+    whether it is in it."""
+    names = [v.strip() for v in value.split(",")]
+    bad = [n for n in names if n not in AXES]
+    if bad or len(set(names)) != len(names):
+        raise click.BadParameter(
+            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {value!r}",
+            param=param,
+        )
+    return (AXES[0] in names, AXES[1] in names, AXES[2] in names)
 
 
 def _fly_check_event(check: FlyCheck, engage: str, skip_fly_check: bool) -> tuple[str, str] | None:
@@ -120,6 +134,15 @@ def _fly_check_event(check: FlyCheck, engage: str, skip_fly_check: bool) -> tupl
     "--rates-passthrough",
     is_flag=True,
     help="With --output rates: send the pilot's rates unchanged (baseline for comparison).",
+)
+@click.option(
+    "--rates-law-axes",
+    callback=_law_axes,
+    default="roll,pitch,yaw",
+    show_default=True,
+    help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
+    "others are sent the pilot's rate and the lead. 'yaw' suits a rate loop tuned stiffer "
+    "than the autopilot's default (docs/controller.md).",
 )
 @click.option(
     "--imu-source",
@@ -213,6 +236,7 @@ def run(
     rates_full_scale_deg_s: float,
     rates_lead_s: float,
     rates_passthrough: bool,
+    rates_law_axes: tuple[bool, bool, bool],
     imu_source: str,
     rate_hz: float,
     log_dir: Path | None,
@@ -270,6 +294,8 @@ def run(
             mission = load_mission(mission_path)
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
+        if not all(rates_law_axes) and output != "rates":
+            raise ValueError(f"--rates-law-axes: needs --output rates (got --output {output})")
         if reference_path is not None:
             if mode.needs_attitude:
                 raise ValueError(
@@ -334,6 +360,7 @@ def run(
         loop_rate_hz=rate_hz,
         engage_channel=engage_channel,
         rates_passthrough=rates_passthrough,
+        rates_law_axes=rates_law_axes,
         rates_full_scale_deg_s=rates_full_scale_deg_s,
         rates_lead_s=rates_lead_s,
         log_dir=log_dir,
