@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -260,10 +262,9 @@ def send_a_signing_key(session: Session, folder: Any) -> Any:
     return path
 
 
-def preflight_with(
-    session: Session, rates_args: tuple[str, ...], params: dict[str, float]
-) -> dict[str, Any]:
-    """Preflight's checks with ``params`` set on the stack (set back afterwards)."""
+@contextlib.contextmanager
+def params_set(session: Session, params: dict[str, float]) -> Iterator[None]:
+    """``params`` set on the stack for the block, and set back after it."""
     g = session.gcs
     assert g is not None
     before = {}
@@ -273,7 +274,15 @@ def preflight_with(
             assert got is not None, name
             before[name] = got[0]
             g.param_set(name, value)
-        return preflight(session, rates_args, "--watch-s", "2")
+        yield
     finally:
         for name, value in before.items():
             g.param_set(name, value)
+
+
+def preflight_with(
+    session: Session, rates_args: tuple[str, ...], params: dict[str, float]
+) -> dict[str, Any]:
+    """Preflight's checks with ``params`` set on the stack (set back afterwards)."""
+    with params_set(session, params):
+        return preflight(session, rates_args, "--watch-s", "2")
