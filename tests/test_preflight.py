@@ -31,6 +31,8 @@ GOOD_PX4_PARAMS: dict[str, float | None] = {
     "RC_MAP_YAW": 4,
     "RC_MAP_FLTMODE": 6,
     "IMU_GYRO_RATEMAX": 400,
+    "MC_ROLLRATE_K": 1.0,
+    "MC_PITCHRATE_K": 1.0,
 }
 GOOD_ARDU_PARAMS: dict[str, float | None] = {
     "GUID_OPTIONS": 8,
@@ -182,6 +184,14 @@ def test_a_well_set_autopilot_passes_every_line(stack: str) -> None:
             "IMU_GYRO_RATEMAX",
             "warn",
             "--rate-hz 200",
+        ),
+        (
+            "px4",
+            {"params": {"MC_PITCHRATE_K": 3.0}},
+            {"output": "rates"},
+            "MC_ROLLRATE_K",
+            "warn",
+            "--rates-law-axes yaw",
         ),
         # ArduPilot's.
         (
@@ -446,7 +456,7 @@ def test_preflight_reads_what_its_rules_judge_and_no_parameter_twice() -> None:
     assert params_read(PX4) == (
         "COM_OF_LOSS_T", "COM_OBL_RC_ACT", "COM_RC_LOSS_T", "NAV_RCL_ACT", "COM_RCL_EXCEPT",
         "COM_RC_IN_MODE", "RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW",
-        "RC_MAP_FLTMODE", "IMU_GYRO_RATEMAX",
+        "RC_MAP_FLTMODE", "IMU_GYRO_RATEMAX", "MC_ROLLRATE_K", "MC_PITCHRATE_K",
     )  # fmt: skip
     assert params_read(ARDUPILOT) == (
         "GUID_OPTIONS", "GUID_TIMEOUT", "MAV_GCS_SYSID", "FS_THR_ENABLE", "FS_OPTIONS",
@@ -455,3 +465,27 @@ def test_preflight_reads_what_its_rules_judge_and_no_parameter_twice() -> None:
     )  # fmt: skip
     for stack in (PX4, ARDUPILOT):
         assert len(set(params_read(stack))) == len(params_read(stack))
+
+
+@pytest.mark.parametrize(
+    ("run", "judged"),
+    [
+        ({"output": "rates"}, True),
+        ({"output": "rates", "rates_law_axes": (False, True, True)}, True),
+        ({"output": "rates", "rates_law_axes": (False, False, True)}, False),
+        ({"output": "actuator"}, False),
+    ],
+)
+def test_px4s_rate_gains_are_judged_only_where_the_law_corrects_roll_or_pitch_rates(
+    run: dict[str, Any], judged: bool
+) -> None:
+    obs = observed(params={"MC_ROLLRATE_K": 2.0, "MC_PITCHRATE_K": 1.0})
+    checks = judge(obs, plan(**run), GOOD_CORE)
+    found = [c for c in checks if c.name == "MC_ROLLRATE_K"]
+    if judged:
+        (c,) = found
+        assert c.status == "warn" and "MC_ROLLRATE_K 2, MC_PITCHRATE_K 1" in c.detail, c
+    else:
+        assert found == []
+    at_default = judge(observed(), plan(**run), GOOD_CORE)
+    assert all(c.status == "pass" for c in at_default if c.name == "MC_ROLLRATE_K")

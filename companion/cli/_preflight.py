@@ -15,6 +15,7 @@ from companion.cli._shared import (
     engage_channel_opt,
     engage_opt,
     rate_hz_opt,
+    rates_law_axes_opt,
     read_fly_check,
     skip_fly_check_opt,
     warn_profile,
@@ -38,6 +39,7 @@ __all__ = ["preflight"]
 @profile_opt
 @controller_opt
 @output_opt
+@rates_law_axes_opt
 @engage_opt
 @engage_channel_opt
 @rate_hz_opt
@@ -64,6 +66,7 @@ def preflight(
     profile_path: Path,
     controller_path: Path | None,
     output: str,
+    rates_law_axes: tuple[bool, bool, bool],
     engage: str,
     engage_channel: int,
     rate_hz: float,
@@ -104,6 +107,7 @@ def preflight(
     link = MavlinkLink(transport, signing=signing, target_system=autopilot_sysid)
     plan = Plan(
         output=output,  # type: ignore[arg-type]
+        rates_law_axes=rates_law_axes,
         engage=engage,  # type: ignore[arg-type]
         engage_channel=engage_channel,
         rate_hz=rate_hz,

@@ -29,11 +29,11 @@ from companion.cli._shared import (
     engage_channel_opt,
     engage_opt,
     rate_hz_opt,
+    rates_law_axes_opt,
     read_fly_check,
     skip_fly_check_opt,
     warn_profile,
 )
-from companion.control import AXES
 from companion.errors import MfcError
 from companion.failsafe import THRESHOLD_MAX, FailsafeConfig
 from companion.options import (
@@ -58,19 +58,6 @@ __all__ = ["run"]
 _ARM_TIMEOUT_MAX_S = 600.0
 """``--arm-timeout-s``: ten minutes. ArduCopter's SITL has a position estimate
 40-50 s after boot; a real GPS from a cold start takes a few minutes."""
-
-
-def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
-    """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
-    whether it is in it."""
-    names = [v.strip() for v in value.split(",")]
-    bad = [n for n in names if n not in AXES]
-    if bad or len(set(names)) != len(names):
-        raise click.BadParameter(
-            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {value!r}",
-            param=param,
-        )
-    return (AXES[0] in names, AXES[1] in names, AXES[2] in names)
 
 
 def _fly_check_event(check: FlyCheck, engage: str, skip_fly_check: bool) -> tuple[str, str] | None:
@@ -135,15 +122,7 @@ def _fly_check_event(check: FlyCheck, engage: str, skip_fly_check: bool) -> tupl
     is_flag=True,
     help="With --output rates: send the pilot's rates unchanged (baseline for comparison).",
 )
-@click.option(
-    "--rates-law-axes",
-    callback=_law_axes,
-    default="roll,pitch,yaw",
-    show_default=True,
-    help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
-    "others are sent the pilot's rate and the lead. 'yaw' suits a rate loop tuned stiffer "
-    "than the autopilot's default (docs/controller.md).",
-)
+@rates_law_axes_opt
 @click.option(
     "--imu-source",
     type=click.Choice(["auto", "highres_imu", "attitude"]),

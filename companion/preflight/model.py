@@ -33,6 +33,8 @@ class Plan:
     """The run the checks judge the autopilot for (``companion run``'s options)."""
 
     output: Literal["actuator", "rates"] = "actuator"
+    rates_law_axes: tuple[bool, bool, bool] = (True, True, True)
+    """With rates output: whether the law corrects roll, pitch and yaw."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     engage_channel: int = 5
     rate_hz: float = 250.0

@@ -198,6 +198,34 @@ def _gyro_rate(gyro: float, plan: Plan) -> Check:
     return Check("IMU_GYRO_RATEMAX", "pass", f"{gyro:g} Hz")
 
 
+_PX4_RATE_K_STIFF = 2.0
+"""``MC_ROLLRATE_K`` / ``MC_PITCHRATE_K`` from which the rate loop is stiff enough that
+the law's roll and pitch correction no longer pays: on PX4 v1.16's SIH, at the
+default 1 it tracked 0.79 / 0.85 of pass-through, at 2 0.99 / 0.96, at 3 1.13-1.23
+on roll (docs/research/realstack.md#stiffer-rate-loop)."""
+
+
+def _rate_gains(p: Params, _ctx: Context) -> list[Check]:
+    roll, pitch = _value(p, "MC_ROLLRATE_K"), _value(p, "MC_PITCHRATE_K")
+    said = f"MC_ROLLRATE_K {roll:g}, MC_PITCHRATE_K {pitch:g}"
+    if max(roll, pitch) >= _PX4_RATE_K_STIFF:
+        return [
+            Check(
+                "MC_ROLLRATE_K",
+                "warn",
+                f"{said}: a rate loop stiffer than PX4's default (1), where the law's roll "
+                "and pitch correction measured no better than passing the pilot's rates "
+                "through (at 2) and worse (at 3)",
+                "fly --rates-law-axes yaw, or fly both and keep the better (docs/controller.md)",
+            )
+        ]
+    return [Check("MC_ROLLRATE_K", "pass", said)]
+
+
+def _law_on_roll_or_pitch(ctx: Context) -> bool:
+    return ctx.plan.output == "rates" and (ctx.plan.rates_law_axes[0] or ctx.plan.rates_law_axes[1])
+
+
 # ----------------------------------------------------------------------- both stacks
 
 
@@ -392,6 +420,7 @@ PARAM_RULES: dict[FlightStack, tuple[Rule, ...]] = {
             when=_radio,  # a joystick's axes PX4 maps itself
         ),
         _one("IMU_GYRO_RATEMAX", _gyro_rate),
+        Rule(("MC_ROLLRATE_K", "MC_PITCHRATE_K"), _rate_gains, when=_law_on_roll_or_pitch),
     ),
     ARDUPILOT: (
         _one("GUID_OPTIONS", _guided_thrust),

@@ -62,6 +62,11 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
         value = g.param_get(name)
         assert value is not None
         assert checks[name]["detail"].startswith(f"{int(value[0])}"), checks[name]
+    rate_k = [g.param_get(n) for n in ("MC_ROLLRATE_K", "MC_PITCHRATE_K")]
+    assert rate_k[0] is not None and rate_k[1] is not None
+    assert checks["MC_ROLLRATE_K"]["detail"] == (
+        f"MC_ROLLRATE_K {rate_k[0][0]:g}, MC_PITCHRATE_K {rate_k[1][0]:g}"
+    ), checks["MC_ROLLRATE_K"]
     assert checks["link"]["detail"].startswith("PX4 1.16")
     assert checks["landed state"]["detail"] == "on ground"
     assert checks["RC"]["detail"].startswith("no radio: the pilot's joystick")
@@ -77,6 +82,7 @@ BAD_PX4 = {
     "NAV_RCL_ACT": 0.0,  # fail: nothing on RC loss
     "COM_RCL_EXCEPT": 4.0,  # warn: RC loss ignored in OFFBOARD
     "IMU_GYRO_RATEMAX": 100.0,  # warn: below the loop rate asked
+    "MC_ROLLRATE_K": 3.0,  # warn: the law's roll correction no longer pays
 }
 
 
@@ -89,6 +95,7 @@ def test_preflight_flags_each_badly_set_px4_parameter_with_its_fix(
     assert got == {
         "COM_OF_LOSS_T": "fail", "COM_OBL_RC_ACT": "fail", "COM_RC_LOSS_T": "warn",
         "NAV_RCL_ACT": "fail", "COM_RCL_EXCEPT": "warn", "IMU_GYRO_RATEMAX": "warn",
+        "MC_ROLLRATE_K": "warn",
     }  # fmt: skip
     for name in BAD_PX4:
         assert checks[name]["fix"], checks[name]
