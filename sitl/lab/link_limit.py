@@ -25,12 +25,14 @@ autopilot's rate loop is in the plant, the tracker the same. With
 makes of the same flights and links, judged the same way. ``--sitl-param
 NAME=VALUE`` (rates only, repeatable) sets a parameter of the SITL's PX4 at
 boot (``sitl run --param``), e.g. its rate loop's gain ``MC_ROLLRATE_K``.
+``--law-axes AXES`` (rates only) has the law correct only those axes
+(``companion run --rates-law-axes``).
 
 Run::
 
     python -m sitl.lab.link_limit [--out DIR] [--workers N] [--duration S] [--seeds N]
                                   [--output actuator|rates] [--passthrough]
-                                  [--sitl-param NAME=VALUE ...]
+                                  [--sitl-param NAME=VALUE ...] [--law-axes AXES]
 
 prints a Markdown table (with ``--seeds``, each cost the mean of the seeds')
 and writes ``link_limit.json`` to ``--out``.
@@ -62,6 +64,7 @@ def fly_through(
     output: str = "actuator",
     passthrough: bool = False,
     sitl_params: tuple[str, ...] = (),
+    law_axes: str | None = None,
 ) -> dict[str, Any]:
     """One paper flight of ``vehicle`` through ``link`` (on ``seed``, default the
     scenario's): MFC's MAE per axis and the ideal tracker's (ideal link: as the
@@ -70,7 +73,8 @@ def fly_through(
     ``output`` ``rates``: over MAVLink to the SITL's rate loop (module docstring);
     ``passthrough`` (rates only): the pilot's rates passed through instead of
     MFC's, their MAE under the same key; ``sitl_params`` (rates only): the
-    SITL's ``--param NAME=VALUE`` at boot."""
+    SITL's ``--param NAME=VALUE`` at boot; ``law_axes`` (rates only): the
+    companion's ``--rates-law-axes``."""
     from companion.config import load_controller
     from companion.errors import EXIT_FAILSAFE, EXIT_OK
     from companion.profile import load_profile
@@ -80,8 +84,8 @@ def fly_through(
     from sitl.lab.simulate import simulate_flight
 
     vehicle, link, duration_s, seed = job
-    if (passthrough or sitl_params) and output != "rates":
-        what = "passthrough" if passthrough else "sitl_params"
+    if (passthrough or sitl_params or law_axes) and output != "rates":
+        what = "passthrough" if passthrough else "sitl_params" if sitl_params else "law_axes"
         raise ValueError(f"{what}: needs output 'rates' (got {output!r})")
     path = ROOT / "vehicle_profiles" / f"{vehicle}.yaml"
     profile = load_profile(path)
@@ -97,7 +101,10 @@ def fly_through(
             flight = fly_mavlink(
                 path, SCENARIO, tmp, controller_path=RATES_CONTROLLER, output="rates",
                 duration_s=duration_s, seed=sc.seed, link=sc.link,
-                companion_args=["--rates-passthrough"] if passthrough else [],
+                companion_args=[
+                    *(["--rates-passthrough"] if passthrough else []),
+                    *(["--rates-law-axes", law_axes] if law_axes else []),
+                ],
                 sitl_args=[a for p in sitl_params for a in ("--param", p)],
             )  # fmt: skip
             if flight.companion_rc not in (EXIT_OK, EXIT_FAILSAFE):
@@ -117,6 +124,7 @@ def fly_through(
         "seed": sc.seed,
         "controller": "passthrough" if passthrough else "mfc",
         "sitl_params": list(sitl_params),
+        "law_axes": law_axes or ",".join(AXES),
         "crashed": bool(metrics["crashed"]),
         "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
@@ -175,6 +183,8 @@ def _mean(flights: list[dict[str, Any]], key: str, axis: str) -> float:
 def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
     """The table; MAE columns the mean over the seeds."""
     flown = "pass-through" if any(f.get("controller") == "passthrough" for f in flights) else "MFC"
+    if flown == "MFC" and (axes := flights[0].get("law_axes", ",".join(AXES))) != ",".join(AXES):
+        flown = f"MFC (law on {axes})"
     lines = [
         f"| vehicle | link | {flown} roll / pitch / yaw | tracker roll / pitch "
         "| cost roll / pitch | per seed (roll; pitch) | target | yaw / ideal link's | met |",
@@ -241,8 +251,17 @@ def main(argv: list[str] | None = None) -> int:
         help="with --output rates: a parameter of the SITL's PX4 at boot (repeatable), "
         "e.g. MC_ROLLRATE_K=2",
     )
+    ap.add_argument(
+        "--law-axes",
+        metavar="AXES",
+        help="with --output rates: the axes the law corrects (companion run --rates-law-axes)",
+    )
     args = ap.parse_args(argv)
-    for flag, given in (("--passthrough", args.passthrough), ("--sitl-param", args.sitl_param)):
+    for flag, given in (
+        ("--passthrough", args.passthrough),
+        ("--sitl-param", args.sitl_param),
+        ("--law-axes", args.law_axes),
+    ):
         if given and args.output != "rates":
             ap.error(f"{flag}: needs --output rates (got --output {args.output})")
     if args.workers < 1:
@@ -263,7 +282,14 @@ def main(argv: list[str] | None = None) -> int:
         n = len(jobs)
         params = tuple(args.sitl_param)
         flights = list(
-            pool.map(fly_through, jobs, [args.output] * n, [args.passthrough] * n, [params] * n)
+            pool.map(
+                fly_through,
+                jobs,
+                [args.output] * n,
+                [args.passthrough] * n,
+                [params] * n,
+                [args.law_axes] * n,
+            )
         )
     rows = cost_table(flights)
     print(_markdown(flights, rows))
@@ -277,6 +303,7 @@ def main(argv: list[str] | None = None) -> int:
                     "output": args.output,
                     "controller": "passthrough" if args.passthrough else "mfc",
                     "sitl_params": args.sitl_param,
+                    "law_axes": args.law_axes or ",".join(AXES),
                     "flights": flights,
                     "costs": rows,
                 },

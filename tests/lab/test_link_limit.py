@@ -110,3 +110,17 @@ def test_a_sitl_param_reaches_the_autopilots_rate_loop() -> None:
     assert stiff["mfc_deg_s"]["roll"] < default["mfc_deg_s"]["roll"]
     with pytest.raises(ValueError, match="sitl_params: needs output 'rates'"):
         fly_through(("f450", "ideal", 1.0, None), "actuator", sitl_params=("MC_ROLLRATE_K=3",))
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_law_axes_reach_the_companion() -> None:
+    """``--law-axes yaw``: the companion corrects yaw only (``--rates-law-axes``);
+    the same lockstep flight then flies roll differently from the full law's."""
+    full = fly_through(("f450", "ideal", 6.0, None), "rates")
+    yaw = fly_through(("f450", "ideal", 6.0, None), "rates", law_axes="yaw")
+    assert (full["law_axes"], yaw["law_axes"]) == ("roll,pitch,yaw", "yaw")
+    assert not yaw["crashed"]
+    assert yaw["mfc_deg_s"]["roll"] != full["mfc_deg_s"]["roll"]
+    with pytest.raises(ValueError, match="law_axes: needs output 'rates'"):
+        fly_through(("f450", "ideal", 1.0, None), "actuator", law_axes="yaw")
