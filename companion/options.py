@@ -44,6 +44,7 @@ __all__ = [
     "out_dir_problem",
     "output_opt",
     "profile_opt",
+    "rates_law_axes_opt",
     "signing_key_opt",
     "usable_out_dir",
     "usable_out_file",
@@ -293,4 +294,30 @@ live_opt = click.option(
     help="Serve the control log's topics live over the Foxglove WebSocket protocol "
     "(open ws://HOST:PORT in Foxglove; needs the live extra). HOST defaults to 127.0.0.1, "
     "this computer only; 0.0.0.0 serves every network it is on, the vehicle's too.",
+)
+
+
+def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
+    """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
+    whether it is in it."""
+    from companion.control import AXES
+
+    names = [v.strip() for v in value.split(",")]
+    bad = [n for n in names if n not in AXES]
+    if bad or len(set(names)) != len(names):
+        raise click.BadParameter(
+            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {value!r}",
+            param=param,
+        )
+    return (AXES[0] in names, AXES[1] in names, AXES[2] in names)
+
+
+rates_law_axes_opt = click.option(
+    "--rates-law-axes",
+    callback=_law_axes,
+    default="roll,pitch,yaw",
+    show_default=True,
+    help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
+    "others are sent the pilot's rate and the lead. 'yaw' suits a rate loop tuned stiffer "
+    "than the autopilot's default (docs/controller.md).",
 )

@@ -96,6 +96,8 @@ def test_fly_and_run_refuse_contradicting_outputs() -> None:
     refused(res, "--output actuator: ArduPilot accepts body rates only")
     res = companion("run", "--connect", "udpout:127.0.0.1:9", "--rates-passthrough")
     refused(res, "--rates-passthrough: needs --output rates")
+    res = companion("fly", "--rates-law-axes", "yaw")
+    refused(res, "--rates-law-axes needs --output rates")
 
 
 def test_simulate_refuses_a_negative_seed_and_an_empty_or_impossible_out(tmp_path: Path) -> None:

@@ -15,7 +15,6 @@ from companion.cli._shared import (
     engage_channel_opt,
     engage_opt,
     rate_hz_opt,
-    rates_law_axes_opt,
     read_fly_check,
     skip_fly_check_opt,
     warn_profile,
@@ -28,6 +27,7 @@ from companion.options import (
     load_inputs,
     output_opt,
     profile_opt,
+    rates_law_axes_opt,
     signing_key_opt,
 )
 

@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from companion.control import AXES
 from companion.errors import ConfigError
 from companion.options import Finite, fail_config
 
@@ -21,7 +20,6 @@ __all__ = [
     "engage_channel_opt",
     "engage_opt",
     "rate_hz_opt",
-    "rates_law_axes_opt",
     "read_fly_check",
     "skip_fly_check_opt",
     "warn_profile",
@@ -75,30 +73,6 @@ skip_fly_check_opt = click.option(
     "FILE --fly` on this computer (its content, by hash) anyway; the run records that the "
     "check was skipped (event fly_check_skipped). Without it such a file is refused (exit "
     "2), unless --engage none. Shipped files need no check.",
-)
-
-
-def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
-    """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
-    whether it is in it."""
-    names = [v.strip() for v in value.split(",")]
-    bad = [n for n in names if n not in AXES]
-    if bad or len(set(names)) != len(names):
-        raise click.BadParameter(
-            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {value!r}",
-            param=param,
-        )
-    return (AXES[0] in names, AXES[1] in names, AXES[2] in names)
-
-
-rates_law_axes_opt = click.option(
-    "--rates-law-axes",
-    callback=_law_axes,
-    default="roll,pitch,yaw",
-    show_default=True,
-    help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
-    "others are sent the pilot's rate and the lead. 'yaw' suits a rate loop tuned stiffer "
-    "than the autopilot's default (docs/controller.md).",
 )
 
 

@@ -42,6 +42,7 @@ from companion.options import (
     mode_opt,
     output_opt,
     profile_opt,
+    rates_law_axes_opt,
     usable_out_dir,
 )
 from sitl.cli import ENVELOPE_N_MAX
@@ -419,6 +420,7 @@ def _simulate_outer(
     help="Rates output: fly the same scenario again sending the pilot's rates straight "
     "through (into OUT/passthrough) and report both.",
 )
+@rates_law_axes_opt
 @mode_opt(
     "companion run --mode: what the pilot's sticks ask. Beyond rates, metrics.json "
     "gains 'outer' and the report path.png.",
@@ -446,6 +448,7 @@ def fly(
     out_dir: Path,
     autopilot: str,
     compare_passthrough: bool,
+    rates_law_axes: tuple[bool, bool, bool],
     flight_mode: str,
     mission_path: Path | None,
     link: LinkSpec | None,
@@ -474,6 +477,10 @@ def fly(
         click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
                    err=True)  # fmt: skip
         sys.exit(EXIT_BAD_INPUT)
+    if not all(rates_law_axes) and flown_output != "rates":
+        click.echo("error: --rates-law-axes needs --output rates (or --autopilot ardupilot)",
+                   err=True)  # fmt: skip
+        sys.exit(EXIT_BAD_INPUT)
     profile, _cfg, ctrl_path = load_inputs(
         profile_path, controller_path, flown_output, simulated=True
     )
@@ -495,6 +502,11 @@ def fly(
     mode_args: tuple[str, ...] = () if flight_mode == "rates" else ("--mode", flight_mode)
     if mission_path is not None:
         mode_args += ("--mission", str(mission_path))
+    if not all(rates_law_axes):
+        from companion.control import AXES
+
+        named = ",".join(a for a, on in zip(AXES, rates_law_axes, strict=True) if on)
+        mode_args += ("--rates-law-axes", named)
     if live is not None:
         host, port = live
         mode_args += ("--live", f"[{host}]:{port}" if ":" in host else f"{host}:{port}")

@@ -109,3 +109,15 @@ def test_compare_passthrough_needs_rates_output(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert "--compare-passthrough needs --output rates" in proc.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_rates_law_axes_reach_the_companion_it_flies(tmp_path: Path) -> None:
+    """``companion fly --output rates --rates-law-axes yaw``: the companion it starts
+    corrects yaw only, as its control log's metadata records."""
+    from companion.records import read_control_log
+
+    out = tmp_path / "fly"
+    proc = companion_fly(out, "--output", "rates", "--rates-law-axes", "yaw", "--duration", "4")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    _, meta = read_control_log(out / "companion" / "control.mcap")
+    assert meta["rates_law_axes"] == "yaw"
