@@ -84,9 +84,7 @@ class FlightCore:
         self.opts = opts
         self.shell = shell
         self.clock = clock
-        self.controller = (
-            build_controller(opts.controller, opts.profile) if controller is None else controller
-        )
+        self.controller = controller or build_controller(opts.controller, opts.profile)
         FLIGHT_MODES[opts.mode].fit(self.controller)
         self.pilot = PilotInput(build_stick_map(opts.controller), opts.failsafe.rc_timeout_s)
         # The range gate, the law and the command gate: the lab's flights use the same.
