@@ -300,16 +300,12 @@ live_opt = click.option(
 def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
     """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
     whether it is in it."""
-    from companion.control import AXES
+    from companion.step import law_axes_named
 
-    names = [v.strip() for v in value.split(",")]
-    bad = [n for n in names if n not in AXES]
-    if bad or len(set(names)) != len(names):
-        raise click.BadParameter(
-            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {value!r}",
-            param=param,
-        )
-    return (AXES[0] in names, AXES[1] in names, AXES[2] in names)
+    try:
+        return law_axes_named(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param=param) from None
 
 
 rates_law_axes_opt = click.option(

@@ -40,7 +40,7 @@ import numpy as np
 from companion.control import AXES
 from companion.flight_modes import FLIGHT_MODES
 from companion.records import read_control_log
-from companion.step import law_share, whole_us
+from companion.step import law_axes_named, law_share, whole_us
 
 __all__ = ["OUTPUT_PREFIXES", "compare", "output_columns", "replay"]
 
@@ -209,8 +209,8 @@ def _law_axes(meta: Mapping[str, str]) -> tuple[bool, bool, bool] | None:
     named = meta.get("rates_law_axes")
     if named is None or meta.get("output") != "rates" or meta.get("rates_passthrough") == "True":
         return None  # (a log without it predates the option: all three)
-    on = tuple(a in named.split(",") for a in AXES)
-    return None if all(on) else (on[0], on[1], on[2])
+    on = law_axes_named(named)
+    return None if all(on) else on
 
 
 def _shaped_reference(

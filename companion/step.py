@@ -20,12 +20,20 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from companion.control import RateController
+from companion.control import AXES, RateController
 from companion.control.gate import gate_actuator, gate_rates
 from companion.control.shaping import RateShaper
 from companion.profile import VehicleProfile
 
-__all__ = ["LANDED_STATE_RATE_HZ", "NO_RATES", "SampleStep", "law_share", "whole_us"]
+__all__ = [
+    "LANDED_STATE_RATE_HZ",
+    "NO_RATES",
+    "SampleStep",
+    "law_axes_named",
+    "law_axes_names",
+    "law_share",
+    "whole_us",
+]
 
 NO_RATES = (math.nan, math.nan, math.nan)
 """The body rates of a sample that sent none (actuator output, or not commanding)."""
@@ -53,6 +61,28 @@ def law_share(torque: Any, axes: tuple[bool, bool, bool]) -> tuple[float, float,
     """The law's normalised correction on the axes it corrects, 0 on the others."""
     t0, t1, t2 = torque
     return (t0 if axes[0] else 0.0, t1 if axes[1] else 0.0, t2 if axes[2] else 0.0)
+
+
+def law_axes_named(names: str) -> tuple[bool, bool, bool]:
+    """Per axis, whether ``names`` (``--rates-law-axes``: a comma-separated set of
+    roll, pitch and yaw, each once) holds it.
+
+    Raises
+    ------
+    ValueError
+        If a name is not an axis or is given twice.
+    """
+    given = [v.strip() for v in names.split(",")]
+    if any(n not in AXES for n in given) or len(set(given)) != len(given):
+        raise ValueError(
+            f"expected a comma-separated set of {', '.join(AXES)} (each once), got {names!r}"
+        )
+    return (AXES[0] in given, AXES[1] in given, AXES[2] in given)
+
+
+def law_axes_names(axes: tuple[bool, bool, bool]) -> str:
+    """The ``--rates-law-axes`` value for ``axes`` (the inverse of :func:`law_axes_named`)."""
+    return ",".join(a for a, on in zip(AXES, axes, strict=True) if on)
 
 
 def _unit(x: float) -> float:

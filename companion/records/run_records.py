@@ -15,10 +15,10 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from companion.control import AXES
 from companion.records.events import EventLog
 from companion.records.topics import columns
 from companion.run_options import RunOptions
+from companion.step import law_axes_names
 
 __all__ = ["EVENTS_KEPT", "RunRecords"]
 
@@ -86,7 +86,7 @@ class RunRecords:
             "rates_full_scale_deg_s": repr(opts.rates_full_scale_deg_s),
             "rates_lead_s": repr(opts.rates_lead_s),
             "rates_passthrough": str(opts.rates_passthrough),
-            "rates_law_axes": ",".join(a for a, on in zip(AXES, opts.rates_law_axes) if on),
+            "rates_law_axes": law_axes_names(opts.rates_law_axes),
         }
         self.rows = ControlLog(
             d / "control.mcap", columns(opts.profile.n_motors), meta=meta, writer=writer

@@ -503,10 +503,9 @@ def fly(
     if mission_path is not None:
         mode_args += ("--mission", str(mission_path))
     if not all(rates_law_axes):
-        from companion.control import AXES
+        from companion.step import law_axes_names
 
-        named = ",".join(a for a, on in zip(AXES, rates_law_axes, strict=True) if on)
-        mode_args += ("--rates-law-axes", named)
+        mode_args += ("--rates-law-axes", law_axes_names(rates_law_axes))
     if live is not None:
         host, port = live
         mode_args += ("--live", f"[{host}]:{port}" if ":" in host else f"{host}:{port}")
