@@ -47,6 +47,9 @@ FORMAT = "mfc-companion control log 1"
 """The ``format`` of the ``companion`` metadata record."""
 
 _METADATA = "companion"
+_LEARNT = "companion.learnt"
+"""What the run learnt of the autopilot once started (a later metadata record: its
+values override the first's on reading)."""
 _SLICE_S = 200e-6
 """The writer's thread formats messages for at most this long before it lets go
 of the interpreter for a moment (:meth:`_McapEncoder.encode`)..."""
@@ -60,13 +63,17 @@ _EVENT_BYTES = 200  # what one event counts against the writer's bounds (a typic
 
 
 class _Batch:
-    """What a flush hands the writer: rows as float64 bytes, and events."""
+    """What a flush hands the writer: rows as float64 bytes, events, and what the
+    run learnt since the last flush (metadata, written before the rows)."""
 
-    __slots__ = ("events", "rows")
+    __slots__ = ("events", "learnt", "rows")
 
-    def __init__(self, rows: memoryview, events: list[dict[str, Any]]) -> None:
+    def __init__(
+        self, rows: memoryview, events: list[dict[str, Any]], learnt: dict[str, str] | None = None
+    ) -> None:
         self.rows = rows
         self.events = events
+        self.learnt = learnt or {}
 
     def __len__(self) -> int:
         return len(self.rows) + _EVENT_BYTES * len(self.events)
@@ -78,11 +85,11 @@ class _Batch:
         events = [
             {k: v if isinstance(v, plain) else str(v) for k, v in ev.items()} for ev in self.events
         ]
-        return (_batch_of, (bytes(self.rows), events))
+        return (_batch_of, (bytes(self.rows), events, self.learnt))
 
 
-def _batch_of(rows: bytes, events: list[dict[str, Any]]) -> _Batch:
-    return _Batch(memoryview(rows), events)
+def _batch_of(rows: bytes, events: list[dict[str, Any]], learnt: dict[str, str]) -> _Batch:
+    return _Batch(memoryview(rows), events, learnt)
 
 
 class _Tail:
@@ -163,6 +170,8 @@ class _McapEncoder:
         that wants it waits for the holder's switch interval, 5 ms, otherwise).
         Behind by ``_BEHIND_BYTES`` or more, the writer catches up without the
         sleeps."""
+        if batch.learnt:
+            self._w.add_metadata(_LEARNT, batch.learnt)
         n_cols = self._n_cols
         data = np.frombuffer(batch.rows, dtype=np.float64)
         n = len(data) // n_cols
@@ -265,6 +274,7 @@ class ControlLog(BufferedLog):
         self.n_columns = len(cols)
         self._buf = array("d")
         self._events: list[dict[str, Any]] = []
+        self._learnt: dict[str, str] = {}
         self._interval = flush_interval_s
         self.rows = 0
         """Rows appended."""
@@ -334,14 +344,23 @@ class ControlLog(BufferedLog):
             return
         self._events.append(event)
 
+    def learnt(self, meta: dict[str, str]) -> None:
+        """Metadata the run learnt once started (what it chose at start-up), written
+        with the next flush as the metadata record ``companion.learnt``;
+        :func:`read_control_log` returns it over the run's first metadata."""
+        if self._open:
+            self._learnt.update(meta)
+
     def flush(self) -> None:
-        """Hand the rows and events on now: to the writer's queue, or to the file."""
+        """Hand the rows, events and what was learnt on now: to the writer's queue,
+        or to the file."""
         self._next_flush = time.monotonic() + self._interval
-        if not self._open or not (self._buf or self._events):
+        if not self._open or not (self._buf or self._events or self._learnt):
             return
         buf, self._buf = self._buf, array("d")
         events, self._events = self._events, []
-        if not self._sink.put(_Batch(memoryview(buf).cast("B"), events)):
+        learnt, self._learnt = self._learnt, {}
+        if not self._sink.put(_Batch(memoryview(buf).cast("B"), events, learnt)):
             self._open = False
 
 
@@ -350,7 +369,8 @@ def read_control_log(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
 
     Read with the ``mcap`` package's stream reader, from the start: a file its
     writer did not close (killed) is read up to its last whole chunk, and the
-    returned metadata then has ``cut_short: "true"``. Samples a topic skipped
+    returned metadata then has ``cut_short: "true"``. What the run learnt once
+    started (:meth:`ControlLog.learnt`) overrides its first metadata. Samples a topic skipped
     (``/outer`` outside the outer modes) are NaN, as are ``null`` values.
 
     Raises
@@ -366,6 +386,7 @@ def read_control_log(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
 
     p = Path(path)
     meta: dict[str, str] | None = None
+    learnt: dict[str, str] = {}
     layout: dict[str, Topic] = {}
     channels: dict[int, Topic] = {}
     got: dict[int, tuple[list[int], list[bytes]]] = {}
@@ -390,6 +411,8 @@ def read_control_log(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
                         if fmt != FORMAT:
                             raise ValueError(f"{p}: format {fmt!r}; this version reads {FORMAT!r}")
                         layout = {tp.name: tp for tp in topics(meta["columns"].split(","))}
+                    elif isinstance(rec, Metadata) and rec.name == _LEARNT:
+                        learnt.update(rec.metadata)
             except ValueError:
                 raise
             except (McapError, struct.error) as exc:
@@ -403,6 +426,7 @@ def read_control_log(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str,
     if meta is None:
         raise ValueError(f"{p}: not a control log (no '{_METADATA}' metadata record)")
     cols = meta["columns"].split(",")
+    meta.update({k: v for k, v in learnt.items() if k not in ("format", "columns")})
     # Sequence numbers are the row numbers (modulo 2**32, in the order written).
     rownums: dict[int, np.ndarray] = {}
     for ch, (seqs, _) in got.items():

@@ -302,3 +302,30 @@ def test_a_writer_thread_log_matches_a_synchronous_one(tmp_path: Path) -> None:
     for c in cols:
         np.testing.assert_array_equal(ga[c], gb[c])
     assert w.stats("a.mcap").written_chunks == 300
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_what_the_run_learnt_later_overrides_its_first_metadata(
+    tmp_path: Path, threaded: bool
+) -> None:
+    """``ControlLog.learnt``: a later metadata record (``companion.learnt``, which the
+    reference reader sees too), read back over the first; the layout stays the first's."""
+    cols = columns(4)
+    data = flight_rows(20, cols)
+    path = tmp_path / "control.mcap"
+    w = RecordWriter() if threaded else None
+    log = ControlLog(path, cols, meta={"rates_law_axes": "auto", "profile": "f450"}, writer=w)
+    log.append(data[0].tolist())
+    log.learnt({"rates_law_axes": "yaw", "columns": "t_s"})
+    for row in data[1:].tolist():
+        log.append(row)
+    log.close()
+    if w is not None:
+        assert w.close() is True
+    got, meta = read_control_log(path)
+    assert meta["rates_law_axes"] == "yaw" and meta["profile"] == "f450"
+    assert list(got) == cols and len(got["t_s"]) == 20
+    with path.open("rb") as f:
+        records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert records["companion"]["rates_law_axes"] == "auto"
+    assert records["companion.learnt"]["rates_law_axes"] == "yaw"
