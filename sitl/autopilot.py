@@ -78,8 +78,9 @@ parameters this autopilot models (:data:`PX4_PARAMS`) start from
 :class:`AutopilotConfig` and follow ``PARAM_SET`` at once, as PX4's commander
 does; a value it cannot fly (``NAV_RCL_ACT`` 4, ``COM_OF_LOSS_T`` 0...) is
 refused with the same error :class:`AutopilotConfig` gives. ``MC_ROLLRATE_K``,
-``MC_PITCHRATE_K`` and ``MC_YAWRATE_K`` set the rate loop's gain per axis, as
-PX4's rate controller takes them, keeping its integrator.
+``MC_PITCHRATE_K`` and ``MC_YAWRATE_K`` set the rate loop's gain per axis, and
+``MC_*RATE_P`` its proportional term, as PX4's rate controller takes them,
+keeping its integrator.
 
 Arming rules
 ------------
@@ -217,8 +218,13 @@ PX4_PARAMS = {
 """The PX4 parameters this autopilot follows, by the :class:`AutopilotConfig` field
 each sets (the rest of :class:`~sitl.px4_params.Px4Params` is stored only)."""
 
-_RATE_K_PARAMS = ("MC_ROLLRATE_K", "MC_PITCHRATE_K", "MC_YAWRATE_K")
-"""The rate loop's global gain per axis (``sitl.px4_control.Px4AxisGains.k``)."""
+_RATE_GAIN_PARAMS = {
+    f"MC_{axis}RATE_{term}": (i, term.lower())
+    for i, axis in enumerate(("ROLL", "PITCH", "YAW"))
+    for term in ("K", "P")
+}
+"""The rate loop's global gain and proportional term per axis: the axis, and the
+:class:`sitl.px4_control.Px4AxisGains` field each sets."""
 
 _RCL_EXCEPT_HOLD = 2
 _RCL_EXCEPT_OFFBOARD = 4
@@ -395,11 +401,11 @@ class Autopilot(Personality[FlightMode]):
     def _param_changed(self, name: str, value: float) -> None:
         if name in PX4_PARAMS:
             self.config = self._config_with(name, value)
-        elif name in _RATE_K_PARAMS:
+        elif name in _RATE_GAIN_PARAMS:
             control = self.rate_pid.control
             gains = list(control.gains)
-            axis = _RATE_K_PARAMS.index(name)
-            gains[axis] = dataclasses.replace(gains[axis], k=value)
+            axis, term = _RATE_GAIN_PARAMS[name]
+            gains[axis] = dataclasses.replace(gains[axis], **{term: value})
             control.set_gains(gains)
 
     # ---------------------------------------------------------------- commands

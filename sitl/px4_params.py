@@ -11,7 +11,8 @@ Defaults are PX4's parameter reference (the ``PARAM_DEFINE_*`` / ``module.yaml``
 named beside each spec). Wired: ``COM_OF_LOSS_T`` (the offboard-loss timeout,
 the same as ``sitl run --offboard-timeout``), ``COM_RC_LOSS_T``, ``NAV_RCL_ACT``
 and ``COM_RCL_EXCEPT`` (``sitl.autopilot``), and ``MC_{ROLL,PITCH,YAW}RATE_K``
-(the rate loop's gain per axis, ``sitl.px4_control``), at boot and on ``PARAM_SET``;
+and ``_P`` (the rate loop's gain and its proportional term per axis,
+``sitl.px4_control``), at boot and on ``PARAM_SET``;
 ``COM_OBL_RC_ACT`` / ``COM_OBL_ACT`` (the offboard-loss fallback, read when it
 acts) and ``COM_RC_IN_MODE`` (whether a joystick is taken);
 ``MAV_SYS_ID`` / ``MAV_COMP_ID`` (the face's ids) and ``IMU_GYRO_RATEMAX``
@@ -103,8 +104,11 @@ _PX4_SPECS: tuple[ParamSpec, ...] = (
     # mc_rate_control_params.c: the rate loop's global gain per axis, scaling its P, I
     # and D (followed at boot and on PARAM_SET, as the module's parameters_updated).
     _f("MC_PITCHRATE_K", 1.0, 0.01, 5.0, "pitch rate loop's global gain (P, I, D)"),
+    _f("MC_PITCHRATE_P", 0.15, 0.01, 0.6, "pitch rate loop's proportional gain"),
     _f("MC_ROLLRATE_K", 1.0, 0.01, 5.0, "roll rate loop's global gain (P, I, D)"),
+    _f("MC_ROLLRATE_P", 0.15, 0.01, 0.5, "roll rate loop's proportional gain"),
     _f("MC_YAWRATE_K", 1.0, 0.01, 5.0, "yaw rate loop's global gain (P, I, D)"),
+    _f("MC_YAWRATE_P", 0.2, 0.0, 0.6, "yaw rate loop's proportional gain"),
     # mavlink_params.c (reboot required).
     _i("MAV_COMP_ID", 1, 1, 250, "this autopilot's component id (at boot)"),
     _i("MAV_SYS_ID", 1, 1, 250, "this vehicle's system id (at boot)"),

@@ -131,6 +131,7 @@ def test_defaults_are_px4s() -> None:
         "COM_DL_LOSS_T": 10, "MAV_SYS_ID": 1, "MAV_COMP_ID": 1, "RC_MAP_ROLL": 0,
         "RC_MAP_FLTMODE": 0, "IMU_GYRO_RATEMAX": 400, "MAV_0_RATE": 1200, "MAV_1_MODE": 2,
         "MC_ROLLRATE_K": 1.0, "MC_PITCHRATE_K": 1.0, "MC_YAWRATE_K": 1.0,
+        "MC_ROLLRATE_P": 0.15, "MC_PITCHRATE_P": 0.15, "MC_YAWRATE_P": 0.2,
     }  # fmt: skip
     assert {k: p[k] for k in defaults} == pytest.approx(defaults)
     assert "COM_OBL_ACT" not in Px4Params(FirmwareVersion(1, 14, 0))  # gone in 1.14
@@ -231,10 +232,10 @@ def test_the_rate_loops_gain_set_over_mavlink_scales_its_p_i_and_d(
 def test_the_rate_loops_gain_at_boot(profile: VehicleProfile) -> None:
     cfg = RunConfig(
         mavlink=parse_endpoint("udpout:127.0.0.1:9"),
-        px4_params=(("MC_ROLLRATE_K", 2.0), ("MC_YAWRATE_K", 0.5)),
+        px4_params=(("MC_ROLLRATE_K", 2.0), ("MC_YAWRATE_K", 0.5), ("MC_PITCHRATE_P", 0.3)),
     )
     control = Runner(profile, cfg).autopilot.rate_pid.control
-    assert control.kp == pytest.approx((0.3, 0.15, 0.1))
+    assert control.kp == pytest.approx((0.3, 0.3, 0.1))  # K times P
     assert control.ki == pytest.approx((0.4, 0.2, 0.05))
 
 
