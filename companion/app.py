@@ -324,7 +324,7 @@ class Companion:
             self._spawn(self._telemetry.run(), "mqtt")
         hb = await self.link.wait_heartbeat(opts.heartbeat_timeout_s)
         self.autopilot = int(hb.autopilot)
-        start_up = StartUp(self.link, self.core, opts, self.event)
+        start_up = StartUp(self.link, self.core, opts, self.event, self.records.learnt)
         self.engagement.safe_modes = await start_up.recognise(self.autopilot)
         await start_up.request_streams()
         self.core.started_up = True

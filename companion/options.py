@@ -27,6 +27,7 @@ from typing import Any, NoReturn
 import click
 
 from companion.errors import EXIT_BAD_INPUT, ConfigError
+from companion.rate_loop import LawAxes
 
 __all__ = [
     "EXIT_BAD_INPUT",
@@ -297,23 +298,26 @@ live_opt = click.option(
 )
 
 
-def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> tuple[bool, bool, bool]:
-    """``--rates-law-axes``: a comma-separated set of roll, pitch and yaw, per axis
-    whether it is in it."""
+def _law_axes(_ctx: click.Context, param: click.Parameter, value: str) -> LawAxes | None:
+    """``--rates-law-axes``: ``auto`` (None), or a comma-separated set of roll, pitch
+    and yaw, per axis whether it is in it."""
     from companion.step import law_axes_named
 
+    if value == "auto":
+        return None
     try:
         return law_axes_named(value)
     except ValueError as exc:
-        raise click.BadParameter(str(exc), param=param) from None
+        raise click.BadParameter(f"{exc}, or 'auto'", param=param) from None
 
 
 rates_law_axes_opt = click.option(
     "--rates-law-axes",
     callback=_law_axes,
-    default="roll,pitch,yaw",
+    default="auto",
     show_default=True,
     help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
-    "others are sent the pilot's rate and the lead. 'yaw' suits a rate loop tuned stiffer "
-    "than the autopilot's default (docs/controller.md).",
+    "others are sent the pilot's rate and the lead. 'auto': yaw always, roll and pitch "
+    "unless the autopilot's rate gains there are twice its defaults or more, read at "
+    "start-up (PX4's MC_*RATE_K times MC_*RATE_P; docs/controller.md).",
 )

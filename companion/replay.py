@@ -209,6 +209,8 @@ def _law_axes(meta: Mapping[str, str]) -> tuple[bool, bool, bool] | None:
     named = meta.get("rates_law_axes")
     if named is None or meta.get("output") != "rates" or meta.get("rates_passthrough") == "True":
         return None  # (a log without it predates the option: all three)
+    if named == "auto":
+        return None  # never chosen: the run did not get past its start-up
     on = law_axes_named(named)
     return None if all(on) else on
 

@@ -10,6 +10,7 @@ from companion.config import MfcConfig, PidConfig
 from companion.failsafe import FailsafeConfig
 from companion.mission import FlightPlan
 from companion.profile import VehicleProfile
+from companion.rate_loop import LawAxes
 from companion.reference import ReferenceScript
 
 __all__ = ["RunOptions"]
@@ -53,13 +54,13 @@ class RunOptions:
     rates_passthrough: bool = False
     """With ``output="rates"``: send the pilot's rates unchanged (the baseline the
     MFC-on-top is compared with); the law still runs and is logged."""
-    rates_law_axes: tuple[bool, bool, bool] = (True, True, True)
+    rates_law_axes: LawAxes | None = None
     """With ``output="rates"``: per axis (roll, pitch, yaw), whether the law's
     correction is added to the pilot's rate. On an axis without it the setpoint
     is the pilot's rate and the lead, and the law there is taught that nothing
-    of its output was applied. On PX4 with its rate gains raised (``MC_ROLLRATE_K``
-    3), the law's correction made roll track worse than passing the pilot's rates
-    through, and yaw alone better on every axis (docs/research/realstack.md)."""
+    of its output was applied. None (``--rates-law-axes auto``): chosen at
+    start-up from the autopilot's rate gains (:mod:`companion.rate_loop`), all
+    three until then and where the stack has no rule."""
     log_dir: Path | None = None
     mqtt_url: str | None = None
     live: tuple[str, int] | None = None

@@ -62,6 +62,7 @@ from companion.control.stick_limits import (
     Px4StickAcceleration,
     StickLimits,
 )
+from companion.rate_loop import PX4_RATE_GAINS, RateLoopGains
 
 __all__ = [
     "ARDUPILOT",
@@ -309,6 +310,8 @@ class FlightStack:
     """The fastest IMU stream worth asking for; the stack may still deny it."""
     rate_shaping: RateShapingParams | None = None
     """How it shapes a body-rate setpoint before flying it; None: it flies it as sent."""
+    rate_gains: RateLoopGains | None = None
+    """Its rate loop's gain parameters, for ``--rates-law-axes auto``; None: not judged."""
     mode_names: dict[int, str] = field(default_factory=dict)
     """Names of its other modes by ``custom_mode`` (its failsafes' choices, for events)."""
     arm_refusals: tuple[str, ...] = ()
@@ -402,6 +405,7 @@ PX4 = FlightStack(
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
+    rate_gains=PX4_RATE_GAINS,
     # "Arming denied: Resolve system health failures first" follows the
     # "Preflight Fail: ..." that names the failing check; "Arm auth: Denied".
     arm_refusals=("Arming denied", "Preflight Fail", "Arm auth"),

@@ -20,9 +20,10 @@ from typing import Any
 from companion.core import FlightCore
 from companion.errors import EngageError, LinkError
 from companion.handback import candidates
+from companion.rate_loop import ALL_AXES, RateLoopGains
 from companion.run_options import RunOptions
 from companion.stacks import RateShapingParams, SafeMode, StickParams, stack_for
-from companion.step import LANDED_STATE_RATE_HZ
+from companion.step import LANDED_STATE_RATE_HZ, law_axes_names
 
 __all__ = ["HOLD_POSITION_RATE_HZ", "StartUp"]
 
@@ -45,21 +46,29 @@ HOLD_POSITION_RATE_HZ = 50.0
 _ATTITUDE_TARGET_RATE_HZ = 20.0
 """The autopilot's own collective, which the hold modes take over at."""
 _SYS_STATUS_RATE_HZ = 5.0
-_STICK_PARAM_TIMEOUT_S = 0.25
-"""Each stick-limit parameter is asked twice at most, all at once: an autopilot that
-does not answer one costs the start-up 0.5 s, not a second per parameter."""
+_QUICK_PARAM_TIMEOUT_S = 0.25
+"""Each parameter read for a choice with a default (the stick limits, the rate gains) is
+asked twice at most, all at once: an autopilot that does not answer one costs the
+start-up 0.5 s, not a second per parameter."""
 
 
 class StartUp:
     """The requests of a run's start-up, over ``link``, into ``core``."""
 
     def __init__(
-        self, link: Any, core: FlightCore, opts: RunOptions, event: Callable[[str, str], None]
+        self,
+        link: Any,
+        core: FlightCore,
+        opts: RunOptions,
+        event: Callable[[str, str], None],
+        learnt: Callable[[dict[str, str]], None] | None = None,
     ) -> None:
         self.link = link
         self.core = core
         self.opts = opts
         self.event = event
+        self.learnt = learnt
+        """Where what the start-up chose goes into the log's metadata."""
 
     async def recognise(self, autopilot: int) -> tuple[SafeMode, ...]:
         """Pick the stack's dialect and refuse what it cannot do, before sending
@@ -97,6 +106,8 @@ class StartUp:
                 )
         if opts.output == "rates" and stack.rate_shaping is not None:
             await self._learn_rate_shaping(stack.rate_shaping)
+        if opts.output == "rates" and opts.rates_law_axes is None and not opts.rates_passthrough:
+            await self._choose_law_axes(stack.rate_gains)
         if core.needs_attitude:
             await self._learn_stick_limits(stack.stick_params)
         return safe_modes
@@ -107,17 +118,8 @@ class StartUp:
         with them. A parameter it does not answer takes the stack's documented
         default, and an event says so; so do values the limits cannot take."""
 
-        async def read(name: str) -> float | None:
-            try:
-                value = await self.link.param_read(
-                    name, timeout_s=_STICK_PARAM_TIMEOUT_S, retries=1
-                )
-            except LinkError:
-                return None
-            return value if math.isfinite(value) else None
-
         names = params.names
-        got = await asyncio.gather(*(read(n) for n in names))
+        got = await asyncio.gather(*(self._read_quickly(n) for n in names))
         values = {n: v for n, v in zip(names, got, strict=True) if v is not None}
         missing = [n for n in names if n not in values]
         if missing:
@@ -142,6 +144,44 @@ class StartUp:
             f"{limits.summary()}; hover thrust {hover:.3g} ({params.hover_thrust})",
         )
         self.core.modes.build(limits, hover, on_ground=bool(self.core.controller.on_ground))
+
+    async def _read_quickly(self, name: str) -> float | None:
+        """A parameter's value, or None where it is not answered (asked twice, briefly)
+        or not finite."""
+        try:
+            value = await self.link.param_read(name, timeout_s=_QUICK_PARAM_TIMEOUT_S, retries=1)
+        except LinkError:
+            return None
+        return value if math.isfinite(value) else None
+
+    async def _choose_law_axes(self, gains: RateLoopGains | None) -> None:
+        """``--rates-law-axes auto``: the axes the law corrects, from the autopilot's
+        rate-loop gains (:mod:`companion.rate_loop`), into the step and the log's
+        metadata. A stack with no rule here, or gains not answered (or not
+        positive), leaves all three, and an event says which."""
+        axes = ALL_AXES
+        if gains is None:
+            said = "no rule for this stack's rate gains"
+        else:
+            names = gains.names
+            got = await asyncio.gather(*(self._read_quickly(n) for n in names))
+            values = {n: v for n, v in zip(names, got, strict=True) if v is not None and v > 0.0}
+            missing = [n for n in names if n not in values]
+            if missing:
+                said = f"{', '.join(missing)} not read"
+                self.event("rates_law_axes_assumed", f"{said}: the law corrects all three axes")
+            else:
+                said = gains.said(values)
+                axes = gains.law_axes(values)
+        self.core.step.set_law_axes(axes)
+        left = [a for a, on in zip(("roll", "pitch"), axes, strict=False) if not on]
+        self.event(
+            "rates_law_axes",
+            f"{said}: the law corrects {law_axes_names(axes).replace(',', ', ')}"
+            + (f"; {' and '.join(left)}: the pilot's rate and the lead" if left else ""),
+        )
+        if self.learnt is not None:
+            self.learnt({"rates_law_axes": law_axes_names(axes)})
 
     async def _learn_rate_shaping(self, shaping: RateShapingParams) -> None:
         """Read how the autopilot shapes body-rate setpoints (ArduCopter's input

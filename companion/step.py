@@ -24,6 +24,7 @@ from companion.control import AXES, RateController
 from companion.control.gate import gate_actuator, gate_rates
 from companion.control.shaping import RateShaper
 from companion.profile import VehicleProfile
+from companion.rate_loop import ALL_AXES, LawAxes
 
 __all__ = [
     "LANDED_STATE_RATE_HZ",
@@ -57,13 +58,13 @@ def whole_us(dt: float) -> float:
     return us * 1e-6 if us > 0 else dt
 
 
-def law_share(torque: Any, axes: tuple[bool, bool, bool]) -> tuple[float, float, float]:
+def law_share(torque: Any, axes: LawAxes) -> tuple[float, float, float]:
     """The law's normalised correction on the axes it corrects, 0 on the others."""
     t0, t1, t2 = torque
     return (t0 if axes[0] else 0.0, t1 if axes[1] else 0.0, t2 if axes[2] else 0.0)
 
 
-def law_axes_named(names: str) -> tuple[bool, bool, bool]:
+def law_axes_named(names: str) -> LawAxes:
     """Per axis, whether ``names`` (``--rates-law-axes``: a comma-separated set of
     roll, pitch and yaw, each once) holds it.
 
@@ -80,7 +81,7 @@ def law_axes_named(names: str) -> tuple[bool, bool, bool]:
     return (AXES[0] in given, AXES[1] in given, AXES[2] in given)
 
 
-def law_axes_names(axes: tuple[bool, bool, bool]) -> str:
+def law_axes_names(axes: LawAxes) -> str:
     """The ``--rates-law-axes`` value for ``axes`` (the inverse of :func:`law_axes_named`)."""
     return ",".join(a for a, on in zip(AXES, axes, strict=True) if on)
 
@@ -113,7 +114,8 @@ class SampleStep:
     rates_law_axes
         Rates output: per axis (roll, pitch, yaw), whether the law's correction
         is added; an axis without it is sent the pilot's rate and the lead, and
-        its law is taught that nothing of its output was applied.
+        its law is taught that nothing of its output was applied. None: all
+        three, until :meth:`set_law_axes` chooses.
     rate_accel_max_rad_s2
         Rates output: the autopilot's acceleration limits on a body-rate
         setpoint (ArduCopter's input shaping, :mod:`companion.control.shaping`),
@@ -152,7 +154,7 @@ class SampleStep:
         rates_full_scale_deg_s: float | None = None,
         rates_lead_s: float = 0.0,
         rates_passthrough: bool = False,
-        rates_law_axes: tuple[bool, bool, bool] = (True, True, True),
+        rates_law_axes: LawAxes | None = None,
         rate_accel_max_rad_s2: tuple[float, float, float] | None = None,
     ) -> None:
         if output not in ("actuator", "rates"):
@@ -165,10 +167,9 @@ class SampleStep:
         self.rate_fs_rad_s = self.rate_max_rad_s if fs is None else (math.radians(fs),) * 3
         self.rates_lead_s = rates_lead_s
         self.passthrough = rates_passthrough
-        self.law_axes: tuple[bool, bool, bool] | None = (
-            None if all(rates_law_axes) else rates_law_axes
-        )
+        self.law_axes: LawAxes | None = None
         """The axes the law corrects in rates output (None: all three)."""
+        self.set_law_axes(rates_law_axes or ALL_AXES)
         self.gyro_limit_rad_s = (
             math.radians(profile.physics.imu.gyro_range_deg_s) * GYRO_RANGE_MARGIN
         )
@@ -199,6 +200,11 @@ class SampleStep:
             if accel_max_rad_s2 is not None and not self.actuator
             else None
         )
+
+    def set_law_axes(self, axes: LawAxes) -> None:
+        """The axes the law corrects in rates output, as chosen once the stack's
+        rate gains are known (:mod:`companion.rate_loop`)."""
+        self.law_axes = None if all(axes) else axes
 
     def reset(self) -> None:
         """Forget what the step carries between samples (an engagement starts afresh)."""

@@ -32,7 +32,9 @@ GOOD_PX4_PARAMS: dict[str, float | None] = {
     "RC_MAP_FLTMODE": 6,
     "IMU_GYRO_RATEMAX": 400,
     "MC_ROLLRATE_K": 1.0,
+    "MC_ROLLRATE_P": 0.15,
     "MC_PITCHRATE_K": 1.0,
+    "MC_PITCHRATE_P": 0.15,
 }
 GOOD_ARDU_PARAMS: dict[str, float | None] = {
     "GUID_OPTIONS": 8,
@@ -188,10 +190,10 @@ def test_a_well_set_autopilot_passes_every_line(stack: str) -> None:
         (
             "px4",
             {"params": {"MC_PITCHRATE_K": 3.0}},
-            {"output": "rates"},
+            {"output": "rates", "rates_law_axes": (True, True, True)},
             "MC_ROLLRATE_K",
             "warn",
-            "--rates-law-axes yaw",
+            "--rates-law-axes auto",
         ),
         # ArduPilot's.
         (
@@ -456,7 +458,8 @@ def test_preflight_reads_what_its_rules_judge_and_no_parameter_twice() -> None:
     assert params_read(PX4) == (
         "COM_OF_LOSS_T", "COM_OBL_RC_ACT", "COM_RC_LOSS_T", "NAV_RCL_ACT", "COM_RCL_EXCEPT",
         "COM_RC_IN_MODE", "RC_MAP_ROLL", "RC_MAP_PITCH", "RC_MAP_THROTTLE", "RC_MAP_YAW",
-        "RC_MAP_FLTMODE", "IMU_GYRO_RATEMAX", "MC_ROLLRATE_K", "MC_PITCHRATE_K",
+        "RC_MAP_FLTMODE", "IMU_GYRO_RATEMAX", "MC_ROLLRATE_K", "MC_ROLLRATE_P", "MC_PITCHRATE_K",
+        "MC_PITCHRATE_P",
     )  # fmt: skip
     assert params_read(ARDUPILOT) == (
         "GUID_OPTIONS", "GUID_TIMEOUT", "MAV_GCS_SYSID", "FS_THR_ENABLE", "FS_OPTIONS",
@@ -470,22 +473,35 @@ def test_preflight_reads_what_its_rules_judge_and_no_parameter_twice() -> None:
 @pytest.mark.parametrize(
     ("run", "judged"),
     [
-        ({"output": "rates"}, True),
-        ({"output": "rates", "rates_law_axes": (False, True, True)}, True),
-        ({"output": "rates", "rates_law_axes": (False, False, True)}, False),
-        ({"output": "actuator"}, False),
+        ({"output": "rates", "rates_law_axes": (True, True, True)}, "warn"),
+        ({"output": "rates", "rates_law_axes": (True, False, True)}, "warn"),
+        ({"output": "rates", "rates_law_axes": (False, True, True)}, "pass"),
+        ({"output": "rates"}, "pass"),  # auto: it leaves roll to the pilot's rate
+        ({"output": "rates", "rates_law_axes": (False, False, True)}, None),
+        ({"output": "actuator"}, None),
     ],
 )
+@pytest.mark.parametrize(
+    "stiff_roll",
+    [{"MC_ROLLRATE_K": 2.0}, {"MC_ROLLRATE_P": 0.3}, {"MC_ROLLRATE_K": 1.5, "MC_ROLLRATE_P": 0.2}],
+)
 def test_px4s_rate_gains_are_judged_only_where_the_law_corrects_roll_or_pitch_rates(
-    run: dict[str, Any], judged: bool
+    run: dict[str, Any], judged: str | None, stiff_roll: dict[str, float]
 ) -> None:
-    obs = observed(params={"MC_ROLLRATE_K": 2.0, "MC_PITCHRATE_K": 1.0})
+    """A roll rate loop twice PX4's default gain (through its K, its P or both): a
+    warning where the law is asked to correct roll, said where auto chooses."""
+    obs = observed(params={**GOOD_PX4_PARAMS, **stiff_roll})
     checks = judge(obs, plan(**run), GOOD_CORE)
     found = [c for c in checks if c.name == "MC_ROLLRATE_K"]
-    if judged:
-        (c,) = found
-        assert c.status == "warn" and "MC_ROLLRATE_K 2, MC_PITCHRATE_K 1" in c.detail, c
-    else:
+    if judged is None:
         assert found == []
+        return
+    (c,) = found
+    assert c.status == judged and "2x / 1x the default gain on roll / pitch" in c.detail, c
+    if judged == "warn":
+        assert "stiffer on roll," in c.detail and "--rates-law-axes auto" in c.fix, c
+    elif "rates_law_axes" not in run:
+        assert c.detail.endswith("--rates-law-axes auto: the law corrects pitch, yaw"), c
     at_default = judge(observed(), plan(**run), GOOD_CORE)
-    assert all(c.status == "pass" for c in at_default if c.name == "MC_ROLLRATE_K")
+    (c,) = [c for c in at_default if c.name == "MC_ROLLRATE_K"]
+    assert c.status == "pass" and "1x / 1x the default gain" in c.detail, c

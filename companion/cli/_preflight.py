@@ -30,6 +30,7 @@ from companion.options import (
     rates_law_axes_opt,
     signing_key_opt,
 )
+from companion.rate_loop import LawAxes
 
 __all__ = ["preflight"]
 
@@ -66,7 +67,7 @@ def preflight(
     profile_path: Path,
     controller_path: Path | None,
     output: str,
-    rates_law_axes: tuple[bool, bool, bool],
+    rates_law_axes: LawAxes | None,
     engage: str,
     engage_channel: int,
     rate_hz: float,

@@ -52,6 +52,7 @@ from companion.options import (
 
 if TYPE_CHECKING:
     from companion.fly_check import FlyCheck
+    from companion.rate_loop import LawAxes
 
 __all__ = ["run"]
 
@@ -215,7 +216,7 @@ def run(
     rates_full_scale_deg_s: float,
     rates_lead_s: float,
     rates_passthrough: bool,
-    rates_law_axes: tuple[bool, bool, bool],
+    rates_law_axes: LawAxes | None,
     imu_source: str,
     rate_hz: float,
     log_dir: Path | None,
@@ -273,7 +274,7 @@ def run(
             mission = load_mission(mission_path)
         if rates_passthrough and output != "rates":
             raise ValueError(f"--rates-passthrough: needs --output rates (got --output {output})")
-        if not all(rates_law_axes) and output != "rates":
+        if rates_law_axes is not None and not all(rates_law_axes) and output != "rates":
             raise ValueError(f"--rates-law-axes: needs --output rates (got --output {output})")
         if reference_path is not None:
             if mode.needs_attitude:

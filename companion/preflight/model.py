@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
 from companion.link.timesync import LinkStats
+from companion.rate_loop import LawAxes
 from companion.stacks import FlightStack, stack_for
 
 if TYPE_CHECKING:
@@ -33,8 +34,9 @@ class Plan:
     """The run the checks judge the autopilot for (``companion run``'s options)."""
 
     output: Literal["actuator", "rates"] = "actuator"
-    rates_law_axes: tuple[bool, bool, bool] = (True, True, True)
-    """With rates output: whether the law corrects roll, pitch and yaw."""
+    rates_law_axes: LawAxes | None = None
+    """With rates output: whether the law corrects roll, pitch and yaw (None:
+    ``--rates-law-axes auto``, chosen from the autopilot's rate gains)."""
     engage: Literal["auto", "rc-switch", "none"] = "rc-switch"
     engage_channel: int = 5
     rate_hz: float = 250.0

@@ -14,8 +14,11 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from companion.control import AXES
 from companion.preflight.model import Check, Plan
+from companion.rate_loop import PX4_RATE_GAINS, STIFF
 from companion.stacks import ARDUPILOT, PX4, FlightStack
+from companion.step import law_axes_names
 
 __all__ = [
     "OLDER_NAMES",
@@ -198,32 +201,41 @@ def _gyro_rate(gyro: float, plan: Plan) -> Check:
     return Check("IMU_GYRO_RATEMAX", "pass", f"{gyro:g} Hz")
 
 
-_PX4_RATE_K_STIFF = 2.0
-"""``MC_ROLLRATE_K`` / ``MC_PITCHRATE_K`` from which the rate loop is stiff enough that
-the law's roll and pitch correction no longer pays: on PX4 v1.16's SIH, at the
-default 1 it tracked 0.79 / 0.85 of pass-through, at 2 0.99 / 0.96, at 3 1.13-1.23
-on roll (docs/research/realstack.md#stiffer-rate-loop)."""
-
-
-def _rate_gains(p: Params, _ctx: Context) -> list[Check]:
-    roll, pitch = _value(p, "MC_ROLLRATE_K"), _value(p, "MC_PITCHRATE_K")
-    said = f"MC_ROLLRATE_K {roll:g}, MC_PITCHRATE_K {pitch:g}"
-    if max(roll, pitch) >= _PX4_RATE_K_STIFF:
+def _rate_gains(p: Params, ctx: Context) -> list[Check]:
+    """PX4's rate gains against where the law's roll and pitch correction pays
+    (:mod:`companion.rate_loop`): said with ``--rates-law-axes auto``, which chooses
+    from them at start-up; a warning where the axes asked correct a stiff loop."""
+    values = {n: _value(p, n) for n in PX4_RATE_GAINS.names}
+    said = PX4_RATE_GAINS.said(values)
+    chosen = PX4_RATE_GAINS.law_axes(values)
+    asked = ctx.plan.rates_law_axes
+    if asked is None:
+        what = law_axes_names(chosen).replace(",", ", ")
+        return [
+            Check(
+                "MC_ROLLRATE_K", "pass", f"{said}; --rates-law-axes auto: the law corrects {what}"
+            )
+        ]
+    stiff = [a for a, on, pays in zip(AXES, asked, chosen, strict=False) if on and not pays]
+    if stiff:
         return [
             Check(
                 "MC_ROLLRATE_K",
                 "warn",
-                f"{said}: a rate loop stiffer than PX4's default (1), where the law's roll "
-                "and pitch correction measured no better than passing the pilot's rates "
-                "through (at 2) and worse (at 3)",
-                "fly --rates-law-axes yaw, or fly both and keep the better (docs/controller.md)",
+                f"{said}: a rate loop {STIFF:g}x PX4's default or stiffer on "
+                f"{' and '.join(stiff)}, "
+                "where the law's correction measured no better than passing the pilot's rates "
+                "through (at 2x) and worse (at 3x)",
+                "fly --rates-law-axes auto (it leaves those axes to the pilot's rate), or fly "
+                "both and keep the better (docs/controller.md)",
             )
         ]
     return [Check("MC_ROLLRATE_K", "pass", said)]
 
 
 def _law_on_roll_or_pitch(ctx: Context) -> bool:
-    return ctx.plan.output == "rates" and (ctx.plan.rates_law_axes[0] or ctx.plan.rates_law_axes[1])
+    axes = ctx.plan.rates_law_axes
+    return ctx.plan.output == "rates" and (axes is None or axes[0] or axes[1])
 
 
 # ----------------------------------------------------------------------- both stacks
@@ -420,7 +432,7 @@ PARAM_RULES: dict[FlightStack, tuple[Rule, ...]] = {
             when=_radio,  # a joystick's axes PX4 maps itself
         ),
         _one("IMU_GYRO_RATEMAX", _gyro_rate),
-        Rule(("MC_ROLLRATE_K", "MC_PITCHRATE_K"), _rate_gains, when=_law_on_roll_or_pitch),
+        Rule(PX4_RATE_GAINS.names, _rate_gains, when=_law_on_roll_or_pitch),
     ),
     ARDUPILOT: (
         _one("GUID_OPTIONS", _guided_thrust),

@@ -86,7 +86,10 @@ class RunRecords:
             "rates_full_scale_deg_s": repr(opts.rates_full_scale_deg_s),
             "rates_lead_s": repr(opts.rates_lead_s),
             "rates_passthrough": str(opts.rates_passthrough),
-            "rates_law_axes": law_axes_names(opts.rates_law_axes),
+            # auto: the start-up's choice follows (learnt).
+            "rates_law_axes": (
+                "auto" if opts.rates_law_axes is None else law_axes_names(opts.rates_law_axes)
+            ),
         }
         self.rows = ControlLog(
             d / "control.mcap", columns(opts.profile.n_motors), meta=meta, writer=writer
@@ -112,6 +115,12 @@ class RunRecords:
         live.start()
         appends = [a for a in (self.append, live.append) if a is not None]
         self.append = tee(*appends)
+
+    def learnt(self, meta: dict[str, str]) -> None:
+        """What the run chose once the autopilot was known, into the control log's
+        metadata (:meth:`companion.records.ControlLog.learnt`)."""
+        if self.rows is not None:
+            self.rows.learnt(meta)
 
     def record_event(self, ev: dict[str, Any]) -> None:
         """An event into memory, the events file, the control log and the live view."""

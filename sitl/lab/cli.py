@@ -45,6 +45,7 @@ from companion.options import (
     rates_law_axes_opt,
     usable_out_dir,
 )
+from companion.rate_loop import LawAxes
 from sitl.cli import ENVELOPE_N_MAX
 from sitl.lab.campaign_file import MAX_FLIGHTS
 from sitl.link_model import LinkSpec
@@ -448,7 +449,7 @@ def fly(
     out_dir: Path,
     autopilot: str,
     compare_passthrough: bool,
-    rates_law_axes: tuple[bool, bool, bool],
+    rates_law_axes: LawAxes | None,
     flight_mode: str,
     mission_path: Path | None,
     link: LinkSpec | None,
@@ -477,7 +478,7 @@ def fly(
         click.echo("error: --compare-passthrough needs --output rates (or --autopilot ardupilot)",
                    err=True)  # fmt: skip
         sys.exit(EXIT_BAD_INPUT)
-    if not all(rates_law_axes) and flown_output != "rates":
+    if rates_law_axes is not None and not all(rates_law_axes) and flown_output != "rates":
         click.echo("error: --rates-law-axes needs --output rates (or --autopilot ardupilot)",
                    err=True)  # fmt: skip
         sys.exit(EXIT_BAD_INPUT)
@@ -502,7 +503,7 @@ def fly(
     mode_args: tuple[str, ...] = () if flight_mode == "rates" else ("--mode", flight_mode)
     if mission_path is not None:
         mode_args += ("--mission", str(mission_path))
-    if not all(rates_law_axes):
+    if rates_law_axes is not None:
         from companion.step import law_axes_names
 
         mode_args += ("--rates-law-axes", law_axes_names(rates_law_axes))

@@ -1,7 +1,9 @@
 """``companion run --output rates --rates-law-axes``: the law corrects only the axes named.
 
 On the others the setpoint is the pilot's rate and the lead, and the law there is
-taught that nothing of its output went out; replay reproduces such a flight.
+taught that nothing of its output went out; replay reproduces such a flight. With
+``auto`` (the default) the axes are chosen at start-up from PX4's rate gains
+(companion.rate_loop), and the log's metadata says which.
 """
 
 from __future__ import annotations
@@ -25,6 +27,13 @@ SPIN = (0.6, -0.4, 0.5)  # rad/s: the vehicle turns while the sticks are centred
 
 async def _flown(start: Start, log_dir: Path, **opts: object) -> list[tuple[float, ...]]:
     """The setpoints sent while the vehicle turns under centred sticks."""
+    return (await _flight(start, log_dir, **opts))[0]
+
+
+async def _flight(
+    start: Start, log_dir: Path, **opts: object
+) -> tuple[list[tuple[float, ...]], Flight]:
+    """The setpoints sent while the vehicle turns under centred sticks, and the flight."""
     f: Flight = await start(
         engage="auto", output="rates", controller=RATES, log_dir=log_dir, **opts
     )
@@ -44,7 +53,7 @@ async def _flown(start: Start, log_dir: Path, **opts: object) -> list[tuple[floa
     ]
     f.companion._stop.set()
     await f.finish()
-    return sent
+    return sent, f
 
 
 async def test_yaw_alone_sends_the_pilots_roll_and_pitch_and_replays(
@@ -68,12 +77,65 @@ async def test_yaw_alone_sends_the_pilots_roll_and_pitch_and_replays(
     assert max(diffs.values()) > 1e3 * REPLAY_TOLERANCE, diffs
 
 
+STIFF_PX4 = {"MC_ROLLRATE_K": 3.0, "MC_ROLLRATE_P": 0.15, "MC_PITCHRATE_K": 1.0,
+             "MC_PITCHRATE_P": 0.3}  # fmt: skip
+"""PX4's roll rate loop at three times its default gain (K), pitch's at twice (P)."""
+DEFAULT_PX4 = {"MC_ROLLRATE_K": 1.0, "MC_ROLLRATE_P": 0.15, "MC_PITCHRATE_K": 1.0,
+               "MC_PITCHRATE_P": 0.15}  # fmt: skip
+
+
+async def test_auto_leaves_a_stiff_loops_roll_and_pitch_to_the_pilot_and_replays(
+    start: Start, tmp_path: Path
+) -> None:
+    sent, f = await _flight(start, tmp_path / "auto", params=STIFF_PX4)
+    yaw = np.array(sent)
+    assert len(yaw) > 50
+    assert (yaw[:, :2] == 0.0).all()  # centred sticks: no rate, no lead
+    assert np.abs(yaw[:, 2]).max() > 0.05
+    (said,) = f.details("rates_law_axes")
+    assert said.startswith("MC_ROLLRATE_K 3, MC_ROLLRATE_P 0.15, MC_PITCHRATE_K 1, "
+                           "MC_PITCHRATE_P 0.3: 3x / 2x the default gain"), said  # fmt: skip
+    assert said.endswith("the law corrects yaw; roll and pitch: the pilot's rate and the lead")
+    cols, meta = read_control_log(tmp_path / "auto" / "control.mcap")
+    assert meta["rates_law_axes"] == "yaw"  # learnt at start-up, over the first "auto"
+    diffs = compare(cols, replay(cols, RATES, PROFILE, meta=meta))
+    assert max(diffs.values()) <= REPLAY_TOLERANCE, diffs
+
+
+@pytest.mark.parametrize(
+    ("params", "asked", "kind"),
+    [
+        (DEFAULT_PX4, None, "rates_law_axes"),
+        (None, None, "rates_law_axes_assumed"),  # not answered: all three
+        (STIFF_PX4, (True, True, True), None),  # asked: not chosen, nothing read
+    ],
+)
+async def test_every_axis_where_the_loop_is_not_stiff_unread_or_all_are_asked(
+    start: Start,
+    tmp_path: Path,
+    params: dict[str, float] | None,
+    asked: tuple[bool, bool, bool] | None,
+    kind: str | None,
+) -> None:
+    opts = {} if asked is None else {"rates_law_axes": asked}
+    sent, f = await _flight(start, tmp_path, params=params, **opts)
+    every = np.array(sent)
+    assert (np.abs(every).max(axis=0) > 0.05).all()
+    assert f.kinds().count("rates_law_axes") == (kind is not None)
+    if kind is not None:
+        assert kind in f.kinds()
+        (said,) = f.details("rates_law_axes")
+        assert said.endswith(": the law corrects roll, pitch, yaw"), said
+    _, meta = read_control_log(tmp_path / "control.mcap")
+    assert meta["rates_law_axes"] == "roll,pitch,yaw"
+
+
 @pytest.mark.parametrize(
     ("value", "words"),
     [
         ("roll,spin", ("--rates-law-axes", "expected a comma-separated set", "'roll,spin'")),
         ("yaw,yaw", ("--rates-law-axes", "each once")),
-        ("", ("--rates-law-axes",)),
+        ("", ("--rates-law-axes", "or 'auto'")),
     ],
 )
 def test_run_refuses_an_axis_it_does_not_know(value: str, words: tuple[str, ...]) -> None:

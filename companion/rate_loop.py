@@ -1,0 +1,87 @@
+"""Which axes the law corrects with rates output, chosen from the autopilot's rate gains.
+
+With rates output the law wraps the autopilot's own rate loop. Where that loop is
+soft, the law's correction takes its lag away; where it is already stiff, the law
+adds only noise. On PX4 v1.16's SIH, flying the same pilot, the law's roll and
+pitch correction tracked about 0.8 of passing the pilot's rates through at the
+default gains, level with it when the loop's gain was doubled, and 1.13-1.23 of it
+on roll at three times; correcting yaw alone tracked at most pass-through's at
+every gain (``docs/research/realstack.md#law-axes``).
+
+``--rates-law-axes auto`` (the default) reads the loop's proportional gain on roll
+and pitch at start-up, as the product of the stack's parameters (PX4:
+``MC_ROLLRATE_K`` times ``MC_ROLLRATE_P``), against the product of their defaults:
+from :data:`STIFF` times that on, the law leaves the axis to the pilot's rate and
+the lead. Yaw is always corrected. A stack without such parameters here
+(ArduPilot) gets all three axes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+__all__ = ["ALL_AXES", "PX4_RATE_GAINS", "STIFF", "LawAxes", "RateLoopGains"]
+
+LawAxes = tuple[bool, bool, bool]
+"""Per axis (roll, pitch, yaw), whether the law's correction is sent."""
+
+ALL_AXES: LawAxes = (True, True, True)
+
+STIFF = 2.0
+"""The loop's proportional gain, over its default, from which the law's correction
+on that axis no longer pays: measured level with pass-through at 2 (both through
+``MC_*RATE_K`` and ``MC_*RATE_P``) and worse at 3; at 1.5 the full law and yaw
+alone tracked alike (``docs/research/realstack.md#law-axes``)."""
+
+
+@dataclass(frozen=True)
+class RateLoopGains:
+    """The parameters whose product is a stack's rate-loop proportional gain on roll
+    and on pitch, each with its documented default."""
+
+    roll: tuple[str, ...]
+    pitch: tuple[str, ...]
+    defaults: Mapping[str, float]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (*self.roll, *self.pitch)
+
+    def stiffness(self, values: Mapping[str, float]) -> tuple[float, float]:
+        """Roll's and pitch's proportional gain over their defaults' (a parameter
+        ``values`` lacks takes its default)."""
+
+        def ratio(names: tuple[str, ...]) -> float:
+            out = 1.0
+            for n in names:
+                out *= values.get(n, self.defaults[n]) / self.defaults[n]
+            return out
+
+        return ratio(self.roll), ratio(self.pitch)
+
+    def law_axes(self, values: Mapping[str, float]) -> LawAxes:
+        """The axes the law corrects on a loop with these gains: yaw always, roll
+        and pitch below :data:`STIFF`."""
+        roll, pitch = self.stiffness(values)
+        return (roll < STIFF, pitch < STIFF, True)
+
+    def said(self, values: Mapping[str, float]) -> str:
+        """The parameters as read, and the stiffness they make (for events and checks)."""
+        shown = ", ".join(f"{n} {values.get(n, self.defaults[n]):g}" for n in self.names)
+        roll, pitch = self.stiffness(values)
+        return f"{shown}: {roll:.3g}x / {pitch:.3g}x the default gain on roll / pitch"
+
+
+PX4_RATE_GAINS = RateLoopGains(
+    # PX4 v1.16 parameter reference, Multicopter Rate Control: the rate loop's gain
+    # K multiplies its P, I and D (K = 1, P = 0.15 by default on roll and pitch).
+    roll=("MC_ROLLRATE_K", "MC_ROLLRATE_P"),
+    pitch=("MC_PITCHRATE_K", "MC_PITCHRATE_P"),
+    defaults={
+        "MC_ROLLRATE_K": 1.0,
+        "MC_ROLLRATE_P": 0.15,
+        "MC_PITCHRATE_K": 1.0,
+        "MC_PITCHRATE_P": 0.15,
+    },
+)
