@@ -124,7 +124,7 @@ def fly_through(
         "seed": sc.seed,
         "controller": "passthrough" if passthrough else "mfc",
         "sitl_params": list(sitl_params),
-        "law_axes": law_axes or ",".join(AXES),
+        "law_axes": law_axes or "auto",
         "crashed": bool(metrics["crashed"]),
         "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},
@@ -183,7 +183,8 @@ def _mean(flights: list[dict[str, Any]], key: str, axis: str) -> float:
 def _markdown(flights: list[dict[str, Any]], rows: list[dict[str, Any]]) -> str:
     """The table; MAE columns the mean over the seeds."""
     flown = "pass-through" if any(f.get("controller") == "passthrough" for f in flights) else "MFC"
-    if flown == "MFC" and (axes := flights[0].get("law_axes", ",".join(AXES))) != ",".join(AXES):
+    axes = flights[0].get("law_axes", "auto")
+    if flown == "MFC" and axes not in ("auto", ",".join(AXES)):
         flown = f"MFC (law on {axes})"
     lines = [
         f"| vehicle | link | {flown} roll / pitch / yaw | tracker roll / pitch "
@@ -254,7 +255,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--law-axes",
         metavar="AXES",
-        help="with --output rates: the axes the law corrects (companion run --rates-law-axes)",
+        help="with --output rates: the axes the law corrects (companion run --rates-law-axes; "
+        "default auto)",
     )
     args = ap.parse_args(argv)
     for flag, given in (
@@ -303,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
                     "output": args.output,
                     "controller": "passthrough" if args.passthrough else "mfc",
                     "sitl_params": args.sitl_param,
-                    "law_axes": args.law_axes or ",".join(AXES),
+                    "law_axes": args.law_axes or "auto",
                     "flights": flights,
                     "costs": rows,
                 },
