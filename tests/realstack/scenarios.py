@@ -217,7 +217,7 @@ def flick_the_switch_while_preflight_watches(session: Session) -> None:
 
 def fly_rates_pair(session: Session, rates_args: tuple[str, ...], seed: int) -> dict[str, Any]:
     """The same acro-mixed flight passed through and flown by MFC: the rate MAE of each
-    (deg/s), and the failsafes each met."""
+    (deg/s), the failsafes each met, and what ``--rates-law-axes auto`` chose."""
     from sitl.lab.realstack.flights import rate_errors
 
     errs: dict[str, Any] = {}
@@ -230,6 +230,7 @@ def fly_rates_pair(session: Session, rates_args: tuple[str, ...], seed: int) -> 
         assert "engaged" in run.kinds(), run.events()
         errs[name] = rate_errors(run.control())
         errs[name]["failsafes"] = [k for k in run.kinds() if k.startswith("failsafe")]
+        errs[name]["rates_law_axes"] = run.details("rates_law_axes")  # auto's choice
     return errs
 
 

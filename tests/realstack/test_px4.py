@@ -62,10 +62,14 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
         value = g.param_get(name)
         assert value is not None
         assert checks[name]["detail"].startswith(f"{int(value[0])}"), checks[name]
-    rate_k = [g.param_get(n) for n in ("MC_ROLLRATE_K", "MC_PITCHRATE_K")]
-    assert rate_k[0] is not None and rate_k[1] is not None
-    assert checks["MC_ROLLRATE_K"]["detail"] == (
-        f"MC_ROLLRATE_K {rate_k[0][0]:g}, MC_PITCHRATE_K {rate_k[1][0]:g}"
+    gains = {n: g.param_get(n) for n in ("MC_ROLLRATE_K", "MC_ROLLRATE_P", "MC_PITCHRATE_K",
+                                         "MC_PITCHRATE_P")}  # fmt: skip
+    assert None not in gains.values(), gains
+    assert checks["MC_ROLLRATE_K"]["detail"].startswith(
+        ", ".join(f"{n} {v[0]:g}" for n, v in gains.items() if v is not None)
+    ), checks["MC_ROLLRATE_K"]
+    assert checks["MC_ROLLRATE_K"]["detail"].endswith(
+        "--rates-law-axes auto: the law corrects roll, pitch, yaw"
     ), checks["MC_ROLLRATE_K"]
     assert checks["link"]["detail"].startswith("PX4 1.16")
     assert checks["landed state"]["detail"] == "on ground"
@@ -89,7 +93,8 @@ BAD_PX4 = {
 def test_preflight_flags_each_badly_set_px4_parameter_with_its_fix(
     px4: Session, figures: list[dict[str, Any]]
 ) -> None:
-    checks = preflight_with(px4, RATES, BAD_PX4)
+    # The law asked on every axis: on a stiff loop preflight warns (auto would not ask).
+    checks = preflight_with(px4, (*RATES, "--rates-law-axes", "roll,pitch,yaw"), BAD_PX4)
     got = {name: checks[name]["status"] for name in BAD_PX4}
     figures.append({"test": "px4 preflight, badly set", **got})
     assert got == {
@@ -107,6 +112,10 @@ def test_mfc_flies_px4s_rate_loop_better_than_passing_the_pilots_rates(
     errs = fly_rates_pair(px4, RATES, seed=11)
     assert not errs["mfc"]["failsafes"] and not errs["pass-through"]["failsafes"], errs
     figures.append({"test": "px4 rates acro-mixed seed 11 MAE deg/s", **errs})
+    # PX4's default gains: auto corrects every axis.
+    (chose,) = errs["mfc"]["rates_law_axes"]
+    assert chose.endswith("1x / 1x the default gain on roll / pitch: the law corrects roll, "
+                          "pitch, yaw"), chose  # fmt: skip
     # Roll and pitch, MFC is well ahead (0.80-0.93 of pass-through over six runs).
     # Yaw is at parity: 0.964-1.000 over the same six (two cores), the pass-through's
     # yaw alone 28.47-29.12 deg/s between runs, and one run in six tied to the
@@ -117,19 +126,23 @@ def test_mfc_flies_px4s_rate_loop_better_than_passing_the_pilots_rates(
     assert errs["mfc"]["yaw"] <= 1.05 * errs["pass-through"]["yaw"], errs
 
 
-def test_on_a_stiffer_rate_loop_the_yaw_only_law_flies_no_worse_than_pass_through(
+def test_on_a_stiffer_rate_loop_the_default_flies_no_worse_than_pass_through(
     px4: Session, figures: list[dict[str, Any]]
 ) -> None:
-    """PX4's rate gains tripled (``MC_ROLLRATE_K``, ``MC_PITCHRATE_K``), as an owner
-    tuning the vehicle might: the full law tracks roll 1.13-1.23x worse than
-    pass-through there, ``--rates-law-axes yaw`` 1.00 (roll), 0.90 (pitch), 0.95
-    (yaw) in one run and 1.00 / 0.94 / 0.97 in a scratch build of the same
-    (docs/research/realstack.md#law-axes). A 5 % tie band, as on yaw above."""
-    stiff = {"MC_ROLLRATE_K": 3.0, "MC_PITCHRATE_K": 3.0}
+    """PX4's rate gains tripled, as an owner tuning the vehicle might: roll through
+    ``MC_ROLLRATE_K``, pitch through ``MC_PITCHRATE_P``. The full law tracks roll
+    1.13-1.25x worse than pass-through there; the default (``--rates-law-axes
+    auto``) reads the gains, corrects yaw alone, and flew at most 1.03x pass-through
+    on every axis (docs/research/realstack.md#law-axes). A 5 % tie band, as on yaw
+    above."""
+    stiff = {"MC_ROLLRATE_K": 3.0, "MC_PITCHRATE_P": 0.45}
     with params_set(px4, stiff):
-        errs = fly_rates_pair(px4, (*RATES, "--rates-law-axes", "yaw"), seed=11)
+        errs = fly_rates_pair(px4, RATES, seed=11)
+    chose = errs["mfc"]["rates_law_axes"]
     assert not errs["mfc"]["failsafes"] and not errs["pass-through"]["failsafes"], errs
-    figures.append({"test": "px4 K 3, --rates-law-axes yaw, acro-mixed seed 11", **errs})
+    figures.append({"test": "px4 roll K 3, pitch P 0.45, auto, acro-mixed seed 11", **errs})
+    yaw_only = "the law corrects yaw; roll and pitch: the pilot's rate and the lead"
+    assert len(chose) == 1 and chose[0].endswith(yaw_only), chose
     for axis in ("roll", "pitch", "yaw"):
         assert errs["mfc"][axis] <= 1.05 * errs["pass-through"][axis], (axis, errs)
 
