@@ -76,7 +76,9 @@ class _Batch:
         self.learnt = learnt or {}
 
     def __len__(self) -> int:
-        return len(self.rows) + _EVENT_BYTES * len(self.events)
+        """What it counts against the writer's bounds (never 0 while it holds anything:
+        the writer drops an empty batch)."""
+        return len(self.rows) + _EVENT_BYTES * (len(self.events) + bool(self.learnt))
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickled for the encoder's process (:mod:`companion.records.encoder_process`):

@@ -316,7 +316,9 @@ def test_what_the_run_learnt_later_overrides_its_first_metadata(
     w = RecordWriter() if threaded else None
     log = ControlLog(path, cols, meta={"rates_law_axes": "auto", "profile": "f450"}, writer=w)
     log.append(data[0].tolist())
+    log.flush()  # what was learnt goes out alone
     log.learnt({"rates_law_axes": "yaw", "columns": "t_s"})
+    log.flush()
     for row in data[1:].tolist():
         log.append(row)
     log.close()
