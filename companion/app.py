@@ -63,7 +63,7 @@ from companion.watchdogs import Watchdogs, link_figures
 _TASKS_STOP_S = 2.0
 """How long the run's end waits for its background tasks after cancelling them."""
 
-_WARNING_EVENTS = frozenset({"fly_check_skipped"})
+_WARNING_EVENTS = frozenset({"fly_check_skipped", "rates_law_axes_assumed"})
 """Events logged as warnings, as the failsafes are: the pilot should see them."""
 
 __all__ = [

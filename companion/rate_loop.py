@@ -18,6 +18,7 @@ the lead. Yaw is always corrected. A stack without such parameters here
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -48,6 +49,13 @@ class RateLoopGains:
     def names(self) -> tuple[str, ...]:
         return (*self.roll, *self.pitch)
 
+    def usable(self, got: Mapping[str, float | None]) -> tuple[dict[str, float], list[str]]:
+        """The gains read that a choice can rest on (finite, positive), and the names
+        of the others (not answered, or not so): with any of those, auto chooses all
+        three axes."""
+        values = {n: v for n in self.names if (v := got.get(n)) is not None and _positive(v)}
+        return values, [n for n in self.names if n not in values]
+
     def stiffness(self, values: Mapping[str, float]) -> tuple[float, float]:
         """Roll's and pitch's proportional gain over their defaults' (a parameter
         ``values`` lacks takes its default)."""
@@ -71,6 +79,10 @@ class RateLoopGains:
         shown = ", ".join(f"{n} {values.get(n, self.defaults[n]):g}" for n in self.names)
         roll, pitch = self.stiffness(values)
         return f"{shown}: {roll:.3g}x / {pitch:.3g}x the default gain on roll / pitch"
+
+
+def _positive(v: float) -> bool:
+    return math.isfinite(v) and v > 0.0
 
 
 PX4_RATE_GAINS = RateLoopGains(

@@ -144,7 +144,7 @@ def replay(
     thrust = cols["thrust"].tolist()
     eng = (engaged != 0.0).tolist()
     shaped = _shaped_reference(cols, meta, n)
-    law_axes = _law_axes(meta)
+    law_axes = _law_axes(meta, cols)
     # As live: the law is taught what it sent only on a sample whose command left.
     sent_roll = cols["sent_roll_rad_s"].tolist() if law_axes is not None else []
     update = controller.update
@@ -203,14 +203,28 @@ def _unit(x: float) -> float:
     return 1.0 if x > 1.0 else -1.0 if x < -1.0 else x
 
 
-def _law_axes(meta: Mapping[str, str]) -> tuple[bool, bool, bool] | None:
+def _law_axes(
+    meta: Mapping[str, str], cols: Mapping[str, np.ndarray]
+) -> tuple[bool, bool, bool] | None:
     """The axes the law corrected in a rates flight (``--rates-law-axes``), or None
-    where it was taught nothing or corrected all three."""
+    where it was taught nothing or corrected all three.
+
+    Raises
+    ------
+    ValueError
+        For a log that sent rates but does not say which axes auto chose.
+    """
     named = meta.get("rates_law_axes")
     if named is None or meta.get("output") != "rates" or meta.get("rates_passthrough") == "True":
         return None  # (a log without it predates the option: all three)
     if named == "auto":
-        return None  # never chosen: the run did not get past its start-up
+        sent = cols.get("sent_roll_rad_s")
+        if sent is not None and bool(np.isfinite(sent).any()):
+            raise ValueError(
+                "cannot replay: the log sent rates with --rates-law-axes auto but holds "
+                "no record of the axes chosen (the control log's companion.learnt metadata)"
+            )
+        return None  # never chosen: the run sent nothing
     on = law_axes_named(named)
     return None if all(on) else on
 

@@ -165,10 +165,9 @@ class StartUp:
         else:
             names = gains.names
             got = await asyncio.gather(*(self._read_quickly(n) for n in names))
-            values = {n: v for n, v in zip(names, got, strict=True) if v is not None and v > 0.0}
-            missing = [n for n in names if n not in values]
+            values, missing = gains.usable(dict(zip(names, got, strict=True)))
             if missing:
-                said = f"{', '.join(missing)} not read"
+                said = f"{', '.join(missing)} not read (or not positive)"
                 self.event("rates_law_axes_assumed", f"{said}: the law corrects all three axes")
             else:
                 said = gains.said(values)

@@ -6,6 +6,7 @@ the SITL: tests/integration/test_preflight.py.)"""
 from __future__ import annotations
 
 import dataclasses
+import math
 import struct
 from pathlib import Path
 from types import SimpleNamespace
@@ -505,3 +506,18 @@ def test_px4s_rate_gains_are_judged_only_where_the_law_corrects_roll_or_pitch_ra
     at_default = judge(observed(), plan(**run), GOOD_CORE)
     (c,) = [c for c in at_default if c.name == "MC_ROLLRATE_K"]
     assert c.status == "pass" and "1x / 1x the default gain" in c.detail, c
+
+
+@pytest.mark.parametrize("bad", [{"MC_ROLLRATE_P": None}, {"MC_PITCHRATE_K": math.nan},
+                                 {"MC_ROLLRATE_K": 0.0}])  # fmt: skip
+def test_px4s_rate_gains_unread_or_unusable_warn_as_the_start_up_falls_back(
+    bad: dict[str, float | None],
+) -> None:
+    """The same gains the start-up's choice rests on (companion.rate_loop.usable):
+    one missing, not finite or not positive, and auto corrects every axis."""
+    checks = judge(observed(params=bad), plan(output="rates"), GOOD_CORE)
+    (c,) = [c for c in checks if c.name == "MC_ROLLRATE_K"]
+    (name,) = bad
+    assert c.status == "warn" and c.detail.startswith(f"{name} not read or not positive"), c
+    assert "auto then corrects every axis" in c.detail and name in c.fix, c
+    assert [x for x in checks if name in x.name or name in x.detail] == [c], checks  # one line

@@ -205,7 +205,17 @@ def _rate_gains(p: Params, ctx: Context) -> list[Check]:
     """PX4's rate gains against where the law's roll and pitch correction pays
     (:mod:`companion.rate_loop`): said with ``--rates-law-axes auto``, which chooses
     from them at start-up; a warning where the axes asked correct a stiff loop."""
-    values = {n: _value(p, n) for n in PX4_RATE_GAINS.names}
+    values, unusable = PX4_RATE_GAINS.usable(p)
+    if unusable:
+        return [
+            Check(
+                "MC_ROLLRATE_K",
+                "warn",
+                f"{', '.join(unusable)} not read or not positive: the rate loop's stiffness "
+                "is not known (--rates-law-axes auto then corrects every axis)",
+                f"check {', '.join(unusable)} in a ground station",
+            )
+        ]
     said = PX4_RATE_GAINS.said(values)
     chosen = PX4_RATE_GAINS.law_axes(values)
     asked = ctx.plan.rates_law_axes
@@ -432,7 +442,7 @@ PARAM_RULES: dict[FlightStack, tuple[Rule, ...]] = {
             when=_radio,  # a joystick's axes PX4 maps itself
         ),
         _one("IMU_GYRO_RATEMAX", _gyro_rate),
-        Rule(PX4_RATE_GAINS.names, _rate_gains, when=_law_on_roll_or_pitch),
+        Rule(PX4_RATE_GAINS.names, _rate_gains, when=_law_on_roll_or_pitch, partial=True),
     ),
     ARDUPILOT: (
         _one("GUID_OPTIONS", _guided_thrust),

@@ -83,6 +83,13 @@ ARDUPILOT_DEFAULTS: dict[str, float | None] = {
     "ATC_ACCEL_Y_MAX": 27000.0,
 }
 """What an ArduCopter 4.5 answers for its input shaping unless a test says otherwise."""
+PX4_DEFAULTS: dict[str, float | None] = {
+    "MC_ROLLRATE_K": 1.0,
+    "MC_ROLLRATE_P": 0.15,
+    "MC_PITCHRATE_K": 1.0,
+    "MC_PITCHRATE_P": 0.15,
+}
+"""What a PX4 v1.16 answers for its rate loop's gains unless a test says otherwise."""
 
 
 async def settle(n: int = 10) -> None:
@@ -115,6 +122,8 @@ class FakeAutopilot:
         given = dict(params or {})
         if autopilot == mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA:
             given = {**ARDUPILOT_DEFAULTS, **given}
+        elif autopilot == mavlink2.MAV_AUTOPILOT_PX4:
+            given = {**PX4_DEFAULTS, **given}
         # A name given as None is one the autopilot does not answer.
         self.params: dict[str, float] = {k: v for k, v in given.items() if v is not None}
         self.heartbeat_period_s = heartbeat_period_s

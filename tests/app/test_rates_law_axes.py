@@ -100,13 +100,21 @@ async def test_auto_leaves_a_stiff_loops_roll_and_pitch_to_the_pilot_and_replays
     assert meta["rates_law_axes"] == "yaw"  # learnt at start-up, over the first "auto"
     diffs = compare(cols, replay(cols, RATES, PROFILE, meta=meta))
     assert max(diffs.values()) <= REPLAY_TOLERANCE, diffs
+    # Without the record of the choice, replay refuses rather than guess.
+    with pytest.raises(ValueError, match=r"companion\.learnt"):
+        replay(cols, RATES, PROFILE, meta={**meta, "rates_law_axes": "auto"})
+
+
+UNANSWERED = {**STIFF_PX4, "MC_PITCHRATE_P": None}
+NOT_POSITIVE = {**STIFF_PX4, "MC_ROLLRATE_P": 0.0}
 
 
 @pytest.mark.parametrize(
     ("params", "asked", "kind"),
     [
         (DEFAULT_PX4, None, "rates_law_axes"),
-        (None, None, "rates_law_axes_assumed"),  # not answered: all three
+        (UNANSWERED, None, "rates_law_axes_assumed"),  # one not answered: all three
+        (NOT_POSITIVE, None, "rates_law_axes_assumed"),
         (STIFF_PX4, (True, True, True), None),  # asked: not chosen, nothing read
     ],
 )
@@ -126,6 +134,13 @@ async def test_every_axis_where_the_loop_is_not_stiff_unread_or_all_are_asked(
         assert kind in f.kinds()
         (said,) = f.details("rates_law_axes")
         assert said.endswith(": the law corrects roll, pitch, yaw"), said
+    if kind == "rates_law_axes":  # read, and judged: not a fallback
+        assert "rates_law_axes_assumed" not in f.kinds()
+        assert said.startswith("MC_ROLLRATE_K 1, MC_ROLLRATE_P 0.15, MC_PITCHRATE_K 1, "
+                               "MC_PITCHRATE_P 0.15: 1x / 1x the default gain"), said  # fmt: skip
+    elif kind is not None:
+        assert said.startswith("MC_PITCHRATE_P not read" if params is UNANSWERED
+                               else "MC_ROLLRATE_P not read"), said  # fmt: skip
     _, meta = read_control_log(tmp_path / "control.mcap")
     assert meta["rates_law_axes"] == "roll,pitch,yaw"
 
