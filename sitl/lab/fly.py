@@ -377,6 +377,11 @@ def merge_logs(flight: FlightProcesses, *, meta: dict[str, Any] | None = None) -
         "companion_exit_code": flight.companion_rc,
         "sitl_realtime_factor": summary.get("realtime_factor"),
         "nonfinite_events": int(np.sum(columns["held"])),
+        **(
+            {"rates_law_axes": cmeta.get("rates_law_axes", "")}
+            if cmeta.get("output") == "rates"
+            else {}
+        ),  # the axes the law corrected (--rates-law-axes auto: as chosen)
         **(meta or {}),
     }
     return FlightRecord(columns, info)

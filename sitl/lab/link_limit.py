@@ -124,7 +124,7 @@ def fly_through(
         "seed": sc.seed,
         "controller": "passthrough" if passthrough else "mfc",
         "sitl_params": list(sitl_params),
-        "law_axes": law_axes or "auto",
+        "law_axes": record.meta.get("rates_law_axes") or law_axes or "auto",
         "crashed": bool(metrics["crashed"]),
         "failsafes": failsafes,
         "mfc_deg_s": {a: round(float(metrics["mae_deg_s"][a]), 3) for a in AXES},

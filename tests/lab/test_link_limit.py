@@ -121,12 +121,13 @@ def test_law_axes_reach_the_companion() -> None:
     corrects every axis, on a loop tripled it flies the yaw-only flight exactly."""
     full = fly_through(("f450", "ideal", 6.0, None), "rates")
     yaw = fly_through(("f450", "ideal", 6.0, None), "rates", law_axes="yaw")
-    assert (full["law_axes"], yaw["law_axes"]) == ("auto", "yaw")
+    assert (full["law_axes"], yaw["law_axes"]) == ("roll,pitch,yaw", "yaw")  # as flown
     assert not yaw["crashed"]
     assert yaw["mfc_deg_s"]["roll"] != full["mfc_deg_s"]["roll"]
     stiff = ("MC_ROLLRATE_K=3", "MC_PITCHRATE_P=0.45")
     chosen = fly_through(("f450", "ideal", 6.0, None), "rates", sitl_params=stiff)
     asked = fly_through(("f450", "ideal", 6.0, None), "rates", sitl_params=stiff, law_axes="yaw")
     assert chosen["mfc_deg_s"] == asked["mfc_deg_s"]
+    assert chosen["law_axes"] == "yaw"
     with pytest.raises(ValueError, match="law_axes: needs output 'rates'"):
         fly_through(("f450", "ideal", 1.0, None), "actuator", law_axes="yaw")
