@@ -99,6 +99,10 @@ def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
     errs = fly_rates_pair(copter, RATES, seed=12)
     figures.append({"test": "arducopter rates acro-mixed seed 12 MAE deg/s", **errs})
     assert not errs["mfc"]["failsafes"], errs
+    # No rule on ArduPilot's gains: auto corrects every axis.
+    assert errs["mfc"]["rates_law_axes"] == [
+        "no rule for this stack's rate gains: the law corrects roll, pitch, yaw"
+    ], errs
     # ArduCopter slews a rate setpoint at its ATC_ACCEL_*_MAX: most of the error of a
     # flip is that slew, which no setpoint can change (docs/research/realstack.md).
     # Roll and pitch are at parity: MFC over pass-through measured 0.93-1.105 over ten
