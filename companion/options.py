@@ -318,6 +318,6 @@ rates_law_axes_opt = click.option(
     show_default=True,
     help="With --output rates: the axes whose rate the law corrects, comma-separated; the "
     "others are sent the pilot's rate and the lead. 'auto': yaw always, roll and pitch "
-    "unless the autopilot's rate gains there are twice its defaults or more, read at "
+    "unless the autopilot's rate gains there are 1.5 times its defaults or more, read at "
     "start-up (PX4's MC_*RATE_K times MC_*RATE_P; docs/controller.md).",
 )

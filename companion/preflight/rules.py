@@ -235,7 +235,7 @@ def _rate_gains(p: Params, ctx: Context) -> list[Check]:
                 f"{said}: a rate loop {STIFF:g}x PX4's default or stiffer on "
                 f"{' and '.join(stiff)}, "
                 "where the law's correction measured no better than passing the pilot's rates "
-                "through (at 2x) and worse (at 3x)",
+                "through (from 1.5x) and worse (at 3x)",
                 "fly --rates-law-axes auto (it leaves those axes to the pilot's rate), or fly "
                 "both and keep the better (docs/controller.md)",
             )
