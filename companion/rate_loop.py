@@ -2,11 +2,8 @@
 
 With rates output the law wraps the autopilot's own rate loop. Where that loop is
 soft, the law's correction takes its lag away; where it is already stiff, the law
-adds only noise. On PX4 v1.16's SIH, flying the same pilot, the law's roll and
-pitch correction tracked about 0.8 of passing the pilot's rates through at the
-default gains, level with it at 1.5 and 2 times the loop's gain, and 1.13-1.25 of
-it on roll at three times; correcting yaw alone tracked at most pass-through's
-from 1.5 times on (``docs/research/realstack.md#law-axes``).
+adds only noise, and correcting yaw alone tracks better
+(``docs/research/realstack.md#law-axes``).
 
 ``--rates-law-axes auto`` (the default) reads the loop's proportional gain on roll
 and pitch at start-up, as the product of the stack's parameters (PX4:
@@ -31,10 +28,8 @@ ALL_AXES: LawAxes = (True, True, True)
 
 STIFF = 1.5
 """The loop's proportional gain, over its default, from which the law's correction
-on that axis no longer pays. On the real PX4 SIH the full law and yaw alone tracked
-alike at 1.5, the full law level with pass-through at 2 (through ``MC_*RATE_K`` and
-through ``MC_*RATE_P``) and worse at 3; on the bundled SITL's four paper vehicles
-at 1.5 yaw alone beat the full law on every one, which trailed pass-through on two
+on that axis no longer pays: from there correcting yaw alone tracked no worse than
+the full law on the real PX4 SIH and on the bundled SITL's four paper vehicles
 (``docs/research/realstack.md#law-axes-auto``)."""
 
 
