@@ -17,6 +17,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+from companion.control import AXES
 from companion.core import FlightCore
 from companion.errors import EngageError, LinkError
 from companion.handback import candidates
@@ -173,7 +174,7 @@ class StartUp:
                 said = gains.said(values)
                 axes = gains.law_axes(values)
         self.core.step.set_law_axes(axes)
-        left = [a for a, on in zip(("roll", "pitch"), axes, strict=False) if not on]
+        left = [a for a, on in zip(AXES, axes, strict=True) if not on]
         self.event(
             "rates_law_axes",
             f"{said}: the law corrects {law_axes_names(axes).replace(',', ', ')}"

@@ -233,9 +233,9 @@ def _rate_gains(p: Params, ctx: Context) -> list[Check]:
                 "MC_ROLLRATE_K",
                 "warn",
                 f"{said}: a rate loop {STIFF:g}x PX4's default or stiffer on "
-                f"{' and '.join(stiff)}, "
-                "where the law's correction measured no better than passing the pilot's rates "
-                "through (from 1.5x) and worse (at 3x)",
+                f"{' and '.join(stiff)}, where correcting yaw alone measured no worse than "
+                "the full law, and at 3x the full law worse than passing the pilot's rates "
+                "through",
                 "fly --rates-law-axes auto (it leaves those axes to the pilot's rate), or fly "
                 "both and keep the better (docs/controller.md)",
             )
