@@ -12,6 +12,11 @@ survives, and then a crash of the estimator-fed MFC counts against it. A case
 where both crash on the true state too is reported as infeasible, never removed.
 (The true-state pair is this study's oracle: it knows the state, not the plant.)
 
+Seeds. A vehicle at the edge of its thrust flies a different flight on every
+seed, and one seed can crash where the next does not. ``--seeds N`` flies every
+case on N seeds (the scenario's, or ``--seed``, and the next ones), and each
+seed is a case of its own: classified, compared and counted on its own.
+
 The flights are tasks on :class:`sitl.lab.executor.Executor` (a local Dask
 cluster, or ``--scheduler``). ``python -m sitl.lab.outer_sweep --out DIR`` writes
 ``DIR/flights.json`` (every flight's metrics), the same as a table,
@@ -170,6 +175,25 @@ def vehicles(names: Sequence[str], corners: bool) -> dict[str, VehicleProfile]:
     return out
 
 
+def _seeds(scenario: str, seed: int | None, seeds: int) -> list[int | None]:
+    """The seeds a scenario is flown on: ``seed`` (None: the scenario's own) and the
+    next ``seeds - 1``; one seed stays ``seed`` as given, so its flights' keys are
+    those of a sweep flown before ``--seeds``."""
+    if seeds == 1:
+        return [seed]
+    from sitl.lab.outer_flight import SCENARIOS
+
+    first = SCENARIOS[scenario].seed if seed is None else seed
+    return [first + k for k in range(seeds)]
+
+
+def _flown_seed(f: SweepFlight) -> int:
+    """The seed ``f`` is flown on (its scenario's when it names none)."""
+    from sitl.lab.outer_flight import SCENARIOS
+
+    return SCENARIOS[f.scenario].seed if f.seed is None else f.seed
+
+
 def sweep_flights(
     fleet: dict[str, VehicleProfile],
     scenarios: Sequence[str],
@@ -179,17 +203,21 @@ def sweep_flights(
     laws: Sequence[str] = ("mfc", "px4"),
     duration_s: float | None = None,
     seed: int | None = None,
+    seeds: int = 1,
 ) -> list[SweepFlight]:
-    """Every (vehicle, damage, scenario, law), damage applied to motor 0."""
+    """Every (vehicle, damage, scenario, seed, law), damage applied to motor 0."""
     from sitl.lab.campaign import damaged_profile
 
+    if seeds < 1:
+        raise ValueError(f"seeds: expected at least 1, got {seeds}")
     out = []
     for name, prof in fleet.items():
         for d in damage:
             p = damaged_profile(prof, DAMAGE[d])
             for sc in scenarios:
-                for law in laws:
-                    out.append(SweepFlight(name, d, sc, law, true_state, p, duration_s, seed))
+                for s in _seeds(sc, seed, seeds):
+                    for law in laws:
+                        out.append(SweepFlight(name, d, sc, law, true_state, p, duration_s, s))
     return out
 
 
@@ -200,22 +228,33 @@ def true_state_flights(
     damage: Sequence[str],
     **kw: Any,
 ) -> list[SweepFlight]:
-    """Both laws on the true state, for every case where either crashed in ``records``."""
+    """Both laws on the true state, for every case (and seed) where either crashed in
+    ``records``."""
     crashed = {_key(r) for r in records if r["crashed"] and not r["true_state"]}
     return [
         f
         for f in sweep_flights(fleet, scenarios, damage, true_state=True, **kw)
-        if (f.vehicle, f.damage, f.scenario) in crashed
+        if (f.vehicle, f.damage, f.scenario, _flown_seed(f)) in crashed
     ]
 
 
-def _key(r: dict[str, Any]) -> tuple[str, str, str]:
-    return (r["vehicle"], r["damage"], r["scenario"])
+Case = tuple[str, str, str, int | None]
+"""A case: vehicle, damage, scenario and the seed flown (None: a record without one)."""
 
 
-def classify(records: Sequence[dict[str, Any]]) -> dict[tuple[str, str, str], dict[str, Any]]:
+def _key(r: dict[str, Any]) -> Case:
+    return (r["vehicle"], r["damage"], r["scenario"], r.get("seed"))
+
+
+def case_name(k: Case, *, seeded: bool = False) -> str:
+    """``vehicle/damage/scenario``, and ``(seed N)`` when ``seeded``."""
+    name = "/".join(k[:3])
+    return f"{name} (seed {k[3]})" if seeded else name
+
+
+def classify(records: Sequence[dict[str, Any]]) -> dict[Case, dict[str, Any]]:
     """Per case: each law's crash on the estimate and on the true state, and feasibility."""
-    cases: dict[tuple[str, str, str], dict[tuple[str, bool], dict[str, Any]]] = {}
+    cases: dict[Case, dict[tuple[str, bool], dict[str, Any]]] = {}
     for r in records:
         c = cases.setdefault(_key(r), {})
         c[(r["law"], r["true_state"])] = r
@@ -244,17 +283,22 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     mfc_crash = [k for k, c in cases.items() if c["feasible"] and c["crashed"].get(("mfc", False))]
     px4_crash = [k for k, c in cases.items() if c["feasible"] and c["crashed"].get(("px4", False))]
     infeasible = [k for k, c in cases.items() if c["feasible"] is False]
+    seeded = len({k[3] for k in cases}) > 1
+
+    def names(ks: list[Case]) -> str:
+        return ", ".join(case_name(k, seeded=seeded) for k in ks)
+
     lines = [
         f"{len(cases)} cases, {len(records)} flights; {len(feasible)} feasible, "
         f"{len(infeasible)} infeasible (both laws crash on the true state too).",
         "",
         f"- **MFC crashes on a feasible case: {len(mfc_crash)}**"
-        + (": " + ", ".join("/".join(k) for k in mfc_crash) if mfc_crash else ""),
+        + (": " + names(mfc_crash) if mfc_crash else ""),
         f"- PX4's default cascade crashes on a feasible case: {len(px4_crash)}"
-        + (": " + ", ".join("/".join(k) for k in px4_crash) if px4_crash else ""),
+        + (": " + names(px4_crash) if px4_crash else ""),
     ]
     if infeasible:
-        lines.append("- Infeasible: " + ", ".join("/".join(k) for k in infeasible))
+        lines.append("- Infeasible: " + names(infeasible))
     better: dict[str, list[int]] = {m: [0, 0] for m in METRICS}
     verdicts: dict[str, dict[str, int]] = {m: {"better": 0, "tie": 0, "worse": 0} for m in METRICS}
     rows = []
@@ -275,7 +319,8 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
         crash = "MFC" if mf["crashed"] else ""
         crash += ("+" if crash and px["crashed"] else "") + ("PX4" if px["crashed"] else "")
         feas = {True: "yes", False: "no", None: "?"}[c["feasible"]]
-        rows.append(f"| {' | '.join(k)} | {' | '.join(cells)} | {crash or '-'} | {feas} |")
+        case = " | ".join(k[:3]) + (f" | {k[3]}" if seeded else "")
+        rows.append(f"| {case} | {' | '.join(cells)} | {crash or '-'} | {feas} |")
     lines += ["", "MFC better than PX4's default (ratio below 1), cases per metric:", ""]
     lines += [f"- {m}: {b} of {n}" for m, (b, n) in better.items()]
     lines += [
@@ -290,8 +335,11 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     ]
     lines += [
         "",
-        "| vehicle | damage | scenario | " + " | ".join(METRICS) + " | crashed | feasible |",
-        "|" + "---|" * (len(METRICS) + 5),
+        "| vehicle | damage | scenario | "
+        + ("seed | " if seeded else "")
+        + " | ".join(METRICS)
+        + " | crashed | feasible |",
+        "|" + "---|" * (len(METRICS) + 5 + seeded),
         *rows,
     ]
     return "\n".join(lines) + "\n"
@@ -315,6 +363,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--damage", default=",".join(DAMAGE), help="comma-separated")
     ap.add_argument("--duration", type=float, default=None, help="flight time, s")
     ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="fly each case on this many seeds, the scenario's (or --seed) and the next "
+        "ones; each seed is a case of its own (default 1)",
+    )
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler")
     args = ap.parse_args(argv)
@@ -326,12 +381,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     for d in damage:
         if d not in DAMAGE:
             ap.error(f"--damage: {d!r} is not one of {', '.join(DAMAGE)}")
+    if args.seeds < 1:
+        ap.error(f"--seeds: expected at least 1, got {args.seeds}")
     try:
         fleet = vehicles([p for p in args.profiles.split(",") if p], args.corners)
     except (OSError, ValueError) as exc:
         ap.error(f"--profiles: {exc}")
     args.out.mkdir(parents=True, exist_ok=True)
-    kw = {"duration_s": args.duration, "seed": args.seed}
+    kw = {"duration_s": args.duration, "seed": args.seed, "seeds": args.seeds}
     run = {"scheduler": args.scheduler, "workers": args.workers, "unit": "flight"}
     flights = sweep_flights(fleet, scenarios, damage, **kw)
     store = CampaignStore(args.out, manifest=RUN_MANIFEST, finished=OUTPUTS[-1])

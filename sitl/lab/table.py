@@ -242,15 +242,16 @@ OUTER_SWEEP_SCHEMA = pa.schema(
 
 
 def outer_sweep_table(
-    records: Sequence[dict[str, Any]], feasible: dict[tuple[str, str, str], bool | None]
+    records: Sequence[dict[str, Any]],
+    feasible: dict[tuple[str, str, str, int | None], bool | None],
 ) -> pa.Table:
     """The outer sweep's records (:func:`sitl.lab.outer_sweep.fly`'s) as one row per
-    flight, each with its case's ``feasible`` (keyed by vehicle, damage, scenario)."""
+    flight, each with its case's ``feasible`` (keyed by vehicle, damage, scenario, seed)."""
     keep = [f.name for f in OUTER_SWEEP_SCHEMA if f.name != "feasible"]
     rows = [
         {
             **{k: r.get(k) for k in keep},
-            "feasible": feasible.get((r["vehicle"], r["damage"], r["scenario"])),
+            "feasible": feasible.get((r["vehicle"], r["damage"], r["scenario"], r.get("seed"))),
         }
         for r in records
     ]

@@ -27,16 +27,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _rec(law: str, crashed: bool, *, true_state: bool = False, scenario: str = "square",
-         h: float = 1.0) -> dict[str, Any]:  # fmt: skip
+         h: float = 1.0, seed: int = 20200318) -> dict[str, Any]:  # fmt: skip
     return {
-        "vehicle": "f450", "damage": "motor60", "scenario": scenario, "law": law,
+        "vehicle": "f450", "damage": "motor60", "scenario": scenario, "law": law, "seed": seed,
         "true_state": true_state, "crashed": crashed, "pos_rms_h_m": h, "pos_rms_v_m": 0.1,
         "path_rms_m": None, "att_mae_deg": 2.0, "yaw_mae_deg": 1.0,
     }  # fmt: skip
 
 
 def test_a_case_is_feasible_when_either_law_survives_on_the_true_state() -> None:
-    k = ("f450", "motor60", "square")
+    k = ("f450", "motor60", "square", 20200318)
     # Nobody crashed: feasible without a true-state flight.
     assert classify([_rec("mfc", False), _rec("px4", False)])[k]["feasible"] is True
     # MFC crashed, PX4 on the true state survived: feasible, and MFC's crash counts.
@@ -93,6 +93,50 @@ def test_the_summary_counts_where_mfc_is_better() -> None:
     assert "| f450 | motor60 | square | 0.50 | 1.00 | - | 1.00 | 1.00 | - | yes |" in text
 
 
+def test_each_seed_is_a_case_of_its_own() -> None:
+    # MFC crashed on one seed of two, and PX4 survived that seed on the true state.
+    recs = [_rec("mfc", False, h=0.5), _rec("px4", False),
+            _rec("mfc", True, seed=20200319), _rec("px4", False, seed=20200319),
+            _rec("mfc", True, true_state=True, seed=20200319),
+            _rec("px4", False, true_state=True, seed=20200319)]  # fmt: skip
+    cases = classify(recs)
+    assert set(cases) == {("f450", "motor60", "square", s) for s in (20200318, 20200319)}
+    text = summary_markdown(recs)
+    assert text.startswith("2 cases, 6 flights; 2 feasible, 0 infeasible")
+    assert "**MFC crashes on a feasible case: 1**: f450/motor60/square (seed 20200319)" in text
+    assert "| vehicle | damage | scenario | seed | pos_rms_h_m |" in text
+    row = "| f450 | motor60 | square | 20200318 | 0.50 | 1.00 | - | 1.00 | 1.00 | - | yes |"
+    assert row in text
+    assert "| f450 | motor60 | square | 20200319 | - | - | - | - | - | MFC | yes |" in text
+    # The table's rows carry their own seed's feasibility.
+    feasible = {k: c["feasible"] for k, c in classify(recs[:4]).items()}
+    rows = outer_sweep_table(recs[:4], feasible).to_pylist()
+    assert [r["feasible"] for r in rows] == [True, True, None, None]
+
+
+def test_seeds_are_the_scenarios_and_the_next_and_only_a_crashed_seed_flies_again() -> None:
+    fleet = vehicles(["f450"], corners=False)
+    one = sweep_flights(fleet, ["square"], ["motor60"])
+    assert [f.seed for f in one] == [None, None]  # the keys of a sweep flown before --seeds
+    three = sweep_flights(fleet, ["square"], ["motor60"], seeds=3)
+    assert [(f.seed, f.law) for f in three] == [
+        (s, law) for s in (20200318, 20200319, 20200320) for law in ("mfc", "px4")
+    ]
+    given = sweep_flights(fleet, ["square"], ["motor60"], seed=7, seeds=2)
+    assert sorted({f.seed for f in given}) == [7, 8]
+    recs = [_rec("mfc", False), _rec("px4", False),
+            _rec("mfc", True, seed=20200319), _rec("px4", False, seed=20200319)]  # fmt: skip
+    again = true_state_flights(recs, fleet, ["square"], ["motor60"], seeds=3)
+    assert [(f.seed, f.law, f.true_state) for f in again] == [
+        (20200319, "mfc", True), (20200319, "px4", True),
+    ]  # fmt: skip
+    # One seed, named by the scenario: a crash on it is flown again as before.
+    again = true_state_flights([*recs[:2], _rec("mfc", True)], fleet, ["square"], ["motor60"])
+    assert [(f.seed, f.law) for f in again] == [(None, "mfc"), (None, "px4")]
+    with pytest.raises(ValueError, match="seeds: expected at least 1, got 0"):
+        sweep_flights(fleet, ["square"], ["motor60"], seeds=0)
+
+
 def test_only_crashed_cases_are_flown_again_on_the_true_state() -> None:
     fleet = vehicles(["f450"], corners=False)
     flights = sweep_flights(fleet, ["square", "position-hold"], ["intact", "motor60"])
@@ -145,11 +189,32 @@ def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
     assert (earlier / "summary.md").read_text() == summary
 
 
+def test_a_sweep_on_two_seeds_flies_and_reports_each(tmp_path: Path) -> None:
+    argv = ["--out", str(tmp_path), "--profiles", "f450", "--scenarios", "position-hold",
+            "--damage", "intact", "--duration", "2", "--seed", "1", "--seeds", "2",
+            "--workers", "1"]  # fmt: skip
+    assert main(argv) == 0
+    records = json.loads((tmp_path / "flights.json").read_text())
+    assert sorted((r["seed"], r["law"]) for r in records) == [
+        (1, "mfc"), (1, "px4"), (2, "mfc"), (2, "px4"),
+    ]  # fmt: skip
+    # Two seeds fly two flights, not one twice.
+    by_seed = {r["seed"]: r["pos_rms_h_m"] for r in records if r["law"] == "mfc"}
+    assert by_seed[1] != by_seed[2]
+    summary = (tmp_path / "summary.md").read_text()
+    assert summary.startswith("2 cases, 4 flights; 2 feasible, 0 infeasible")
+    assert "| f450 | intact | position-hold | 1 |" in summary
+    assert "| f450 | intact | position-hold | 2 |" in summary
+    df = pandas.read_parquet(tmp_path / "flights.parquet")
+    assert sorted(df["seed"]) == [1, 1, 2, 2] and df["feasible"].all()
+
+
 @pytest.mark.parametrize(
     ("flag", "value", "expected"),
     [
         ("--scenarios", "loop", "--scenarios: 'loop' is not one of"),
         ("--damage", "motor10", "--damage: 'motor10' is not one of"),
+        ("--seeds", "0", "--seeds: expected at least 1, got 0"),
     ],
 )
 def test_a_bad_choice_is_refused_before_any_flight(
