@@ -246,7 +246,7 @@ def _key(r: dict[str, Any]) -> Case:
     return (r["vehicle"], r["damage"], r["scenario"], r.get("seed"))
 
 
-def case_name(k: Case, *, seeded: bool = False) -> str:
+def _case_name(k: Case, *, seeded: bool = False) -> str:
     """``vehicle/damage/scenario``, and ``(seed N)`` when ``seeded``."""
     name = "/".join(k[:3])
     return f"{name} (seed {k[3]})" if seeded else name
@@ -286,7 +286,7 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     seeded = len({k[3] for k in cases}) > 1
 
     def names(ks: list[Case]) -> str:
-        return ", ".join(case_name(k, seeded=seeded) for k in ks)
+        return ", ".join(_case_name(k, seeded=seeded) for k in ks)
 
     lines = [
         f"{len(cases)} cases, {len(records)} flights; {len(feasible)} feasible, "
