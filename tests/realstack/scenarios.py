@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import statistics
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -215,6 +216,10 @@ def flick_the_switch_while_preflight_watches(session: Session) -> None:
     threading.Thread(target=flick, daemon=True).start()
 
 
+AXES = ("roll", "pitch", "yaw")
+"""The body-rate axes, in the order the rate errors give them."""
+
+
 def fly_rates_pair(session: Session, rates_args: tuple[str, ...], seed: int) -> dict[str, Any]:
     """The same acro-mixed flight passed through and flown by MFC: the rate MAE of each
     (deg/s), the failsafes each met, and what ``--rates-law-axes auto`` chose."""
@@ -232,6 +237,19 @@ def fly_rates_pair(session: Session, rates_args: tuple[str, ...], seed: int) -> 
         errs[name]["failsafes"] = [k for k in run.kinds() if k.startswith("failsafe")]
         errs[name]["rates_law_axes"] = run.details("rates_law_axes")  # auto's choice
     return errs
+
+
+def median_of_pairs(pairs: list[dict[str, Any]]) -> dict[str, Any]:
+    """:func:`fly_rates_pair`'s results as one: each law's MAE per axis the median over
+    the pairs, its samples summed, and the failsafes and auto's choices of every pair."""
+    out: dict[str, Any] = {}
+    for law in ("pass-through", "mfc"):
+        runs = [p[law] for p in pairs]
+        out[law] = {a: round(statistics.median(r[a] for r in runs), 2) for a in AXES}
+        out[law]["n"] = sum(r["n"] for r in runs)
+        out[law]["failsafes"] = [k for r in runs for k in r["failsafes"]]
+        out[law]["rates_law_axes"] = [c for r in runs for c in r["rates_law_axes"]]
+    return out
 
 
 def check_failsafe_case(session: Session, kind: str, out: dict[str, Any]) -> None:
