@@ -175,23 +175,21 @@ def vehicles(names: Sequence[str], corners: bool) -> dict[str, VehicleProfile]:
     return out
 
 
+def _flown_seed(scenario: str, seed: int | None) -> int:
+    """The seed ``scenario`` is flown on given ``seed`` (None: the scenario's own)."""
+    from sitl.lab.outer_flight import SCENARIOS
+
+    return SCENARIOS[scenario].seed if seed is None else seed
+
+
 def _seeds(scenario: str, seed: int | None, seeds: int) -> list[int | None]:
     """The seeds a scenario is flown on: ``seed`` (None: the scenario's own) and the
     next ``seeds - 1``; one seed stays ``seed`` as given, so its flights' keys are
     those of a sweep flown before ``--seeds``."""
     if seeds == 1:
         return [seed]
-    from sitl.lab.outer_flight import SCENARIOS
-
-    first = SCENARIOS[scenario].seed if seed is None else seed
+    first = _flown_seed(scenario, seed)
     return [first + k for k in range(seeds)]
-
-
-def _flown_seed(f: SweepFlight) -> int:
-    """The seed ``f`` is flown on (its scenario's when it names none)."""
-    from sitl.lab.outer_flight import SCENARIOS
-
-    return SCENARIOS[f.scenario].seed if f.seed is None else f.seed
 
 
 def sweep_flights(
@@ -234,7 +232,7 @@ def true_state_flights(
     return [
         f
         for f in sweep_flights(fleet, scenarios, damage, true_state=True, **kw)
-        if (f.vehicle, f.damage, f.scenario, _flown_seed(f)) in crashed
+        if (f.vehicle, f.damage, f.scenario, _flown_seed(f.scenario, f.seed)) in crashed
     ]
 
 
