@@ -42,6 +42,7 @@ __all__ = [
     "CompanionRun",
     "Session",
     "SwitchPilot",
+    "new_log_dir",
     "pilot_view",
     "rate_errors",
 ]
@@ -120,6 +121,20 @@ READY_TIMEOUT_S = 20.0
 """How long :meth:`Session.start_companion` waits for the companion to stream the IMU."""
 _PILOT_SEEN_S = 0.3
 """Then this long for the pilot's input (50 Hz) to reach it: the switch seen low."""
+
+
+def new_log_dir(workdir: Path, name: str) -> Path:
+    """``workdir/name``, made; ``name-2``, ``name-3``... where a flight already used
+    it. A run is judged ready by the events in its folder: an earlier run's there
+    (until the new companion moves them aside, a second or more on a loaded
+    machine) would read as this one's, and the switch would go high before the
+    companion saw it low."""
+    log_dir, n = workdir / name, 1
+    while log_dir.exists() or log_dir.with_suffix(".stderr").exists():
+        n += 1
+        log_dir = workdir / f"{name}-{n}"
+    log_dir.mkdir(parents=True)
+    return log_dir
 
 
 @dataclass
@@ -447,8 +462,7 @@ class Session:
             # one could not bind it (one UDP port, one companion).
             left.stop()
         self._runs += 1
-        log_dir = self.workdir / (name or f"companion-{self._runs}")
-        log_dir.mkdir(parents=True, exist_ok=True)
+        log_dir = new_log_dir(self.workdir, name or f"companion-{self._runs}")
         stderr_path = log_dir.with_suffix(".stderr")
         cmd = [sys.executable, "-m", "companion", "-v", "run", "--connect",
                url, "--log-dir", str(log_dir), *args]  # fmt: skip
