@@ -187,6 +187,7 @@ class VehicleSnapshot:
     est_vel_ned_m_s: tuple[float, float, float] | None = None
 
 
+_Vec3 = tuple[float, float, float]
 _IDENTITY_Q = (1.0, 0.0, 0.0, 0.0)
 _LEVEL_EULER = (0.0, 0.0, 0.0)
 
@@ -633,6 +634,10 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             return self.autopilot.position_valid and self.snapshot.est_pos_ned_m is not None
         return True
 
+    def _highres_accel_gyro(self) -> tuple[_Vec3, _Vec3]:
+        """What HIGHRES_IMU carries: the latest sample's accel and :meth:`_gyro`."""
+        return self.snapshot.accel_frd_m_s2, self._gyro()
+
     def _gyro(self) -> tuple[float, float, float]:
         """The IMU messages' gyro: :meth:`_body_rates`, NaN after an ``imu-nan`` fault."""
         if self.imu_nan:
@@ -645,7 +650,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         mav = self.mav
         ap = self.autopilot
         if msg_id == ID_HIGHRES_IMU:
-            a, g = s.accel_frd_m_s2, self._gyro()
+            a, g = self._highres_accel_gyro()
             mav.highres_imu_send(
                 round(s.imu_t_s * 1e6),
                 a[0], a[1], a[2], g[0], g[1], g[2],

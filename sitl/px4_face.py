@@ -33,7 +33,12 @@ Streams and their defaults (change with ``MAV_CMD_SET_MESSAGE_INTERVAL``)
 -------------------------------------------------------------------------
 HEARTBEAT 1 Hz, SYS_STATUS 1 Hz, EXTENDED_SYS_STATE 1 Hz, HOME_POSITION 0.2 Hz,
 LOCAL_POSITION_NED 10 Hz, RC_CHANNELS 10 Hz, and the IMU-based HIGHRES_IMU,
-ATTITUDE, ATTITUDE_QUATERNION at 50 Hz (never faster than the IMU). Interval
+ATTITUDE, ATTITUDE_QUATERNION at 50 Hz (never faster than the IMU). HIGHRES_IMU
+carries PX4's ``sensor_combined``: the mean of the IMU samples over its
+integration interval (``vehicle_imu``'s delta angle and velocity over their dt,
+``IMU_INTEG_RATE`` 200 Hz: five samples of a 1 kHz IMU; a faster stream's interval
+where it is asked for one), not a single sample; it is sent at the rate asked,
+where PX4 sends each mean once. Interval
 requests faster than 1 kHz are DENIED. The attitude and LOCAL_POSITION_NED are
 the estimator's (``sitl.mavlink_face``: "The estimate, not the truth"); a
 LOCAL_POSITION_NED due before the first position estimate goes out when it comes.
@@ -46,7 +51,9 @@ station's joystick is the stick input.
 from __future__ import annotations
 
 import logging
+import math
 import os
+from collections import deque
 from collections.abc import Sequence
 from typing import Any
 
@@ -114,6 +121,13 @@ FLIGHT_SW_VERSION = PX4_DEFAULT_FIRMWARE.flight_sw_version
 ID_MANUAL_CONTROL = mavlink.MAVLINK_MSG_ID_MANUAL_CONTROL
 JOYSTICK_EXTENSIONS = 252
 """``MANUAL_CONTROL.enabled_extensions`` PX4 streams: bits 2..7, aux1..aux6."""
+INTEGRATION_INTERVAL_S = 1.0 / 200.0
+"""PX4's IMU integration interval: ``IMU_INTEG_RATE``, 200 Hz by default
+(``src/modules/sensors/vehicle_imu/imu_parameters.c``)."""
+_IMU_WINDOW_MAX = 16
+"""The most IMU samples kept for one HIGHRES_IMU (5 at 1 kHz)."""
+Vec3 = tuple[float, float, float]
+
 NEUTRAL_JOYSTICK = Joystick(0, 0, 500, 0, JOYSTICK_EXTENSIONS)
 """The first frame of PX4's MANUAL_CONTROL stream without a joystick: the
 ``manual_control_setpoint`` of no input (sticks and aux 0, throttle 0 in [-1, 1])."""
@@ -178,6 +192,36 @@ class Px4Face(MavlinkFace[Autopilot]):
             self.lockstep_setpoints = frozenset(("SET_ATTITUDE_TARGET",))
         self._manual_control_first = False
         """The MANUAL_CONTROL stream was just turned on: its first frame is due."""
+        self._imu_recent: deque[tuple[Vec3, Vec3]] = deque(maxlen=_IMU_WINDOW_MAX)
+        """The latest IMU samples (accel, gyro), newest last."""
+
+    # ---------------------------------------------------------------- streams
+
+    def publish(self, t_s: float, *, imu_sample: bool, wall_s: float) -> bool:
+        if imu_sample:
+            s = self.snapshot
+            self._imu_recent.append((s.accel_frd_m_s2, s.gyro_frd_rad_s))
+        return super().publish(t_s, imu_sample=imu_sample, wall_s=wall_s)
+
+    def _highres_accel_gyro(self) -> tuple[Vec3, Vec3]:
+        """The mean of the IMU samples of PX4's integration interval, as PX4's
+        ``sensor_combined`` is: :data:`INTEGRATION_INTERVAL_S`, or the stream's
+        interval where shorter (a companion that gets a faster stream from PX4 has
+        raised ``IMU_INTEG_RATE`` to get it), to the nearest whole sample. One
+        sample goes out as itself, to the bit. NaN gyro after an ``imu-nan`` fault."""
+        recent = self._imu_recent
+        interval_s = self.streams.interval_s(ID_HIGHRES_IMU)
+        if interval_s <= 0.0:  # the stream off: a one-off request
+            interval_s = INTEGRATION_INTERVAL_S
+        span_s = min(interval_s, INTEGRATION_INTERVAL_S)
+        n = min(len(recent), max(1, round(span_s * self.streams.imu_rate_hz)))
+        if n <= 1:
+            return super()._highres_accel_gyro()
+        window = list(recent)[-n:]
+        a = [math.fsum(r[0][i] for r in window) / n for i in range(3)]
+        g = [math.fsum(r[1][i] for r in window) / n for i in range(3)]
+        gyro = self._gyro() if self.imu_nan else (g[0], g[1], g[2])
+        return (a[0], a[1], a[2]), gyro
 
     # -------------------------------------------------------------- handling
 
