@@ -308,6 +308,8 @@ class FlightStack:
     supports_actuator_output: bool = False
     max_imu_rate_hz: float = 1000.0
     """The fastest IMU stream worth asking for; the stack may still deny it."""
+    imu_rate_limit: str = ""
+    """What else caps the IMU stream below the rate asked, said where it falls short."""
     rate_shaping: RateShapingParams | None = None
     """How it shapes a body-rate setpoint before flying it; None: it flies it as sent."""
     rate_gains: RateLoopGains | None = None
@@ -405,6 +407,9 @@ PX4 = FlightStack(
     imu_message="highres_imu",
     supports_actuator_output=True,
     max_imu_rate_hz=1000.0,
+    # HIGHRES_IMU is sensor_combined, published once per integration interval.
+    imu_rate_limit="PX4 sends HIGHRES_IMU at most at IMU_INTEG_RATE (200 Hz by default): "
+    "set it to at least --rate-hz",
     rate_gains=PX4_RATE_GAINS,
     # "Arming denied: Resolve system health failures first" follows the
     # "Preflight Fail: ..." that names the failing check; "Arm auth: Denied".

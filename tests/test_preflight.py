@@ -248,6 +248,8 @@ def test_a_well_set_autopilot_passes_every_line(stack: str) -> None:
         ("px4", {"imu_count": 0}, {}, "IMU rate", "fail", "MAV_n_RATE"),
         ("px4", {"imu_count": 300}, {}, "IMU rate", "fail", "--rate-hz (e.g. 100)"),
         ("px4", {"imu_count": 690}, {}, "IMU rate", "warn", "bandwidth"),
+        ("px4", {"imu_count": 600}, {}, "IMU rate", "warn", "IMU_INTEG_RATE (200 Hz"),
+        ("px4", {"imu_count": 597}, {}, "IMU rate", "fail", "set it to at least --rate-hz"),
         ("px4", {"imu_max_gap_s": 0.05}, {}, "IMU rate", "warn", "bandwidth"),
         (
             "px4",

@@ -215,6 +215,7 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
     gap_ms = obs.imu_max_gap_s * 1e3
     text = f"{obs.imu_message} at {got:.0f} Hz (asked {asked:g}), longest gap {gap_ms:.0f} ms"
     capped = f" (the stack's limit {stack.max_imu_rate_hz:g} Hz)" if asked < plan.rate_hz else ""
+    limit = f"; {stack.imu_rate_limit}" if stack.imu_rate_limit else ""
     if got < 0.8 * asked:
         return Check(
             "IMU rate",
@@ -222,14 +223,14 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
             text + capped,
             "the link or the autopilot cannot stream this fast: a faster baud rate, a "
             "higher MAVLink rate limit on that port (PX4 MAV_n_RATE, ArduPilot SRn_*), or a "
-            f"lower --rate-hz (e.g. {10 * math.floor(got / 10):g})",
+            f"lower --rate-hz (e.g. {10 * math.floor(got / 10):g}){limit}",
         )
     if got < 0.95 * asked or gap_ms > 4e3 / asked or capped:
         return Check(
             "IMU rate",
             "warn",
             text + capped,
-            "the loop runs at the rate the stream gives; see the link's bandwidth and load",
+            f"the loop runs at the rate the stream gives; see the link's bandwidth and load{limit}",
         )
     return Check("IMU rate", "pass", text)
 
