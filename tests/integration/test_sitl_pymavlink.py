@@ -45,11 +45,21 @@ def connect() -> Iterator[Callable[[int], mavutil.mavfile]]:
         m.close()
 
 
-def command(master: mavutil.mavfile, cmd: int, *params: float, timeout_s: float = 3.0) -> int:
+def command(
+    master: mavutil.mavfile,
+    cmd: int,
+    *params: float,
+    timeout_s: float = 3.0,
+    stepping: bool = False,
+) -> int:
+    """COMMAND_LONG; its MAV_RESULT. ``stepping``: a lockstep SITL in OFFBOARD handles a
+    command at its next step, which waits for a setpoint: send one until the answer."""
     p = [*params, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0][:7]
     master.mav.command_long_send(1, 1, cmd, 0, *p)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
+        if stepping:
+            send_actuators(master, 0.0)
         ack = master.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.2)
         if ack is not None and ack.command == cmd:
             return int(ack.result)
@@ -222,8 +232,7 @@ def test_a_lockstep_wait_still_beats(start_sitl: Starter, connect: Connect, udp_
     flags = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     send_actuators(master, 0.0)
     assert command(master, mavlink.MAV_CMD_DO_SET_MODE, flags, 6, 0) == 0
-    send_actuators(master, 0.0)
-    assert command(master, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+    assert command(master, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1, stepping=True) == 0
     send_actuators(master, 0.0)
     # Drain what came, then answer nothing for 3 s (inside the lockstep timeout).
     while master.recv_match(blocking=True, timeout=0.2) is not None:
