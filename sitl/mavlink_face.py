@@ -187,7 +187,7 @@ class VehicleSnapshot:
     est_vel_ned_m_s: tuple[float, float, float] | None = None
 
 
-_Vec3 = tuple[float, float, float]
+Vec3 = tuple[float, float, float]
 _IDENTITY_Q = (1.0, 0.0, 0.0, 0.0)
 _LEVEL_EULER = (0.0, 0.0, 0.0)
 
@@ -634,7 +634,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             return self.autopilot.position_valid and self.snapshot.est_pos_ned_m is not None
         return True
 
-    def _highres_accel_gyro(self) -> tuple[_Vec3, _Vec3]:
+    def _highres_accel_gyro(self) -> tuple[Vec3, Vec3]:
         """What HIGHRES_IMU carries: the latest sample's accel and :meth:`_gyro`."""
         return self.snapshot.accel_frd_m_s2, self._gyro()
 

@@ -69,6 +69,7 @@ from sitl.mavlink_face import (
     ID_LOCAL_POSITION_NED,
     STATUS_STREAMS,
     MavlinkFace,
+    Vec3,
     as_int,
 )
 from sitl.mavlink_link import Endpoint
@@ -126,7 +127,6 @@ INTEGRATION_INTERVAL_S = 1.0 / 200.0
 (``src/modules/sensors/vehicle_imu/imu_parameters.c``)."""
 _IMU_WINDOW_MAX = 16
 """The most IMU samples kept for one HIGHRES_IMU (5 at 1 kHz)."""
-Vec3 = tuple[float, float, float]
 
 NEUTRAL_JOYSTICK = Joystick(0, 0, 500, 0, JOYSTICK_EXTENSIONS)
 """The first frame of PX4's MANUAL_CONTROL stream without a joystick: the
