@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -36,11 +37,14 @@ __all__ = [
     "FLIGHT_FILES",
     "FlightProcesses",
     "fly_mavlink",
+    "free_tcp_port",
     "free_udp_port",
+    "free_udp_ports",
     "link_arg",
     "merge_logs",
 ]
 
+EPHEMERAL_RANGE_FILE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 FLIGHT_FILES = ("companion", "companion.stderr", "sitl.npz", "sitl.events.jsonl", "sitl.stderr")
 """What :func:`fly_mavlink` writes into its folder (``companion`` is a folder)."""
 
@@ -65,10 +69,54 @@ def link_arg(spec: LinkSpec) -> str:
 
 
 def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """A UDP port on 127.0.0.1 that was free a moment ago (see `free_udp_ports`)."""
+    return free_udp_ports(1)[0]
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (see `free_udp_ports`)."""
+    return _free_ports(1, socket.SOCK_STREAM)[0]
+
+
+def free_udp_ports(n: int) -> list[int]:
+    """``n`` distinct UDP ports on 127.0.0.1 that were free a moment ago.
+
+    They are drawn from below the kernel's ephemeral range, the ports it hands a
+    socket that binds none (a ``udpout`` end, a client): a port of that range,
+    free when chosen, can be another process's by the time ours binds it.
+    """
+    return _free_ports(n, socket.SOCK_DGRAM)
+
+
+def _free_ports(n: int, kind: int) -> list[int]:
+    lo, hi = _ephemeral_ports()
+    first, end = (20000, lo) if lo > 21000 else (hi + 1, 65536)
+    draw = random.SystemRandom()
+    socks: list[socket.socket] = []
+    try:
+        for _ in range(100 * n):
+            s = socket.socket(socket.AF_INET, kind)
+            try:
+                s.bind(("127.0.0.1", draw.randrange(first, end)))
+            except OSError:
+                s.close()
+                continue
+            socks.append(s)
+            if len(socks) == n:
+                return [int(s.getsockname()[1]) for s in socks]
+        raise OSError(f"no {n} free ports in {first}-{end - 1}")
+    finally:
+        for s in socks:
+            s.close()
+
+
+def _ephemeral_ports() -> tuple[int, int]:
+    """The kernel's ephemeral port range (Linux's default where it cannot be read)."""
+    try:
+        lo, hi = (int(v) for v in EPHEMERAL_RANGE_FILE.read_text().split())
+    except (OSError, ValueError):
+        return 32768, 60999
+    return lo, hi
 
 
 @dataclass

@@ -86,6 +86,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink2
 
 from sitl.lab import children
+from sitl.lab.fly import free_tcp_port, free_udp_port, free_udp_ports
 
 __all__ = ["echo_server", "run_harness", "run_loop_bench"]
 
@@ -322,25 +323,7 @@ def echo_server(port: int) -> None:
 
 
 def _free_port() -> int:
-    return _free_ports(1)[0]
-
-
-def _free_ports(n: int) -> list[int]:
-    """``n`` distinct UDP ports free right now (all held until all are chosen)."""
-    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [int(s.getsockname()[1]) for s in socks]
-    finally:
-        for s in socks:
-            s.close()
-
-
-def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    return free_udp_port()
 
 
 def run_loop_bench(
@@ -361,8 +344,8 @@ def run_loop_bench(
     """
     py = sys.executable
     profile = profile or ROOT / "vehicle_profiles" / "f450.yaml"
-    fport, cport, vport = _free_ports(3)
-    wport = _free_tcp_port()
+    fport, cport, vport = free_udp_ports(3)
+    wport = free_tcp_port()
 
     def companion(port: int, logs: str, *extra: str) -> list[str]:
         return [py, "-m", "companion", "run", "--connect", f"udpin:127.0.0.1:{port}",

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -22,7 +21,7 @@ import pytest
 from companion.control import AXES
 from companion.live import RATE_HZ
 from companion.records import EVENTS_TOPIC, columns, topics
-from sitl.lab.fly import fly_mavlink, merge_logs
+from sitl.lab.fly import fly_mavlink, free_tcp_port, merge_logs
 from sitl.lab.live_viewer import Seen, watch
 from sitl.lab.report import compute_metrics
 
@@ -30,12 +29,6 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 F450 = ROOT / "vehicle_profiles" / "f450.yaml"
-
-
-def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class _Viewer:
@@ -71,7 +64,7 @@ def test_a_viewer_sees_every_topic_of_a_flight_as_it_flies(tmp_path: Path) -> No
     """``companion fly --live``: every topic advertised with its schema, the messages
     decoded, and what they say is the flight's: the roll rate follows its
     reference about as well as the flight's own metrics say it did."""
-    port = _free_tcp_port()
+    port = free_tcp_port()
     viewer = _Viewer(port, seconds=90.0, until_closed=True, connect_timeout_s=60.0)
     out = tmp_path / "fly"
     proc = subprocess.run(
@@ -128,7 +121,7 @@ def test_a_viewer_that_stops_reading_costs_the_flight_nothing(tmp_path: Path) ->
     duration_s = 25.0
     kwargs: dict[str, Any] = {"duration_s": duration_s}
     alone = fly_mavlink(F450, "paper-acro", tmp_path / "alone", **kwargs)
-    port = _free_tcp_port()
+    port = free_tcp_port()
     # On a slow link: a small receive buffer, so its socket fills up within the flight.
     viewer = _Viewer(port, seconds=40.0, stop_reading_after_s=0.5, keep=False,
                      rcvbuf_bytes=4096, connect_timeout_s=60.0)  # fmt: skip

@@ -23,6 +23,7 @@ import pytest
 
 from companion.telemetry import MqttTelemetry, parse_mqtt_url
 from sitl.lab import children
+from sitl.lab.fly import free_tcp_port
 
 PREFIX = "mfc/f450"
 
@@ -78,7 +79,7 @@ async def test_full_queue_drops_counts_and_never_blocks(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     # Nothing listens on this port: run() keeps failing to connect meanwhile.
-    port = free_port()
+    port = free_tcp_port()
     t = MqttTelemetry(f"mqtt://127.0.0.1:{port}/{PREFIX}", queue_size=50, decimate_hz=1000.0)
     task = asyncio.create_task(t.run(), name="telemetry")
     for _ in range(500):  # until the first failed connect (bounded: 5 s)
@@ -109,12 +110,6 @@ async def test_full_queue_drops_counts_and_never_blocks(
 # -- a real mosquitto -------------------------------------------------------------
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def mosquitto_binary() -> str:
     exe = shutil.which("mosquitto") or shutil.which("mosquitto", path="/usr/sbin:/usr/local/sbin")
     if exe is None:
@@ -131,7 +126,7 @@ class Broker:
 
     def __init__(self, tmp: Path) -> None:
         self.exe = mosquitto_binary()
-        self.port = free_port()
+        self.port = free_tcp_port()
         self.conf = tmp / "mosquitto.conf"
         self.conf.write_text(
             f"listener {self.port} 127.0.0.1\nallow_anonymous true\npersistence false\n"
