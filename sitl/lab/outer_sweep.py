@@ -38,17 +38,23 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from companion.profile import VehicleProfile
+from sitl.scenario import ImuOverride
+
+if TYPE_CHECKING:
+    from sitl.lab.outer_flight import OuterScenario
 
 __all__ = [
     "DAMAGE",
     "SweepFlight",
     "classify",
     "flight_key",
+    "flown_scenario",
     "fly",
     "main",
+    "px4_gyro",
     "summary_markdown",
     "sweep_flights",
     "true_state_flights",
@@ -108,19 +114,39 @@ class SweepFlight:
     profile: VehicleProfile
     duration_s: float | None = None
     seed: int | None = None
+    mfc_gyro_hz: float | None = None
+    """When set, the MFC cascade flies the gyro as PX4 sends it to a companion
+    (:func:`px4_gyro`); PX4's cascade always flies the scenario's."""
 
 
-def fly(f: SweepFlight) -> dict[str, Any]:
-    """Fly one :class:`SweepFlight`; its metrics with the flight's identity."""
-    from companion.config import PID_DEFAULT_CONTROLLER, load_controller
+def px4_gyro(imu: ImuOverride, rate_hz: float) -> ImuOverride:
+    """``imu`` as PX4 sends it to a companion at ``rate_hz`` (``IMU_INTEG_RATE`` at
+    ``rate_hz``): each sample the mean rate over its interval, the noise density
+    kept (the mean of the fast gyro's samples)."""
+    return imu.model_copy(update={"rate_hz": rate_hz, "integrating": True})
+
+
+def flown_scenario(f: SweepFlight) -> OuterScenario:
+    """The scenario ``f`` flies: its duration, estimator and gyro applied."""
     from sitl.estimator_model import PERFECT
-    from sitl.lab.outer_flight import SCENARIOS, outer_metrics, simulate_outer_flight
+    from sitl.lab.outer_flight import SCENARIOS
 
     sc = SCENARIOS[f.scenario]
     if f.duration_s is not None:
         sc = sc.with_duration(f.duration_s)
     if f.true_state:
         sc = replace(sc, estimator=PERFECT)
+    if f.mfc_gyro_hz is not None and f.law == "mfc":
+        sc = replace(sc, imu=px4_gyro(sc.imu, f.mfc_gyro_hz))
+    return sc
+
+
+def fly(f: SweepFlight) -> dict[str, Any]:
+    """Fly one :class:`SweepFlight`; its metrics with the flight's identity."""
+    from companion.config import PID_DEFAULT_CONTROLLER, load_controller
+    from sitl.lab.outer_flight import outer_metrics, simulate_outer_flight
+
+    sc = flown_scenario(f)
     cfg = load_controller(PID_DEFAULT_CONTROLLER) if f.law == "px4" else load_controller()
     t0 = time.perf_counter()
     fl = simulate_outer_flight(f.profile, cfg, sc, seed=f.seed, outer_law=f.law)
@@ -129,6 +155,8 @@ def fly(f: SweepFlight) -> dict[str, Any]:
         vehicle=f.vehicle, damage=f.damage, law=f.law, true_state=f.true_state,
         wall_s=round(time.perf_counter() - t0, 2),
     )  # fmt: skip
+    if f.mfc_gyro_hz is not None and f.law == "mfc":
+        m["gyro_hz"] = f.mfc_gyro_hz
     return m
 
 
@@ -147,6 +175,8 @@ def flight_key(f: SweepFlight) -> str:
             "profile": f.profile.model_dump(mode="json"),
             "duration_s": f.duration_s,
             "seed": f.seed,
+            # Only where it decides the flight: the rest keep the keys they had.
+            **({"gyro_hz": f.mfc_gyro_hz} if f.mfc_gyro_hz is not None and f.law == "mfc" else {}),
         }
     )[:20]
 
@@ -202,6 +232,7 @@ def sweep_flights(
     duration_s: float | None = None,
     seed: int | None = None,
     seeds: int = 1,
+    mfc_gyro_hz: float | None = None,
 ) -> list[SweepFlight]:
     """Every (vehicle, damage, scenario, seed, law), damage applied to motor 0."""
     from sitl.lab.campaign import damaged_profile
@@ -215,7 +246,9 @@ def sweep_flights(
             for sc in scenarios:
                 for s in _seeds(sc, seed, seeds):
                     for law in laws:
-                        out.append(SweepFlight(name, d, sc, law, true_state, p, duration_s, s))
+                        out.append(
+                            SweepFlight(name, d, sc, law, true_state, p, duration_s, s, mfc_gyro_hz)
+                        )
     return out
 
 
@@ -297,6 +330,13 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     ]
     if infeasible:
         lines.append("- Infeasible: " + names(infeasible))
+    gyro = sorted({r["gyro_hz"] for r in records if r.get("gyro_hz") is not None})
+    if gyro:
+        lines.append(
+            "- The MFC flew the gyro as PX4 sends it to a companion, at "
+            + ", ".join(f"{g:g}" for g in gyro)
+            + " Hz (each sample the mean over its interval); PX4's cascade the scenario's"
+        )
     better: dict[str, list[int]] = {m: [0, 0] for m in METRICS}
     verdicts: dict[str, dict[str, int]] = {m: {"better": 0, "tie": 0, "worse": 0} for m in METRICS}
     rows = []
@@ -368,6 +408,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="fly each case on this many seeds, the scenario's (or --seed) and the next "
         "ones; each seed is a case of its own (default 1)",
     )
+    ap.add_argument(
+        "--mfc-gyro-hz",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="the MFC cascade flies the gyro as PX4 sends it to a companion: at HZ, each "
+        "sample the mean rate over its interval (IMU_INTEG_RATE at HZ); PX4's cascade "
+        "keeps the scenario's (default: both fly the scenario's)",
+    )
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler")
     args = ap.parse_args(argv)
@@ -381,12 +430,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             ap.error(f"--damage: {d!r} is not one of {', '.join(DAMAGE)}")
     if args.seeds < 1:
         ap.error(f"--seeds: expected at least 1, got {args.seeds}")
+    if args.mfc_gyro_hz is not None and not 1.0 <= args.mfc_gyro_hz <= 1000.0:
+        ap.error(f"--mfc-gyro-hz: expected a rate in 1-1000 Hz, got {args.mfc_gyro_hz:g}")
     try:
         fleet = vehicles([p for p in args.profiles.split(",") if p], args.corners)
     except (OSError, ValueError) as exc:
         ap.error(f"--profiles: {exc}")
     args.out.mkdir(parents=True, exist_ok=True)
-    kw = {"duration_s": args.duration, "seed": args.seed, "seeds": args.seeds}
+    kw = {
+        "duration_s": args.duration,
+        "seed": args.seed,
+        "seeds": args.seeds,
+        "mfc_gyro_hz": args.mfc_gyro_hz,
+    }
     run = {"scheduler": args.scheduler, "workers": args.workers, "unit": "flight"}
     flights = sweep_flights(fleet, scenarios, damage, **kw)
     store = CampaignStore(args.out, manifest=RUN_MANIFEST, finished=OUTPUTS[-1])

@@ -13,8 +13,11 @@ import pyarrow as pa
 import pyarrow.parquet
 import pytest
 
+from sitl.lab.campaign_store import _digest
 from sitl.lab.outer_sweep import (
     classify,
+    flight_key,
+    flown_scenario,
     main,
     summary_markdown,
     sweep_flights,
@@ -152,11 +155,17 @@ def test_only_crashed_cases_are_flown_again_on_the_true_state() -> None:
     ]
 
 
+def small_sweep(out: Path, *more: str) -> list[str]:
+    """The arguments of a two-second sweep of the F450's hold, on one worker."""
+    return ["--out", str(out), "--profiles", "f450", "--scenarios", "position-hold",
+            "--damage", "intact", "--duration", "2", "--seed", "1", "--workers", "1",
+            *more]  # fmt: skip
+
+
 def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    argv = ["--out", str(tmp_path), "--profiles", "f450", "--scenarios", "position-hold",
-            "--damage", "intact", "--duration", "2", "--seed", "1", "--workers", "1"]  # fmt: skip
+    argv = small_sweep(tmp_path)
     assert main(argv) == 0
     records = json.loads((tmp_path / "flights.json").read_text())
     assert sorted(r["law"] for r in records) == ["mfc", "px4"]
@@ -190,9 +199,7 @@ def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
 
 
 def test_a_sweep_on_two_seeds_flies_and_reports_each(tmp_path: Path) -> None:
-    argv = ["--out", str(tmp_path), "--profiles", "f450", "--scenarios", "position-hold",
-            "--damage", "intact", "--duration", "2", "--seed", "1", "--seeds", "2",
-            "--workers", "1"]  # fmt: skip
+    argv = small_sweep(tmp_path, "--seeds", "2")
     assert main(argv) == 0
     records = json.loads((tmp_path / "flights.json").read_text())
     assert sorted((r["seed"], r["law"]) for r in records) == [
@@ -215,6 +222,7 @@ def test_a_sweep_on_two_seeds_flies_and_reports_each(tmp_path: Path) -> None:
         ("--scenarios", "loop", "--scenarios: 'loop' is not one of"),
         ("--damage", "motor10", "--damage: 'motor10' is not one of"),
         ("--seeds", "0", "--seeds: expected at least 1, got 0"),
+        ("--mfc-gyro-hz", "0", "--mfc-gyro-hz: expected a rate in 1-1000 Hz, got 0"),
     ],
 )
 def test_a_bad_choice_is_refused_before_any_flight(
@@ -225,3 +233,37 @@ def test_a_bad_choice_is_refused_before_any_flight(
     assert err.value.code == 2
     assert expected in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_mfc_gyro_hz_gives_the_mfc_px4s_gyro_and_leaves_px4s_cascade_on_the_scenarios() -> None:
+    fleet = vehicles(["f450"], False)
+    plain = sweep_flights(fleet, ["square"], ["intact"])
+    px4_gyro = sweep_flights(fleet, ["square"], ["intact"], mfc_gyro_hz=250.0)
+    mfc, px4 = (next(f for f in px4_gyro if f.law == law) for law in ("mfc", "px4"))
+    imu = flown_scenario(mfc).imu
+    assert (imu.rate_hz, imu.integrating) == (250.0, True)
+    scenarios = flown_scenario(next(f for f in plain if f.law == "mfc")).imu
+    assert imu.gyro_noise_density_rad_s_sqrt_hz == scenarios.gyro_noise_density_rad_s_sqrt_hz
+    assert flown_scenario(px4).imu == scenarios
+    # A flight without the option keeps the key it had before the option was added
+    # (the stored flights of a sweep resume); with it, the MFC's flight is another,
+    # PX4's the same.
+    assert [flight_key(f) for f in plain] == [
+        _digest({
+            "vehicle": f.vehicle, "damage": f.damage, "scenario": f.scenario, "law": f.law,
+            "true_state": f.true_state, "profile": f.profile.model_dump(mode="json"),
+            "duration_s": f.duration_s, "seed": f.seed,
+        })[:20]
+        for f in plain
+    ]  # fmt: skip
+    assert flight_key(mfc) != flight_key(plain[0])
+    assert flight_key(px4) == flight_key(plain[1])
+
+
+def test_a_sweep_on_px4s_gyro_says_so_in_its_records_and_summary(tmp_path: Path) -> None:
+    argv = small_sweep(tmp_path, "--mfc-gyro-hz", "250")
+    assert main(argv) == 0
+    records = json.loads((tmp_path / "flights.json").read_text())
+    assert {r["law"]: r.get("gyro_hz") for r in records} == {"mfc": 250.0, "px4": None}
+    summary = (tmp_path / "summary.md").read_text()
+    assert "The MFC flew the gyro as PX4 sends it to a companion, at 250 Hz" in summary
