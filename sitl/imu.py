@@ -16,12 +16,6 @@ normals and ``omega_max`` the full scale. The paper's first-stage (complementary
 filter then gives ``y_k = w omega_m,k + (1 - w) y_{k-1}`` (``w = 1`` disables it;
 ``y_0`` is the first measurement, so there is no start-up transient).
 
-An integrating gyro (``integrating: true``) reads the mean of the true rate over
-the physics steps since its last sample in place of the rate at the sample's
-instant: a delta-angle IMU, or what PX4 sends a companion (the mean of its fast
-gyro over the ``IMU_INTEG_RATE`` interval). ``sigma_w`` is unchanged: the mean of
-``k`` samples at ``k f_s`` has the white noise of one at ``f_s``.
-
 The sample is handed out ``latency_s`` after it was taken, stamped with the time it
 was taken. The accelerometer is passed through noise-free and unfiltered: the
 profile schema (:class:`companion.profile.ImuModel`) has no accelerometer terms.
@@ -107,9 +101,6 @@ class Imu:
         self._i_noise = 0
         # Half a physics step of slack absorbs rounding in accumulated times.
         self._eps_s = 0.5 * self.dt_s
-        self._integrating = bool(model.integrating)
-        self._rate_sum = [0.0, 0.0, 0.0]
-        self._rate_steps = 0
 
     @property
     def bias_frd_rad_s(self) -> tuple[float, float, float]:
@@ -174,20 +165,8 @@ class Imu:
             The oldest sample whose ``time_s + latency_s <= t_s``, if any.
         """
         due = self._next_due_s
-        rate = rate_frd_rad_s
-        if self._integrating:
-            acc = self._rate_sum
-            acc[0] += rate[0]
-            acc[1] += rate[1]
-            acc[2] += rate[2]
-            self._rate_steps += 1
         if due is None or t_s >= due - self._eps_s:
-            if self._integrating:
-                n, total = self._rate_steps, self._rate_sum
-                rate = (total[0] / n, total[1] / n, total[2] / n)
-                self._rate_sum = [0.0, 0.0, 0.0]
-                self._rate_steps = 0
-            self._queue.append(self._measure(t_s, rate, specific_force_frd_m_s2))
+            self._queue.append(self._measure(t_s, rate_frd_rad_s, specific_force_frd_m_s2))
             # Keep a fixed sample grid; skip missed slots after a jump in time.
             nxt = (t_s if due is None else due) + self.period_s
             while nxt <= t_s + self._eps_s:

@@ -73,7 +73,6 @@ class ImuOverride(StrictModel):
     )
     latency_s: ImuLatencyS | None = Field(None, description="as the profile's, s")
     first_stage_filter_weight: FilterWeight | None = Field(None, description="as the profile's")
-    integrating: bool | None = Field(None, description="as the profile's")
 
     def apply(self, model: ImuModel) -> ImuModel:
         update = {k: v for k, v in self.model_dump().items() if v is not None}

@@ -87,11 +87,6 @@ class ImuModel(StrictModel):
         1.0,
         description="paper's complementary filter: out = w*new + (1-w)*previous out; 1 disables",
     )
-    integrating: bool = Field(
-        False,
-        description="each sample the mean rate over its interval (a delta-angle gyro, as PX4 "
-        "sends its IMU); false: the rate at the sample's instant",
-    )
 
     @field_validator("gyro_range_deg_s", mode="before")
     @classmethod

@@ -119,39 +119,6 @@ def test_filter_reduces_noise_as_predicted() -> None:
     np.testing.assert_allclose(g.std(axis=0), [sigma * math.sqrt(w / (2 - w))] * 3, rtol=0.05)
 
 
-def test_an_integrating_gyro_reads_the_mean_rate_since_its_last_sample() -> None:
-    """A 250 Hz integrating gyro on a 1 kHz physics: each sample the mean of the four
-    steps' rates it spans (the first, of the one step there was)."""
-    imu = Imu(ImuModel(rate_hz=250.0, integrating=True), rng=np.random.default_rng(0), dt_s=DT)
-    point = Imu(ImuModel(rate_hz=250.0), rng=np.random.default_rng(0), dt_s=DT)
-    got, at_instant = [], []
-    for k in range(1, 14):
-        rate = (0.01 * k, -0.02 * k, 0.5)
-        if (s := imu.update(k * DT, rate, (0.0, 0.0, -9.8))) is not None:
-            got.append(s.gyro_frd_rad_s)
-        if (s := point.update(k * DT, rate, (0.0, 0.0, -9.8))) is not None:
-            at_instant.append(s.gyro_frd_rad_s)
-    # Samples at steps 1, 5, 9, 13: the means of steps 1; 2-5; 6-9; 10-13.
-    expected = [0.01, 0.01 * 3.5, 0.01 * 7.5, 0.01 * 11.5]
-    np.testing.assert_allclose([g[0] for g in got], expected, rtol=1e-12)
-    np.testing.assert_allclose([g[1] for g in got], [-2 * e for e in expected], rtol=1e-12)
-    np.testing.assert_allclose([g[2] for g in got], 0.5, rtol=1e-12)
-    # A point sample reads the rate at its instant, half a sample interval later.
-    np.testing.assert_allclose([g[0] for g in at_instant], [0.01, 0.05, 0.09, 0.13], rtol=1e-12)
-
-
-def test_an_integrating_gyros_white_noise_is_the_same_density() -> None:
-    """The mean of k samples at k f_s has the noise of one at f_s: sigma is kept."""
-    nd = 0.002
-    imu = Imu(
-        ImuModel(rate_hz=250.0, gyro_noise_density_rad_s_sqrt_hz=nd, integrating=True),
-        rng=np.random.default_rng(3),
-        dt_s=DT,
-    )
-    g = np.array([s.gyro_frd_rad_s for s in run_imu(imu, 200_000)])
-    np.testing.assert_allclose(g.std(axis=0), nd * math.sqrt(250.0), rtol=0.03)
-
-
 def test_rejects_bad_step() -> None:
     with pytest.raises(ValueError):
         Imu(ImuModel(), rng=np.random.default_rng(0), dt_s=0.0)
