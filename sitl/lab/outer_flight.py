@@ -344,6 +344,7 @@ def simulate_outer_flight(
     duration_s: float | None = None,
     outer_law: str = "mfc",
     cascade_gains: CascadeGains = PX4_DEFAULT_CASCADE,
+    gyro_hz: float | None = None,
 ) -> OuterFlight:
     """Fly ``scenario`` on ``plant`` through the product's flight core (module
     docstring).
@@ -370,6 +371,9 @@ def simulate_outer_flight(
         ``load_controller(PID_DEFAULT_CONTROLLER)``.
     cascade_gains
         The baseline's parameters (PX4's defaults).
+    gyro_hz
+        Fly the core on the gyro as PX4 sends it to a companion at this rate
+        (:func:`sitl.lab.simulate.simulate_flight`); default: every IMU sample.
     """
     if outer_law not in OUTER_LAWS:
         raise ValueError(f"outer_law: expected one of {', '.join(OUTER_LAWS)}, got {outer_law!r}")
@@ -443,7 +447,7 @@ def simulate_outer_flight(
     record = simulate_flight(
         plant, rate_controller_cfg, sc, seed=seed, mode="altitude" if angle else "position",
         mission=plan, outer_law=law, estimator=scenario.estimator, pilot=pilot,
-        observe=observe,
+        observe=observe, gyro_hz=gyro_hz,
     )  # fmt: skip
     columns = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
     for k, rec in (("t_s", "t_s"), ("thrust", "thrust"), ("rate_ref_rad_s", "ref_rad_s"),
@@ -468,6 +472,7 @@ def simulate_outer_flight(
         "lift_off_s": seen["lift_off_s"],
         "start_s": seen["start_s"],
         "imu_rate_hz": m["imu_rate_hz"],
+        "gyro_hz": m["gyro_hz"],
         "hover_motor_command": hover_motor_command(plant),
         "hover_thrust_estimate": (None if outer is None else float(outer.vertical.hover_thrust)),
         "outer_nonfinite_events": sum(getattr(p, "nonfinite_events", 0) for p in parts),

@@ -38,23 +38,17 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from companion.profile import VehicleProfile
-from sitl.scenario import ImuOverride
-
-if TYPE_CHECKING:
-    from sitl.lab.outer_flight import OuterScenario
 
 __all__ = [
     "DAMAGE",
     "SweepFlight",
     "classify",
     "flight_key",
-    "flown_scenario",
     "fly",
     "main",
-    "px4_gyro",
     "summary_markdown",
     "sweep_flights",
     "true_state_flights",
@@ -115,48 +109,33 @@ class SweepFlight:
     duration_s: float | None = None
     seed: int | None = None
     mfc_gyro_hz: float | None = None
-    """When set, the MFC cascade flies the gyro as PX4 sends it to a companion
-    (:func:`px4_gyro`); PX4's cascade always flies the scenario's."""
+    """When set, the MFC cascade flies the gyro as PX4 sends it to a companion at
+    this rate (:func:`sitl.lab.simulate.simulate_flight`'s ``gyro_hz``); PX4's
+    cascade always flies every IMU sample, as PX4 runs its own loops."""
 
 
-def px4_gyro(imu: ImuOverride, rate_hz: float) -> ImuOverride:
-    """``imu`` as PX4 sends it to a companion at ``rate_hz`` (``IMU_INTEG_RATE`` at
-    ``rate_hz``): each sample the mean rate over its interval, the noise density
-    kept (the mean of the fast gyro's samples)."""
-    return imu.model_copy(update={"rate_hz": rate_hz, "integrating": True})
-
-
-def flown_scenario(f: SweepFlight) -> OuterScenario:
-    """The scenario ``f`` flies: its duration, estimator and gyro applied."""
+def fly(f: SweepFlight) -> dict[str, Any]:
+    """Fly one :class:`SweepFlight`; its metrics with the flight's identity."""
+    from companion.config import PID_DEFAULT_CONTROLLER, load_controller
     from sitl.estimator_model import PERFECT
-    from sitl.lab.outer_flight import SCENARIOS
+    from sitl.lab.outer_flight import SCENARIOS, outer_metrics, simulate_outer_flight
 
     sc = SCENARIOS[f.scenario]
     if f.duration_s is not None:
         sc = sc.with_duration(f.duration_s)
     if f.true_state:
         sc = replace(sc, estimator=PERFECT)
-    if f.mfc_gyro_hz is not None and f.law == "mfc":
-        sc = replace(sc, imu=px4_gyro(sc.imu, f.mfc_gyro_hz))
-    return sc
-
-
-def fly(f: SweepFlight) -> dict[str, Any]:
-    """Fly one :class:`SweepFlight`; its metrics with the flight's identity."""
-    from companion.config import PID_DEFAULT_CONTROLLER, load_controller
-    from sitl.lab.outer_flight import outer_metrics, simulate_outer_flight
-
-    sc = flown_scenario(f)
     cfg = load_controller(PID_DEFAULT_CONTROLLER) if f.law == "px4" else load_controller()
     t0 = time.perf_counter()
-    fl = simulate_outer_flight(f.profile, cfg, sc, seed=f.seed, outer_law=f.law)
+    gyro_hz = f.mfc_gyro_hz if f.law == "mfc" else None
+    fl = simulate_outer_flight(f.profile, cfg, sc, seed=f.seed, outer_law=f.law, gyro_hz=gyro_hz)
     m = outer_metrics(fl, sc)
     m.update(
         vehicle=f.vehicle, damage=f.damage, law=f.law, true_state=f.true_state,
         wall_s=round(time.perf_counter() - t0, 2),
     )  # fmt: skip
-    if f.mfc_gyro_hz is not None and f.law == "mfc":
-        m["gyro_hz"] = f.mfc_gyro_hz
+    if gyro_hz is not None:
+        m["gyro_hz"] = fl.meta["gyro_hz"]
     return m
 
 
@@ -335,7 +314,8 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
         lines.append(
             "- The MFC flew the gyro as PX4 sends it to a companion, at "
             + ", ".join(f"{g:g}" for g in gyro)
-            + " Hz (each sample the mean over its interval); PX4's cascade the scenario's"
+            + " Hz (every n-th IMU sample, the mean of the last n); PX4's cascade flew"
+            " every sample"
         )
     better: dict[str, list[int]] = {m: [0, 0] for m in METRICS}
     verdicts: dict[str, dict[str, int]] = {m: {"better": 0, "tie": 0, "worse": 0} for m in METRICS}
@@ -413,9 +393,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         type=float,
         default=None,
         metavar="HZ",
-        help="the MFC cascade flies the gyro as PX4 sends it to a companion: at HZ, each "
-        "sample the mean rate over its interval (IMU_INTEG_RATE at HZ); PX4's cascade "
-        "keeps the scenario's (default: both fly the scenario's)",
+        help="the MFC cascade flies the gyro as PX4 sends it to a companion at HZ: every "
+        "n-th IMU sample, the mean of the last n (IMU_INTEG_RATE at HZ); the IMU, the "
+        "estimator and PX4's cascade keep every sample (default: the MFC too)",
     )
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--scheduler", default=None, help="tcp://HOST:PORT of a Dask scheduler")

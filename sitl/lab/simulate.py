@@ -78,7 +78,7 @@ from sitl.scenario import Scenario
 from sitl.streams import MessageStreams, StreamSpec
 from sitl.world import Every, World, WorldSpec
 
-__all__ = ["FlightRecord", "simulate_flight"]
+__all__ = ["FlightRecord", "GyroMeans", "simulate_flight"]
 
 _ON_GROUND, _IN_AIR = 1, 2  # MAV_LANDED_STATE
 _ID_ATTITUDE_QUATERNION = 31
@@ -105,6 +105,33 @@ class FlightRecord:
         np.savez_compressed(path, allow_pickle=False, **self.columns)
 
 
+class GyroMeans:
+    """The gyro as PX4 sends it to a companion: every ``n``-th sample, the mean of
+    the last ``n`` (each sample as itself, to the bit, where ``n`` is 1)."""
+
+    def __init__(self, n: int) -> None:
+        if n < 1:
+            raise ValueError(f"n: expected at least 1 sample a mean, got {n}")
+        self.n = n
+        self._sum = [0.0, 0.0, 0.0]
+        self._count = 0
+
+    def add(self, gyro: tuple[float, float, float]) -> tuple[float, float, float] | None:
+        """Take one sample; the mean when it completes one, else None."""
+        if self.n == 1:
+            return gyro
+        total = self._sum
+        total[0] += gyro[0]
+        total[1] += gyro[1]
+        total[2] += gyro[2]
+        self._count += 1
+        if self._count < self.n:
+            return None
+        n = self.n
+        self._sum, self._count = [0.0, 0.0, 0.0], 0
+        return (total[0] / n, total[1] / n, total[2] / n)
+
+
 class _Estimates:
     """What the SITL's PX4 streams a flight mode besides the IMU, in its order
     (:meth:`sitl.mavlink_face.MavlinkFace.publish`): ahead of the step's IMU
@@ -122,19 +149,19 @@ class _Estimates:
         """The autopilot's landed state: the vehicle's at its last update."""
 
     @classmethod
-    def for_mode(cls, mode: FlightMode, world: World) -> _Estimates | None:
+    def for_mode(cls, mode: FlightMode, world: World, rate_hz: float) -> _Estimates | None:
+        """The streams a flight mode asks for, the attitude at ``rate_hz`` (the gyro's)."""
         model = world.estimator
         if not mode.needs_attitude or model is None:
             return None
-        imu = world.imu
         specs = [
             StreamSpec(_ID_ATTITUDE_QUATERNION, "ATTITUDE_QUATERNION", 0.0, imu_based=True),
             StreamSpec(_ID_LOCAL_POSITION_NED, "LOCAL_POSITION_NED", 0.0),
             StreamSpec(ID_EXTENDED_SYS_STATE, "EXTENDED_SYS_STATE", 0.0),
         ]
-        streams = MessageStreams(specs, imu_rate_hz=imu.model.rate_hz)
+        streams = MessageStreams(specs, imu_rate_hz=rate_hz)
         # What companion run's start-up asks for (companion.startup).
-        streams.set_interval(_ID_ATTITUDE_QUATERNION, 1e6 / imu.model.rate_hz)
+        streams.set_interval(_ID_ATTITUDE_QUATERNION, 1e6 / rate_hz)
         if mode.needs_position:
             streams.set_interval(_ID_LOCAL_POSITION_NED, 1e6 / HOLD_POSITION_RATE_HZ)
         streams.set_interval(ID_EXTENDED_SYS_STATE, 1e6 / LANDED_STATE_RATE_HZ)
@@ -180,6 +207,7 @@ def simulate_flight(
     estimator: EstimatorSpec = EKF_GPS,
     pilot: Pilot | None = None,
     observe: Callable[[float, FlightCore, Quadrotor], None] | None = None,
+    gyro_hz: float | None = None,
 ) -> FlightRecord:
     """Fly ``scenario`` on the ``plant`` with a controller built from ``controller_cfg``.
 
@@ -231,6 +259,12 @@ def simulate_flight(
         Called after each sample the core flew, with its time, the core and the
         plant (to read, never to change): the lab's outer flights record the
         loops' insides.
+    gyro_hz
+        The core gets the gyro as PX4 sends a companion ``HIGHRES_IMU`` at this
+        rate: every ``n``-th IMU sample, the mean of the last ``n`` (``n`` the IMU's
+        rate over ``gyro_hz``, rounded, at least 1), as PX4 integrates its gyro
+        over ``IMU_INTEG_RATE``'s interval. The IMU, the estimator and the
+        autopilot's own output keep the IMU's rate. Default: every sample.
     """
     flight_seed = scenario.seed if seed is None else seed
     dt = scenario.physics_dt_s
@@ -251,6 +285,8 @@ def simulate_flight(
         pilot=pilot,
     )
     quad, imu = world.quad, world.imu
+    means = GyroMeans(1 if gyro_hz is None else max(1, round(imu.model.rate_hz / gyro_hz)))
+    fed_hz = imu.model.rate_hz / means.n
     assert world.pilot is not None
     duration = scenario.duration_s or world.pilot.duration_s
     opts = RunOptions(
@@ -263,7 +299,7 @@ def simulate_flight(
         mode=mode,  # type: ignore[arg-type]
         mission=mission,
     )
-    estimates = _Estimates.for_mode(flown, world)
+    estimates = _Estimates.for_mode(flown, world, fed_hz)
     if estimates is not None and not scenario.link.ideal:
         raise ValueError(f"mode {mode!r}: flown in process on the ideal link only")
     shell = LabShell()
@@ -282,7 +318,7 @@ def simulate_flight(
     if estimates is not None:
 
         def before(core: FlightCore) -> None:
-            start_mode(core, imu.model.rate_hz, on_ground=quad.state.landed)
+            start_mode(core, fed_hz, on_ground=quad.state.landed)
 
     core = engaged_core(
         opts, shell, lambda: now[0], controller=law, outer_law=outer_law, before=before
@@ -387,28 +423,29 @@ def simulate_flight(
                 for a in link.arrivals(UP, ID_RC_CHANNELS, t):
                     heapq.heappush(uplink, (a, next(order), ID_RC_CHANNELS, channels))
         sample = world.sense()
+        gyro = None if sample is None else means.add(sample.gyro_frd_rad_s)
         if estimates is not None:
             # As the SITL streams to a flight mode: the estimates, the IMU sample
             # (flown on them), then the landed state.
-            estimates.ahead(core, t, quad.state, imu_sample=sample is not None)
-            if sample is not None:
-                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s, t)
+            estimates.ahead(core, t, quad.state, imu_sample=gyro is not None)
+            if sample is not None and gyro is not None:
+                motors = on_sample(sample.time_s, gyro, t)
             estimates.after(core, t, quad.state.landed)
         elif ideal:
             # The landed state goes out on its step, ahead of that step's IMU sample
             # (the SITL streams it after arming, every period, as the link branch).
             if landed_due.due(t):
                 on_landed(quad.state.landed)
-            if sample is not None:
-                motors = on_sample(sample.time_s, sample.gyro_frd_rad_s, t)
+            if sample is not None and gyro is not None:
+                motors = on_sample(sample.time_s, gyro, t)
         else:
             if landed_due.due(t):
                 for a in link.arrivals(UP, ID_EXTENDED_SYS_STATE, t):
                     heapq.heappush(
                         uplink, (a, next(order), ID_EXTENDED_SYS_STATE, quad.state.landed)
                     )
-            if sample is not None:
-                payload = (sample.time_s, sample.gyro_frd_rad_s)
+            if sample is not None and gyro is not None:
+                payload = (sample.time_s, gyro)
                 for a in link.arrivals(UP, ID_HIGHRES_IMU, t):
                     heapq.heappush(uplink, (a, next(order), ID_HIGHRES_IMU, payload))
             while uplink and uplink[0][0] <= t + 1e-12:
@@ -454,6 +491,7 @@ def simulate_flight(
         "nonfinite_events": controller.nonfinite_events,
         "dt_clamped_events": controller.dt_clamped_events,
         "imu_rate_hz": imu.model.rate_hz,
+        "gyro_hz": fed_hz,
         "link": scenario.link.describe(),
         "link_counts": link.counts(),
         "n_motors": n_motors,

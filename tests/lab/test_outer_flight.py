@@ -22,7 +22,13 @@ from companion.control.quaternion import quat_conj, quat_log, quat_mul
 from companion.profile import VehicleProfile, load_profile
 from sitl.estimator_model import EKF_GPS, EstimatorModel, EstimatorSpec, estimator_seed_sequence
 from sitl.frames import euler_to_quat
-from sitl.lab.outer_flight import SCENARIOS, main, outer_metrics, simulate_outer_flight
+from sitl.lab.outer_flight import (
+    SCENARIOS,
+    OuterFlight,
+    main,
+    outer_metrics,
+    simulate_outer_flight,
+)
 from sitl.physics import VehicleState
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -205,6 +211,29 @@ def test_same_seed_same_flight_bit_for_bit() -> None:
     assert json.dumps(ma, sort_keys=True) == json.dumps(mb, sort_keys=True)
     c = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=6)
     assert not np.array_equal(a.columns["pos_ned_m"], c.columns["pos_ned_m"])
+
+
+def _estimate_error_at(flight: OuterFlight, t_s: np.ndarray) -> np.ndarray:
+    i = np.minimum(np.searchsorted(flight.columns["t_s"], t_s), len(flight.columns["t_s"]) - 1)
+    c = flight.columns
+    return np.asarray(c["est_pos_ned_m"][i] - c["pos_ned_m"][i])
+
+
+def test_on_px4s_gyro_the_core_flies_means_at_that_rate_on_the_same_estimate() -> None:
+    """``gyro_hz`` changes what the core gets, not the autopilot's estimate: the
+    estimator keeps its rate and its errors (what another seed would change)."""
+    sc = SCENARIOS["position-hold"].with_duration(3.0)
+    every = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=5)
+    means = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=5, gyro_hz=250.0)
+    other = simulate_outer_flight(_f450(), _rate_cfg(), sc, seed=6)
+    assert (every.meta["gyro_hz"], means.meta["gyro_hz"]) == (1000.0, 250.0)
+    assert len(means.columns["t_s"]) == len(every.columns["t_s"]) // 4
+    np.testing.assert_allclose(np.diff(means.columns["t_s"]), 0.004, atol=1e-9)
+    t = means.columns["t_s"][means.columns["t_s"] > 1.0]
+    err = _estimate_error_at(every, t)
+    moved = np.nanmax(np.abs(_estimate_error_at(means, t) - err))
+    reseeded = np.nanmax(np.abs(_estimate_error_at(other, t) - err))
+    assert moved < 0.05 * reseeded, (moved, reseeded)
 
 
 POSITION_HOLD_S = 20.0
