@@ -20,7 +20,7 @@ the gains were chosen on.
 Usage::
 
     python -m sitl.lab.cascade_tune --profiles f450,x500 --budget 24 --out runs/cascade-tuned.json
-    python -m sitl.lab.cascade_tune --compare runs/cascade-tuned.json
+    python -m sitl.lab.cascade_tune --compare runs/cascade-tuned.json --seeds 3 --workers 2
 
 ``--compare`` flies the test flights (the table's scenarios with their own
 seed) with the MFC cascade and each vehicle's tuned PX4 cascade and prints the
@@ -87,7 +87,12 @@ def candidates(budget: int, seed: int) -> list[CascadeGains]:
 
 
 def _fly(
-    profile_name: str, scenario: str, seed: int, law: str, gains: CascadeGains
+    profile_name: str,
+    scenario: str,
+    seed: int,
+    law: str,
+    gains: CascadeGains,
+    gyro_hz: float | None = None,
 ) -> dict[str, Any]:
     from companion.config import DEFAULT_CONTROLLER
     from sitl.lab.outer_flight import SCENARIOS, _profile, outer_metrics, simulate_outer_flight
@@ -95,8 +100,9 @@ def _fly(
     sc = SCENARIOS[scenario]
     rates = _px4_rates() if law == "px4" else load_controller(DEFAULT_CONTROLLER)
     flight = simulate_outer_flight(
-        _profile(profile_name), rates, sc, seed=seed, outer_law=law, cascade_gains=gains
-    )
+        _profile(profile_name), rates, sc, seed=seed, outer_law=law, cascade_gains=gains,
+        gyro_hz=gyro_hz,
+    )  # fmt: skip
     return outer_metrics(flight, sc)
 
 
@@ -137,31 +143,55 @@ COMPARED = ("pos_rms_h_m", "pos_rms_v_m", "pos_max_h_m", "path_rms_m", "att_mae_
 """The test flights' figures compared (each an error: lower is better)."""
 
 
-def compare(tuned: dict[str, Any]) -> list[dict[str, Any]]:
-    """MFC's and each vehicle's tuned PX4 cascade's test flights, with their ratios."""
-    rows = []
-    for vehicle, t in tuned["vehicles"].items():
-        gains = dataclasses.replace(PX4_DEFAULT_CASCADE, **t["gains"])
-        for sc in TEST_SCENARIOS:
-            from sitl.lab.outer_flight import SCENARIOS
+def compare(
+    tuned: dict[str, Any],
+    *,
+    seeds: int = 1,
+    workers: int = 1,
+    mfc_gyro_hz: float | None = None,
+) -> list[dict[str, Any]]:
+    """MFC's and each vehicle's tuned PX4 cascade's test flights, with their ratios:
+    every test scenario on ``seeds`` seeds (its own and the next ones), the MFC on
+    the gyro as PX4 sends it at ``mfc_gyro_hz`` where given (the outer sweep's
+    ``--mfc-gyro-hz``)."""
+    from sitl.lab.executor import run_tasks
+    from sitl.lab.outer_flight import SCENARIOS
 
-            seed = SCENARIOS[sc].seed
-            mfc = _fly(vehicle, sc, seed, "mfc", PX4_DEFAULT_CASCADE)
-            px4 = _fly(vehicle, sc, seed, "px4", gains)
-            row: dict[str, Any] = {"vehicle": vehicle, "scenario": sc}
-            for k in COMPARED:
-                a, b = mfc[k], px4[k]
-                row[k] = (a, b, None if a is None or not b else a / b)
-            row["crashed"] = (mfc["crashed"], px4["crashed"])
-            rows.append(row)
-    return rows
+    if seeds < 1:
+        raise ValueError(f"seeds: expected at least 1, got {seeds}")
+    cases = [
+        (vehicle, sc, SCENARIOS[sc].seed + i, t["gains"], mfc_gyro_hz)
+        for vehicle, t in tuned["vehicles"].items()
+        for sc in TEST_SCENARIOS
+        for i in range(seeds)
+    ]
+    outcomes = run_tasks(compare_case, cases, workers=workers, desc="compare", unit="case")
+    outcomes = sorted(outcomes, key=lambda o: o.index)
+    failed = [f"{o.item[0]}/{o.item[1]}/{o.item[2]}: {o.error}" for o in outcomes if not o.ok]
+    if failed:
+        raise RuntimeError("compare: flights raised: " + "; ".join(failed))
+    return [o.value for o in outcomes]
+
+
+def compare_case(case: tuple[str, str, int, dict[str, float], float | None]) -> dict[str, Any]:
+    """One test case of :func:`compare`, both laws (a top-level function, for the workers)."""
+    vehicle, sc, seed, tuned_gains, gyro_hz = case
+    gains = dataclasses.replace(PX4_DEFAULT_CASCADE, **tuned_gains)
+    mfc = _fly(vehicle, sc, seed, "mfc", PX4_DEFAULT_CASCADE, gyro_hz)
+    px4 = _fly(vehicle, sc, seed, "px4", gains)
+    row: dict[str, Any] = {"vehicle": vehicle, "scenario": sc, "seed": seed}
+    for k in COMPARED:
+        a, b = mfc[k], px4[k]
+        row[k] = (a, b, None if a is None or not b else a / b)
+    row["crashed"] = (mfc["crashed"], px4["crashed"])
+    return row
 
 
 def _table(rows: Sequence[dict[str, Any]]) -> str:
     keys = COMPARED
     lines = [
-        "| vehicle | scenario | " + " | ".join(keys) + " | crash MFC / tuned |",
-        "|---|---|" + "---|" * len(keys) + "---|",
+        "| vehicle | scenario | seed | " + " | ".join(keys) + " | crash MFC / tuned |",
+        "|---|---|---|" + "---|" * len(keys) + "---|",
     ]
 
     def cell(v: tuple[Any, Any, Any]) -> str:
@@ -173,7 +203,7 @@ def _table(rows: Sequence[dict[str, Any]]) -> str:
     for r in rows:
         crash = " / ".join("yes" if c else "no" for c in r["crashed"])
         lines.append(
-            f"| {r['vehicle']} | {r['scenario']} | "
+            f"| {r['vehicle']} | {r['scenario']} | {r['seed']} | "
             + " | ".join(cell(r[k]) for k in keys)
             + f" | {crash} |"
         )
@@ -188,10 +218,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("runs/cascade-tuned.json"))
     ap.add_argument("--compare", type=Path, default=None, help="a tuned file: fly the test")
+    ap.add_argument(
+        "--seeds", type=int, default=1, help="--compare: each test case on this many seeds"
+    )
+    ap.add_argument(
+        "--mfc-gyro-hz",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="--compare: the MFC flies the gyro as PX4 sends it at HZ (as the outer sweep's)",
+    )
     args = ap.parse_args(argv)
+    if args.seeds < 1:
+        ap.error(f"--seeds: expected at least 1, got {args.seeds}")
+    if args.mfc_gyro_hz is not None and not 1.0 <= args.mfc_gyro_hz <= 1000.0:
+        ap.error(f"--mfc-gyro-hz: expected a rate in 1-1000 Hz, got {args.mfc_gyro_hz:g}")
     if args.compare is not None:
         tuned = json.loads(args.compare.read_text(encoding="utf-8"))
-        print(_table(compare(tuned)))
+        rows = compare(tuned, seeds=args.seeds, workers=args.workers, mfc_gyro_hz=args.mfc_gyro_hz)
+        print(_table(rows))
         return 0
     if args.budget < 1:
         ap.error("--budget: at least 1")
