@@ -86,7 +86,7 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink2
 
 from sitl.lab import children
-from sitl.lab.fly import free_tcp_port, free_udp_port, free_udp_ports
+from sitl.lab.fly import free_tcp_port, free_udp_ports
 
 __all__ = ["echo_server", "run_harness", "run_loop_bench"]
 
@@ -320,10 +320,6 @@ async def _echo(port: int) -> None:
 def echo_server(port: int) -> None:
     """The floor: parse with pymavlink, answer HIGHRES_IMU with a fixed command."""
     asyncio.run(_echo(port))
-
-
-def _free_port() -> int:
-    return free_udp_port()
 
 
 def run_loop_bench(

@@ -7,11 +7,12 @@ import subprocess
 import sys
 import time
 
-from sitl.lab.loopbench import _free_port, run_harness
+from sitl.lab.fly import free_udp_port
+from sitl.lab.loopbench import run_harness
 
 
 def test_harness_times_the_echo_server_and_accounts_for_every_sample() -> None:
-    port = _free_port()
+    port = free_udp_port()
     cmd = f"from sitl.lab.loopbench import echo_server; echo_server({port})"
     server = subprocess.Popen([sys.executable, "-c", cmd])
     try:
@@ -64,7 +65,7 @@ asyncio.run(main(PORT))
 
 
 def test_harness_tells_a_dropped_sample_from_a_late_one() -> None:
-    port = _free_port()
+    port = free_udp_port()
     server = subprocess.Popen([sys.executable, "-c", _PICKY_SERVER.replace("PORT", str(port))])
     try:
         time.sleep(1.0)
