@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from sitl.lab.link_limit import cost_table, fly_through, main
@@ -131,3 +134,43 @@ def test_law_axes_reach_the_companion() -> None:
     assert chosen["law_axes"] == "yaw"
     with pytest.raises(ValueError, match="law_axes: needs output 'rates'"):
         fly_through(("f450", "ideal", 1.0, None), "actuator", law_axes="yaw")
+
+
+def test_a_link_with_no_target_gets_its_cost_and_no_verdict() -> None:
+    flights = [
+        _flight("ideal", (6.0, 5.0, 4.0), (5.0, 5.0)),
+        _flight("delay_ms=5", (9.0, 6.0, 5.0), (6.0, 6.0)),
+    ]
+    (row,) = cost_table(flights)
+    assert row["cost"] == {"roll": pytest.approx(1.25), "pitch": pytest.approx(1.0)}
+    assert row["target"] is None and row["met"] is None
+
+
+def test_a_bad_link_is_refused_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["--link", "uart", "--link", "delay_ms=abc"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--link: link 'delay_ms=abc': delay_ms='abc': expected milliseconds" in err
+
+
+@pytest.mark.slow
+def test_links_given_are_flown_with_the_ideal_one(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--link uart --link delay_ms=5``: those two and the ideal link, nothing else;
+    UART judged against its target, the 5 ms link given its cost alone."""
+    code = main(
+        ["--vehicle", "f450", "--duration", "6", "--workers", "1", "--out", str(tmp_path),
+         "--link", "uart", "--link", "delay_ms=5", "--link", "ideal"]
+    )  # fmt: skip
+    assert code == 0
+    out = capsys.readouterr().out
+    saved = json.loads((tmp_path / "link_limit.json").read_text(encoding="utf-8"))
+    assert [f["link"] for f in saved["flights"]] == ["ideal", "uart", "delay_ms=5"]
+    rows = {r["link"]: r for r in saved["costs"]}
+    assert rows["uart"]["target"] == 1.1 and rows["uart"]["met"] is not None
+    assert rows["delay_ms=5"]["target"] is None and rows["delay_ms=5"]["met"] is None
+    assert "| f450 | delay_ms=5 |" in out and "vehicle-link pairs within target" in out
+    assert out.rstrip().endswith(("1 of 1 vehicle-link pairs within target",
+                                  "0 of 1 vehicle-link pairs within target"))  # fmt: skip
