@@ -43,6 +43,7 @@ import numpy as np
 
 from companion.config import PidConfig, load_controller
 from sitl.lab.cascade_pid import PX4_DEFAULT_CASCADE, CascadeGains
+from sitl.lab.outer_sweep import check_mfc_gyro_hz
 
 __all__ = ["SPAN", "TRAIN_SEED", "TUNED_FIELDS", "candidates", "train_cost", "tune_vehicle"]
 
@@ -231,8 +232,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.seeds < 1:
         ap.error(f"--seeds: expected at least 1, got {args.seeds}")
-    if args.mfc_gyro_hz is not None and not 1.0 <= args.mfc_gyro_hz <= 1000.0:
-        ap.error(f"--mfc-gyro-hz: expected a rate in 1-1000 Hz, got {args.mfc_gyro_hz:g}")
+    check_mfc_gyro_hz(ap, args.mfc_gyro_hz)
     if args.compare is not None:
         tuned = json.loads(args.compare.read_text(encoding="utf-8"))
         rows = compare(tuned, seeds=args.seeds, workers=args.workers, mfc_gyro_hz=args.mfc_gyro_hz)

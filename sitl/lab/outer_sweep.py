@@ -363,6 +363,12 @@ def summary_markdown(records: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def check_mfc_gyro_hz(ap: argparse.ArgumentParser, hz: float | None) -> None:
+    """``--mfc-gyro-hz`` (here and in ``cascade_tune --compare``): a rate in 1-1000 Hz."""
+    if hz is not None and not 1.0 <= hz <= 1000.0:
+        ap.error(f"--mfc-gyro-hz: expected a rate in 1-1000 Hz, got {hz:g}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m sitl.lab.outer_sweep``: the sweep, its flights and summary."""
     from companion.options import keep_earlier
@@ -410,8 +416,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             ap.error(f"--damage: {d!r} is not one of {', '.join(DAMAGE)}")
     if args.seeds < 1:
         ap.error(f"--seeds: expected at least 1, got {args.seeds}")
-    if args.mfc_gyro_hz is not None and not 1.0 <= args.mfc_gyro_hz <= 1000.0:
-        ap.error(f"--mfc-gyro-hz: expected a rate in 1-1000 Hz, got {args.mfc_gyro_hz:g}")
+    check_mfc_gyro_hz(ap, args.mfc_gyro_hz)
     try:
         fleet = vehicles([p for p in args.profiles.split(",") if p], args.corners)
     except (OSError, ValueError) as exc:
