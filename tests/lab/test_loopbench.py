@@ -6,9 +6,28 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 from sitl.lab.fly import free_udp_port
 from sitl.lab.loopbench import run_harness
+
+
+def wait_until_bound(server: subprocess.Popen[bytes], port: int, timeout_s: float = 60.0) -> None:
+    """Until the server's UDP socket is bound to 127.0.0.1:``port``.
+
+    Read from the kernel's socket table, which cannot race the server's own bind
+    the way a probing bind could; a fixed sleep was too short on a loaded machine
+    (the server's imports took over a second, and every sample went unanswered).
+    """
+    want = f"0100007F:{port:04X}"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        assert server.poll() is None, "the server exited before binding its socket"
+        table = Path("/proc/net/udp").read_text().splitlines()[1:]
+        if any(line.split()[1] == want for line in table):
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"nothing bound 127.0.0.1:{port} within {timeout_s} s")
 
 
 def test_harness_times_the_echo_server_and_accounts_for_every_sample() -> None:
@@ -16,8 +35,7 @@ def test_harness_times_the_echo_server_and_accounts_for_every_sample() -> None:
     cmd = f"from sitl.lab.loopbench import echo_server; echo_server({port})"
     server = subprocess.Popen([sys.executable, "-c", cmd])
     try:
-        time.sleep(1.0)  # imports and socket set-up
-        assert server.poll() is None
+        wait_until_bound(server, port)
         (stats,) = run_harness([port], rate_hz=200.0, seconds_each=0.5, block_s=0.25, warmup_s=0.2)
     finally:
         server.send_signal(signal.SIGTERM)
@@ -68,8 +86,7 @@ def test_harness_tells_a_dropped_sample_from_a_late_one() -> None:
     port = free_udp_port()
     server = subprocess.Popen([sys.executable, "-c", _PICKY_SERVER.replace("PORT", str(port))])
     try:
-        time.sleep(1.0)
-        assert server.poll() is None
+        wait_until_bound(server, port)
         (stats,) = run_harness([port], rate_hz=200.0, seconds_each=1.0, block_s=0.5, warmup_s=0.2)
     finally:
         server.kill()
