@@ -10,8 +10,8 @@
 
 Across the tiers, the ``long`` checks (marked so: the wheel built and installed,
 the envelope's corners with a PID tuned for each, the paper reproduction, the
-fuzzer's real-time run) take
-minutes each. The default run leaves them out (they are *deselected*, and the
+fuzzer's real-time run, the heaviest lab and app flights) take minutes or half a
+minute or more of a core each. The default run leaves them out (they are *deselected*, and the
 header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 
 The ``realstack`` tier (``tests/realstack``) flies the real PX4 and ArduCopter

@@ -128,6 +128,7 @@ waypoints:
 """
 
 
+@pytest.mark.long
 def test_companion_fly_flies_a_mission_and_reports_its_path(tmp_path: Path) -> None:
     """Through ``companion fly --mode position --mission``: the waypoints visited, the
     path error against the plan in metrics.json, the plot of the path."""

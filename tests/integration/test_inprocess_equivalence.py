@@ -174,6 +174,7 @@ waypoints:
 """
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("mode", ["angle", "altitude", "position", "mission"])
 def test_each_flight_mode_is_the_same_flight_both_ways(tmp_path: Path, mode: str) -> None:
     """The flight modes sample for sample, on the SITL's estimates: they cross the

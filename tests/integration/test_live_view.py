@@ -107,6 +107,7 @@ def test_a_viewer_sees_every_topic_of_a_flight_as_it_flies(tmp_path: Path) -> No
     assert (np.diff(times) > 0).all() and times[0] > 0
 
 
+@pytest.mark.long
 def test_a_viewer_that_stops_reading_costs_the_flight_nothing(tmp_path: Path) -> None:
     """A viewer subscribed to everything that stops reading half a second after its
     first message:

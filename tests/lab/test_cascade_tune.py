@@ -31,6 +31,7 @@ def test_the_same_seed_draws_the_same_candidates() -> None:
     assert candidates(8, seed=5) != candidates(8, seed=6)
 
 
+@pytest.mark.long
 def test_compare_flies_each_case_on_each_seed_with_its_ratios(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -51,6 +51,7 @@ def test_the_reference_vehicles_are_the_papers_three_and_two_corners() -> None:
     assert len(names) == 5 and names[-2:] == ["tiny-fast", "heavy-weak"]
 
 
+@pytest.mark.long
 def test_the_shipped_controller_passes_with_its_own_figures() -> None:
     flights = check_controller(load_controller(DEFAULT_CONTROLLER))
     assert [f.passed for f in flights] == [True] * 5

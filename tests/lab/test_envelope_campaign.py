@@ -248,6 +248,7 @@ def test_refuses_to_tune_on_a_test_flight() -> None:
             load_setup(train_scenario=name)
 
 
+@pytest.mark.long
 def test_same_records_whatever_the_workers() -> None:
     setup = _short(load_setup(tune_budget=3, seed=2), 2.0, 3.0)
     cases = envelope_cases(corners_only=True, damage=True, damage_on=1)[:3]
@@ -261,6 +262,7 @@ def test_same_records_whatever_the_workers() -> None:
     assert [(r["vehicle"], r["case"]) for r in one] == [(c.vehicle, c.case) for c in cases]
 
 
+@pytest.mark.long
 def test_cli_corners_only(tmp_path: Path) -> None:
     setup = load_setup()
     for name, sc, s in (("train", setup.train, 2.0), ("test", setup.test, 3.0)):
@@ -291,6 +293,7 @@ def test_cli_corners_only(tmp_path: Path) -> None:
     assert bad.exit_code != 0 and "test flight" in bad.output
 
 
+@pytest.mark.long
 def test_a_killed_envelope_resumes_without_reflying_finished_cases(tmp_path: Path) -> None:
     from sitl.lab.campaign_store import CampaignStore, grid_digest
     from sitl.lab.envelope import CASES_DIR, RUN_MANIFEST, case_ids

@@ -115,6 +115,7 @@ def test_a_sitl_param_reaches_the_autopilots_rate_loop() -> None:
         fly_through(("f450", "ideal", 1.0, None), "actuator", sitl_params=("MC_ROLLRATE_K=3",))
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.integration
 def test_law_axes_reach_the_companion() -> None:

@@ -389,6 +389,7 @@ def test_a_damaged_vehicle_that_hops_at_take_off_still_climbs() -> None:
     assert out["pos_rms_v_m"] < 0.5  # 5.0 (the hold altitude) when it stayed down
 
 
+@pytest.mark.long
 def test_a_vehicle_tipped_at_lift_off_by_a_weak_motor_is_flown_and_backs_off() -> None:
     """The cut-prop F450 with motor 0 at 65 %: the weak motor tips it at lift-off,
     before the 4 Hz landed state clears. A rate law restarted on every sample of that
@@ -416,6 +417,7 @@ def test_a_vehicle_tipped_at_lift_off_by_a_weak_motor_is_flown_and_backs_off() -
     assert out["gain_scale_min"] == pytest.approx(0.55) and out["backed_off_s"] > 1.0
 
 
+@pytest.mark.long
 def test_a_vehicle_losing_its_heading_to_yaw_saturation_is_given_a_yaw_share() -> None:
     """The cut-prop F450 with motor 0 at 60 % holding position: with roll and pitch
     always first, the weak motor leaves yaw no room, the vehicle turns where yaw

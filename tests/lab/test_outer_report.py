@@ -44,6 +44,7 @@ def test_the_plan_starts_where_the_companion_said_it_did() -> None:
     assert mission_plan(mission, [{"kind": "engaged", "detail": ""}]) is None
 
 
+@pytest.mark.long
 def test_simulate_mode_flies_the_outer_loops_and_writes_their_report(tmp_path: Path) -> None:
     """``companion simulate --mode position``: the mode's scenario in process; metrics.json's
     ``outer`` is the lab's figures of that very flight, with path.png and report.md."""
