@@ -238,14 +238,15 @@ class FlightCore:
 
     def setpoints_now_flown(self) -> None:
         """The autopilot accepted the engage mode (and the arming, if asked): from
-        the next sample it flies our setpoints. The flight modes' laws start here,
-        from the vehicle's state (:mod:`companion.modes`); rates mode's start at
-        the engaged edge."""
+        the next sample it flies our setpoints, so the laws start here, in every
+        mode (a flight mode's from the vehicle's state: :mod:`companion.modes`),
+        and learn only from commands that are flown. The heartbeat that shows the
+        mode (the engaged edge, :meth:`on_heartbeat`) may come up to a second
+        later: the real PX4 and ArduCopter send one a second, not at once."""
         if not self.commanding or self.setpoints_flown:
             return
-        if self.modes.needs_attitude:
-            self.reset_laws()  # before the flag: the take-over is the autopilot's collective
-            self.time.restart = True
+        self.reset_laws()  # before the flag: a flight mode takes over the autopilot's collective
+        self.time.restart = True
         self.setpoints_flown = True
 
     def release(self) -> bool:
@@ -312,10 +313,10 @@ class FlightCore:
         ap.heartbeats += 1
         if now and not was and not self.shell.stopping:
             # (After a stop nothing engages: the run's hand-back is next.)
-            if not (self.modes.needs_attitude and self.setpoints_flown):
-                # Learn F only from commands that are applied. A flight mode's laws
-                # started when the engage mode was accepted (companion.modes): they
-                # run on, or the vehicle would jolt a second time.
+            if not self.setpoints_flown:
+                # Learn F only from commands that are applied. Where the engage mode's
+                # acceptance came first, the laws started there (setpoints_now_flown):
+                # they run on, or the vehicle would jolt a second time.
                 self.reset_laws()
                 self.time.restart = True  # the next sample primes it, as a replay does
             self.setpoints_flown = True
@@ -454,11 +455,9 @@ class FlightCore:
             if verdict is not None:
                 self.failsafe(*verdict)
         sent: Sequence[float] = NO_RATES
-        # As the command left (recorded so, whatever follows); in a flight mode, from
-        # the first setpoint the autopilot flies (the laws' start: companion.modes).
-        engaged = self.engaged or (
-            modes.needs_attitude and self.commanding and self.setpoints_flown
-        )
+        # As the command left (recorded so, whatever follows); from the first setpoint
+        # the autopilot flies (the laws' start: setpoints_now_flown).
+        engaged = self.engaged or (self.commanding and self.setpoints_flown)
         if self.commanding:
             sent = self.output.send(t_s, out, ref, thrust)
         else:

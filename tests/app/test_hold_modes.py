@@ -223,6 +223,53 @@ async def test_the_engaged_edge_does_not_start_the_laws_again(start: Start) -> N
     assert after == pytest.approx(before, abs=0.01)  # no step back to the take-over
 
 
+async def test_in_rates_mode_too_the_laws_start_when_the_engage_mode_is_accepted(
+    start: Start, tmp_path: Path
+) -> None:
+    """As in the flight modes: the real PX4 flies our rate setpoints from the ACK
+    of OFFBOARD, and its heartbeat shows it up to a second later (1 Hz). The law
+    starts at the ACK, learning only from commands flown, and runs on through
+    the heartbeat; the control log counts the samples from the ACK as engaged.
+    (Started at the heartbeat, the real PX4's rate flights were scored from a
+    point that wandered by up to a second: their yaw MAE 21-22 or 28-29 deg/s.)"""
+    f = await start(engage="auto", output="rates", log_dir=tmp_path)
+    await streams_requested(f)
+    core = f.companion.core
+    resets: list[bool] = []
+    reset_laws = core.reset_laws
+
+    def counted() -> None:
+        resets.append(core.setpoints_flown)
+        reset_laws()
+
+    core.reset_laws = counted  # type: ignore[method-assign]
+    for _ in range(3):  # the pilot's radio streams
+        f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=lambda: f.imu())
+    for _ in range(40):  # flown, a steady roll rate to correct; no heartbeat yet
+        f.imu((0.3, 0.0, 0.0))
+        await settle(2)
+    assert core.setpoints_flown and not f.companion.engaged
+    started = len(resets)
+    assert started >= 2 and resets[-1] is False  # streaming, then the ACKs: started there
+    f_before = core.step.out.f_hat[0]
+    assert abs(f_before) > 0.1  # learnt since
+    f.fake.set_state(PX4_OFFBOARD, armed=True)
+    await f.feed_until(lambda: f.companion.engaged, send=lambda: f.imu((0.3, 0.0, 0.0)))
+    for _ in range(3):
+        f.imu((0.3, 0.0, 0.0))
+        await settle(2)
+    assert len(resets) == started  # the engaged edge started nothing again
+    assert core.step.out.f_hat[0] == pytest.approx(f_before, rel=0.2)
+    f.companion._stop.set()
+    assert await f.finish() == 0
+    cols, _ = read_control_log(tmp_path / "control.mcap")
+    eng = cols["engaged"] > 0.5
+    first = int(np.argmax(eng))
+    # Engaged in the log from the ACK: the 40 samples before the heartbeat included.
+    assert eng[first:].sum() >= 40 + 3
+
+
 async def test_the_sticks_limits_are_the_autopilots_own(start: Start) -> None:
     f = await start(
         engage="auto", output="rates", mode="position", position=False,
