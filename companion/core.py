@@ -233,6 +233,7 @@ class FlightCore:
         them until it accepts the engage mode)."""
         self.mode_before_engaging = self.ap.mode
         self.setpoints_flown = False
+        self.t_engaged = None  # set by the first sample flown
         self.commanding = True
         self.reset_laws()
 
@@ -322,7 +323,6 @@ class FlightCore:
             self.setpoints_flown = True
             self.watch.reset()
             self.engaged = True
-            self.t_engaged = None  # set by the first sample flown
             self.shell.event(
                 "engaged", f"{stack.mode_label(mode)} and armed at t={self.time.t_prev}"
             )
@@ -420,7 +420,8 @@ class FlightCore:
     def _step(self, t_s: float, dt: float, gyro: tuple[float, float, float], t0: float) -> None:
         """One accepted sample: the shared step (range gate, law, command gate), the
         command, then the rest."""
-        if self.engaged and self.t_engaged is None:
+        flown = self.commanding and self.setpoints_flown
+        if flown and self.t_engaged is None:
             self.t_engaged = t_s  # engaged time counts from the first sample flown
         shell = self.shell
         if self._duration_us is not None and not shell.stopping:
@@ -439,8 +440,9 @@ class FlightCore:
         thrust = pilot.thrust
         script = self._script
         modes = self.modes
-        if script is not None and self.engaged and self.t_engaged is not None:
-            ref, scripted_thrust = script.at(t_s - self.t_engaged)
+        since_s = self.t_engaged if self.commanding and self.setpoints_flown else None
+        if script is not None and since_s is not None:
+            ref, scripted_thrust = script.at(t_s - since_s)
             if scripted_thrust is not None:
                 thrust = scripted_thrust
         elif modes.needs_attitude:

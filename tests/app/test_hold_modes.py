@@ -17,6 +17,7 @@ from companion.control.mfc import LEGS_HOLD_QUIET_S
 from companion.errors import EXIT_ERROR
 from companion.mission import Mission, Waypoint
 from companion.records import read_control_log
+from companion.reference import ReferenceScript
 from tests.app.fakes import CMD_ARM, CMD_SET_MESSAGE_INTERVAL, PX4_OFFBOARD, settle
 from tests.app.flight import Flight, Start, streams_requested
 
@@ -268,6 +269,35 @@ async def test_in_rates_mode_too_the_laws_start_when_the_engage_mode_is_accepted
     first = int(np.argmax(eng))
     # Engaged in the log from the ACK: the 40 samples before the heartbeat included.
     assert eng[first:].sum() >= 40 + 3
+
+
+async def test_a_reference_file_and_the_duration_count_from_the_first_sample_flown(
+    start: Start,
+) -> None:
+    """A ``--reference`` flight starts its script, and ``--duration-s`` its clock, with
+    the first sample the autopilot flies (after the ACK), not at the heartbeat that
+    shows the mode up to a second later, so a scripted experiment starts at the same
+    point of the flight on every stack and every run."""
+    script = ReferenceScript(
+        t_s=(0.0, 10.0), rates_rad_s=((0.2, 0.0, 0.0),) * 2, thrust=(0.62, 0.62)
+    )
+    f = await start(engage="auto", output="rates", reference=script, duration_s=0.1)
+    await streams_requested(f)
+    for _ in range(3):  # the pilot's radio streams
+        f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+    await f.feed_until(lambda: f.fake.commands(CMD_ARM), send=lambda: f.imu())
+    await settle(2)
+    n0 = len(f.fake.setpoints())
+    for _ in range(10):  # flown; no heartbeat shows it yet
+        f.imu()
+        await settle(2)
+    assert not f.companion.engaged
+    assert {round(m.thrust, 5) for m in f.fake.setpoints()[n0:]} == {0.62}  # the script's
+    for _ in range(30):  # 0.1 s is 25 samples at 250 Hz: the run ends, never engaged
+        f.imu()
+        await settle(2)
+    assert await f.finish() == 0
+    assert "duration" in f.kinds() and "engaged" not in f.kinds()
 
 
 async def test_the_sticks_limits_are_the_autopilots_own(start: Start) -> None:
