@@ -371,16 +371,21 @@ class Session:
     ) -> CompanionRun:
         """``companion run --engage rc-switch *args`` from the hold: the switch low for
         ``start_s``, then high with ``pilot`` (or the sticks held at ``sticks_us``)
-        for ``duration_s``, then low; ``settle_s`` of its hand-back; then stopped."""
+        for ``duration_s``, then low; ``settle_s`` of its hand-back; then stopped.
+
+        The switch is high for ``duration_s`` on the pilot's clock, whenever the
+        companion's engagement shows in the autopilot's heartbeat (once a second):
+        every flight of one pilot is the same length."""
         g = self.gcs
         assert g is not None
         run = self.start_companion("--engage", "rc-switch", *args, name=name)
         time.sleep(start_s)
         p = self.pilot
         p.pilot, p.sticks_us = pilot, sticks_us
+        switched = time.monotonic()
         p.engage(g.clock())
         self.wait_engaged(run, 5.0)
-        time.sleep(duration_s)
+        time.sleep(max(0.0, switched + duration_s - time.monotonic()))
         p.release()
         time.sleep(settle_s)
         run.stop()
