@@ -15,7 +15,7 @@ minute or more of a core each. The default run leaves them out (they are *desele
 header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 
 The ``realstack`` tier (``tests/realstack``) flies the real PX4 and ArduCopter
-SITL in real time, one stack at a time, about ten minutes: the default run
+SITL in real time, one stack at a time, about 25 minutes on 2 cores: the default run
 leaves it out too; ``--realstack`` runs it alone (``.ci/run`` does).
 """
 

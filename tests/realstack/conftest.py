@@ -57,6 +57,25 @@ def pytest_terminal_summary(terminalreporter: Any) -> None:
     terminalreporter.write_line(f"(written to {path})")
 
 
+RERUNS = 1
+"""A failed real-stack test is flown again this many times (pytest-rerunfailures).
+
+The stacks fly in real time on a shared 2-core machine, and one flight can stand
+apart: in the tier at 44aa4a8, 3 of 49 tests failed (the preflight's IMU rate at
+PX4's start, a roll 1.08x on the stiff loop where both laws send the pilot's
+roll, an engagement sag 0.25 m against 0.2), each a flight the same code flew
+within its bound in other runs. A law or a failsafe that is wrong fails both
+tries; each try's figures are recorded, and pytest reports a test flown again
+as ``rerun``."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    here = Path(__file__).parent
+    for item in items:
+        if here in Path(item.path).parents:
+            item.add_marker(pytest.mark.flaky(reruns=RERUNS))
+
+
 def boot(stack: str, workdir: Path) -> Session:
     """A stack booted and its ground station connected; the tier stops (exit 3)
     with one line if the stack is not installed."""
