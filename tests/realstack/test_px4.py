@@ -115,10 +115,11 @@ TIE_BAND = 1.05
 def _fly_judged(px4: Session, figures: list[dict[str, Any]], test: str) -> dict[str, Any]:
     """The rates pair, and where MFC is beyond :data:`TIE_BAND` of pass-through on an
     axis, two more pairs, judged on each law's median of the three. PX4 runs in real
-    time beside the companion, and one flight can stand apart: on the stiff loop
-    below, the pass-through's yaw was 22.05 deg/s in one tier run and 27.1-30.2 in
-    five others, with MFC's 26.1-28.9 (docs/research/realstack.md#law-axes-auto). A
-    law worse by more than the band is worse in the median of three too."""
+    time beside the companion, and one flight can stand apart (since the engaged
+    edge was fixed, one MFC roll in ten: docs/research/realstack.md#engaged-edge;
+    before it, a yaw of 21-22 against 28-29 deg/s, the scoring starting with PX4's
+    1 Hz heartbeat). A law worse by more than the band is worse in the median of
+    three too."""
     pairs = [fly_rates_pair(px4, RATES, seed=11)]
     figures.append({"test": test, **pairs[0]})
     if any(pairs[0]["mfc"][a] > TIE_BAND * pairs[0]["pass-through"][a] for a in AXES):
