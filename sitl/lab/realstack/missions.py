@@ -56,7 +56,7 @@ from companion.mission import Mission, load_mission
 from sitl.lab.outer_report import mission_plan
 from sitl.lab.realstack.flights import CompanionRun, Session
 from sitl.lab.realstack.gcs import GroundStation, MissionItem, Telemetry
-from sitl.lab.realstack.modes import boot_offset, settle, start_mode_companion, tilt_deg
+from sitl.lab.realstack.modes import gcs_time_of_boot, settle, start_mode_companion, tilt_deg
 
 __all__ = [
     "ARRIVED_M",
@@ -313,7 +313,7 @@ def fly_companion_mission(
     flown = cols["engaged"] > 0.5
     t_eng = t0
     if flown.any():
-        t_eng = float(cols["t_s"][flown][0]) + boot_offset(session, t_end)
+        t_eng = gcs_time_of_boot(session, float(cols["t_s"][flown][0]))
     done = said in run.details("mission_waypoint")
     flight = _record(session, "companion", t0, t_eng, plan, done, t_end)
     flight.run = run

@@ -51,9 +51,9 @@ __all__ = [
     "ModeFlight",
     "Phase",
     "ProgramPilot",
-    "boot_offset",
     "fly_companion_mode",
     "fly_stack_mode",
+    "gcs_time_of_boot",
     "mode_figures",
     "settle",
     "start_mode_companion",
@@ -333,7 +333,7 @@ def fly_companion_mode(
     flown = cols["engaged"] > 0.5
     t_eng = t0
     if flown.any():
-        t_eng = float(cols["t_s"][flown][0]) + boot_offset(session, t_end)
+        t_eng = gcs_time_of_boot(session, float(cols["t_s"][flown][0]))
     flight = _record(session, "companion", mode, t0, t_eng, program)
     flight.run = run
     flight.position = [r for r in flight.position if r[0] <= t_end]
@@ -342,14 +342,18 @@ def fly_companion_mode(
     return flight
 
 
-def boot_offset(session: Session, until_s: float) -> float:
-    """The ground station's clock less the autopilot's boot time (ATTITUDE's
-    ``time_boot_ms``), its median over the last minute: the companion's IMU time
-    is the autopilot's boot time."""
+def gcs_time_of_boot(session: Session, boot_s: float) -> float:
+    """The ground station's clock when the autopilot's boot time (the companion's
+    IMU time) was ``boot_s``: interpolated between the ATTITUDE messages around it
+    (``time_boot_ms``, and when each arrived). Local, since the two clocks drift
+    apart when the autopilot runs behind real time on a loaded machine: an offset
+    taken over the last minute put the engagement up to 2 s before the switch."""
     g = session.gcs
     assert g is not None
-    rows = [r for r in g.records.get("ATTITUDE", []) if until_s - 60.0 <= r.t_s <= until_s]
-    return float(np.median([r.t_s - r.fields["time_boot_ms"] * 1e-3 for r in rows]))
+    rows = g.records.get("ATTITUDE", [])
+    boot = np.array([r.fields["time_boot_ms"] * 1e-3 for r in rows])
+    arrived = np.array([r.t_s for r in rows])
+    return float(np.interp(boot_s, boot, arrived))
 
 
 def tilt_deg(roll: float, pitch: float) -> float:
