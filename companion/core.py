@@ -243,8 +243,7 @@ class FlightCore:
         mode (a flight mode's from the vehicle's state: :mod:`companion.modes`),
         and learn only from commands that are flown. The heartbeat that shows the
         mode (the engaged edge, :meth:`on_heartbeat`) may come up to a second
-        later: the real PX4 sends one a second, not at once on a mode change
-        (ArduCopter sends one at once)."""
+        later: PX4 sends one a second (ArduCopter one at once on a mode change)."""
         if not self.commanding or self.setpoints_flown:
             return
         self.reset_laws()  # before the flag: a flight mode takes over the autopilot's collective
