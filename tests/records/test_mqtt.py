@@ -282,10 +282,13 @@ async def test_reconnects_after_the_broker_restarts(broker: Broker) -> None:
     k = 0
 
     async def stream(seconds: float) -> None:
+        """1 kHz samples in real time, every one due by now sent every 10 ms (on a
+        loaded machine a sleep lasts longer: a fixed count per wake-up streamed too
+        few, and the 20 below never came)."""
         nonlocal k
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            for _ in range(10):  # 10 ms of 1 kHz samples every 10 ms
+        start, k0 = time.monotonic(), k
+        while (now := time.monotonic()) < start + seconds:
+            while k < k0 + int((now - start) * 1000.0):
                 sample(t, k)
                 k += 1
             await asyncio.sleep(0.01)
@@ -358,15 +361,19 @@ async def test_a_frozen_broker_costs_what_the_counters_say(broker: Broker) -> No
     k = 0
 
     async def stream(seconds: float) -> None:
-        """250 Hz samples in real time; keeps the t_s the decimation took."""
+        """250 Hz samples in real time, every one due by now sent on each wake-up (on
+        a loaded machine a 4 ms sleep lasts longer: one sample per wake-up streamed
+        too few to fill the queue while the broker was frozen); keeps the t_s the
+        decimation took."""
         nonlocal k
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            taken = t.counters["queued"] + t.counters["dropped_full"]
-            sample(t, k * 4)  # sample() counts milliseconds
-            if t.counters["queued"] + t.counters["dropped_full"] > taken:
-                offered.append(round(k * 0.004, 6))
-            k += 1
+        start, k0 = time.monotonic(), k
+        while (now := time.monotonic()) < start + seconds:
+            while k < k0 + int((now - start) * 250.0):
+                taken = t.counters["queued"] + t.counters["dropped_full"]
+                sample(t, k * 4)  # sample() counts milliseconds
+                if t.counters["queued"] + t.counters["dropped_full"] > taken:
+                    offered.append(round(k * 0.004, 6))
+                k += 1
             await asyncio.sleep(0.004)
 
     async with subscribed(broker.port) as sub:
