@@ -306,6 +306,24 @@ def test_each_misconfiguration_is_named_with_its_fix(
     assert others == [], others
 
 
+@pytest.mark.parametrize(
+    ("gap_s", "late", "status"),
+    [
+        (0.023, 1, "pass"),  # one hiccup of a busy companion (seen on the real PX4)
+        (0.039, 7, "pass"),  # under ten periods, and under 1 % of 750 late
+        (0.041, 1, "warn"),  # a stall: over ten periods (40 ms at 250 Hz)
+        (0.012, 8, "warn"),  # short gaps, but over 1 % of the stream late
+    ],
+)
+def test_the_imu_stream_warns_on_a_stall_not_on_one_hiccup(
+    gap_s: float, late: int, status: str
+) -> None:
+    obs = observed(imu_max_gap_s=gap_s, imu_late=late)
+    c = line(judge(obs, plan(), GOOD_CORE), "IMU rate")
+    assert c.status == status, c
+    assert c.detail.endswith(f"longest gap {gap_s * 1e3:.0f} ms, {late} of 750 over 16 ms"), c
+
+
 def test_an_autopilot_that_signs_against_a_companion_without_a_key_is_one_failed_line() -> None:
     # (It would refuse every request: preflight stops after the heartbeat.)
     checks = judge(observed(), plan(signing=False), GOOD_CORE)

@@ -9,7 +9,15 @@ import math
 from collections.abc import Iterable
 
 from companion.link.timesync import LINK_RTT_SHOWN_MS
-from companion.preflight.model import Check, CoreCost, Observed, Plan
+from companion.preflight.model import (
+    LATE_PERIODS,
+    STALL_S,
+    STALL_SHARE,
+    Check,
+    CoreCost,
+    Observed,
+    Plan,
+)
 from companion.preflight.rules import judge_params
 from companion.stacks import FlightStack
 
@@ -212,8 +220,15 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
             "ArduPilot SERIALn_PROTOCOL / baud)",
         )
     got = obs.imu_count / obs.imu_window_s
-    gap_ms = obs.imu_max_gap_s * 1e3
-    text = f"{obs.imu_message} at {got:.0f} Hz (asked {asked:g}), longest gap {gap_ms:.0f} ms"
+    late_ms = LATE_PERIODS * 1e3 / asked
+    text = (
+        f"{obs.imu_message} at {got:.0f} Hz (asked {asked:g}), longest gap "
+        f"{obs.imu_max_gap_s * 1e3:.0f} ms, {obs.imu_late} of {obs.imu_count} over {late_ms:.0f} ms"
+    )
+    # One short hiccup (a busy companion) is not a stream the loop cannot fly on.
+    stalls = (
+        obs.imu_max_gap_s > min(10 / asked, STALL_S) or obs.imu_late > STALL_SHARE * obs.imu_count
+    )
     capped = f" (the stack's limit {stack.max_imu_rate_hz:g} Hz)" if asked < plan.rate_hz else ""
     limit = f"; {stack.imu_rate_limit}" if stack.imu_rate_limit else ""
     if got < 0.8 * asked:
@@ -225,7 +240,7 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
             "higher MAVLink rate limit on that port (PX4 MAV_n_RATE, ArduPilot SRn_*), or a "
             f"lower --rate-hz (e.g. {10 * math.floor(got / 10):g}){limit}",
         )
-    if got < 0.95 * asked or gap_ms > 4e3 / asked or capped:
+    if got < 0.95 * asked or stalls or capped:
         return Check(
             "IMU rate",
             "warn",

@@ -19,6 +19,17 @@ __all__ = ["Check", "CoreCost", "Observed", "Plan", "Status"]
 Status = Literal["pass", "warn", "fail"]
 
 
+LATE_PERIODS = 4
+"""An IMU interval longer than this many of the asked periods is late."""
+
+STALL_S = 0.05
+"""A single IMU gap longer than this (or ten periods, if shorter) is a stall: a fifth
+of the stale-IMU failsafe's 0.25 s."""
+
+STALL_SHARE = 0.01
+"""Late intervals beyond this share of the stream are a stream that keeps stalling."""
+
+
 @dataclass(frozen=True)
 class Check:
     """One line of the checklist."""
@@ -80,6 +91,8 @@ class Observed:
     imu_count: int = 0
     imu_window_s: float = 0.0
     imu_max_gap_s: float = math.nan
+    imu_late: int = 0
+    """Intervals between IMU messages longer than four of the asked periods."""
     link: LinkStats | None = None
     timesync_requests: int = 0
     rc_messages: int = 0

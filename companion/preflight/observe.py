@@ -16,7 +16,7 @@ from companion.control.sticks import joystick_channels
 from companion.errors import LinkError
 from companion.link.timesync import LinkClock
 from companion.preflight.judge import summary
-from companion.preflight.model import Check, CoreCost, Observed, Plan
+from companion.preflight.model import LATE_PERIODS, Check, CoreCost, Observed, Plan
 from companion.preflight.rules import OLDER_NAMES, params_read
 from companion.step import LANDED_STATE_RATE_HZ
 
@@ -232,8 +232,9 @@ class _Watcher:
         if len(ts) >= 2:
             obs.imu_count = len(ts) - 1
             obs.imu_window_s = end - ts[0]
-            obs.imu_max_gap_s = max(b - a for a, b in itertools.pairwise(ts))
-            obs.imu_max_gap_s = max(obs.imu_max_gap_s, end - ts[-1])
+            gaps = [b - a for a, b in itertools.pairwise(ts)] + [end - ts[-1]]
+            obs.imu_max_gap_s = max(gaps)
+            obs.imu_late = sum(g > LATE_PERIODS / obs.imu_asked_hz for g in gaps)
         else:
             obs.imu_count = len(ts)
         obs.link = self.clock.stats()
@@ -253,5 +254,7 @@ def as_data(obs: Observed, checks: list[Check], core: CoreCost | None) -> dict[s
         "params": obs.params,
         "link": obs.link.as_dict() if obs.link else None,
         "imu_rate_hz": round(obs.imu_count / obs.imu_window_s, 1) if obs.imu_window_s else None,
+        "imu_longest_gap_ms": round(obs.imu_max_gap_s * 1e3, 1) if obs.imu_count else None,
+        "imu_late": obs.imu_late,
         "core": asdict(core) if core else None,
     }
