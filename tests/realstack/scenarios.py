@@ -202,6 +202,11 @@ def fly_failsafe_case(session: Session, kind: str, args: tuple[str, ...]) -> dic
 
 def preflight(session: Session, rates_args: tuple[str, ...], *args: str) -> dict[str, Any]:
     """``companion preflight --json`` against the stack: its checks by name."""
+    return {c["name"]: c for c in preflight_document(session, rates_args, *args)["checks"]}
+
+
+def preflight_document(session: Session, rates_args: tuple[str, ...], *args: str) -> dict[str, Any]:
+    """``companion preflight --json`` against the stack: the whole document."""
     import json
     import sys
 
@@ -211,7 +216,8 @@ def preflight(session: Session, rates_args: tuple[str, ...], *args: str) -> dict
            session.stack.companion_url, *rates_args, "--json", *args]  # fmt: skip
     res = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert res.returncode in (0, 1), res.stderr
-    return {c["name"]: c for c in json.loads(res.stdout)["checks"]}
+    doc: dict[str, Any] = json.loads(res.stdout)
+    return doc
 
 
 def flick_the_switch_while_preflight_watches(session: Session) -> None:
@@ -228,6 +234,18 @@ def flick_the_switch_while_preflight_watches(session: Session) -> None:
         pilot.switch_high = False
 
     threading.Thread(target=flick, daemon=True).start()
+
+
+def real_time_factor(session: Session, last_s: float) -> float:
+    """The stack's clock over the ground station's, over the last ``last_s`` of
+    ATTITUDE messages: below 1 where the stack runs behind real time."""
+    g = session.gcs
+    assert g is not None
+    rows = g.records.get("ATTITUDE", [])
+    end = rows[-1].t_s
+    window = [r for r in rows if r.t_s >= end - last_s]
+    boot_s = (window[-1].fields["time_boot_ms"] - window[0].fields["time_boot_ms"]) * 1e-3
+    return boot_s / (window[-1].t_s - window[0].t_s)
 
 
 AXES = ("roll", "pitch", "yaw")

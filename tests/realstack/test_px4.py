@@ -30,7 +30,9 @@ from tests.realstack.scenarios import (
     median_of_pairs,
     params_set,
     preflight,
+    preflight_document,
     preflight_with,
+    real_time_factor,
     send_a_signing_key,
 )
 
@@ -51,8 +53,18 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
     g = px4.gcs
     assert g is not None
     flick_the_switch_while_preflight_watches(px4)
-    checks = preflight(px4, RATES, "--watch-s", "6")
-    figures.append({"test": "px4 preflight", **{k: v["status"] for k, v in checks.items()}})
+    doc = preflight_document(px4, RATES, "--watch-s", "6")
+    speed = real_time_factor(px4, 5.0)
+    checks = {c["name"]: c for c in doc["checks"]}
+    imu = checks["IMU rate"]
+    figures.append(
+        {
+            "test": "px4 preflight",
+            **{k: v["status"] for k, v in checks.items()},
+            "IMU rate detail": imu["detail"],
+            "px4 real-time factor": round(speed, 3),
+        }
+    )
     failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
     assert not failed, failed
     # Every figure it quotes is the stack's own.
@@ -77,7 +89,13 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
     assert checks["landed state"]["detail"] == "on ground"
     assert checks["RC"]["detail"].startswith("no radio: the pilot's joystick")
     assert checks["engage switch"]["status"] == "pass", checks["engage switch"]
-    assert checks["IMU rate"]["status"] == "pass"
+    # PX4 streams HIGHRES_IMU at the rate asked on its own clock. In real time on a
+    # loaded machine PX4 runs behind the wall clock, and the stream with it: the
+    # check measures the wall clock's rate, as the loop flies it, and warns below
+    # 95 % of the rate asked.
+    assert doc["imu_rate_hz"] == pytest.approx(250.0 * speed, rel=0.03), (imu, speed)
+    if speed > 0.97:
+        assert imu["status"] == "pass", (imu, speed)
     assert checks["position"]["status"] == "pass"
 
 
