@@ -324,6 +324,18 @@ def test_the_imu_stream_warns_on_a_stall_not_on_one_hiccup(
     assert c.detail.endswith(f"longest gap {gap_s * 1e3:.0f} ms, {late} of 750 over 16 ms"), c
 
 
+def test_a_simulator_behind_real_time_is_named_as_the_streams_cause() -> None:
+    # The real PX4 SITL on a loaded machine: 224 Hz of 250, its clock at 0.93.
+    obs = observed(imu_count=672, imu_clock_ratio=0.93)
+    c = line(judge(obs, plan(), GOOD_CORE), "IMU rate")
+    assert c.status == "warn", c
+    assert c.detail.endswith("the autopilot's clock runs at 0.93 of real time"), c
+    assert "a simulator behind real time" in c.fix, c
+    # A real autopilot's clock keeps real time: the link is the suspect.
+    c = line(judge(observed(imu_count=672, imu_clock_ratio=1.0), plan(), GOOD_CORE), "IMU rate")
+    assert "of real time" not in c.detail and "bandwidth" in c.fix, c
+
+
 def test_an_autopilot_that_signs_against_a_companion_without_a_key_is_one_failed_line() -> None:
     # (It would refuse every request: preflight stops after the heartbeat.)
     checks = judge(observed(), plan(signing=False), GOOD_CORE)

@@ -11,6 +11,7 @@ from collections.abc import Iterable
 from companion.link.timesync import LINK_RTT_SHOWN_MS
 from companion.preflight.model import (
     LATE_PERIODS,
+    SLOW_CLOCK_RATIO,
     STALL_S,
     STALL_SHARE,
     Check,
@@ -225,6 +226,9 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
         f"{obs.imu_message} at {got:.0f} Hz (asked {asked:g}), longest gap "
         f"{obs.imu_max_gap_s * 1e3:.0f} ms, {obs.imu_late} of {obs.imu_count} over {late_ms:.0f} ms"
     )
+    slow_clock = obs.imu_clock_ratio < SLOW_CLOCK_RATIO
+    if slow_clock:
+        text += f"; the autopilot's clock runs at {obs.imu_clock_ratio:.2f} of real time"
     # One short hiccup (a busy companion) is not a stream the loop cannot fly on.
     stalls = (
         obs.imu_max_gap_s > min(10 / asked, STALL_S) or obs.imu_late > STALL_SHARE * obs.imu_count
@@ -241,11 +245,16 @@ def _check_imu_rate(obs: Observed, plan: Plan, stack: FlightStack) -> Check:
             f"lower --rate-hz (e.g. {10 * math.floor(got / 10):g}){limit}",
         )
     if got < 0.95 * asked or stalls or capped:
+        why = (
+            "a simulator behind real time (a loaded machine)"
+            if slow_clock
+            else "see the link's bandwidth and load"
+        )
         return Check(
             "IMU rate",
             "warn",
             text + capped,
-            f"the loop runs at the rate the stream gives; see the link's bandwidth and load{limit}",
+            f"the loop runs at the rate the stream gives; {why}{limit}",
         )
     return Check("IMU rate", "pass", text)
 

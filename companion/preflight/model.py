@@ -26,6 +26,9 @@ STALL_S = 0.05
 """A single IMU gap longer than this (or ten periods, if shorter) is a stall: a fifth
 of the stale-IMU failsafe's 0.25 s."""
 
+SLOW_CLOCK_RATIO = 0.97
+"""An autopilot whose clock runs below this share of real time is said to (SITL)."""
+
 STALL_SHARE = 0.01
 """Late intervals beyond this share of the stream are a stream that keeps stalling."""
 
@@ -93,6 +96,9 @@ class Observed:
     imu_max_gap_s: float = math.nan
     imu_late: int = 0
     """Intervals between IMU messages longer than four of the asked periods."""
+    imu_clock_ratio: float = math.nan
+    """The IMU stream's span on the autopilot's clock over its span on ours: 1 for
+    a real autopilot, below 1 for a simulator running behind real time."""
     link: LinkStats | None = None
     timesync_requests: int = 0
     rc_messages: int = 0

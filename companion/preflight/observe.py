@@ -166,6 +166,7 @@ class _Watcher:
         self.clock = LinkClock()
         self.imu_id = -1
         self.imu_times: list[float] = []
+        self.imu_stamps: list[float] = []
         self.watching = False
 
     def on_raw(self, _t: float, frame: bytes, outgoing: bool) -> None:
@@ -189,6 +190,7 @@ class _Watcher:
             return
         if mid == self.imu_id:
             self.imu_times.append(time.perf_counter())
+            self.imu_stamps.append(_stamp_s(msg))
         elif mid == _MSG_RC_CHANNELS:
             count = int(msg.chancount)
             obs.rc_messages += 1
@@ -235,9 +237,19 @@ class _Watcher:
             gaps = [b - a for a, b in itertools.pairwise(ts)] + [end - ts[-1]]
             obs.imu_max_gap_s = max(gaps)
             obs.imu_late = sum(g > LATE_PERIODS / obs.imu_asked_hz for g in gaps)
+            stamps = self.imu_stamps
+            if stamps[-1] > stamps[0]:
+                obs.imu_clock_ratio = (stamps[-1] - stamps[0]) / (ts[-1] - ts[0])
         else:
             obs.imu_count = len(ts)
         obs.link = self.clock.stats()
+
+
+def _stamp_s(msg: Any) -> float:
+    """An IMU message's time on the autopilot's clock, s."""
+    if hasattr(msg, "time_usec"):
+        return float(msg.time_usec) * 1e-6
+    return float(msg.time_boot_ms) * 1e-3
 
 
 def as_data(obs: Observed, checks: list[Check], core: CoreCost | None) -> dict[str, Any]:
@@ -256,5 +268,8 @@ def as_data(obs: Observed, checks: list[Check], core: CoreCost | None) -> dict[s
         "imu_rate_hz": round(obs.imu_count / obs.imu_window_s, 1) if obs.imu_window_s else None,
         "imu_longest_gap_ms": round(obs.imu_max_gap_s * 1e3, 1) if obs.imu_count else None,
         "imu_late": obs.imu_late,
+        "autopilot_clock_ratio": (
+            round(obs.imu_clock_ratio, 4) if math.isfinite(obs.imu_clock_ratio) else None
+        ),
         "core": asdict(core) if core else None,
     }

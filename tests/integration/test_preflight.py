@@ -108,6 +108,8 @@ def test_a_well_set_autopilot_passes(
     assert got["engage switch"][0] == "pass"
     assert got["signing"][0] == "pass"
     assert 200 <= doc["imu_rate_hz"] <= 300
+    # The SITL is paced by the wall clock: its IMU time stamps keep real time.
+    assert 0.9 <= doc["autopilot_clock_ratio"] <= 1.1, doc
 
 
 def test_a_badly_set_px4_fails_each_check_with_its_fix(
