@@ -236,16 +236,15 @@ def flick_the_switch_while_preflight_watches(session: Session) -> None:
     threading.Thread(target=flick, daemon=True).start()
 
 
-def real_time_factor(session: Session, last_s: float) -> float:
-    """The stack's clock over the ground station's, over the last ``last_s`` of
-    ATTITUDE messages: below 1 where the stack runs behind real time."""
+def real_time_factor(session: Session, since_s: float, until_s: float) -> float:
+    """The stack's clock over the ground station's between ``since_s`` and
+    ``until_s`` on the ground station's clock (ATTITUDE's ``time_boot_ms``
+    against when each arrived): below 1 where the stack runs behind real time."""
     g = session.gcs
     assert g is not None
-    rows = g.records.get("ATTITUDE", [])
-    end = rows[-1].t_s
-    window = [r for r in rows if r.t_s >= end - last_s]
-    boot_s = (window[-1].fields["time_boot_ms"] - window[0].fields["time_boot_ms"]) * 1e-3
-    return boot_s / (window[-1].t_s - window[0].t_s)
+    rows = [r for r in g.records.get("ATTITUDE", []) if since_s <= r.t_s <= until_s]
+    boot_s = (rows[-1].fields["time_boot_ms"] - rows[0].fields["time_boot_ms"]) * 1e-3
+    return boot_s / (rows[-1].t_s - rows[0].t_s)
 
 
 AXES = ("roll", "pitch", "yaw")

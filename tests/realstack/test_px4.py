@@ -54,7 +54,9 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
     assert g is not None
     flick_the_switch_while_preflight_watches(px4)
     doc = preflight_document(px4, RATES, "--watch-s", "6")
-    speed = real_time_factor(px4, 5.0)
+    # Its watch: the 6 s before it closed the link and exited.
+    now = g.clock()
+    speed = real_time_factor(px4, now - 6.5, now - 0.5)
     checks = {c["name"]: c for c in doc["checks"]}
     imu = checks["IMU rate"]
     figures.append(
@@ -63,6 +65,7 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
             **{k: v["status"] for k, v in checks.items()},
             "IMU rate detail": imu["detail"],
             "px4 real-time factor": round(speed, 3),
+            "autopilot_clock_ratio": doc["autopilot_clock_ratio"],
         }
     )
     failed = {k: v for k, v in checks.items() if v["status"] == "fail"}
@@ -89,11 +92,14 @@ def test_preflight_is_true_of_the_real_px4(px4: Session, figures: list[dict[str,
     assert checks["landed state"]["detail"] == "on ground"
     assert checks["RC"]["detail"].startswith("no radio: the pilot's joystick")
     assert checks["engage switch"]["status"] == "pass", checks["engage switch"]
-    # PX4 streams HIGHRES_IMU at the rate asked on its own clock. In real time on a
-    # loaded machine PX4 runs behind the wall clock, and the stream with it: the
-    # check measures the wall clock's rate, as the loop flies it, and warns below
-    # 95 % of the rate asked.
-    assert doc["imu_rate_hz"] == pytest.approx(250.0 * speed, rel=0.03), (imu, speed)
+    # The check measures the stream on the wall clock, as the loop would fly it. In
+    # real time on a loaded machine PX4 runs behind the wall clock, its stream with
+    # it: the check says so, in PX4's own time stamps, and warns below 95 % of the
+    # rate asked. Where PX4 keeps real time, it passes.
+    assert doc["autopilot_clock_ratio"] == pytest.approx(speed, abs=0.02), (imu, speed)
+    if imu["status"] == "warn":
+        stalled = doc["imu_longest_gap_ms"] > 40 or doc["imu_late"] > 0.01 * 250 * 6
+        assert doc["imu_rate_hz"] < 0.95 * 250 or stalled, imu
     if speed > 0.97:
         assert imu["status"] == "pass", (imu, speed)
     assert checks["position"]["status"] == "pass"
