@@ -23,7 +23,8 @@ Streams (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``sitl.streams``)
 Each step :meth:`MavlinkFace.publish` sends, in this order: the STATUSTEXTs the
 autopilot queued (ArduPilot), the messages requested once
 (``MAV_CMD_REQUEST_MESSAGE``), HEARTBEAT (also at once after an accepted arm or
-mode change, and after 1 s of wall time without one), RC_CHANNELS, the
+mode change where the face's ``heartbeat_on_change`` says so, and after 1 s of
+wall time without one), RC_CHANNELS, the
 IMU-based streams on a new IMU sample, then LOCAL_POSITION_NED, SYS_STATUS,
 EXTENDED_SYS_STATE and HOME_POSITION. Each face has its own stream table and
 defaults. Through a modelled link, what was sent then goes to the socket as the
@@ -241,6 +242,9 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     ``MavlinkStream::update`` does; False: the slot passes (ArduPilot)."""
     extra_streams: ClassVar[tuple[int, ...]] = ()
     """A face's own streams beyond the shared ones, sent after RC_CHANNELS when due."""
+    heartbeat_on_change: ClassVar[bool] = True
+    """HEARTBEAT also at once after an accepted arm or mode command (ArduPilot);
+    False: only at its 1 Hz beat, the new state shown up to a second later (PX4)."""
     lockstep_setpoints: frozenset[str] = frozenset(
         ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
     )
@@ -484,9 +488,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             logger.warning("command %d with bad parameters %s: %s", command, p, exc)
             result = MavResult.DENIED
         self._ack(msg, command, result)
-        if result == MavResult.ACCEPTED and command in _ARMING_AND_MODE_COMMANDS:
-            # Announce the new state at once rather than at the next 1 Hz beat, so
-            # a client sees arming and mode changes at the step they happened.
+        accepted = result == MavResult.ACCEPTED and command in _ARMING_AND_MODE_COMMANDS
+        if accepted and self.heartbeat_on_change:
             self._heartbeat_now = True
 
     def _ack(self, msg: Any, command: int, result: MavResult) -> None:

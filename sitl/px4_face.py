@@ -171,6 +171,7 @@ class Px4Face(MavlinkFace[Autopilot]):
     flight_sw_version = FLIGHT_SW_VERSION
     imu_streams = (ID_HIGHRES_IMU, ID_ATTITUDE, ID_ATTITUDE_QUATERNION)
     extra_streams = (ID_MANUAL_CONTROL,)
+    heartbeat_on_change = False  # PX4's HEARTBEAT is a 1 Hz stream like any other
 
     def __init__(
         self,

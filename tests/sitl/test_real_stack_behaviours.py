@@ -25,6 +25,8 @@ Flown against the real stacks (``sitl/lab/realstack``; docs/research/realstack.m
 * PX4 with no offboard setpoint for ``COM_OF_LOSS_T`` (the companion killed) says
   "Failsafe activated", shows CRITICAL and flies ``COM_OBL_RC_ACT``'s mode
   (Position mode, POSCTL) while the joystick is there.
+* PX4 shows an accepted arming or mode change at its next 1 Hz HEARTBEAT;
+  ArduCopter sends a HEARTBEAT with the new mode at once.
 
 Each face runs in this process on a real UDP socket with a ground station
 (``tests/sitl/udp_client.py``).
@@ -601,3 +603,55 @@ def test_px4_offboard_fallback_ends_with_a_mode_change(profile: VehicleProfile) 
     ap.on_rates_target(t, LEVEL, 0.5)
     ap.update(t, LEVEL, LEVEL, landed=False)
     assert ap.mode == FlightMode(MainMode.ALTCTL) and ap.failsafe is None
+
+
+# ------------------------------------------------- when a new state is announced
+
+
+def heartbeats(msgs: list[Any]) -> list[Any]:
+    return [m for m in msgs if m.get_type() == "HEARTBEAT"]
+
+
+def test_px4_shows_an_accepted_arming_and_mode_at_its_next_1hz_heartbeat(
+    profile: VehicleProfile, client: Client
+) -> None:
+    # The real PX4: SET_MODE at 2.013 s, its ACK at 2.015 s, a heartbeat at 2.023 s
+    # still in the old mode and the next, at 3.033 s, in the new one
+    # (docs/research/realstack.md#engaged-edge).
+    face = px4_face(profile, client)
+    try:
+        assert len(heartbeats(publish(face, client, 0.0))) == 1
+        client.mav.command_long_send(
+            1, 1, mavlink2.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 21196, 0, 0, 0, 0, 0
+        )
+        assert [m.result for m in client.exchange(face, 0.3) if m.get_type() == "COMMAND_ACK"] == [
+            0
+        ]
+        client.mav.command_long_send(
+            1, 1, mavlink2.MAV_CMD_DO_SET_MODE, 0, 1, MainMode.POSCTL, 0, 0, 0, 0, 0
+        )
+        assert [m.result for m in client.exchange(face, 0.4) if m.get_type() == "COMMAND_ACK"] == [
+            0
+        ]
+        assert heartbeats(publish(face, client, 0.5)) == []
+        (hb,) = heartbeats(publish(face, client, 1.0))
+        assert hb.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        assert (hb.custom_mode >> 16) & 0xFF == MainMode.POSCTL
+    finally:
+        face.close()
+
+
+def test_ardupilot_shows_an_accepted_mode_at_once(profile: VehicleProfile, client: Client) -> None:
+    face = copter_face(profile, client)
+    try:
+        assert len(heartbeats(publish(face, client, 0.0))) == 1
+        client.mav.command_long_send(
+            1, 1, mavlink2.MAV_CMD_DO_SET_MODE, 0, 1, CopterMode.STABILIZE, 0, 0, 0, 0, 0
+        )
+        assert [m.result for m in client.exchange(face, 0.3) if m.get_type() == "COMMAND_ACK"] == [
+            0
+        ]
+        (hb,) = heartbeats(publish(face, client, 0.3))
+        assert hb.custom_mode == CopterMode.STABILIZE
+    finally:
+        face.close()
