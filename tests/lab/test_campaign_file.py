@@ -31,6 +31,7 @@ def _records(out: Path) -> list[dict]:  # type: ignore[type-arg]
     return [{k: v for k, v in r.items() if k != "wall_time_s"} for r in doc["records"]]
 
 
+@pytest.mark.long
 def test_a_campaign_file_flies_the_grid_its_options_would(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -60,6 +60,7 @@ def test_the_shipped_controller_passes_with_its_own_figures() -> None:
         assert f.mae_deg_s == f.shipped_mae_deg_s  # it is the shipped one
 
 
+@pytest.mark.long
 def test_a_schema_valid_config_that_a_corner_cannot_fly_fails_with_exit_2(
     tmp_path: Path, state: Path
 ) -> None:
@@ -84,6 +85,7 @@ def test_a_schema_valid_config_that_a_corner_cannot_fly_fails_with_exit_2(
     assert "tiny-fast: roll error" in refused.stderr
 
 
+@pytest.mark.long
 @pytest.mark.slow
 def test_a_pass_is_recorded_and_run_flies_that_file_only_as_it_was(
     tmp_path: Path, state: Path

@@ -54,6 +54,7 @@ def test_a_flight_through_a_link_pays_for_its_round_trip() -> None:
         assert late["mfc_deg_s"][axis] > ideal["mfc_deg_s"][axis]
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.integration
 def test_a_rates_flight_over_mavlink_pays_for_its_round_trip_too() -> None:
@@ -87,6 +88,7 @@ def test_passthrough_needs_the_rates_output(capsys: pytest.CaptureFixture[str]) 
         fly_through(("f450", "ideal", 1.0, None), "actuator", passthrough=True)
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.integration
 def test_a_passthrough_flight_is_the_autopilots_own_rate_loop_on_the_same_flight() -> None:
@@ -100,6 +102,7 @@ def test_a_passthrough_flight_is_the_autopilots_own_rate_loop_on_the_same_flight
     assert passed["mfc_deg_s"] != mfc["mfc_deg_s"]
 
 
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.integration
 def test_a_sitl_param_reaches_the_autopilots_rate_loop() -> None:

@@ -18,6 +18,7 @@ from sitl.lab.loopbench import run_loop_bench
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.long
 def test_run_loop_bench_returns_every_contract_key() -> None:
     seconds, rate_hz = 2.0, 250.0
     out = run_loop_bench(seconds=seconds, rate_hz=rate_hz)

@@ -124,6 +124,7 @@ def test_estimator_noise_matches_its_documented_figures() -> None:
     assert len(pos) == pytest.approx(STATS_T_S * spec.position_rate_hz, abs=3)
 
 
+@pytest.mark.long
 def test_the_velocity_error_moves_with_the_position_error() -> None:
     """The two share a driver (an EKF's position and velocity errors are one
     error): their correlation is ``shared`` times sqrt(tau / (tau + smoothing))
@@ -322,6 +323,7 @@ def test_entry_flies_the_px4_baseline(capsys: pytest.CaptureFixture[str]) -> Non
     assert out["lift_off_s"] is not None
 
 
+@pytest.mark.long
 def test_table_with_the_baseline_prints_both_and_their_ratio(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

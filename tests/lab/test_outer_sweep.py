@@ -161,6 +161,7 @@ def small_sweep(out: Path, *more: str) -> list[str]:
             *more]  # fmt: skip
 
 
+@pytest.mark.long
 def test_a_small_sweep_writes_its_flights_and_summary_and_resumes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
