@@ -27,7 +27,8 @@ STALL_S = 0.05
 of the stale-IMU failsafe's 0.25 s."""
 
 SLOW_CLOCK_RATIO = 0.97
-"""An autopilot whose clock runs below this share of real time is said to (SITL)."""
+"""An autopilot whose clock runs below this share of real time (a simulator falling
+behind it) is named as the cause of a slow IMU stream."""
 
 STALL_SHARE = 0.01
 """Late intervals beyond this share of the stream are a stream that keeps stalling."""
