@@ -32,6 +32,7 @@ from companion.records import move_earlier
 from sitl.lab import children
 from sitl.lab.simulate import FlightRecord
 from sitl.link_model import LINK_PROFILES, LinkSpec
+from sitl.runner import PILOT_END_GRACE_S as END_GRACE_S
 
 __all__ = [
     "FLIGHT_FILES",
@@ -267,6 +268,9 @@ def fly_mavlink(
         "--log", str(out / "sitl.npz"),
         "--link", link_arg(sc.link if link is None else link),
         *(["--seed", str(seed)] if seed is not None else []),
+        # From arming, the companion's flight from its engagement and its hand-back
+        # (a scenario's own duration_s would stop the SITL under an engaged companion).
+        *([] if "--duration" in sitl_args else ["--duration", f"{duration_s + END_GRACE_S:g}"]),
         *sitl_args,
     ]  # fmt: skip
     comp_cmd = [

@@ -121,3 +121,21 @@ def test_rates_law_axes_reach_the_companion_it_flies(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
     _, meta = read_control_log(out / "companion" / "control.mcap")
     assert meta["rates_law_axes"] == "yaw"
+
+
+def test_a_scenario_with_its_own_duration_ends_without_a_failsafe(tmp_path: Path) -> None:
+    """A scenario file's ``duration_s`` is the engaged flight's: the SITL flies on past
+    it (the companion engages after arming, and hands back after), so the flight ends
+    with the hand-back, not a stale IMU or a lost RC when the SITL stopped first (as it
+    did with ``--scenario train-acro``, 35 s: ``failsafe_rc_lost`` at 35.3 s)."""
+    scenario = tmp_path / "short.yaml"
+    scenario.write_text(
+        "name: short\nseed: 3\npilot: hover\nduration_s: 3.0\nfree_flight: true\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "fly"
+    proc = companion_fly(out, "--scenario", str(scenario))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    m = read_metrics(out)
+    assert m["failsafe_events"] == [], m["failsafe_events"]
+    assert m["sim_time_s"] == pytest.approx(3.0, abs=0.05)
