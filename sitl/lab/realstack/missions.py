@@ -227,13 +227,37 @@ def _record(
     )  # fmt: skip
 
 
+_MISSION_CURRENT = "MISSION_CURRENT"
+
+
+def _from_the_first_item(
+    g: GroundStation, first: int, since_s: float, timeout_s: float = 4.0
+) -> None:
+    """The stack's current mission item made ``first`` (MISSION_SET_CURRENT) until its
+    MISSION_CURRENT (1 Hz) since ``since_s`` says so, within ``timeout_s``. Over a new
+    upload of the same waypoints, PX4 v1.16 kept the last item of the mission it had
+    flown current (MISSION_CURRENT seq 3 of 4): its mission mode then flew that item
+    alone (a 3 m climb) and said "Mission finished, loitering". It answers
+    MAV_CMD_DO_SET_MISSION_CURRENT with "command 224 unsupported"."""
+    deadline = time.monotonic() + timeout_s
+    next_ask = 0.0
+    while time.monotonic() < deadline:
+        got = [r for r in g.records.get(_MISSION_CURRENT, []) if r.t_s >= since_s]
+        if got and got[-1].fields.get("seq") == first:
+            return
+        if time.monotonic() >= next_ask:
+            g.send("mission_set_current_send", g.target, 1, first)
+            next_ask = time.monotonic() + 1.0
+        time.sleep(0.05)
+
+
 def fly_stack_mission(session: Session, mission: Mission, timeout_s: float = 60.0) -> MissionFlight:
     """The mission uploaded to the stack and flown in its mission mode, from the
     hold and back to it; its leg speed the mission's for the flight."""
     g = session.gcs
     assert g is not None
     how = STACK_MISSIONS[session.name]
-    g.record_types.add(_MISSION_ITEM_REACHED)
+    g.record_types.update((_MISSION_ITEM_REACHED, _MISSION_CURRENT))
     settle(session)
     got = g.param_get(how.speed_param)
     if got is None:
@@ -251,6 +275,7 @@ def fly_stack_mission(session: Session, mission: Mission, timeout_s: float = 60.
         res = g.upload_mission(items)
         if res != 0:
             raise RuntimeError(f"{session.name} refused the mission ({res}): {g.texts[-3:]}")
+        _from_the_first_item(g, len(items) - len(mission.waypoints), g.clock())
         # PX4 checks an uploaded mission before it may fly it ("Switching to Mission
         # is currently not available" until then): asked again, within a bound.
         for _ in range(6):
