@@ -275,7 +275,7 @@ def fly_stack_mission(session: Session, mission: Mission, timeout_s: float = 60.
         res = g.upload_mission(items)
         if res != 0:
             raise RuntimeError(f"{session.name} refused the mission ({res}): {g.texts[-3:]}")
-        _from_the_first_item(g, len(items) - len(mission.waypoints), g.clock())
+        _from_the_first_item(g, int(how.home_first), g.clock())
         # PX4 checks an uploaded mission before it may fly it ("Switching to Mission
         # is currently not available" until then): asked again, within a bound.
         for _ in range(6):
