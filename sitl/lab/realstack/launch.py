@@ -88,6 +88,7 @@ def px4_tree(launcher: Path, into: Path) -> Path:
     if probe.is_symlink() or os.access(probe, os.X_OK):
         return launcher
     shadow = into / "px4-shadow"
+    shutil.rmtree(shadow, ignore_errors=True)  # one left by an earlier launch into ``into``
     shadow_bin = shadow / "px4-1.16.0" / "bin"
     shadow_bin.mkdir(parents=True, exist_ok=True)
     (shadow / "px4-1.16.0" / "etc").symlink_to(tree / "etc")
