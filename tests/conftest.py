@@ -10,9 +10,11 @@
 
 Across the tiers, the ``long`` checks (marked so: the wheel built and installed,
 the envelope's corners with a PID tuned for each, the paper reproduction, the
-fuzzer's real-time run, the heaviest lab and app flights) take minutes or half a
-minute or more of a core each. The default run leaves them out (they are *deselected*, and the
-header says so); ``--long`` runs them alone. CI runs both (``.ci/run``).
+fuzzer's real-time run, the heaviest lab and app flights, and the other
+vehicles' cases of flights the default run flies on the F450) take minutes or half a
+minute or more of a core each, or would take the default run past ten minutes on two
+cores. The default run leaves them out (they are *deselected*, and the header says
+so); ``--long`` runs them alone. CI runs both (``.ci/run``).
 
 The ``realstack`` tier (``tests/realstack``) flies the real PX4 and ArduCopter
 SITL in real time, one stack at a time, about 25 minutes on 2 cores: the default run

@@ -620,6 +620,7 @@ async def test_two_lost_heartbeats_are_not_a_lost_link(start: Start) -> None:
 # ------------------------------------------------------------ bounded memory
 
 
+@pytest.mark.long
 async def test_a_long_flight_and_a_statustext_flood_keep_memory_bounded(
     start: Start, tmp_path: Path
 ) -> None:

@@ -52,7 +52,11 @@ def test_a_torque_held_1_s_from_a_kill_mid_roll_runs_away(tmp_path: Path) -> Non
     assert f.crashed, f.row()
 
 
-@pytest.mark.parametrize("output", ["rates", "actuator"])
+@pytest.mark.parametrize(
+    # rates: a long check (scripts/test --long); the default run flies actuator.
+    "output",
+    [pytest.param("rates", marks=pytest.mark.long), "actuator"],
+)
 def test_with_com_of_loss_t_0_3_s_a_kill_mid_roll_is_recovered(tmp_path: Path, output: str) -> None:
     _, f = killed(tmp_path, output, 0.3)
     assert f.outcome == "recovered", f.row()

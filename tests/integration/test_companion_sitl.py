@@ -56,7 +56,14 @@ MEASURED_20S = {
 }
 
 
-@pytest.mark.parametrize("profile", ["f450", "f450_cut_props", "tarot650", "x500"])
+@pytest.mark.parametrize(
+    "profile",
+    # The default run flies the F450; the others are long checks (scripts/test --long).
+    [
+        "f450",
+        *(pytest.param(p, marks=pytest.mark.long) for p in ("f450_cut_props", "tarot650", "x500")),
+    ],
+)
 def test_every_profile_flies_acro_with_the_same_controller(tmp_path: Path, profile: str) -> None:
     flight = fly_mavlink(PROFILES / f"{profile}.yaml", "paper-acro", tmp_path, duration_s=20.0)
     assert flight.companion_rc == 0, flight.why()
@@ -184,6 +191,7 @@ def test_shadow_mode_sends_nothing(tmp_path: Path) -> None:
     assert np.all(cols["engaged"] == 0)
 
 
+@pytest.mark.long
 def test_rates_output_wraps_the_autopilot_rate_loop_and_beats_passthrough(tmp_path: Path) -> None:
     """PX4 >= 1.14 / ArduPilot style: the law's correction rides on the pilot's rates.
 

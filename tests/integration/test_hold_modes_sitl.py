@@ -91,6 +91,7 @@ segments:
 """
 
 
+@pytest.mark.long
 def test_position_mode_ramps_a_slammed_stick_and_holds_where_the_vehicle_stops(
     tmp_path: Path,
 ) -> None:

@@ -48,7 +48,11 @@ TOLERANCE = {
 }
 
 
-@pytest.mark.parametrize(("stack", "axis"), sorted(MEASURED))
+@pytest.mark.parametrize(
+    ("stack", "axis"),
+    # Yaw's steps take seconds each: long checks (scripts/test --long).
+    [pytest.param(*k, marks=pytest.mark.long) if k[1] == "yaw" else k for k in sorted(MEASURED)],
+)
 def test_the_bundled_sitl_answers_rate_steps_as_the_real_stack(
     tmp_path: Path, stack: str, axis: str
 ) -> None:

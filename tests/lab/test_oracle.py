@@ -82,7 +82,11 @@ def test_the_oracle_reaches_the_offline_ideal_tracker_on_roll_and_pitch() -> Non
 
 
 @pytest.mark.parametrize("axis", AXES[:2])
-@pytest.mark.parametrize("profile", PAPER_VEHICLES)
+@pytest.mark.parametrize(
+    "profile",
+    # The default run flies the F450; the others are long checks (scripts/test --long).
+    [p if p == "f450" else pytest.param(p, marks=pytest.mark.long) for p in PAPER_VEHICLES],
+)
 def test_the_oracle_is_no_worse_than_mfc_on_roll_and_pitch(profile: str, axis: str) -> None:
     """The shipped MFC (mfc_default.yaml given the vehicle's own profile, as the paper
     flights) against the oracle on the same slice, axis by axis, as measured.

@@ -250,6 +250,7 @@ twice the figures, not specifications: a limit cycle (tens of degrees of tilt) o
 a loop that does not hold gives metres."""
 
 
+@pytest.mark.long
 def test_f450_holds_position_in_the_papers_gusty_wind() -> None:
     sc = SCENARIOS["position-hold"].with_duration(POSITION_HOLD_S)
     fl = simulate_outer_flight(_f450(), _rate_cfg(), sc)
@@ -364,6 +365,7 @@ def test_the_figure_eight_is_a_lemniscate_flown_at_its_speed(name: str) -> None:
     assert not moving[-1] and tuple(pos[-1]) == (0.0, 0.0)
 
 
+@pytest.mark.long
 def test_a_path_scenario_reports_its_path_error() -> None:
     sc = SCENARIOS["square-fast"].with_duration(16.0)  # 6 s of its first legs
     out = outer_metrics(simulate_outer_flight(_f450(), _rate_cfg(), sc), sc)
