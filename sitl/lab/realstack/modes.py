@@ -350,7 +350,7 @@ def gcs_time_of_boot(session: Session, boot_s: float) -> float:
     taken over the last minute put the engagement up to 2 s before the switch."""
     g = session.gcs
     assert g is not None
-    rows = g.records.get("ATTITUDE", [])
+    rows = list(g.records.get("ATTITUDE", []))  # the reader thread appends meanwhile
     boot = np.array([r.fields["time_boot_ms"] * 1e-3 for r in rows])
     arrived = np.array([r.t_s for r in rows])
     return float(np.interp(boot_s, boot, arrived))
