@@ -19,7 +19,8 @@ measured the same way; these are the bounds:
 A mission (``sitl/lab/realstack/missions.py``: the same waypoints flown by
 ``--mission`` and by the stack's own mission mode, at the same leg speed, the
 companion's acceleration and jerk the stack's own, read from it): both complete
-it, the companion engages without a jolt (the bound above: its first leg's
+it, the companion engages without a jolt (the bound above, or the stack's own
+mission start's tilt where that is larger: its first leg's
 acceleration stepped tilted ArduCopter's vehicle 20.8 deg, at PX4's jerk 9.5
 deg, where ArduCopter's AUTO tilted it 1.3-1.4 deg), and the companion's path
 error (RMS distance from above to the straight legs) is no more than twice the
@@ -154,8 +155,11 @@ def mission_failures(ours: dict[str, Any], theirs: dict[str, Any]) -> list[str]:
     """What is out of bounds (module docstring), as readable lines; empty: all in."""
     out = [f"{who} did not complete the mission" for who, f in
            (("companion", ours), ("stack", theirs)) if not f["completed"]]  # fmt: skip
-    if not ours["engage_tilt_deg"] < ENGAGE_TILT_MAX_DEG:
-        out.append(f"engage tilt {ours['engage_tilt_deg']} deg >= {ENGAGE_TILT_MAX_DEG}")
+    # The stack's own start accelerates into the first leg too: PX4's AUTO.MISSION
+    # tilted its vehicle 7.98 deg in its first 0.5 s once (2026-12-01).
+    tilt_bound = max(ENGAGE_TILT_MAX_DEG, theirs["engage_tilt_deg"])
+    if not ours["engage_tilt_deg"] < tilt_bound:
+        out.append(f"engage tilt {ours['engage_tilt_deg']} deg >= {tilt_bound}")
     bound = MISSION_PATH_FACTOR * theirs["path_rms_m"] + MISSION_PATH_NOISE_M
     if not ours["path_rms_m"] <= bound:
         ours_m, theirs_m = ours["path_rms_m"], theirs["path_rms_m"]
