@@ -242,8 +242,8 @@ def _from_the_first_item(
     deadline = time.monotonic() + timeout_s
     next_ask = 0.0
     while time.monotonic() < deadline:
-        got = [r for r in g.records.get(_MISSION_CURRENT, []) if r.t_s >= since_s]
-        if got and got[-1].fields.get("seq") == first:
+        got = g.series(_MISSION_CURRENT, "seq", since_s=since_s)
+        if got and got[-1][1] == first:
             return
         if time.monotonic() >= next_ask:
             g.send("mission_set_current_send", g.target, 1, first)
