@@ -121,8 +121,9 @@ class SampleStep:
         setpoint (ArduCopter's input shaping, :mod:`companion.control.shaping`),
         or None where it flies the setpoint as sent (PX4). With them the law
         flies the shaped reference, the setpoint sent respects the limits and
-        the law is taught what was sent; the lead is off (the autopilot would
-        slew it away).
+        stays within what they bring in over a short horizon of that reference,
+        and the law is taught what was sent; the lead is off (the autopilot
+        would slew it away).
     """
 
     __slots__ = (
@@ -276,6 +277,7 @@ class SampleStep:
         elif shaper is not None:
             base = self.law_ref
             asked = (base[0] + tq[0] * fs[0], base[1] + tq[1] * fs[1], base[2] + tq[2] * fs[2])
+            asked = shaper.within_reach(base, asked)
             want = shaper.limit(self.dt_s, asked, self.last_rates_sent)
         else:
             lead = self.rates_lead_s

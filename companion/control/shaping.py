@@ -22,7 +22,13 @@ given (:class:`RateShaper`):
   autopilot's own loop leaves, not the limit;
 * the setpoint sent moves by at most :math:`a_{max} \Delta t` from the last one
   sent, and the law is taught the correction that was sent, not the one it
-  asked (as it is taught the mixer's saturation in actuator output).
+  asked (as it is taught the mixer's saturation in actuator output);
+* the correction is held within what the autopilot slews in over
+  :data:`CORRECTION_HORIZON_S`, :math:`\pm a_{max} h` about the shaped
+  reference: a larger one reaches the vehicle only after the slew, the law
+  sees it late, keeps asking, and the loop limit-cycles with the slew (yaw,
+  where :math:`a_{max}` is smallest: +-60 deg/s at 0.5 Hz once the stick
+  centres, ``docs/research/realstack.md#ap-yaw-cycle``).
 
 An axis whose limit is 0 or infinite is not shaped. Pure: no clock, ``dt``
 from the samples.
@@ -32,9 +38,14 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["RateShaper"]
+__all__ = ["CORRECTION_HORIZON_S", "RateShaper"]
 
 Vec3 = tuple[float, float, float]
+
+CORRECTION_HORIZON_S = 0.05
+"""The longest the autopilot may take to slew in the law's correction, s: the
+setpoint stays within ``a_max`` times this of the shaped reference (ArduCopter's
+defaults: 55 deg/s on roll and pitch, 13.5 on yaw)."""
 
 
 def _toward(prev: float, want: float, step: float) -> float:
@@ -84,6 +95,17 @@ class RateShaper:
             shaped = ref  # a non-finite pilot rate is the gate's to replace, not ours to keep
         self._shaped = shaped
         return shaped
+
+    def within_reach(self, reference: Vec3, want: Vec3) -> Vec3:
+        """``want`` held within ``a_max`` times :data:`CORRECTION_HORIZON_S` of
+        ``reference`` on each axis (NaN: as it is, for the gate to replace)."""
+        h = CORRECTION_HORIZON_S
+        a0, a1, a2 = self.accel_max_rad_s2
+        return (
+            _toward(reference[0], want[0], a0 * h),
+            _toward(reference[1], want[1], a1 * h),
+            _toward(reference[2], want[2], a2 * h),
+        )
 
     def limit(self, dt_s: float, want: Vec3, last_sent: Vec3 | None) -> Vec3:
         """``want`` moved at most ``a_max * dt_s`` from ``last_sent`` (None: as it is)."""

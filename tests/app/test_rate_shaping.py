@@ -3,7 +3,8 @@
 Found on the real ArduCopter 4.5.6 SITL: unaware of the shaping, the law fought it
 and the yaw limit-cycled; the companion now reads ATC_RATE_FF_ENAB and
 ATC_ACCEL_{R,P,Y}_MAX, flies the pilot's rates so shaped, keeps its setpoints
-within them and is taught what it sent. Replay reproduces such a flight.
+within them and within what they bring in over a short horizon of the shaped
+reference, and is taught what it sent. Replay reproduces such a flight.
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 
 from companion.cli import REPLAY_TOLERANCE
 from companion.config import RATES_CONTROLLER, load_controller
+from companion.control import AXES
+from companion.control.shaping import CORRECTION_HORIZON_S
 from companion.records import read_control_log
 from companion.replay import compare, replay
 from tests.app.fakes import APM_ALT_HOLD, APM_GUIDED_NOGPS, CMD_ARM, settle
@@ -80,6 +83,33 @@ async def test_the_setpoints_respect_ardupilots_shaping_and_replay_reproduces_th
     # As `companion replay` requires (the laws' dt is the stamps' difference there, and
     # rounded to whole us live: a few 1e-11 apart); untaught, it would be order 1 apart.
     assert max(diffs.values()) <= REPLAY_TOLERANCE, diffs
+
+
+async def test_the_correction_stays_within_what_the_slew_brings_in_over_the_horizon(
+    start: Start, tmp_path: Path
+) -> None:
+    """Sticks centred while the vehicle turns at 1 rad/s on every axis: the law asks
+    for a full correction against it, and the setpoint goes only as far as the
+    shaped reference plus ``a_max`` times the horizon (ArduCopter's 270 deg/s^2 on
+    yaw: 13.5 deg/s; unheld, it slews on to the law's full 1.2 rad/s and more)."""
+    f = await _engaged(start, SHAPING, log_dir=tmp_path)
+    for _ in range(150):
+        f.fake.rc(1000, sticks=(1500, 1500, 1500, 1500))
+        f.att((1.0, 1.0, 1.0))
+        await settle(2)
+    f.companion._stop.set()
+    await f.finish()
+    cols, _ = read_control_log(tmp_path / "control.mcap")
+    engaged = cols["engaged"] > 0.5
+    for a, accel in zip(AXES, (1100.0, 1100.0, 270.0), strict=True):
+        sent = cols[f"sent_{a}_rad_s"][engaged]
+        law = cols[f"law_ref_{a}_rad_s"][engaged]
+        ok = np.isfinite(sent)
+        assert ok.sum() > 100
+        reach = math.radians(accel) * CORRECTION_HORIZON_S
+        gap = np.abs(sent[ok] - law[ok])
+        assert gap.max() <= reach * 1.0001 + 1e-6, (a, gap.max(), reach)
+        assert gap.max() >= 0.99 * reach, (a, gap.max(), reach)  # the law did ask for more
 
 
 async def test_shaping_parameters_that_cannot_be_read_are_assumed_and_said(

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.control.shaping import RateShaper
+from companion.control.shaping import CORRECTION_HORIZON_S, RateShaper
 
 DT = 0.005
 
@@ -41,6 +41,18 @@ def test_the_setpoint_moves_at_most_the_limit_from_the_last_sent() -> None:
     assert shaper.limit(DT, (1.0, -1.0, 5.0), None) == (1.0, -1.0, 5.0)
     assert shaper.limit(DT, (1.0, -1.0, 5.0), (0.0, 0.0, 0.0)) == pytest.approx((0.05, -0.05, 5.0))
     assert shaper.limit(DT, (0.01, 0.0, 0.0), (0.0, 0.0, 0.0)) == (0.01, 0.0, 0.0)
+
+
+def test_the_correction_is_held_within_what_the_slew_brings_in_over_the_horizon() -> None:
+    shaper = RateShaper((10.0, 20.0, math.inf))
+    reach = (10.0 * CORRECTION_HORIZON_S, 20.0 * CORRECTION_HORIZON_S)
+    ref = (1.0, -1.0, 0.5)
+    held = shaper.within_reach(ref, (5.0, -5.0, 9.0))
+    assert held == pytest.approx((1.0 + reach[0], -1.0 - reach[1], 9.0))  # yaw unlimited
+    small = (1.0 + 0.5 * reach[0], -1.0, 0.5)
+    assert shaper.within_reach(ref, small) == small
+    nan = shaper.within_reach(ref, (math.nan, 0.0, 0.0))  # the gate's to replace
+    assert math.isnan(nan[0]) and nan[1] == pytest.approx(-1.0 + reach[1])
 
 
 def test_a_negative_or_nan_limit_is_refused() -> None:
