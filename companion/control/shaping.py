@@ -56,6 +56,15 @@ def _toward(prev: float, want: float, step: float) -> float:
     return want
 
 
+def _toward3(prev: Vec3, want: Vec3, accel: Vec3, span_s: float) -> Vec3:
+    """``want`` moved at most ``accel * span_s`` from ``prev`` on each axis."""
+    return (
+        _toward(prev[0], want[0], accel[0] * span_s),
+        _toward(prev[1], want[1], accel[1] * span_s),
+        _toward(prev[2], want[2], accel[2] * span_s),
+    )
+
+
 class RateShaper:
     """Acceleration limits on a body-rate setpoint (rad/s^2 per axis; 0 or inf: none).
 
@@ -85,12 +94,7 @@ class RateShaper:
         if prev is None or not dt_s > 0.0:
             shaped = ref if prev is None else prev
         else:
-            a0, a1, a2 = self.accel_max_rad_s2
-            shaped = (
-                _toward(prev[0], ref[0], a0 * dt_s),
-                _toward(prev[1], ref[1], a1 * dt_s),
-                _toward(prev[2], ref[2], a2 * dt_s),
-            )
+            shaped = _toward3(prev, ref, self.accel_max_rad_s2, dt_s)
         if not (math.isfinite(shaped[0]) and math.isfinite(shaped[1]) and math.isfinite(shaped[2])):
             shaped = ref  # a non-finite pilot rate is the gate's to replace, not ours to keep
         self._shaped = shaped
@@ -99,21 +103,10 @@ class RateShaper:
     def within_reach(self, reference: Vec3, want: Vec3) -> Vec3:
         """``want`` held within ``a_max`` times :data:`CORRECTION_HORIZON_S` of
         ``reference`` on each axis (NaN: as it is, for the gate to replace)."""
-        h = CORRECTION_HORIZON_S
-        a0, a1, a2 = self.accel_max_rad_s2
-        return (
-            _toward(reference[0], want[0], a0 * h),
-            _toward(reference[1], want[1], a1 * h),
-            _toward(reference[2], want[2], a2 * h),
-        )
+        return _toward3(reference, want, self.accel_max_rad_s2, CORRECTION_HORIZON_S)
 
     def limit(self, dt_s: float, want: Vec3, last_sent: Vec3 | None) -> Vec3:
         """``want`` moved at most ``a_max * dt_s`` from ``last_sent`` (None: as it is)."""
         if last_sent is None or not dt_s > 0.0:
             return want
-        a0, a1, a2 = self.accel_max_rad_s2
-        return (
-            _toward(last_sent[0], want[0], a0 * dt_s),
-            _toward(last_sent[1], want[1], a1 * dt_s),
-            _toward(last_sent[2], want[2], a2 * dt_s),
-        )
+        return _toward3(last_sent, want, self.accel_max_rad_s2, dt_s)
