@@ -23,8 +23,9 @@ Streams (``MAV_CMD_SET_MESSAGE_INTERVAL``, ``sitl.streams``)
 Each step :meth:`MavlinkFace.publish` sends, in this order: the STATUSTEXTs the
 autopilot queued (ArduPilot), the messages requested once
 (``MAV_CMD_REQUEST_MESSAGE``), HEARTBEAT (also at once after an accepted arm or
-mode change where the face's ``heartbeat_on_change`` says so, and after 1 s of
-wall time without one), RC_CHANNELS, the
+mode command, or a mode change of the autopilot's own, where the face's
+``heartbeat_on_change`` says so, and after 1 s of wall time without one),
+RC_CHANNELS, the
 IMU-based streams on a new IMU sample, then LOCAL_POSITION_NED, SYS_STATUS,
 EXTENDED_SYS_STATE and HOME_POSITION. Each face has its own stream table and
 defaults. Through a modelled link, what was sent then goes to the socket as the
@@ -243,8 +244,10 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
     extra_streams: ClassVar[tuple[int, ...]] = ()
     """A face's own streams beyond the shared ones, sent after RC_CHANNELS when due."""
     heartbeat_on_change: ClassVar[bool] = True
-    """HEARTBEAT also at once after an accepted arm or mode command (ArduPilot);
-    False: only at its 1 Hz beat, the new state shown up to a second later (PX4)."""
+    """HEARTBEAT also at once after an accepted arm or mode command, and when the
+    autopilot changes mode itself (a failsafe's RTL: ArduCopter 4.5.6 sends it with
+    the change, off its 1 Hz beat); False: only at its 1 Hz beat, the new state
+    shown up to a second later (PX4)."""
     lockstep_setpoints: frozenset[str] = frozenset(
         ("SET_ACTUATOR_CONTROL_TARGET", "SET_ATTITUDE_TARGET")
     )
@@ -291,6 +294,8 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
         self.params_sent = 0
         self._pending: set[int] = set()
         self._last_heartbeat_wall_s = -math.inf
+        self._heartbeat_mode: int | None = None
+        """The mode the last HEARTBEAT showed."""
         # How old the sample a setpoint answers is when the setpoint is handled (its
         # time field against the simulation time): what the link added, s.
         self.setpoint_age_n = 0
@@ -560,6 +565,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
                 self._send_one(msg_id)
         if (
             self._heartbeat_now
+            or (self.heartbeat_on_change and self.autopilot.custom_mode != self._heartbeat_mode)
             or st.due(ID_HEARTBEAT, t_s)
             or wall_s - self._last_heartbeat_wall_s > 1.0
         ):
@@ -625,6 +631,7 @@ class MavlinkFace(MavlinkLink, ABC, Generic[P]):
             MAV_TYPE_QUADROTOR, self.mav_autopilot, ap.base_mode, ap.custom_mode, ap.system_status
         )
         self._last_heartbeat_wall_s = wall_s
+        self._heartbeat_mode = ap.custom_mode
 
     def _body_rates(self) -> tuple[float, float, float]:
         """The body rates HIGHRES_IMU and ATTITUDE carry: the IMU's gyro here."""

@@ -26,7 +26,8 @@ Flown against the real stacks (``sitl/lab/realstack``; docs/research/realstack.m
   "Failsafe activated", shows CRITICAL and flies ``COM_OBL_RC_ACT``'s mode
   (Position mode, POSCTL) while the joystick is there.
 * PX4 shows an accepted arming or mode change at its next 1 Hz HEARTBEAT;
-  ArduCopter sends a HEARTBEAT with the new mode at once.
+  ArduCopter sends a HEARTBEAT with the new mode at once, also when the mode is
+  its own failsafe's (RTL on a lost radio).
 
 Each face runs in this process on a real UDP socket with a ground station
 (``tests/sitl/udp_client.py``).
@@ -653,5 +654,43 @@ def test_ardupilot_shows_an_accepted_mode_at_once(profile: VehicleProfile, clien
         ]
         (hb,) = heartbeats(publish(face, client, 0.3))
         assert hb.custom_mode == CopterMode.STABILIZE
+    finally:
+        face.close()
+
+
+def test_ardupilot_shows_its_own_failsafe_mode_at_once(
+    profile: VehicleProfile, client: Client
+) -> None:
+    # The real ArduCopter 4.5.6, radio lost (SIM_RC_FAIL=1) in ALT_HOLD three times:
+    # the heartbeat showing RTL and CRITICAL came 1.097-1.098 s later each time, off
+    # its 1 Hz beat (the beats before it 0.093, 0.388 and 0.694 s after the loss).
+    face = copter_face(profile, client)
+    ap = face.autopilot
+    sticks = (1520, 1480, 1500, 1510, 1000, 1000)
+    try:
+        t = 0.0
+        while t < 1.0:
+            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
+            t += 0.0025
+        assert ap.arm(t, force=True) is MavResult.ACCEPTED
+        face.snapshot.sticks_us = sticks
+        beats = [t] * len(heartbeats(publish(face, client, t)))
+        assert beats  # the arming's
+        face.rc_lost = True
+        t_lost, changed_at = t + 0.5, None
+        while t < t_lost + 2.0:
+            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=None if t >= t_lost else sticks)
+            if changed_at is None and ap.mode == CopterMode.RTL:
+                changed_at = t
+            msgs = publish(face, client, t)
+            beats += [t] * len(heartbeats(msgs))
+            if changed_at == t:
+                (hb,) = heartbeats(msgs)
+                assert hb.custom_mode == CopterMode.RTL
+                assert hb.system_status == mavlink2.MAV_STATE_CRITICAL
+            t += 0.1
+        assert changed_at is not None and t_lost + 0.9 < changed_at < t_lost + 1.2
+        before = max(b for b in beats if b < changed_at)
+        assert changed_at - before < 0.9  # not the 1 Hz beat: sent with the change
     finally:
         face.close()
