@@ -189,19 +189,27 @@ def copter_face(profile: VehicleProfile, client: Client, **cfg: Any) -> ArduPilo
     return face.open()
 
 
+STICKS = (1520, 1480, 1500, 1510, 1000, 1000)
+
+
+def armed_with_sticks(face: ArduPilotFace, sticks: tuple[int, ...]) -> float:
+    """The face's ArduCopter given 1 s of ``sticks``, then armed; the time it armed."""
+    ap, t = face.autopilot, 0.0
+    while t < 1.0:
+        ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
+        t += 0.0025
+    assert ap.arm(t, force=True) is MavResult.ACCEPTED
+    face.snapshot.sticks_us = sticks
+    return t
+
+
 def test_ardupilot_radio_lost_keeps_rc_channels_frozen_and_fails_safe(
     profile: VehicleProfile, client: Client
 ) -> None:
     face = copter_face(profile, client)
     ap = face.autopilot
-    sticks = (1520, 1480, 1500, 1510, 1000, 1000)
     try:
-        t = 0.0
-        while t < 1.0:
-            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
-            t += 0.0025
-        assert ap.arm(t, force=True) is MavResult.ACCEPTED
-        face.snapshot.sticks_us = sticks
+        t = armed_with_sticks(face, STICKS)
         before = [m for m in publish(face, client, t) if m.get_type() == "RC_CHANNELS"]
         assert before[0].chancount == 6 and before[0].chan1_raw == 1520
         # Radio lost (the rc-lost fault): ArduPilot keeps the last values.
@@ -666,20 +674,14 @@ def test_ardupilot_shows_its_own_failsafe_mode_at_once(
     # its 1 Hz beat (the beats before it 0.093, 0.388 and 0.694 s after the loss).
     face = copter_face(profile, client)
     ap = face.autopilot
-    sticks = (1520, 1480, 1500, 1510, 1000, 1000)
     try:
-        t = 0.0
-        while t < 1.0:
-            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
-            t += 0.0025
-        assert ap.arm(t, force=True) is MavResult.ACCEPTED
-        face.snapshot.sticks_us = sticks
+        t = armed_with_sticks(face, STICKS)
         beats = [t] * len(heartbeats(publish(face, client, t)))
         assert beats  # the arming's
         face.rc_lost = True
         t_lost, changed_at = t + 0.5, None
         while t < t_lost + 2.0:
-            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=None if t >= t_lost else sticks)
+            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=None if t >= t_lost else STICKS)
             if changed_at is None and ap.mode == CopterMode.RTL:
                 changed_at = t
             msgs = publish(face, client, t)
