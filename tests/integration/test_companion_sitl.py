@@ -118,7 +118,12 @@ def test_sigterm_hands_back_and_exits_zero(tmp_path: Path) -> None:
         ("imu-nan@6", {"failsafe_invalid_imu"}),
         # A dropped link shows first as stale IMU and RC (0.5 s here), before the
         # 2 s heartbeat timeout.
-        ("link-drop@6", {"failsafe_stale_imu", "failsafe_rc_lost", "failsafe_link_lost"}),
+        # (Long: 27 s of real time; the app tests drop the link in memory.)
+        pytest.param(
+            "link-drop@6",
+            {"failsafe_stale_imu", "failsafe_rc_lost", "failsafe_link_lost"},
+            marks=pytest.mark.long,
+        ),
         # A dead motor cannot be flown out of on a quadrotor: it shows as an
         # envelope violation in the air or, if the vehicle hits the ground first
         # (the SITL then stops and all traffic with it), as a stale IMU or lost RC,

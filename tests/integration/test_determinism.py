@@ -35,12 +35,16 @@ at the step the companion armed, on a loaded machine, and a wait that times out
 is a different flight. The companion's hand-back ends the last wait at once."""
 
 
-# PX4 on the ideal link; ArduPilot through the main job's `uart` link (delays,
-# jitter, the link model's own streams of random numbers). The in-process
-# equivalence tests hold PX4 through `uart` to the deterministic in-process flight.
+# PX4 on the ideal link (long: 24 s); ArduPilot through the main job's `uart`
+# link (delays, jitter, the link model's own streams of random numbers). The
+# in-process equivalence tests hold PX4 through `uart` to the deterministic
+# in-process flight.
 @pytest.mark.parametrize(
     ("autopilot", "output", "duration_s", "link"),
-    [("px4", "actuator", 8.0, "ideal"), ("ardupilot", "rates", 4.0, "uart")],
+    [
+        pytest.param("px4", "actuator", 8.0, "ideal", marks=pytest.mark.long),
+        ("ardupilot", "rates", 4.0, "uart"),
+    ],
 )
 def test_two_lockstep_flights_of_one_seed_are_the_same(
     tmp_path: Path, autopilot: str, output: str, duration_s: float, link: str
