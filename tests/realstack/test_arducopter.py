@@ -93,7 +93,7 @@ def test_preflight_flags_each_badly_set_arducopter_parameter_with_its_fix(
         assert checks[name]["fix"], checks[name]
 
 
-def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
+def test_mfc_flies_arducopters_rate_loop_at_parity_with_passing_the_pilots_rates(
     copter: Session, figures: list[dict[str, Any]]
 ) -> None:
     errs = fly_rates_pair(copter, RATES, seed=12)
@@ -105,14 +105,16 @@ def test_mfc_flies_arducopters_rate_loop_better_than_passing_the_pilots_rates(
     ], errs
     # ArduCopter slews a rate setpoint at its ATC_ACCEL_*_MAX: most of the error of a
     # flip is that slew, which no setpoint can change (docs/research/realstack.md).
-    # Roll and pitch are at parity: MFC over pass-through measured 0.93-1.105 over ten
-    # full runs of this flight (two cores, some loaded; in the last five the
+    # Every axis is at parity. Roll and pitch: MFC over pass-through measured 0.93-1.105
+    # over ten full runs of this flight (two cores, some loaded; in the last five the
     # pass-through's roll 23.0-27.0 deg/s, MFC's 24.9-25.4), so a 15 % tie band that catches
-    # a law flying worse, not the spread (at 10 % one run in ten failed on it). Yaw,
-    # slower than its shaper, MFC is ahead in every run (25.0-25.4 against 26.6-27.0).
-    for axis in ("roll", "pitch"):
+    # a law flying worse, not the spread (at 10 % one run in ten failed on it). Yaw was
+    # ahead (25.0-25.4 against 26.6-27.0) until the law's correction was held within the
+    # slew's reach, which ended the bundled face's yaw limit cycle; since, 0.99-1.07 in
+    # eleven pairs (docs/research/realstack.md#ap-yaw-cycle). The band still catches
+    # that cycle (1.5-2.4x on the bundled face).
+    for axis in ("roll", "pitch", "yaw"):
         assert errs["mfc"][axis] <= 1.15 * errs["pass-through"][axis], (axis, errs)
-    assert errs["mfc"]["yaw"] < errs["pass-through"]["yaw"], errs
 
 
 @pytest.mark.parametrize("case", handback_cases("ardupilot"), ids=lambda c: c.id)
