@@ -36,6 +36,7 @@ def roll_deg(q: np.ndarray) -> np.ndarray:
     return np.degrees(np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y)))
 
 
+@pytest.mark.long
 def test_the_sticks_are_angles_and_centred_sticks_level(tmp_path: Path) -> None:
     sticks = tmp_path / "lean-right.yaml"
     sticks.write_text(SCRIPT, encoding="utf-8")

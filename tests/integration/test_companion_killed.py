@@ -46,6 +46,7 @@ def killed(tmp_path: Path, output: str, loss_s: float) -> tuple[KilledFlight, Ki
     return k, f
 
 
+@pytest.mark.long
 def test_a_torque_held_1_s_from_a_kill_mid_roll_runs_away(tmp_path: Path) -> None:
     _, f = killed(tmp_path, "actuator", 1.0)
     assert f.max_rate_deg_s > 3000.0, f.row()

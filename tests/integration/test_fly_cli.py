@@ -128,6 +128,7 @@ def test_rates_law_axes_reach_the_companion_it_flies(tmp_path: Path) -> None:
     assert meta["rates_law_axes"] == "yaw"
 
 
+@pytest.mark.long
 def test_a_scenario_with_its_own_duration_ends_without_a_failsafe(tmp_path: Path) -> None:
     """A scenario file's ``duration_s`` is the engaged flight's: the SITL flies on past
     it (the companion engages after arming, and hands back after), so the flight ends

@@ -165,6 +165,7 @@ def test_a_cluster_flies_the_records_of_a_local_run(local_run: Path, tmp_path: P
     assert (meta["scheduler"], meta["workers"], meta["flown_this_run"]) == (address, 2, 4)
 
 
+@pytest.mark.long
 def test_a_killed_client_resumes_and_flies_only_the_rest(tmp_path: Path, cluster: Any,
                                                          spawn: Any) -> None:  # fmt: skip
     address, _ = cluster

@@ -54,6 +54,7 @@ def test_does_not_worsen_its_start_and_spends_the_budget(tuned: tuple) -> None: 
             assert lo <= e["params"][name] <= hi
 
 
+@pytest.mark.long
 def test_same_seed_same_answer_whatever_the_workers(tuned: tuple) -> None:  # type: ignore[type-arg]
     result, history = tuned
     again, history2 = tune_pid(_tarot(), _slice(), budget=BUDGET, seed=7, workers=1)  # type: ignore[arg-type]
