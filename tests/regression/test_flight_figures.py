@@ -128,7 +128,15 @@ LINK_10MS_MAX_RATIO = 2.5
 """The target for 10 ms each way: within 2.5x of the ideal link's MAE, no crash."""
 
 
-@pytest.mark.parametrize(("profile", "link"), [_f450_or_long(*k) for k in sorted(LINK_FULL)])
+# The default run flies the F450's 10 ms case; USB-serial (a shorter delay on the same
+# link model) is a long check.
+@pytest.mark.parametrize(
+    ("profile", "link"),
+    [
+        pytest.param(*k, marks=pytest.mark.long) if k[1] == "usb-serial" else _f450_or_long(*k)
+        for k in sorted(LINK_FULL)
+    ],
+)
 def test_the_paper_flights_through_a_companion_link(profile: str, link: str) -> None:
     mae = _mae(profile, None, link)  # asserts no crash
     _check(mae, LINK_FULL[(profile, link)], 2)
