@@ -146,8 +146,9 @@ def test_failsafe_ends_in_hand_back(tmp_path: Path, fault: str, expected: set[st
     # A stopped IMU stops the setpoints too, and the autopilot holds the last one until
     # the companion hands back. The product's own --stale-imu-s (0.25 s), not the lab's
     # 0.5 s: held 0.5 s from the middle of paper-acro's wiggle, that torque tipped the
-    # F450 to 141 deg and cost 2.5 m (0.25 s: 48 deg, no height), and a loaded CI
-    # machine, judging a little later still, crashed it.
+    # F450 to 141-150 deg and cost 2.2-2.5 m in three flights (0.25 s: 21-108 deg, at
+    # most 1.4 m, in seven), and a loaded CI machine, judging a little later still,
+    # crashed it (docs/failsafes.md).
     stale = ("--stale-imu-s", "0.25") if fault.startswith("imu-stop") else ()
     flight = fly_mavlink(
         PROFILES / "f450.yaml", "paper-acro", tmp_path, duration_s=30.0,
