@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -192,24 +194,28 @@ def copter_face(profile: VehicleProfile, client: Client, **cfg: Any) -> ArduPilo
 STICKS = (1520, 1480, 1500, 1510, 1000, 1000)
 
 
-def armed_with_sticks(face: ArduPilotFace, sticks: tuple[int, ...]) -> float:
-    """The face's ArduCopter given 1 s of ``sticks``, then armed; the time it armed."""
-    ap, t = face.autopilot, 0.0
-    while t < 1.0:
-        ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=sticks)
-        t += 0.0025
-    assert ap.arm(t, force=True) is MavResult.ACCEPTED
-    face.snapshot.sticks_us = sticks
-    return t
+@contextmanager
+def armed_copter(profile: VehicleProfile, client: Client) -> Iterator[tuple[ArduPilotFace, float]]:
+    """A :func:`copter_face` given 1 s of ``STICKS``, then armed: the face and the time
+    it armed; closed after."""
+    face = copter_face(profile, client)
+    try:
+        ap, t = face.autopilot, 0.0
+        while t < 1.0:
+            ap.update(t, LEVEL, LEVEL, landed=False, sticks_us=STICKS)
+            t += 0.0025
+        assert ap.arm(t, force=True) is MavResult.ACCEPTED
+        face.snapshot.sticks_us = STICKS
+        yield face, t
+    finally:
+        face.close()
 
 
 def test_ardupilot_radio_lost_keeps_rc_channels_frozen_and_fails_safe(
     profile: VehicleProfile, client: Client
 ) -> None:
-    face = copter_face(profile, client)
-    ap = face.autopilot
-    try:
-        t = armed_with_sticks(face, STICKS)
+    with armed_copter(profile, client) as (face, t):
+        ap = face.autopilot
         before = [m for m in publish(face, client, t) if m.get_type() == "RC_CHANNELS"]
         assert before[0].chancount == 6 and before[0].chan1_raw == 1520
         # Radio lost (the rc-lost fault): ArduPilot keeps the last values.
@@ -232,8 +238,6 @@ def test_ardupilot_radio_lost_keeps_rc_channels_frozen_and_fails_safe(
         assert hb.custom_mode == CopterMode.RTL  # FS_THR_ENABLE 1
         texts = [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
         assert "Radio Failsafe" in texts
-    finally:
-        face.close()
 
 
 # ----------------------------------------------------------- ArduCopter arming
@@ -672,10 +676,8 @@ def test_ardupilot_shows_its_own_failsafe_mode_at_once(
     # The real ArduCopter 4.5.6, radio lost (SIM_RC_FAIL=1) in ALT_HOLD three times:
     # the heartbeat showing RTL and CRITICAL came 1.097-1.098 s later each time, off
     # its 1 Hz beat (the beats before it 0.093, 0.388 and 0.694 s after the loss).
-    face = copter_face(profile, client)
-    ap = face.autopilot
-    try:
-        t = armed_with_sticks(face, STICKS)
+    with armed_copter(profile, client) as (face, t):
+        ap = face.autopilot
         beats = [t] * len(heartbeats(publish(face, client, t)))
         assert beats  # the arming's
         face.rc_lost = True
@@ -694,5 +696,3 @@ def test_ardupilot_shows_its_own_failsafe_mode_at_once(
         assert changed_at is not None and t_lost + 0.9 < changed_at < t_lost + 1.2
         before = max(b for b in beats if b < changed_at)
         assert changed_at - before < 0.9  # not the 1 Hz beat: sent with the change
-    finally:
-        face.close()
